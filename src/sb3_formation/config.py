@@ -1,0 +1,299 @@
+"""Every parameter of the formation task in one frozen dataclass, and the thesis presets.
+
+Units are SI throughout: metres, seconds, kilograms, degrees only where the name says ``_deg``.
+The four thesis set-ups are data (:data:`PRESETS`), not code branches: a new preset is a new entry.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any, Literal
+
+#: Names of the reward terms, in the order of eq. (42); chapter 4's ``ref`` term (eq. 22) is ``dist``.
+REWARD_TERMS: tuple[str, ...] = ("time", "angle", "bearing", "dist", "centroid", "goal", "move", "velocity", "coll")
+
+#: Names of the curriculum placement layouts (see :mod:`sb3_formation.scenarios`).
+LAYOUTS: tuple[str, ...] = ("ch4", "ch5")
+
+
+@dataclass(frozen=True)
+class FormationConfig:
+    """All parameters of one formation task. Validated on construction.
+
+    :param world_width: width of the walled world (m), thesis 4.3 / 5.3
+    :param world_height: height of the walled world (m)
+    :param n_agents: number of agents n in the team (>= 3)
+    :param agent_radius: agent radius R_a (m)
+    :param agent_mass: agent mass m (kg)
+    :param v_max: maximum agent speed (m/s); speeds are clamped to it
+    :param max_force: force F_max (N) produced by an action of 1; ``None`` means m * v_max / dt,
+        so a full action reaches v_max from rest in one step
+    :param dt: environment step Delta t (s)
+    :param physics_substeps: Pymunk sub-steps inside one environment step
+    :param lidar_rays: number of lidar rays b x d, spread evenly over 360 deg starting at +x
+    :param lidar_range: lidar range l_s (m), measured from the agent's surface
+    :param d_ref: reference neighbour distance d^ref (m)
+    :param d_comm: communication range d^comm (m)
+    :param eta_c: centroid distance eta_c (m) (eq. 37; starting formation)
+    :param eta_g: goal radius eta_g (m): the goal is reached when the centroid is this close
+    :param max_steps: episode length T_s (steps): truncation, and r_late in chapter 5
+    :param formation_scale: starting n-gon size as a fraction of the largest one allowed by d_ref and eta_c, in (0, 1)
+    :param team_reward: every agent receives the team average (eqs 27-32) instead of its own reward
+    :param k_time: coefficient of the time term (eq. 33; 1 in eq. 42)
+    :param k_angle: K_angle, angle term (eq. 21 / 34)
+    :param k_bearing: K_bearing, bearing term (eq. 35)
+    :param k_dist: K_dist / K_ref, neighbour-distance term (eq. 22 / 36)
+    :param k_centroid: coefficient of the centroid term (eq. 37; 1 in eq. 42)
+    :param k_goal: K_goal, goal term (eq. 23 / 38)
+    :param k_move: K_move, smoothness term (eq. 25 / 40)
+    :param k_velocity: K_vel, velocity-alignment term (eq. 41)
+    :param k_coll: K_coll, collision term (eq. 24 / 39)
+    :param m_ang_deg: m_ang, angle-error scale (deg)
+    :param m_dist: m_dist / m_ref, distance-error scale (m)
+    :param r_c: centroid reward r_c
+    :param r_reached: goal reward r_reached
+    :param r_late: reward r_late at step T_s
+    :param k1: constant k_1 of the goal term
+    :param r_o: obstacle-collision reward r_o
+    :param r_j: agent-collision reward r_j
+    :param d_safe: safe gap d_safe (m) between an agent's surface and an obstacle's (walls included)
+    :param reward_clip: per-agent rewards are clipped to [-reward_clip, reward_clip] after summing
+    :param layout: curriculum placement layout, ``"ch4"`` (thesis 4.3) or ``"ch5"`` (thesis 5.3)
+    :param stage: curriculum stage 1, 2 or 3
+    :param stage_disabled_terms: for stages 1, 2, 3, the reward terms switched off in that stage
+    :param max_placement_tries: scenario draws before the sampler gives up with an error
+    :param placement_clearance: minimum gap (m) between a drawn obstacle and the start formation or the goal area
+    """
+
+    world_width: float = 15.0
+    world_height: float = 10.0
+    n_agents: int = 6
+    agent_radius: float = 0.2
+    agent_mass: float = 1.0
+    v_max: float = 0.05
+    max_force: float | None = None
+    dt: float = 0.3
+    physics_substeps: int = 2
+    lidar_rays: int = 90
+    lidar_range: float = 1.5
+    d_ref: float = 1.5
+    d_comm: float = 3.0
+    eta_c: float = 1.2
+    eta_g: float = 0.4
+    max_steps: int = 2500
+    formation_scale: float = 0.9
+    team_reward: bool = False
+    k_time: float = 1.0
+    k_angle: float = 0.0
+    k_bearing: float = 0.3
+    k_dist: float = 1.0
+    k_centroid: float = 1.0
+    k_goal: float = 0.5
+    k_move: float = 0.3
+    k_velocity: float = 0.1
+    k_coll: float = 0.5
+    m_ang_deg: float = 30.0
+    m_dist: float = 0.1
+    r_c: float = 0.01
+    r_reached: float = 4.0
+    r_late: float = -10.0
+    k1: float = -1.1
+    r_o: float = -5.0
+    r_j: float = -1.0
+    d_safe: float = 0.05
+    reward_clip: float = 10.0
+    layout: Literal["ch4", "ch5"] = "ch5"
+    stage: int = 1
+    stage_disabled_terms: tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]] = (
+        ("dist", "angle", "bearing"),
+        ("angle", "bearing"),
+        (),
+    )
+    max_placement_tries: int = 200
+    placement_clearance: float = 0.05
+
+    def __post_init__(self) -> None:
+        positive = (
+            "world_width world_height agent_radius agent_mass v_max dt lidar_range d_ref d_comm eta_c eta_g "
+            "m_ang_deg m_dist reward_clip"
+        ).split()
+        for name in positive:
+            _check(name, getattr(self, name), "a finite number > 0", lambda v: math.isfinite(v) and v > 0)
+        for name in "r_c r_reached r_late k1 r_o r_j".split() + [f"k_{t}" for t in REWARD_TERMS]:
+            _check(name, getattr(self, name), "a finite number", math.isfinite)
+        _check("d_safe", self.d_safe, "a finite number >= 0", lambda v: math.isfinite(v) and v >= 0)
+        _check("placement_clearance", self.placement_clearance, "a number >= 0", lambda v: math.isfinite(v) and v >= 0)
+        _check("max_force", self.max_force, "None or a number > 0", lambda v: v is None or (math.isfinite(v) and v > 0))
+        _check("n_agents", self.n_agents, "an integer >= 3", lambda v: _is_int(v) and v >= 3)
+        for name in ("physics_substeps", "lidar_rays", "max_steps", "max_placement_tries"):
+            _check(name, getattr(self, name), "an integer >= 1", lambda v: _is_int(v) and v >= 1)
+        _check("stage", self.stage, "1, 2 or 3", lambda v: _is_int(v) and v in (1, 2, 3))
+        _check("formation_scale", self.formation_scale, "in (0, 1)", lambda v: 0 < v < 1)
+        _check("layout", self.layout, f"one of {LAYOUTS}", lambda v: v in LAYOUTS)
+        _check("team_reward", self.team_reward, "True or False", lambda v: isinstance(v, bool))
+        if self.d_comm <= self.d_ref:
+            raise ValueError(f"d_comm={self.d_comm} must be > d_ref={self.d_ref}")
+        disabled = tuple(tuple(stage_terms) for stage_terms in self.stage_disabled_terms)
+        if len(disabled) != 3:
+            raise ValueError(f"stage_disabled_terms must list the disabled terms of stages 1, 2 and 3, got {disabled!r}")
+        for stage_terms in disabled:
+            unknown = sorted(set(stage_terms) - set(REWARD_TERMS))
+            if unknown:
+                raise ValueError(f"stage_disabled_terms names unknown reward terms {unknown}; valid: {list(REWARD_TERMS)}")
+        object.__setattr__(self, "stage_disabled_terms", disabled)
+        side = self.start_side_length
+        if side <= 2 * self.agent_radius:
+            raise ValueError(
+                f"n_agents={self.n_agents} does not fit the starting formation: its side {side:.3f} m "
+                f"(from d_ref, eta_c, formation_scale) is below the agent diameter {2 * self.agent_radius:.3f} m"
+            )
+        extent = 2 * (self.start_circumradius + self.agent_radius)
+        if extent >= min(self.world_width, self.world_height):
+            raise ValueError(f"the starting formation ({extent:.2f} m across) does not fit the world")
+
+    # Derived values -------------------------------------------------------------------------------------------
+
+    @property
+    def force_max(self) -> float:
+        """F_max (N): the force of a unit action; m * v_max / dt unless ``max_force`` is set."""
+        return self.max_force if self.max_force is not None else self.agent_mass * self.v_max / self.dt
+
+    @property
+    def beta_ref_deg(self) -> float:
+        """Reference angle beta^ref (deg): the interior angle (n - 2) * 180 / n of the regular n-gon (Tables 4.1, 5.1)."""
+        return (self.n_agents - 2) * 180.0 / self.n_agents
+
+    @property
+    def start_circumradius(self) -> float:
+        """Circumradius (m) of the starting n-gon: every side below d_ref, every agent within eta_c of the centroid."""
+        largest = min(self.eta_c, self.d_ref / (2.0 * math.sin(math.pi / self.n_agents)))
+        return self.formation_scale * largest
+
+    @property
+    def start_side_length(self) -> float:
+        """Side (m) of the starting n-gon."""
+        return 2.0 * self.start_circumradius * math.sin(math.pi / self.n_agents)
+
+    @property
+    def world_diagonal(self) -> float:
+        """Length (m) of the world's diagonal: the largest distance between two points in it."""
+        return math.hypot(self.world_width, self.world_height)
+
+    def reward_coefficients(self, stage: int | None = None) -> dict[str, float]:
+        """Coefficient of every reward term in ``stage`` (default: ``self.stage``), with the stage's disabled terms at 0."""
+        stage = self.stage if stage is None else stage
+        disabled = self.stage_disabled_terms[stage - 1]
+        return {term: 0.0 if term in disabled else float(getattr(self, f"k_{term}")) for term in REWARD_TERMS}
+
+    # Construction ---------------------------------------------------------------------------------------------
+
+    @classmethod
+    def field_names(cls) -> tuple[str, ...]:
+        """Names of every field, for overrides and YAML files."""
+        return tuple(f.name for f in dataclasses.fields(cls))
+
+    @classmethod
+    def preset(cls, name: str, **overrides: Any) -> FormationConfig:
+        """The configuration of thesis set-up ``name`` (see :data:`PRESETS`), with ``overrides`` applied.
+
+        :param name: ``"ch4-individual"``, ``"ch4-team"``, ``"ch5-angle"`` or ``"ch5-bearing"``
+        :param overrides: field values replacing the preset's
+        """
+        if name not in PRESETS:
+            raise ValueError(f"unknown preset {name!r}; valid presets: {sorted(PRESETS)}")
+        unknown = sorted(set(overrides) - set(cls.field_names()))
+        if unknown:
+            raise ValueError(f"unknown FormationConfig field(s) {unknown}; valid fields: {list(cls.field_names())}")
+        return cls(**{**PRESETS[name], **overrides})
+
+    def replace(self, **changes: Any) -> FormationConfig:
+        """A copy with ``changes`` applied (validated like a new config)."""
+        unknown = sorted(set(changes) - set(self.field_names()))
+        if unknown:
+            raise ValueError(f"unknown FormationConfig field(s) {unknown}; valid fields: {list(self.field_names())}")
+        return dataclasses.replace(self, **changes)
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _check(name: str, value: Any, allowed: str, ok: Any) -> None:
+    try:
+        valid = bool(ok(value))
+    except TypeError:
+        valid = False
+    if not valid:
+        raise ValueError(f"FormationConfig.{name}={value!r} is invalid: it must be {allowed}")
+
+
+# Thesis presets ------------------------------------------------------------------------------------------------
+
+#: Chapter 4 (angle reward, n = 3): Table 4.1. Chapter 4 uses but does not list k_1, eta_c, r_c and r_late;
+#: they come from Table 5.1 (k_1 = -1.1, eta_c = 1.2 m; r_c and r_late are inactive since eq. 26 has no
+#: centroid or time term, so k_centroid = k_time = 0). K_ref of eq. (26) is ``k_dist``, m_ref is ``m_dist``.
+_CH4: dict[str, Any] = {
+    "n_agents": 3,
+    "k_goal": 0.5,  # Table 4.1
+    "k_dist": 2.0,  # Table 4.1, K_ref
+    "k_angle": 0.4,  # Table 4.1
+    "k_move": 2.0,  # Table 4.1
+    "k_coll": 1.0,  # Table 4.1
+    "k_bearing": 0.0,  # eq. 26 has no bearing term
+    "k_velocity": 0.0,  # eq. 26 has no velocity term
+    "k_centroid": 0.0,  # eq. 26 has no centroid term
+    "k_time": 0.0,  # eq. 26 has no time term
+    "r_reached": 9.0,  # Table 4.1
+    "eta_g": 0.5,  # Table 4.1
+    "m_ang_deg": 30.0,  # Table 4.1; beta^f = 60 deg is the interior angle for n = 3 (beta_ref_deg)
+    "d_ref": 2.4,  # Table 4.1
+    "d_comm": 3.0,  # Table 4.1
+    "m_dist": 0.1,  # Table 4.1, m^ref
+    "r_o": -6.0,  # Table 4.1
+    "r_j": -1.0,  # Table 4.1
+    "d_safe": 0.02,  # Table 4.1
+    "k1": -1.1,  # Table 5.1 (not listed in Table 4.1)
+    "eta_c": 1.2,  # Table 5.1 (starting formation)
+    "r_c": 0.01,  # Table 5.1 (inactive)
+    "r_late": -10.0,  # Table 5.1 (inactive)
+    "layout": "ch4",  # thesis 4.3
+    "stage_disabled_terms": (("angle",), (), ()),  # phase 1: no angle requirement (thesis 4.3)
+}
+
+#: Chapter 5 (n = 6): Table 5.1; K_angle / K_bearing as in section 5.3 (0.3 for the scheme in use, 0 for the other).
+_CH5: dict[str, Any] = {
+    "n_agents": 6,
+    "k_goal": 0.5,  # Table 5.1
+    "k_dist": 1.0,  # Table 5.1
+    "k_move": 0.3,  # Table 5.1
+    "k_velocity": 0.1,  # Table 5.1
+    "k_coll": 0.5,  # Table 5.1
+    "k_time": 1.0,  # eq. 42
+    "k_centroid": 1.0,  # eq. 42
+    "r_c": 0.01,  # Table 5.1
+    "r_reached": 4.0,  # Table 5.1
+    "r_late": -10.0,  # Table 5.1
+    "eta_g": 0.4,  # Table 5.1
+    "eta_c": 1.2,  # Table 5.1
+    "m_ang_deg": 30.0,  # Table 5.1; beta^ref = 120 deg is the interior angle for n = 6 (beta_ref_deg)
+    "d_ref": 1.5,  # Table 5.1
+    "d_comm": 3.0,  # Table 5.1
+    "m_dist": 0.1,  # Table 5.1
+    "k1": -1.1,  # Table 5.1
+    "r_o": -5.0,  # Table 5.1
+    "r_j": -1.0,  # Table 5.1
+    "d_safe": 0.05,  # Table 5.1
+    "layout": "ch5",  # thesis 5.3
+    # stage 1: centroid term only; stage 2: + neighbour distance; stage 3: + shape (design.md)
+    "stage_disabled_terms": (("dist", "angle", "bearing"), ("angle", "bearing"), ()),
+}
+
+#: The four thesis set-ups. Any ``n_agents`` >= 3 may be combined with any of them.
+PRESETS: dict[str, dict[str, Any]] = {
+    "ch4-individual": {**_CH4, "team_reward": False},  # thesis 4.1.1, Policy 1
+    "ch4-team": {**_CH4, "team_reward": True},  # thesis 4.1.1 (team), Policy 2
+    "ch5-angle": {**_CH5, "k_angle": 0.3, "k_bearing": 0.0},  # thesis 5.3, Policy 1
+    "ch5-bearing": {**_CH5, "k_angle": 0.0, "k_bearing": 0.3},  # thesis 5.3, Policy 2
+}

@@ -1,0 +1,335 @@
+"""``FormationEnv``: one team of agents as a PettingZoo ``ParallelEnv``."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import gymnasium
+import numpy as np
+from gymnasium.utils import seeding
+from pettingzoo import ParallelEnv
+
+from .config import REWARD_TERMS, FormationConfig
+from .geometry import FormationState, measure_formation, reference_bearings, ring_neighbours
+from .observations import build_observations, observation_fields, observation_layout
+from .rewards import combine_rewards, nearest_gaps, reward_constants, reward_terms
+from .scenarios import Scenario, sample_scenario
+from .sensors import Lidar
+from .world import World
+
+AgentID = str
+
+
+class FormationEnv(ParallelEnv):
+    """A team of n holonomic second-order agents that must bring its centroid to a goal, in formation, around obstacles.
+
+    Thesis: chapters 3-5; every interpretation is pinned in ``design.md``. Agents are ``"agent_0"`` ...
+    ``"agent_{n-1}"``; agent_0 is the thesis's agent 1. Agent i's designated neighbours are agents i - 1 and i + 1
+    (mod n); the reference shape is the regular n-gon traversed anti-clockwise 0 -> 1 -> ... -> n-1.
+
+    ## Action Space
+
+    ``Box(-1, 1, (2,), float32)`` per agent: the force (F_x, F_y) as a fraction of F_max (N), eq. 19.
+    Actions outside [-1, 1] are clipped; NaN, infinite or wrongly shaped actions raise ``ValueError``.
+
+    ## Observation Space
+
+    ``Box(low, high, (211,), float32)`` per agent for 90 lidar rays (thesis Table 3.1). Raw values; bounds are
+    honest (every reachable value lies inside). ``env.observation_layout`` maps each field to its slice.
+
+    | index     | field                          | meaning (Table 3.1)                                      | unit  |
+    |-----------|--------------------------------|----------------------------------------------------------|-------|
+    | 0-89      | lidar_obstacles                | l: obstacles and walls, distance / range, 1 = nothing    | -     |
+    | 90-179    | lidar_agents                   | l: agents except self and neighbours, as above           | -     |
+    | 180-181   | velocity                       | v^i                                                      | m/s   |
+    | 182-185   | neighbour_offsets              | d_j^iv = p^j - p^i, preceding (x, y) then succeeding     | m     |
+    | 186-189   | neighbour_relative_velocities  | v^j - v^i, preceding then succeeding                     | m/s   |
+    | 190-191   | goal_offset                    | d_g^iv = p^g - p^i                                       | m     |
+    | 192-193   | centroid_goal_offset           | c_g^v = p^g - p^c                                        | m     |
+    | 194-195   | centroid_goal_offset_change    | c_g,t^v - c_g,t-1^v (0 after reset)                      | m     |
+    | 196-197   | neighbour_distances            | d_j^i                                                    | m     |
+    | 198       | centroid_distance              | d_c^i                                                    | m     |
+    | 199-200   | neighbour_distance_errors      | d_j^i - d^ref                                            | m     |
+    | 201       | centroid_distance_error        | eta_c - d_c^i                                            | m     |
+    | 202       | angle_error                    | beta^ref - beta^i                                        | deg   |
+    | 203-204   | neighbour_angle_errors         | beta^ref - beta^j of the preceding, succeeding neighbour | deg   |
+    | 205       | flag_orientation               | 1 if beta^i in (0, 180)                                  | 0/1   |
+    | 206       | flag_range                     | 1 if every agent is within d^ref of its neighbours       | 0/1   |
+    | 207       | time_step                      | t                                                        | steps |
+    | 208-209   | previous_action                | a_t-1^i (0 after reset)                                  | -     |
+    | 210       | previous_reward                | r_t-1^i (0 after reset)                                  | -     |
+
+    ## Rewards
+
+    Per agent, the weighted sum of the terms below (coefficients: ``FormationConfig``, presets from Tables 4.1 and
+    5.1), terms of the stage's ``stage_disabled_terms`` left out, clipped to [-10, 10]. ``infos[agent]["reward_terms"]``
+    holds every term before its coefficient. With ``team_reward`` each per-agent term is replaced by its team average
+    and ``coll`` by the team collision term (eqs 27-32).
+
+    | term     | equation  | value                                                                          |
+    |----------|-----------|--------------------------------------------------------------------------------|
+    | time     | 33        | r_late on the step that reaches T_s, else 0                                    |
+    | angle    | 21, 34    | -abs(beta^ref - beta^i) / m_ang                                                |
+    | bearing  | 35        | -0.5 * mean over the two neighbours of norm(g_ref - g)                         |
+    | dist     | 22, 36    | -mean over neighbours of max(d_j - d^ref, 0) / m_dist                          |
+    | centroid | 37        | r_c if d_c^i <= eta_c, else 0                                                  |
+    | goal     | 23, 38    | r_reached if the centroid is within eta_g of the goal, else k_1 + progress / (dt v_max) |
+    | move     | 25, 40    | -angle between v_t^i and v_t+1^i (rad; 0 if either is still)                   |
+    | velocity | 41        | -mean over neighbours of the angle between v_t+1^i and v_t^j (rad)             |
+    | coll     | 24, 39    | r_j if any agent is within 2 R_a, else r_o if an obstacle or wall is closer than d_safe, else 0 |
+
+    ## Episode End
+
+    Termination: the centroid is within eta_g of the goal (every agent gets r_reached). Truncation: ``max_steps``
+    (T_s) steps. Contacts never end an episode. After either, ``env.agents`` is empty until ``reset``.
+
+    ## Info
+
+    After reset and after every step, ``infos[agent]`` has ``angle_error_deg`` (abs), ``bearing_error`` (mean over the
+    two neighbours of norm(g_ref - g)), ``neighbour_distance_error`` (m, mean positive part), ``centroid_distance`` (m,
+    agent to centroid), ``goal_distance`` (m, centroid to goal), ``collisions_obstacle`` and ``collisions_agent``
+    (obstacles or walls, and other agents, touched during this step; a pair is counted once per step), ``success``
+    and ``reward_terms``.
+
+    ## Reset options
+
+    ``options={"scenario": Scenario(...)}`` places everything by hand (validated against the config); otherwise the
+    scenario of the current curriculum stage is drawn from the env's own generator. Other keys are ignored, as
+    Gymnasium environments do.
+
+    :param config: task configuration; default ``FormationConfig()``
+    :param render_mode: ``None``, ``"rgb_array"`` or ``"human"`` (a window; needs the ``human`` extra, pygame)
+    :param render_lidar: draw the lidar rays in renderings
+    """
+
+    metadata = {"render_modes": ["human", "rgb_array"], "name": "formation_v0", "render_fps": 20, "is_parallelizable": True}
+
+    def __init__(self, config: FormationConfig | None = None, render_mode: str | None = None, render_lidar: bool = False):
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode={render_mode!r} is not supported; use one of {self.metadata['render_modes']} or None")
+        self.config = config if config is not None else FormationConfig()
+        self.render_mode = render_mode
+        self.render_lidar = render_lidar
+        n_agents = self.config.n_agents
+        self.possible_agents: list[AgentID] = [f"agent_{index}" for index in range(n_agents)]
+        self.agents: list[AgentID] = []
+        self._agent_index = {agent: index for index, agent in enumerate(self.possible_agents)}
+        self._fields = observation_fields(self.config)
+        self.observation_layout: dict[str, slice] = observation_layout(self._fields)
+        low = np.concatenate([field.low for field in self._fields]).astype(np.float32)
+        high = np.concatenate([field.high for field in self._fields]).astype(np.float32)
+        observation_space = gymnasium.spaces.Box(low, high, dtype=np.float32)
+        action_space = gymnasium.spaces.Box(-1.0, 1.0, (2,), dtype=np.float32)
+        self.observation_spaces = dict.fromkeys(self.possible_agents, observation_space)
+        self.action_spaces = dict.fromkeys(self.possible_agents, action_space)
+        self._observation_buffer = np.empty((n_agents, observation_space.shape[0]), dtype=np.float32)
+        self.binary_observation_mask = np.concatenate([np.full(field.size, field.binary) for field in self._fields])
+        self.neighbours = ring_neighbours(n_agents)
+        self.reference_bearings = reference_bearings(n_agents)
+        config = self.config
+        self.lidar = Lidar(
+            config.lidar_rays, config.lidar_range, config.agent_radius, config.world_width, config.world_height, self.neighbours
+        )
+        self._reward_constants = reward_constants(config)
+        self.set_stage(self.config.stage)
+        self.np_random, self.np_random_seed = seeding.np_random()
+        self.scenario: Scenario | None = None
+        self.world: World | None = None
+        self._renderer: Any = None
+
+    def observation_space(self, agent: AgentID) -> gymnasium.spaces.Box:
+        return self.observation_spaces[agent]
+
+    def action_space(self, agent: AgentID) -> gymnasium.spaces.Box:
+        return self.action_spaces[agent]
+
+    def set_stage(self, stage: int) -> None:
+        """Switch the curriculum stage (1, 2 or 3); takes effect for rewards at once and for placements at the next reset."""
+        if stage not in (1, 2, 3):
+            raise ValueError(f"stage must be 1, 2 or 3, got {stage!r}")
+        self.stage = stage
+        coefficients = self.config.reward_coefficients(stage)
+        self._coefficients = np.array([coefficients[name] for name in REWARD_TERMS])
+
+    # Episode ------------------------------------------------------------------------------------------------------
+
+    def reset(
+        self, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[AgentID, np.ndarray], dict[AgentID, dict[str, Any]]]:
+        if seed is not None:
+            self.np_random, self.np_random_seed = seeding.np_random(seed)
+        scenario = (options or {}).get("scenario")
+        if scenario is None:
+            scenario = sample_scenario(self.config, self.stage, self.np_random)
+        elif not isinstance(scenario, Scenario):
+            raise TypeError(f"options['scenario'] must be a Scenario, got {type(scenario).__name__}")
+        else:
+            scenario.validate(self.config)
+        n_agents = self.config.n_agents
+        self.scenario = scenario
+        self.world = World(self.config, scenario)
+        self.goal = scenario.goal
+        self.obstacles = scenario.obstacles
+        self.lidar.set_obstacles(scenario.obstacles)
+        self.agents = list(self.possible_agents)
+        self.step_count = 0
+        self.previous_actions = np.zeros((n_agents, 2))
+        self.previous_rewards = np.zeros(n_agents)
+        self.formation = self._measure()
+        self.goal_distance = self._goal_distance()
+        self._previous_centroid_goal_offset = self.goal - self.formation.centroid
+        zeros = [0] * n_agents
+        terms = np.zeros((len(REWARD_TERMS), n_agents))
+        infos = self._infos(zeros, zeros, terms, success=False)
+        return dict(zip(self.agents, self._observations())), infos
+
+    def step(self, actions: dict[AgentID, np.ndarray]) -> tuple[dict, dict, dict, dict, dict]:
+        if not self.agents:
+            raise RuntimeError("step() called on a finished episode (or before reset()); call reset() first")
+        clipped = self._action_array(actions)
+        config, world = self.config, self.world
+        previous_velocities = world.velocities
+        previous_goal_distance = self.goal_distance
+        agent_contacts, obstacle_contacts = world.step(clipped * config.force_max)
+        self.step_count += 1
+        self._previous_centroid_goal_offset = self.goal - self.formation.centroid
+        self.formation = self._measure()
+        self.goal_distance = self._goal_distance()
+        nearest_agent, nearest_obstacle = nearest_gaps(
+            world.positions, config.agent_radius, self.obstacles, config.world_width, config.world_height
+        )
+        terms = reward_terms(
+            config,
+            self.step_count,
+            self.formation,
+            previous_goal_distance,
+            self.goal_distance,
+            previous_velocities,
+            world.velocities,
+            self.neighbours,
+            nearest_agent,
+            nearest_obstacle,
+            self._reward_constants,
+        )
+        rewards = combine_rewards(terms, self._coefficients, config.reward_clip)
+        success = self.goal_distance <= config.eta_g
+        truncated = not success and self.step_count >= config.max_steps
+        self.previous_actions = clipped
+        self.previous_rewards = rewards
+        observations = self._observations()
+        infos = self._infos(agent_contacts, obstacle_contacts, terms, success)
+        agents = self.agents
+        if success or truncated:
+            self.agents = []
+        return (
+            dict(zip(agents, observations)),
+            dict(zip(agents, rewards.tolist())),
+            dict.fromkeys(agents, success),
+            dict.fromkeys(agents, truncated),
+            infos,
+        )
+
+    # Internals ----------------------------------------------------------------------------------------------------
+
+    def _action_array(self, actions: dict[AgentID, np.ndarray]) -> np.ndarray:
+        """Validate the action of every agent and return them clipped to [-1, 1] as an ``(n, 2)`` array."""
+        try:
+            array = np.array([actions[agent] for agent in self.agents], dtype=np.float64)
+        except (KeyError, ValueError, TypeError):
+            array = None
+        if array is None or array.shape != (len(self.agents), 2) or len(actions) != len(self.agents):
+            self._raise_for_actions(actions)
+        if not np.isfinite(array).all():
+            bad = self.agents[int(np.flatnonzero(~np.isfinite(array).all(axis=1))[0])]
+            raise ValueError(f"action of {bad} is not finite: {np.asarray(actions[bad]).tolist()}")
+        return np.clip(array, -1.0, 1.0)
+
+    def _raise_for_actions(self, actions: dict[AgentID, np.ndarray]) -> None:
+        missing = [agent for agent in self.agents if agent not in actions]
+        if missing:
+            raise ValueError(f"no action given for {missing}")
+        unknown = [agent for agent in actions if agent not in self.agents]
+        if unknown:
+            raise ValueError(f"actions given for agents that are not live: {unknown}; live agents are {self.agents}")
+        for agent in self.agents:
+            shape = np.shape(actions[agent])
+            if shape != (2,):
+                raise ValueError(f"action of {agent} must have shape (2,), got {shape}")
+        raise ValueError(f"actions must be numbers, got {actions!r}")
+
+    def _goal_distance(self) -> float:
+        """Distance (m) from the centroid to the goal."""
+        return math.hypot(self.goal[0] - self.formation.centroid[0], self.goal[1] - self.formation.centroid[1])
+
+    def _measure(self) -> FormationState:
+        return measure_formation(
+            self.world.positions, self.neighbours, self.reference_bearings, self.config.beta_ref_deg, self.config.d_ref
+        )
+
+    def _observations(self) -> np.ndarray:
+        lidar_obstacles, lidar_agents = self.lidar.scan(self.world.positions)
+        return build_observations(
+            self._observation_buffer,
+            self.observation_layout,
+            lidar_obstacles,
+            lidar_agents,
+            self.world.positions,
+            self.world.velocities,
+            self.goal,
+            self.formation,
+            self._previous_centroid_goal_offset,
+            self.neighbours,
+            self.config,
+            self.step_count,
+            self.previous_actions,
+            self.previous_rewards,
+        )
+
+    def _infos(
+        self, agent_contacts: list[int], obstacle_contacts: list[int], terms: np.ndarray, success: bool
+    ) -> dict[AgentID, dict[str, Any]]:
+        formation = self.formation
+        columns = {
+            "angle_error_deg": np.abs(formation.angle_errors_deg).tolist(),
+            "bearing_error": (0.5 * formation.bearing_errors.sum(axis=1)).tolist(),
+            "neighbour_distance_error": (
+                0.5 * np.maximum(formation.neighbour_distances - self.config.d_ref, 0.0).sum(axis=1)
+            ).tolist(),
+            "centroid_distance": formation.centroid_distances.tolist(),
+            "collisions_obstacle": obstacle_contacts,
+            "collisions_agent": agent_contacts,
+        }
+        term_rows = terms.T.tolist()
+        infos = {}
+        for index, agent in enumerate(self.agents):
+            info = {name: values[index] for name, values in columns.items()}
+            info["goal_distance"] = self.goal_distance
+            info["success"] = success
+            info["reward_terms"] = dict(zip(REWARD_TERMS, term_rows[index]))
+            infos[agent] = info
+        return infos
+
+    # Rendering ----------------------------------------------------------------------------------------------------
+
+    def render(self) -> np.ndarray | None:
+        """``rgb_array``: an ``(H, W, 3)`` uint8 image of the world; ``human``: draw it in a window."""
+        if self.render_mode is None:
+            gymnasium.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' or 'human'")
+            return None
+        if self.world is None:
+            raise RuntimeError("render() called before reset()")
+        from .rendering import HumanWindow, render_frame
+
+        frame = render_frame(self, draw_lidar=self.render_lidar)
+        if self.render_mode == "rgb_array":
+            return frame
+        if self._renderer is None:
+            self._renderer = HumanWindow(frame.shape[1], frame.shape[0], self.metadata["render_fps"])
+        self._renderer.show(frame)
+        return None
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None

@@ -1,0 +1,167 @@
+"""Formation geometry: ring neighbours, bearings, angles and errors. Pure numpy functions.
+
+Conventions (design.md): agent indices are 0-based (agent 0 is the thesis's agent 1); agent i's designated
+neighbours are ``(i - 1) % n`` (preceding) and ``(i + 1) % n`` (succeeding); bearings are unit vectors in the
+world frame; angles are in degrees.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numba
+import numpy as np
+
+#: Below this distance (m) two points are taken as coincident and their bearing is the zero vector.
+COINCIDENT_DISTANCE = 1e-12
+
+
+def ring_neighbours(n_agents: int) -> np.ndarray:
+    """Designated neighbours N_2^i of every agent on the ring.
+
+    :param n_agents: team size n (>= 3)
+    :return: ``(n, 2)`` int array; column 0 is the preceding agent i - 1, column 1 the succeeding agent i + 1 (mod n)
+    """
+    index = np.arange(n_agents)
+    return np.stack([(index - 1) % n_agents, (index + 1) % n_agents], axis=1)
+
+
+def interior_angle_deg(n_agents: int) -> float:
+    """Interior angle (deg) of the regular n-gon: the reference angle beta^ref."""
+    return (n_agents - 2) * 180.0 / n_agents
+
+
+def edge_angles_deg(n_agents: int) -> np.ndarray:
+    """Angle phi_i (deg) of the reference bearing from vertex i to vertex i + 1: 180/n + i * 360/n (0-based i)."""
+    return 180.0 / n_agents + np.arange(n_agents) * 360.0 / n_agents
+
+
+def reference_bearings(n_agents: int) -> np.ndarray:
+    """Reference unit bearings g_j^{i,ref} of the anti-clockwise regular n-gon (Table 5.2, normalised, for n = 6).
+
+    :param n_agents: team size n
+    :return: ``(n, 2, 2)`` array: ``[i, 0]`` towards the preceding neighbour, ``[i, 1]`` towards the succeeding one
+    """
+    phi = np.deg2rad(edge_angles_deg(n_agents))
+    to_next = np.stack([np.cos(phi), np.sin(phi)], axis=1)  # from i to i + 1
+    to_previous = -np.roll(to_next, 1, axis=0)  # from i to i - 1 is minus (from i - 1 to i)
+    return np.stack([to_previous, to_next], axis=1)
+
+
+def reference_polygon(n_agents: int, circumradius: float) -> np.ndarray:
+    """Vertices of the reference n-gon around the origin, vertex i at angle i * 360/n - 90 deg (agent 0 at the bottom).
+
+    Traversed 0 -> 1 -> ... anti-clockwise, so the bearing from vertex i to i + 1 is :func:`edge_angles_deg`.
+
+    :param n_agents: team size n
+    :param circumradius: distance (m) of every vertex from the centre
+    :return: ``(n, 2)`` positions (m) relative to the centroid
+    """
+    theta = np.deg2rad(np.arange(n_agents) * 360.0 / n_agents - 90.0)
+    return circumradius * np.stack([np.cos(theta), np.sin(theta)], axis=1)
+
+
+def unit_vectors(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vectors and norms of ``vectors`` (last axis of size 2); coincident points give the zero vector.
+
+    :param vectors: ``(..., 2)`` array
+    :return: ``(units, norms)`` with shapes ``(..., 2)`` and ``(...)``
+    """
+    norms = np.hypot(vectors[..., 0], vectors[..., 1])
+    safe = np.where(norms > COINCIDENT_DISTANCE, norms, np.inf)
+    return vectors / safe[..., None], norms
+
+
+def formation_angles_deg(bearings: np.ndarray) -> np.ndarray:
+    """Angle beta^i (deg, in [0, 360)): anti-clockwise from the bearing to the succeeding to the bearing to the preceding neighbour.
+
+    :param bearings: ``(n, 2, 2)`` unit bearings, ``[:, 0]`` to the preceding and ``[:, 1]`` to the succeeding neighbour
+    :return: ``(n,)`` angles in degrees
+    """
+    heading = np.degrees(np.arctan2(bearings[..., 1], bearings[..., 0]))
+    return np.mod(heading[:, 0] - heading[:, 1], 360.0)
+
+
+class FormationState(NamedTuple):
+    """Everything the observation, the reward and ``info`` need to know about the team's shape, at one instant.
+
+    Shapes: n agents; the neighbour axis is (preceding, succeeding).
+    """
+
+    centroid: np.ndarray  #: (2,) centroid p^c (m), eq. 20
+    centroid_distances: np.ndarray  #: (n,) |p^i - p^c| (m)
+    neighbour_offsets: np.ndarray  #: (n, 2, 2) p^j - p^i (m)
+    neighbour_distances: np.ndarray  #: (n, 2) |p^j - p^i| (m)
+    bearings: np.ndarray  #: (n, 2, 2) unit bearings g_j^i, eq. 16
+    angles_deg: np.ndarray  #: (n,) beta^i (deg)
+    angle_errors_deg: np.ndarray  #: (n,) signed beta^ref - beta^i (deg)
+    bearing_errors: np.ndarray  #: (n, 2) |g_j^{i,ref} - g_j^i|
+    orientation_flags: np.ndarray  #: (n,) bool: beta^i in (0, 180)
+    range_flag: bool  #: every agent within d_ref of each of its neighbours
+
+
+def measure_formation(
+    positions: np.ndarray,
+    neighbours: np.ndarray,
+    reference: np.ndarray,
+    beta_ref_deg: float,
+    d_ref: float,
+) -> FormationState:
+    """Measure the team's formation.
+
+    :param positions: ``(n, 2)`` agent positions (m)
+    :param neighbours: ``(n, 2)`` neighbour indices from :func:`ring_neighbours`
+    :param reference: ``(n, 2, 2)`` reference bearings from :func:`reference_bearings`
+    :param beta_ref_deg: reference angle beta^ref (deg)
+    :param d_ref: reference neighbour distance d^ref (m)
+    """
+    centroid, centroid_distances, offsets, distances, bearings, angles, bearing_errors = _measure(
+        np.ascontiguousarray(positions, dtype=np.float64), neighbours, reference
+    )
+    return FormationState(
+        centroid=centroid,
+        centroid_distances=centroid_distances,
+        neighbour_offsets=offsets,
+        neighbour_distances=distances,
+        bearings=bearings,
+        angles_deg=angles,
+        angle_errors_deg=beta_ref_deg - angles,
+        bearing_errors=bearing_errors,
+        orientation_flags=(angles > 0.0) & (angles < 180.0),
+        range_flag=bool((distances <= d_ref).all()),
+    )
+
+
+@numba.njit(cache=True)
+def _measure(
+    positions: np.ndarray, neighbours: np.ndarray, reference: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """Compiled core of :func:`measure_formation` (the same formulas as the numpy functions above, in one loop)."""
+    n_agents, n_neighbours = positions.shape[0], neighbours.shape[1]
+    centroid = np.empty(2)
+    centroid[0] = positions[:, 0].sum() / n_agents
+    centroid[1] = positions[:, 1].sum() / n_agents
+    centroid_distances = np.empty(n_agents)
+    offsets = np.empty((n_agents, n_neighbours, 2))
+    distances = np.empty((n_agents, n_neighbours))
+    bearings = np.zeros((n_agents, n_neighbours, 2))
+    angles = np.empty(n_agents)
+    bearing_errors = np.empty((n_agents, n_neighbours))
+    for agent in range(n_agents):
+        centroid_distances[agent] = math.hypot(positions[agent, 0] - centroid[0], positions[agent, 1] - centroid[1])
+        for slot in range(n_neighbours):
+            dx = positions[neighbours[agent, slot], 0] - positions[agent, 0]
+            dy = positions[neighbours[agent, slot], 1] - positions[agent, 1]
+            distance = math.hypot(dx, dy)
+            offsets[agent, slot, 0], offsets[agent, slot, 1] = dx, dy
+            distances[agent, slot] = distance
+            if distance > COINCIDENT_DISTANCE:
+                bearings[agent, slot, 0], bearings[agent, slot, 1] = dx / distance, dy / distance
+            bearing_errors[agent, slot] = math.hypot(
+                reference[agent, slot, 0] - bearings[agent, slot, 0], reference[agent, slot, 1] - bearings[agent, slot, 1]
+            )
+        to_previous = math.degrees(math.atan2(bearings[agent, 0, 1], bearings[agent, 0, 0]))
+        to_next = math.degrees(math.atan2(bearings[agent, 1, 1], bearings[agent, 1, 0]))
+        angles[agent] = (to_previous - to_next) % 360.0
+    return centroid, centroid_distances, offsets, distances, bearings, angles, bearing_errors

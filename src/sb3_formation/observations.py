@@ -1,0 +1,151 @@
+"""The per-agent observation of thesis Table 3.1: its fields, their order, honest bounds, and the builder.
+
+Order (design.md): lidar l, state z, errors e, flags f, then previous action / reward / time step s. Raw values in
+SI units and degrees; normalisation belongs to the SB3 layer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .config import FormationConfig
+from .geometry import FormationState
+
+#: Relative slack on velocity bounds: a clamped speed may exceed v_max by a rounding error.
+ROUNDING_SLACK = 1e-9
+
+
+@dataclass(frozen=True)
+class ObservationField:
+    """One entry of Table 3.1.
+
+    :param name: key in ``env.observation_layout``
+    :param symbol: the thesis's symbol
+    :param size: number of values
+    :param low: lower bound of every value
+    :param high: upper bound of every value
+    :param unit: unit of the values
+    :param binary: a 0/1 flag (left alone by normalisation)
+    """
+
+    name: str
+    symbol: str
+    size: int
+    low: np.ndarray
+    high: np.ndarray
+    unit: str
+    binary: bool = False
+
+
+def observation_fields(config: FormationConfig) -> list[ObservationField]:
+    """The fields of one agent's observation, in order, with bounds that hold for every reachable state."""
+    rays = config.lidar_rays
+    width, height, diagonal = config.world_width, config.world_height, config.world_diagonal
+    speed = config.v_max * (1 + ROUNDING_SLACK)
+    extent = np.array([width, height])
+    angle_low, angle_high = config.beta_ref_deg - 360.0, config.beta_ref_deg
+    specs = [
+        ("lidar_obstacles", "l (obstacles, walls)", rays, 0.0, 1.0, "fraction of range"),
+        ("lidar_agents", "l (non-neighbour agents)", rays, 0.0, 1.0, "fraction of range"),
+        ("velocity", "v^i", 2, -speed, speed, "m/s"),
+        ("neighbour_offsets", "d_j^iv (preceding x, y; succeeding x, y)", 4, -np.tile(extent, 2), np.tile(extent, 2), "m"),
+        ("neighbour_relative_velocities", "v_j^i = v^j - v^i", 4, -2 * speed, 2 * speed, "m/s"),
+        ("goal_offset", "d_g^iv = p^g - p^i", 2, -extent, extent, "m"),
+        ("centroid_goal_offset", "c_g^v = p^g - p^c", 2, -extent, extent, "m"),
+        ("centroid_goal_offset_change", "c_g,t^v - c_g,t-1^v", 2, -extent, extent, "m"),
+        ("neighbour_distances", "d_j^i", 2, 0.0, diagonal, "m"),
+        ("centroid_distance", "d_c^i", 1, 0.0, diagonal, "m"),
+        ("neighbour_distance_errors", "d_j^i - d^ref", 2, -config.d_ref, diagonal - config.d_ref, "m"),
+        ("centroid_distance_error", "eta_c - d_c^i", 1, config.eta_c - diagonal, config.eta_c, "m"),
+        ("angle_error", "beta^ref - beta^i", 1, angle_low, angle_high, "deg"),
+        ("neighbour_angle_errors", "beta^ref - beta^j, j in N_2^i", 2, angle_low, angle_high, "deg"),
+        ("flag_orientation", "f: beta^i in (0, 180)", 1, 0.0, 1.0, "0/1"),
+        ("flag_range", "f: all neighbours within d^ref", 1, 0.0, 1.0, "0/1"),
+        ("time_step", "t", 1, 0.0, float(config.max_steps), "steps"),
+        ("previous_action", "a_t-1^i", 2, -1.0, 1.0, "fraction of F_max"),
+        ("previous_reward", "r_t-1^i", 1, -config.reward_clip, config.reward_clip, "reward"),
+    ]
+    return [
+        ObservationField(
+            name,
+            symbol,
+            size,
+            np.broadcast_to(np.asarray(low, dtype=np.float64), (size,)),
+            np.broadcast_to(np.asarray(high, dtype=np.float64), (size,)),
+            unit,
+            binary=name.startswith("flag_"),
+        )
+        for name, symbol, size, low, high, unit in specs
+    ]
+
+
+def observation_layout(fields: list[ObservationField]) -> dict[str, slice]:
+    """Field name -> slice of the observation vector."""
+    layout, start = {}, 0
+    for field in fields:
+        layout[field.name] = slice(start, start + field.size)
+        start += field.size
+    return layout
+
+
+def build_observations(
+    out: np.ndarray,
+    layout: dict[str, slice],
+    lidar_obstacles: np.ndarray,
+    lidar_agents: np.ndarray,
+    positions: np.ndarray,
+    velocities: np.ndarray,
+    goal: np.ndarray,
+    formation: FormationState,
+    previous_centroid_goal_offset: np.ndarray,
+    neighbours: np.ndarray,
+    config: FormationConfig,
+    step: int,
+    previous_actions: np.ndarray,
+    previous_rewards: np.ndarray,
+) -> np.ndarray:
+    """Every agent's observation, written into ``out`` (returned as a new copy), in the order of ``layout``.
+
+    :param out: ``(n, dim)`` float32 work array
+    :param layout: field name -> slice, from :func:`observation_layout`
+    :param lidar_obstacles: ``(n, rays)`` obstacle readings in [0, 1]
+    :param lidar_agents: ``(n, rays)`` agent readings in [0, 1]
+    :param positions: ``(n, 2)`` positions (m)
+    :param velocities: ``(n, 2)`` velocities (m/s)
+    :param goal: ``(2,)`` goal (m)
+    :param formation: the team's formation now
+    :param previous_centroid_goal_offset: ``(2,)`` c_g^v one step earlier (m)
+    :param neighbours: ``(n, 2)`` neighbour indices
+    :param config: task configuration
+    :param step: current time step t
+    :param previous_actions: ``(n, 2)`` last clipped actions
+    :param previous_rewards: ``(n,)`` last rewards
+    """
+    n_agents = len(positions)
+    centroid_goal_offset = goal - formation.centroid
+    values = {
+        "lidar_obstacles": lidar_obstacles,
+        "lidar_agents": lidar_agents,
+        "velocity": velocities,
+        "neighbour_offsets": formation.neighbour_offsets.reshape(n_agents, 4),
+        "neighbour_relative_velocities": (velocities[neighbours] - velocities[:, None, :]).reshape(n_agents, 4),
+        "goal_offset": goal - positions,
+        "centroid_goal_offset": centroid_goal_offset,
+        "centroid_goal_offset_change": centroid_goal_offset - previous_centroid_goal_offset,
+        "neighbour_distances": formation.neighbour_distances,
+        "centroid_distance": formation.centroid_distances[:, None],
+        "neighbour_distance_errors": formation.neighbour_distances - config.d_ref,
+        "centroid_distance_error": (config.eta_c - formation.centroid_distances)[:, None],
+        "angle_error": formation.angle_errors_deg[:, None],
+        "neighbour_angle_errors": formation.angle_errors_deg[neighbours],
+        "flag_orientation": formation.orientation_flags[:, None],
+        "flag_range": formation.range_flag,
+        "time_step": step,
+        "previous_action": previous_actions,
+        "previous_reward": previous_rewards[:, None],
+    }
+    for name, field_slice in layout.items():
+        out[:, field_slice] = values[name]
+    return out.copy()

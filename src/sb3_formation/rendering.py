@@ -1,0 +1,117 @@
+"""Headless rendering of a :class:`FormationEnv` with Pillow, and an optional pygame window for ``human`` mode."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+if TYPE_CHECKING:
+    from .env import FormationEnv
+
+PIXELS_PER_METRE = 60
+BACKGROUND = (250, 250, 247)
+WALL = (60, 60, 60)
+OBSTACLE = (140, 140, 150)
+GOAL = (40, 170, 70)
+LINK = (90, 90, 90)
+CENTROID = (200, 30, 30)
+LIDAR_OBSTACLE = (255, 170, 60)
+LIDAR_AGENT = (120, 160, 255)
+#: matplotlib's tab10 colours: agent i is drawn in colour i mod 10
+AGENT_COLOURS = [
+    (31, 119, 180),
+    (255, 127, 14),
+    (44, 160, 44),
+    (214, 39, 40),
+    (148, 103, 189),
+    (140, 86, 75),
+    (227, 119, 194),
+    (127, 127, 127),
+    (188, 189, 34),
+    (23, 190, 207),
+]
+
+
+def render_frame(env: FormationEnv, draw_lidar: bool = False, pixels_per_metre: int = PIXELS_PER_METRE) -> np.ndarray:
+    """Draw the env's current state: obstacles, the goal ring, neighbour links, agents by index, the centroid.
+
+    :param env: a reset :class:`FormationEnv`
+    :param draw_lidar: also draw every lidar ray up to its reading (obstacle channel orange, agent channel blue)
+    :param pixels_per_metre: scale
+    :return: ``(H, W, 3)`` uint8 image, y up
+    """
+    config = env.config
+    width, height = round(config.world_width * pixels_per_metre), round(config.world_height * pixels_per_metre)
+    image = Image.new("RGB", (width, height), BACKGROUND)
+    draw = ImageDraw.Draw(image)
+
+    def pixel(point: np.ndarray) -> tuple[float, float]:
+        return float(point[0] * pixels_per_metre), float(height - point[1] * pixels_per_metre)
+
+    def circle(centre: np.ndarray, radius: float, **style: object) -> None:
+        x, y = pixel(centre)
+        r = radius * pixels_per_metre
+        draw.ellipse((x - r, y - r, x + r, y + r), **style)
+
+    positions = env.world.positions
+    for x, y, radius in env.obstacles:
+        circle(np.array([x, y]), radius, fill=OBSTACLE)
+    circle(env.goal, config.eta_g, outline=GOAL, width=max(2, pixels_per_metre // 15))
+    if draw_lidar:
+        lidar_obstacles, lidar_agents = env.lidar.scan(positions)
+        directions = env.lidar.directions
+        for readings, colour in ((lidar_obstacles, LIDAR_OBSTACLE), (lidar_agents, LIDAR_AGENT)):
+            for position, agent_readings in zip(positions, readings):
+                starts = position + config.agent_radius * directions
+                ends = starts + (agent_readings * config.lidar_range)[:, None] * directions
+                for start, end, reading in zip(starts, ends, agent_readings):
+                    if reading < 1.0:
+                        draw.line([pixel(start), pixel(end)], fill=colour, width=1)
+    for index, (_, succeeding) in enumerate(env.neighbours):
+        draw.line([pixel(positions[index]), pixel(positions[succeeding])], fill=LINK, width=2)
+    for index, position in enumerate(positions):
+        circle(position, config.agent_radius, fill=AGENT_COLOURS[index % len(AGENT_COLOURS)], outline=(0, 0, 0))
+    cx, cy = pixel(env.formation.centroid)
+    arm = pixels_per_metre * 0.15
+    draw.line([(cx - arm, cy), (cx + arm, cy)], fill=CENTROID, width=3)
+    draw.line([(cx, cy - arm), (cx, cy + arm)], fill=CENTROID, width=3)
+    draw.rectangle((0, 0, width - 1, height - 1), outline=WALL, width=3)
+    return np.asarray(image)
+
+
+class HumanWindow:
+    """A pygame window showing frames (``render_mode="human"``); needs ``pip install sb3-formation[human]`` and a display.
+
+    :param width: window width (px)
+    :param height: window height (px)
+    :param fps: frames per second to show at most
+    """
+
+    def __init__(self, width: int, height: int, fps: int) -> None:
+        try:
+            import pygame
+        except ImportError as error:
+            raise ImportError("render_mode='human' needs pygame: pip install 'sb3-formation[human]'") from error
+        self._pygame = pygame
+        pygame.init()
+        pygame.display.init()
+        self._screen = pygame.display.set_mode((width, height))
+        pygame.display.set_caption("sb3-formation")
+        self._clock = pygame.time.Clock()
+        self._fps = fps
+
+    def show(self, frame: np.ndarray) -> None:
+        """Draw ``frame`` (``(H, W, 3)`` uint8) and keep the window responsive."""
+        pygame = self._pygame
+        pygame.event.pump()
+        surface = pygame.surfarray.make_surface(np.transpose(frame, (1, 0, 2)))
+        self._screen.blit(surface, (0, 0))
+        pygame.display.flip()
+        self._clock.tick(self._fps)
+
+    def close(self) -> None:
+        """Close the window."""
+        self._pygame.display.quit()
+        self._pygame.quit()

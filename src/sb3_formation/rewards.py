@@ -1,0 +1,220 @@
+"""Reward terms of eqs 21-42 as pure functions of numpy arrays, and their weighted, clipped sum.
+
+Each term is returned *before* its coefficient, one value per agent. Chapter 4 (eq. 26) and chapter 5 (eq. 42) are
+the same weighted sum with different coefficients (:data:`sb3_formation.config.PRESETS`); chapter 4's ``ref`` term
+(eq. 22) is the ``dist`` term (eq. 36) with m_ref in place of m_dist. With ``team_reward`` every agent receives the
+team average of each per-agent term and the team collision term (eqs 27-32).
+
+The functions are numba-compiled: a step evaluates them for a handful of agents, where numpy's per-call overhead
+would dominate. They take and return plain numpy arrays and can be called from Python like numpy functions.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from .config import REWARD_TERMS, FormationConfig
+from .geometry import FormationState
+
+#: A velocity slower than this (m/s) has no direction: the move and velocity terms are 0 for it (design.md).
+STILL_SPEED = 1e-6
+
+#: Row of each term in the ``(len(REWARD_TERMS), n)`` array returned by :func:`reward_terms`.
+TERM_ROW: dict[str, int] = {name: row for row, name in enumerate(REWARD_TERMS)}
+_TIME, _ANGLE, _BEARING, _DIST, _CENTROID, _GOAL, _MOVE, _VELOCITY, _COLL = (TERM_ROW[name] for name in REWARD_TERMS)
+
+
+@numba.njit(cache=True)
+def angle_between(first: np.ndarray, second: np.ndarray) -> float:  # pragma: no cover - compiled
+    """Angle (rad, in [0, pi]) between two 2-D vectors; 0 if either is slower than :data:`STILL_SPEED`."""
+    if math.hypot(first[0], first[1]) <= STILL_SPEED or math.hypot(second[0], second[1]) <= STILL_SPEED:
+        return 0.0
+    cross = first[0] * second[1] - first[1] * second[0]
+    dot = first[0] * second[0] + first[1] * second[1]
+    return abs(math.atan2(cross, dot))
+
+
+@numba.njit(cache=True)
+def time_term(step: int, max_steps: int, r_late: float) -> float:  # pragma: no cover - compiled
+    """Eq. 33: r_late on the step that reaches T_s (``step`` = t + 1 == ``max_steps``), else 0."""
+    return r_late if step == max_steps else 0.0
+
+
+@numba.njit(cache=True)
+def angle_term(angle_error_deg: float, m_ang_deg: float) -> float:  # pragma: no cover - compiled
+    """Eqs 21 / 34: -|beta^ref - beta^i| / m_ang (both in degrees)."""
+    return -abs(angle_error_deg) / m_ang_deg
+
+
+@numba.njit(cache=True)
+def bearing_term(bearing_errors: np.ndarray) -> float:  # pragma: no cover - compiled
+    """Eq. 35: -0.5 / n(N_2^i) * sum_j |g_j^{i,ref} - g_j^i|, given the norms |g_ref - g| to the neighbours."""
+    return -0.5 * bearing_errors.sum() / bearing_errors.size
+
+
+@numba.njit(cache=True)
+def distance_term(neighbour_distances: np.ndarray, d_ref: float, m_dist: float) -> float:  # pragma: no cover
+    """Eqs 22 / 36: -1 / n(N^i) * sum_j max(d_j^i - d^ref, 0) / m_dist (distances in m)."""
+    return -np.maximum(neighbour_distances - d_ref, 0.0).sum() / neighbour_distances.size / m_dist
+
+
+@numba.njit(cache=True)
+def centroid_term(centroid_distance: float, eta_c: float, r_c: float) -> float:  # pragma: no cover - compiled
+    """Eq. 37: r_c for an agent within eta_c (m) of the centroid, else 0."""
+    return r_c if centroid_distance <= eta_c else 0.0
+
+
+@numba.njit(cache=True)
+def goal_term(
+    previous_goal_distance: float, goal_distance: float, eta_g: float, r_reached: float, k1: float, dt: float, v_max: float
+) -> float:  # pragma: no cover - compiled
+    """Eqs 23 / 38: r_reached once the centroid is within eta_g of the goal, else k_1 + (c_g,t - c_g,t+1) / (dt v_max)."""
+    if goal_distance <= eta_g:
+        return r_reached
+    return k1 + (previous_goal_distance - goal_distance) / (dt * v_max)
+
+
+@numba.njit(cache=True)
+def collision_term(agent_contact: bool, obstacle_near: bool, r_j: float, r_o: float) -> float:  # pragma: no cover
+    """Eqs 24 / 39 (and 31 for the team): r_j for touching an agent, else r_o for being closer than d_safe to an obstacle."""
+    if agent_contact:
+        return r_j
+    return r_o if obstacle_near else 0.0
+
+
+@numba.njit(cache=True)
+def nearest_gaps(
+    positions: np.ndarray, agent_radius: float, obstacles: np.ndarray, width: float, height: float
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Centre distance to the nearest other agent, and surface gap to the nearest obstacle or wall, of every agent.
+
+    :param positions: ``(n, 2)`` agent centres (m)
+    :param agent_radius: R_a (m)
+    :param obstacles: ``(m, 3)`` circles (x, y, radius) in m
+    :param width: world width (m)
+    :param height: world height (m)
+    :return: ``(n,)`` nearest agent centre distance (m) and ``(n,)`` nearest obstacle gap (m, negative when sunk in)
+    """
+    n_agents = positions.shape[0]
+    nearest_agent = np.full(n_agents, np.inf)
+    nearest_obstacle = np.empty(n_agents)
+    for agent in range(n_agents):
+        x, y = positions[agent, 0], positions[agent, 1]
+        for other in range(n_agents):
+            if other != agent:
+                nearest_agent[agent] = min(nearest_agent[agent], math.hypot(positions[other, 0] - x, positions[other, 1] - y))
+        gap = min(min(x, width - x), min(y, height - y)) - agent_radius
+        for obstacle in range(obstacles.shape[0]):
+            centre_distance = math.hypot(obstacles[obstacle, 0] - x, obstacles[obstacle, 1] - y)
+            gap = min(gap, centre_distance - obstacles[obstacle, 2] - agent_radius)
+        nearest_obstacle[agent] = gap
+    return nearest_agent, nearest_obstacle
+
+
+@numba.njit(cache=True)
+def _reward_terms(
+    step: int,
+    angle_errors_deg: np.ndarray,
+    bearing_errors: np.ndarray,
+    neighbour_distances: np.ndarray,
+    centroid_distances: np.ndarray,
+    previous_goal_distance: float,
+    goal_distance: float,
+    previous_velocities: np.ndarray,
+    velocities: np.ndarray,
+    neighbours: np.ndarray,
+    nearest_agent_distances: np.ndarray,
+    nearest_obstacle_gaps: np.ndarray,
+    constants: np.ndarray,
+    max_steps: int,
+    team_reward: bool,
+) -> np.ndarray:  # pragma: no cover - compiled
+    (m_ang, d_ref, m_dist, eta_c, r_c, eta_g, r_reached, k1, dt, v_max, r_j, r_o, d_safe, r_late, agent_radius) = constants
+    n_agents = velocities.shape[0]
+    terms = np.empty((9, n_agents))
+    agent_contact = nearest_agent_distances <= 2.0 * agent_radius
+    obstacle_near = nearest_obstacle_gaps < d_safe
+    for agent in range(n_agents):
+        terms[_ANGLE, agent] = angle_term(angle_errors_deg[agent], m_ang)
+        terms[_BEARING, agent] = bearing_term(bearing_errors[agent])
+        terms[_DIST, agent] = distance_term(neighbour_distances[agent], d_ref, m_dist)
+        terms[_CENTROID, agent] = centroid_term(centroid_distances[agent], eta_c, r_c)
+        terms[_MOVE, agent] = -angle_between(previous_velocities[agent], velocities[agent])
+        alignment = 0.0
+        for neighbour in neighbours[agent]:
+            alignment += angle_between(velocities[agent], previous_velocities[neighbour])
+        terms[_VELOCITY, agent] = -alignment / neighbours.shape[1]
+        terms[_COLL, agent] = collision_term(agent_contact[agent], obstacle_near[agent], r_j, r_o)
+    if team_reward:  # eqs 28-31: per-agent terms become team averages; one team collision term
+        for row in (_ANGLE, _BEARING, _DIST, _CENTROID, _MOVE, _VELOCITY):
+            terms[row, :] = terms[row].mean()
+        terms[_COLL, :] = collision_term(agent_contact.any(), obstacle_near.any(), r_j, r_o)
+    terms[_GOAL, :] = goal_term(previous_goal_distance, goal_distance, eta_g, r_reached, k1, dt, v_max)
+    terms[_TIME, :] = time_term(step, max_steps, r_late)
+    return terms
+
+
+def reward_constants(config: FormationConfig) -> np.ndarray:
+    """The constants :func:`reward_terms` needs, packed for the compiled kernel (in the kernel's order)."""
+    names = "m_ang_deg d_ref m_dist eta_c r_c eta_g r_reached k1 dt v_max r_j r_o d_safe r_late agent_radius".split()
+    return np.array([float(getattr(config, name)) for name in names])
+
+
+def reward_terms(
+    config: FormationConfig,
+    step: int,
+    formation: FormationState,
+    previous_goal_distance: float,
+    goal_distance: float,
+    previous_velocities: np.ndarray,
+    velocities: np.ndarray,
+    neighbours: np.ndarray,
+    nearest_agent_distances: np.ndarray,
+    nearest_obstacle_gaps: np.ndarray,
+    constants: np.ndarray | None = None,
+) -> np.ndarray:
+    """Every reward term of one step, before coefficients.
+
+    :param config: task configuration (constants of Tables 4.1 / 5.1, ``team_reward``)
+    :param step: step count t + 1 after this step
+    :param formation: formation measured after the step
+    :param previous_goal_distance: centroid-goal distance (m) before the step
+    :param goal_distance: centroid-goal distance (m) after the step
+    :param previous_velocities: ``(n, 2)`` velocities (m/s) before the step
+    :param velocities: ``(n, 2)`` velocities (m/s) after the step
+    :param neighbours: ``(n, k)`` neighbour indices
+    :param nearest_agent_distances: ``(n,)`` centre distance (m) to the nearest other agent
+    :param nearest_obstacle_gaps: ``(n,)`` surface gap (m) to the nearest obstacle or wall
+    :param constants: ``reward_constants(config)``, if already packed
+    :return: ``(len(REWARD_TERMS), n)`` array; row ``TERM_ROW[name]`` holds term ``name``
+    """
+    return _reward_terms(
+        step,
+        np.ascontiguousarray(formation.angle_errors_deg, dtype=np.float64),
+        np.ascontiguousarray(formation.bearing_errors, dtype=np.float64),
+        np.ascontiguousarray(formation.neighbour_distances, dtype=np.float64),
+        np.ascontiguousarray(formation.centroid_distances, dtype=np.float64),
+        float(previous_goal_distance),
+        float(goal_distance),
+        np.ascontiguousarray(previous_velocities, dtype=np.float64),
+        np.ascontiguousarray(velocities, dtype=np.float64),
+        np.ascontiguousarray(neighbours, dtype=np.int64),
+        np.ascontiguousarray(nearest_agent_distances, dtype=np.float64),
+        np.ascontiguousarray(nearest_obstacle_gaps, dtype=np.float64),
+        reward_constants(config) if constants is None else constants,
+        config.max_steps,
+        config.team_reward,
+    )
+
+
+def combine_rewards(terms: np.ndarray, coefficients: np.ndarray, clip: float) -> np.ndarray:
+    """Eqs 26 / 32 / 42: sum_k K_k * term_k per agent, clipped to [-clip, clip].
+
+    :param terms: ``(len(REWARD_TERMS), n)`` values before coefficients
+    :param coefficients: ``(len(REWARD_TERMS),)`` coefficients (0 for a term switched off)
+    :param clip: clip bound
+    """
+    return np.clip(coefficients @ terms, -clip, clip)

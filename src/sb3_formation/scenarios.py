@@ -1,0 +1,215 @@
+"""Scenarios: where the agents start, where the goal is, where the obstacles are; and the curriculum that draws them.
+
+The thesis gives placements in pixels with 1 px = 1 cm (sections 4.3 and 5.3); :data:`CURRICULUM_LAYOUTS`
+converts them to metres once, here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .config import FormationConfig
+from .geometry import reference_polygon
+
+CM = 0.01  #: one thesis pixel (m)
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A complete placement, in metres: ``Scenario(agent_positions, goal, obstacles)``.
+
+    :param agent_positions: ``(n, 2)`` agent centres; row i is agent i
+    :param goal: ``(2,)`` goal centre
+    :param obstacles: ``(m, 3)`` static circles as (x, y, radius); may be empty
+    """
+
+    agent_positions: np.ndarray
+    goal: np.ndarray
+    obstacles: np.ndarray | tuple = ()
+
+    def __post_init__(self) -> None:
+        obstacles = np.array(self.obstacles, dtype=np.float64)
+        arrays = {
+            "agent_positions": np.array(self.agent_positions, dtype=np.float64),
+            "goal": np.array(self.goal, dtype=np.float64),
+            "obstacles": obstacles.reshape(0, 3) if obstacles.size == 0 else obstacles,
+        }
+        shapes = {"agent_positions": "(n, 2)", "goal": "(2,)", "obstacles": "(m, 3)"}
+        for name, array in arrays.items():
+            expected_ndim = 1 if name == "goal" else 2
+            width = 3 if name == "obstacles" else 2
+            if array.ndim != expected_ndim or array.shape[-1] != width:
+                raise ValueError(f"Scenario.{name} must have shape {shapes[name]}, got {array.shape}")
+            if not np.all(np.isfinite(array)):
+                raise ValueError(f"Scenario.{name} contains NaN or infinite values")
+            array.setflags(write=False)
+            object.__setattr__(self, name, array)
+        if np.any(self.obstacles[:, 2] <= 0):
+            bad = int(np.flatnonzero(self.obstacles[:, 2] <= 0)[0])
+            raise ValueError(f"Scenario obstacle {bad} has radius {self.obstacles[bad, 2]} m; radii must be > 0")
+
+    @property
+    def centroid(self) -> np.ndarray:
+        """Centroid (m) of the starting positions."""
+        return self.agent_positions.mean(axis=0)
+
+    def validate(self, config: FormationConfig) -> None:
+        """Raise ``ValueError`` saying which agent is misplaced if the scenario does not fit ``config``.
+
+        Checks: one position per agent, every agent inside the world, no two agents overlapping, no agent
+        overlapping an obstacle, the goal inside the world.
+        """
+        n_agents, radius = config.n_agents, config.agent_radius
+        if len(self.agent_positions) != n_agents:
+            raise ValueError(f"Scenario has {len(self.agent_positions)} agent positions but n_agents={n_agents}")
+        for index, (x, y) in enumerate(self.agent_positions):
+            if not (radius <= x <= config.world_width - radius and radius <= y <= config.world_height - radius):
+                raise ValueError(
+                    f"Scenario: agent_{index} at ({x:.3f}, {y:.3f}) m is outside the world "
+                    f"[0, {config.world_width}] x [0, {config.world_height}] m (radius {radius} m)"
+                )
+        offsets = self.agent_positions[:, None, :] - self.agent_positions[None, :, :]
+        between = np.hypot(offsets[..., 0], offsets[..., 1])
+        for first, second in zip(*np.nonzero(np.triu(between < 2 * radius, k=1))):
+            raise ValueError(
+                f"Scenario: agent_{first} and agent_{second} overlap ({between[first, second]:.3f} m apart, "
+                f"need >= {2 * radius:.3f} m)"
+            )
+        for index, position in enumerate(self.agent_positions):
+            for obstacle_index, (x, y, r) in enumerate(self.obstacles):
+                gap = np.hypot(*(position - (x, y))) - r - radius
+                if gap < 0:
+                    raise ValueError(
+                        f"Scenario: agent_{index} overlaps obstacle {obstacle_index} at ({x:.3f}, {y:.3f}) m "
+                        f"radius {r:.3f} m by {-gap:.3f} m"
+                    )
+        gx, gy = self.goal
+        if not (0 <= gx <= config.world_width and 0 <= gy <= config.world_height):
+            raise ValueError(f"Scenario: goal ({gx:.3f}, {gy:.3f}) m is outside the world")
+
+
+@dataclass(frozen=True)
+class CurriculumLayout:
+    """Placement rules of one thesis chapter, in metres.
+
+    :param goal_x: the goal's possible x
+    :param start_x: stage 3: the centroid's possible x (the one differing from, and furthest from, the goal's x)
+    :param stage1_obstacle_x: stage 1-2: the two x ranges of the large obstacles (the one further from the centroid is used)
+    :param stage3_obstacle_x: stage 3: x range of the obstacles
+    :param stage3_radii: stage 3: obstacle radii
+    """
+
+    goal_x: tuple[float, ...]
+    start_x: tuple[float, ...]
+    stage1_obstacle_x: tuple[tuple[float, float], tuple[float, float]]
+    stage3_obstacle_x: tuple[float, float]
+    stage3_radii: tuple[float, ...]
+    goal_y: tuple[float, float] = (200 * CM, 800 * CM)  # goal y uniform in [200, 800] cm
+    start_y: tuple[float, float] = (200 * CM, 800 * CM)  # centroid y is 200 or 800 cm, whichever is further from the goal
+    obstacle_y: tuple[float, float] = (100 * CM, 900 * CM)  # obstacle y uniform in [100, 900] cm
+    stage1_large_radius: float = 200 * CM  # three large obstacles of radius 200 cm
+    stage1_large_count: int = 3
+    stage1_small_radius: float = 70 * CM  # one small obstacle of radius 70 cm at the centroid-goal mid-point
+
+
+#: Thesis 4.3 (chapter 4) and 5.3 (chapter 5), converted from cm.
+CURRICULUM_LAYOUTS: dict[str, CurriculumLayout] = {
+    "ch4": CurriculumLayout(
+        goal_x=(400 * CM, 1000 * CM),
+        start_x=(400 * CM, 1000 * CM),
+        stage1_obstacle_x=((400 * CM, 700 * CM), (700 * CM, 1000 * CM)),
+        stage3_obstacle_x=(400 * CM, 1000 * CM),
+        stage3_radii=(80 * CM, 50 * CM, 50 * CM),  # one large (80 cm), two smaller (50 cm)
+    ),
+    "ch5": CurriculumLayout(
+        goal_x=(400 * CM, 1100 * CM),
+        start_x=(400 * CM, 1000 * CM),
+        stage1_obstacle_x=((400 * CM, 750 * CM), (750 * CM, 1100 * CM)),
+        stage3_obstacle_x=(400 * CM, 1100 * CM),
+        stage3_radii=(80 * CM, 80 * CM),  # two large (80 cm)
+    ),
+}
+
+
+class PlacementError(RuntimeError):
+    """A scenario satisfying the placement rules could not be drawn within the allowed number of tries."""
+
+
+def start_formation(config: FormationConfig, centroid: np.ndarray, order: np.ndarray | None = None) -> np.ndarray:
+    """Agent positions (m) on the starting n-gon around ``centroid``; agent ``order[k]`` takes vertex k.
+
+    :param config: task configuration (n, d_ref, eta_c, formation_scale)
+    :param centroid: ``(2,)`` centroid (m)
+    :param order: permutation of the agents over the vertices; ``None`` keeps agent i on vertex i
+    """
+    vertices = reference_polygon(config.n_agents, config.start_circumradius) + centroid
+    if order is None:
+        return vertices
+    positions = np.empty_like(vertices)
+    positions[order] = vertices
+    return positions
+
+
+def sample_scenario(config: FormationConfig, stage: int, rng: np.random.Generator) -> Scenario:
+    """Draw a curriculum scenario of ``stage`` under ``config.layout`` from ``rng``.
+
+    Stages 1 and 2 share their placements (the stages differ in reward terms): the centroid starts at the goal's x,
+    the agents take the n-gon's vertices in random order in stage 1 and in order in stage 2; three large obstacles
+    lie in the x range further from the centroid and one small one at the centroid-goal mid-point. Stage 3 puts the
+    centroid at the other x, the agents in order, and the stage-3 obstacles anywhere in their range. A draw whose
+    obstacles overlap the start formation or the goal area (with ``placement_clearance``) is drawn again, at most
+    ``config.max_placement_tries`` times, then :class:`PlacementError` is raised.
+
+    :param config: task configuration
+    :param stage: curriculum stage 1, 2 or 3
+    :param rng: the environment's generator; the only source of randomness
+    """
+    layout = CURRICULUM_LAYOUTS[config.layout]
+    for _ in range(config.max_placement_tries):
+        goal = np.array([rng.choice(layout.goal_x), rng.uniform(*layout.goal_y)])
+        start_y = max(layout.start_y, key=lambda y: abs(y - goal[1]))
+        if stage == 3:
+            others = [x for x in layout.start_x if x != goal[0]]
+            start_x = max(others, key=lambda x: abs(x - goal[0]))
+            order = None
+        else:
+            start_x = goal[0]
+            order = rng.permutation(config.n_agents) if stage == 1 else None
+        positions = start_formation(config, np.array([start_x, start_y]), order)
+        obstacles = _draw_obstacles(layout, stage, positions.mean(axis=0), goal, rng)
+        if _obstacles_clear(config, obstacles, positions, goal):
+            return Scenario(positions, goal, obstacles)
+    raise PlacementError(
+        f"could not place the stage-{stage} obstacles of layout {config.layout!r} clear of the start formation and the goal "
+        f"in {config.max_placement_tries} tries (n_agents={config.n_agents}, placement_clearance={config.placement_clearance} m)"
+    )
+
+
+def _draw_obstacles(
+    layout: CurriculumLayout, stage: int, centroid: np.ndarray, goal: np.ndarray, rng: np.random.Generator
+) -> np.ndarray:
+    if stage == 3:
+        radii = np.array(layout.stage3_radii)
+        x_range = layout.stage3_obstacle_x
+    else:
+        radii = np.full(layout.stage1_large_count, layout.stage1_large_radius)
+        x_range = max(layout.stage1_obstacle_x, key=lambda bounds: abs(0.5 * (bounds[0] + bounds[1]) - centroid[0]))
+    xs = rng.uniform(*x_range, size=len(radii))
+    ys = rng.uniform(*layout.obstacle_y, size=len(radii))
+    obstacles = np.stack([xs, ys, radii], axis=1)
+    if stage != 3:
+        midpoint = 0.5 * (centroid + goal)
+        obstacles = np.vstack([obstacles, [midpoint[0], midpoint[1], layout.stage1_small_radius]])
+    return obstacles
+
+
+def _obstacles_clear(config: FormationConfig, obstacles: np.ndarray, positions: np.ndarray, goal: np.ndarray) -> bool:
+    centres, radii = obstacles[:, :2], obstacles[:, 2]
+    to_agents = np.hypot(*(positions[:, None, :] - centres[None, :, :]).transpose(2, 0, 1))
+    to_goal = np.hypot(*(centres - goal).T)
+    clearance = config.placement_clearance
+    return bool(
+        np.all(to_agents >= radii + config.agent_radius + clearance) and np.all(to_goal >= radii + config.eta_g + clearance)
+    )

@@ -1,0 +1,164 @@
+"""The two-channel lidar, computed analytically for all agents and rays at once.
+
+Every agent casts ``n_rays`` rays, ``360 / n_rays`` degrees apart starting at +x, from its surface outwards.
+A ray reports the distance from the agent's surface to the first circle (or wall) it meets, divided by the range,
+so a reading lies in [0, 1] and 1 means nothing within range. Each channel sees only its own kind of body (no
+occlusion across channels): the obstacle channel sees the static circles and the world's walls, the agent channel
+sees the agents other than the agent itself and its designated neighbours.
+
+The scan is one numba-compiled loop over agents, circles and rays (circles out of reach are skipped before any ray
+is cast): with numpy the many tiny array operations of a 6-agent scan cost ~150 us, the compiled loop ~10 us.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+OBSTACLE_CHANNEL, AGENT_CHANNEL = 0, 1
+
+
+def ray_directions(n_rays: int) -> np.ndarray:
+    """Unit directions of the lidar rays, ``360 / n_rays`` deg apart starting at +x (anti-clockwise).
+
+    :param n_rays: number of rays b x d
+    :return: ``(n_rays, 2)`` array
+    """
+    angles = np.arange(n_rays) * (2.0 * np.pi / n_rays)
+    return np.stack([np.cos(angles), np.sin(angles)], axis=1)
+
+
+def agent_visibility(n_agents: int, neighbours: np.ndarray) -> np.ndarray:
+    """Which agents each agent's agent channel sees: all but itself and its designated neighbours.
+
+    :param n_agents: team size n
+    :param neighbours: ``(n, k)`` neighbour indices
+    :return: ``(n, n)`` bool
+    """
+    visible = ~np.eye(n_agents, dtype=bool)
+    visible[np.arange(n_agents)[:, None], neighbours] = False
+    return visible
+
+
+@numba.njit(cache=True)
+def lidar_ranges(
+    origins: np.ndarray,
+    agent_radius: float,
+    directions: np.ndarray,
+    circles: np.ndarray,
+    visible: np.ndarray,
+    channels: np.ndarray,
+    width: float,
+    height: float,
+    max_range: float,
+) -> np.ndarray:  # pragma: no cover - compiled; tested through its results
+    """Distance (m) along every ray from each agent's surface to the nearest wall or visible circle, per channel.
+
+    Circle (c, r) is met along u from the centre p at t = u.(c - p) -+ sqrt((u.(c - p))^2 - |c - p|^2 + r^2); the
+    reading is the entry point's distance t - R_a from the surface (0 if the circle touches the surface), provided the
+    exit point lies beyond the surface. The walls of [0, width] x [0, height] belong to channel 0.
+
+    :param origins: ``(n, 2)`` agent centres (m)
+    :param agent_radius: R_a (m); rays start on the agent's surface
+    :param directions: ``(n_rays, 2)`` unit ray directions
+    :param circles: ``(m, 3)`` circles as (x, y, radius) in m
+    :param visible: ``(n, m)`` bool, which circles each agent may see
+    :param channels: ``(m,)`` channel (0 or 1) of every circle
+    :param width: world width (m)
+    :param height: world height (m)
+    :param max_range: lidar range (m)
+    :return: ``(2, n, n_rays)`` distances in [0, max_range]
+    """
+    n_agents, n_rays, n_circles = origins.shape[0], directions.shape[0], circles.shape[0]
+    ranges = np.empty((2, n_agents, n_rays))
+    for agent in range(n_agents):
+        px, py = origins[agent, 0], origins[agent, 1]
+        for ray in range(n_rays):
+            ux, uy = directions[ray, 0], directions[ray, 1]
+            wall = math.inf
+            if ux > 0.0:
+                wall = (width - px) / ux
+            elif ux < 0.0:
+                wall = -px / ux
+            if uy > 0.0:
+                wall = min(wall, (height - py) / uy)
+            elif uy < 0.0:
+                wall = min(wall, -py / uy)
+            ranges[0, agent, ray] = min(max(wall - agent_radius, 0.0), max_range)
+            ranges[1, agent, ray] = max_range
+        for circle in range(n_circles):
+            if not visible[agent, circle]:
+                continue
+            ox, oy, radius = circles[circle, 0] - px, circles[circle, 1] - py, circles[circle, 2]
+            squared = ox * ox + oy * oy
+            reach = agent_radius + max_range + radius
+            if squared >= reach * reach:
+                continue
+            gap = squared - radius * radius
+            channel = channels[circle]
+            for ray in range(n_rays):
+                projection = ox * directions[ray, 0] + oy * directions[ray, 1]
+                discriminant = projection * projection - gap
+                if discriminant < 0.0:
+                    continue
+                half_chord = math.sqrt(discriminant)
+                if projection + half_chord < agent_radius:
+                    continue
+                distance = max(projection - half_chord - agent_radius, 0.0)
+                if distance < ranges[channel, agent, ray]:
+                    ranges[channel, agent, ray] = distance
+    return ranges
+
+
+class Lidar:
+    """The two-channel lidar of one team: obstacles (static circles and walls) and non-neighbour agents.
+
+    :param n_rays: number of rays
+    :param max_range: range (m), from the agent's surface
+    :param agent_radius: R_a (m)
+    :param width: world width (m)
+    :param height: world height (m)
+    :param neighbours: ``(n, k)`` designated neighbours, invisible to the agent channel
+    """
+
+    def __init__(
+        self, n_rays: int, max_range: float, agent_radius: float, width: float, height: float, neighbours: np.ndarray
+    ) -> None:
+        self.directions = ray_directions(n_rays)
+        self.max_range = max_range
+        self.agent_radius = agent_radius
+        self.width = width
+        self.height = height
+        self._agent_visibility = agent_visibility(len(neighbours), neighbours)
+        self.set_obstacles(np.zeros((0, 3)))
+
+    def set_obstacles(self, obstacles: np.ndarray) -> None:
+        """Use ``obstacles`` (``(m, 3)``: x, y, radius in m) from now on."""
+        n_agents = len(self._agent_visibility)
+        self._circles = np.vstack([np.asarray(obstacles, dtype=np.float64).reshape(-1, 3), np.zeros((n_agents, 3))])
+        self._circles[-n_agents:, 2] = self.agent_radius
+        n_obstacles = len(self._circles) - n_agents
+        self._visible = np.hstack([np.ones((n_agents, n_obstacles), dtype=bool), self._agent_visibility])
+        self._channels = np.r_[np.full(n_obstacles, OBSTACLE_CHANNEL), np.full(n_agents, AGENT_CHANNEL)]
+
+    def scan(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Readings of every agent's rays, ``(obstacles, agents)``, each ``(n, n_rays)`` in [0, 1] (1 = nothing in range).
+
+        :param positions: ``(n, 2)`` agent centres (m)
+        """
+        self._circles[-len(positions) :, :2] = positions
+        ranges = lidar_ranges(
+            positions,
+            self.agent_radius,
+            self.directions,
+            self._circles,
+            self._visible,
+            self._channels,
+            self.width,
+            self.height,
+            self.max_range,
+        )
+        ranges /= self.max_range
+        return ranges[OBSTACLE_CHANNEL], ranges[AGENT_CHANNEL]

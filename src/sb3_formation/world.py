@@ -1,0 +1,138 @@
+"""The Pymunk world: the only stateful physics object. Forces in, positions and velocities out.
+
+Agents are dynamic circles that do not rotate; obstacles are static circles; the world's border is four thick static
+walls. Each environment step applies the agents' forces as the second-order integrator of eq. 19 (semi-implicit
+Euler, as Pymunk itself integrates): v <- v + F / m * dt, then the speed is clamped to v_max, then Pymunk moves the
+bodies over ``physics_substeps`` sub-steps and resolves contacts (inelastic, frictionless). Contacts are counted
+once per pair per environment step.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+import pymunk
+import pymunk.batch
+
+from .config import FormationConfig
+from .scenarios import Scenario
+
+AGENT_COLLISION_TYPE = 1
+OBSTACLE_COLLISION_TYPE = 2  #: obstacles and walls
+WALL_THICKNESS = 1.0  #: m; the walls' inner faces lie exactly on the world's border
+COLLISION_SLOP = 1e-3  #: m; Pymunk's allowed overlap (its default 0.1 is for pixel units)
+_STATE_FIELDS = pymunk.batch.BodyFields.POSITION | pymunk.batch.BodyFields.VELOCITY
+
+
+@numba.njit(cache=True)
+def clamp_speed(velocities: np.ndarray, v_max: float) -> np.ndarray:  # pragma: no cover - compiled
+    """Scale down every velocity faster than ``v_max`` (m/s) to ``v_max``, keeping its direction.
+
+    :param velocities: ``(n, 2)`` velocities (m/s)
+    :param v_max: speed limit (m/s)
+    :return: a new ``(n, 2)`` array
+    """
+    clamped = velocities.copy()
+    for index in range(velocities.shape[0]):
+        speed = math.hypot(velocities[index, 0], velocities[index, 1])
+        if speed > v_max:
+            clamped[index] *= v_max / speed
+    return clamped
+
+
+class World:
+    """One team's Pymunk space, built from a :class:`Scenario`.
+
+    :param config: task configuration (world size, agent radius and mass, v_max, dt, sub-steps)
+    :param scenario: placement of agents, goal and obstacles (validated by the caller)
+    """
+
+    def __init__(self, config: FormationConfig, scenario: Scenario) -> None:
+        self.config = config
+        self.space = pymunk.Space()
+        self.space.collision_slop = COLLISION_SLOP
+        self.space.iterations = 10
+        self.agent_bodies: list[pymunk.Body] = []
+        self._agent_of_shape: dict[pymunk.Shape, int] = {}
+        self._obstacle_of_shape: dict[pymunk.Shape, int] = {}
+        self._add_walls()
+        for x, y, radius in scenario.obstacles:
+            shape = pymunk.Circle(self.space.static_body, float(radius), (float(x), float(y)))
+            self._add_obstacle_shape(shape)
+        for index, (x, y) in enumerate(scenario.agent_positions):
+            body = pymunk.Body(config.agent_mass, float("inf"))
+            body.position = (float(x), float(y))
+            shape = pymunk.Circle(body, config.agent_radius)
+            shape.collision_type = AGENT_COLLISION_TYPE
+            self.space.add(body, shape)
+            self.agent_bodies.append(body)
+            self._agent_of_shape[shape] = index
+        self._agent_pairs: set[tuple[int, int]] = set()
+        self._obstacle_pairs: set[tuple[int, int]] = set()
+        self.space.on_collision(AGENT_COLLISION_TYPE, AGENT_COLLISION_TYPE, pre_solve=self._record_agent_contact)
+        self.space.on_collision(AGENT_COLLISION_TYPE, OBSTACLE_COLLISION_TYPE, pre_solve=self._record_obstacle_contact)
+        # Pymunk's batch API reads and writes every body of the space at once, in the space's own order
+        self._read_buffer = pymunk.batch.Buffer()
+        self._write_buffer = pymunk.batch.Buffer()
+        pymunk.batch.get_space_bodies(self.space, pymunk.batch.BodyFields.BODY_ID, self._read_buffer)
+        body_ids = list(np.frombuffer(self._read_buffer.int_buf(), dtype=np.uintp))
+        rows = [body_ids.index(body.id) for body in self.agent_bodies]
+        contiguous = rows == list(range(rows[0], rows[0] + len(rows)))
+        self._agent_rows = slice(rows[0], rows[0] + len(rows)) if contiguous else np.array(rows)
+        self._body_velocities = np.zeros((len(body_ids), 2))  # static bodies keep velocity 0
+        self.positions = np.array(scenario.agent_positions, dtype=np.float64)
+        self.velocities = np.zeros_like(self.positions)
+
+    def _add_walls(self) -> None:
+        width, height, half = self.config.world_width, self.config.world_height, WALL_THICKNESS / 2
+        corners = [(-half, -half), (width + half, -half), (width + half, height + half), (-half, height + half)]
+        for start, end in zip(corners, corners[1:] + corners[:1]):
+            self._add_obstacle_shape(pymunk.Segment(self.space.static_body, start, end, half))
+
+    def _add_obstacle_shape(self, shape: pymunk.Shape) -> None:
+        shape.collision_type = OBSTACLE_COLLISION_TYPE
+        self._obstacle_of_shape[shape] = len(self._obstacle_of_shape)
+        self.space.add(shape)
+
+    def _record_agent_contact(self, arbiter: pymunk.Arbiter, space: pymunk.Space, data: object) -> None:
+        first, second = (self._agent_of_shape[shape] for shape in arbiter.shapes)
+        self._agent_pairs.add((min(first, second), max(first, second)))
+
+    def _record_obstacle_contact(self, arbiter: pymunk.Arbiter, space: pymunk.Space, data: object) -> None:
+        agent_shape, obstacle_shape = arbiter.shapes
+        self._obstacle_pairs.add((self._agent_of_shape[agent_shape], self._obstacle_of_shape[obstacle_shape]))
+
+    def step(self, forces: np.ndarray) -> tuple[list[int], list[int]]:
+        """Advance one environment step of ``config.dt`` seconds under ``forces``.
+
+        :param forces: ``(n, 2)`` forces (N), held over the step
+        :return: ``(agent_contacts, obstacle_contacts)``, two lists of n ints: how many other agents, and how many
+            obstacles or walls, each agent touched during the step (each pair counted once)
+        """
+        config = self.config
+        commanded = clamp_speed(self.velocities + forces * (config.dt / config.agent_mass), config.v_max)
+        self._body_velocities[self._agent_rows] = commanded
+        self._write_buffer.set_float_buf(self._body_velocities.ravel())
+        pymunk.batch.set_space_bodies(self.space, pymunk.batch.BodyFields.VELOCITY, self._write_buffer)
+        self._agent_pairs.clear()
+        self._obstacle_pairs.clear()
+        substep = config.dt / config.physics_substeps
+        for _ in range(config.physics_substeps):
+            self.space.step(substep)
+        self._read_buffer.clear()
+        pymunk.batch.get_space_bodies(self.space, _STATE_FIELDS, self._read_buffer)
+        state = np.frombuffer(self._read_buffer.float_buf(), dtype=np.float64).reshape(-1, 4)[self._agent_rows]
+        self.positions = np.ascontiguousarray(state[:, :2])
+        resolved = np.ascontiguousarray(state[:, 2:])
+        # contacts never add speed beyond numerical noise, but the bound is a promise: clamp what Pymunk returns too
+        self.velocities = clamp_speed(resolved, config.v_max)
+        agent_contacts = [0] * config.n_agents
+        for first, second in self._agent_pairs:
+            agent_contacts[first] += 1
+            agent_contacts[second] += 1
+        obstacle_contacts = [0] * config.n_agents
+        for agent, _ in self._obstacle_pairs:
+            obstacle_contacts[agent] += 1
+        return agent_contacts, obstacle_contacts
