@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium
 import numpy as np
@@ -103,11 +103,17 @@ class FormationEnv(ParallelEnv):
     :param render_lidar: draw the lidar rays in renderings
     """
 
-    metadata = {"render_modes": ["human", "rgb_array"], "name": "formation_v0", "render_fps": 20, "is_parallelizable": True}
+    metadata: ClassVar[dict[str, Any]] = {
+        "render_modes": ["human", "rgb_array"],
+        "name": "formation_v0",
+        "render_fps": 20,
+        "is_parallelizable": True,
+    }
 
     def __init__(self, config: FormationConfig | None = None, render_mode: str | None = None, render_lidar: bool = False):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode={render_mode!r} is not supported; use one of {self.metadata['render_modes']} or None")
+            modes = self.metadata["render_modes"]
+            raise ValueError(f"render_mode={render_mode!r} is not supported; use one of {modes} or None")
         self.config = config if config is not None else FormationConfig()
         self.render_mode = render_mode
         self.render_lidar = render_lidar
@@ -129,7 +135,12 @@ class FormationEnv(ParallelEnv):
         self.reference_bearings = reference_bearings(n_agents)
         config = self.config
         self.lidar = Lidar(
-            config.lidar_rays, config.lidar_range, config.agent_radius, config.world_width, config.world_height, self.neighbours
+            config.lidar_rays,
+            config.lidar_range,
+            config.agent_radius,
+            config.world_width,
+            config.world_height,
+            self.neighbours,
         )
         self._reward_constants = reward_constants(config)
         self.set_stage(self.config.stage)

@@ -62,27 +62,6 @@ def reference_polygon(n_agents: int, circumradius: float) -> np.ndarray:
     return circumradius * np.stack([np.cos(theta), np.sin(theta)], axis=1)
 
 
-def unit_vectors(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit vectors and norms of ``vectors`` (last axis of size 2); coincident points give the zero vector.
-
-    :param vectors: ``(..., 2)`` array
-    :return: ``(units, norms)`` with shapes ``(..., 2)`` and ``(...)``
-    """
-    norms = np.hypot(vectors[..., 0], vectors[..., 1])
-    safe = np.where(norms > COINCIDENT_DISTANCE, norms, np.inf)
-    return vectors / safe[..., None], norms
-
-
-def formation_angles_deg(bearings: np.ndarray) -> np.ndarray:
-    """Angle beta^i (deg, in [0, 360)): anti-clockwise from the bearing to the succeeding to the bearing to the preceding neighbour.
-
-    :param bearings: ``(n, 2, 2)`` unit bearings, ``[:, 0]`` to the preceding and ``[:, 1]`` to the succeeding neighbour
-    :return: ``(n,)`` angles in degrees
-    """
-    heading = np.degrees(np.arctan2(bearings[..., 1], bearings[..., 0]))
-    return np.mod(heading[:, 0] - heading[:, 1], 360.0)
-
-
 class FormationState(NamedTuple):
     """Everything the observation, the reward and ``info`` need to know about the team's shape, at one instant.
 
@@ -137,7 +116,7 @@ def measure_formation(
 def _measure(
     positions: np.ndarray, neighbours: np.ndarray, reference: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
-    """Compiled core of :func:`measure_formation` (the same formulas as the numpy functions above, in one loop)."""
+    """Compiled core of :func:`measure_formation`: eq. 16 bearings, distances, beta^i and bearing errors in one loop."""
     n_agents, n_neighbours = positions.shape[0], neighbours.shape[1]
     centroid = np.empty(2)
     centroid[0] = positions[:, 0].sum() / n_agents

@@ -182,8 +182,9 @@ def sample_scenario(config: FormationConfig, stage: int, rng: np.random.Generato
         if _obstacles_clear(config, obstacles, positions, goal):
             return Scenario(positions, goal, obstacles)
     raise PlacementError(
-        f"could not place the stage-{stage} obstacles of layout {config.layout!r} clear of the start formation and the goal "
-        f"in {config.max_placement_tries} tries (n_agents={config.n_agents}, placement_clearance={config.placement_clearance} m)"
+        f"could not place the stage-{stage} obstacles of layout {config.layout!r} clear of the start formation and the "
+        f"goal in {config.max_placement_tries} tries (n_agents={config.n_agents}, "
+        f"placement_clearance={config.placement_clearance} m)"
     )
 
 
