@@ -11,6 +11,8 @@ import math
 from dataclasses import dataclass
 from typing import Any, Literal
 
+from .geometry import interior_angle_deg
+
 #: Names of the reward terms, in the order of eq. (42); chapter 4's ``ref`` term (eq. 22) is ``dist``.
 REWARD_TERMS: tuple[str, ...] = ("time", "angle", "bearing", "dist", "centroid", "goal", "move", "velocity", "coll")
 
@@ -163,7 +165,7 @@ class FormationConfig:
     @property
     def beta_ref_deg(self) -> float:
         """Reference angle beta^ref (deg): the interior angle (n - 2) * 180 / n of the regular n-gon (Tables 4.1, 5.1)."""
-        return (self.n_agents - 2) * 180.0 / self.n_agents
+        return interior_angle_deg(self.n_agents)
 
     @property
     def start_circumradius(self) -> float:

@@ -301,25 +301,30 @@ class FormationEnv(ParallelEnv):
         self, agent_contacts: list[int], obstacle_contacts: list[int], terms: np.ndarray, success: bool
     ) -> dict[AgentID, dict[str, Any]]:
         formation = self.formation
-        columns = {
-            "angle_error_deg": np.abs(formation.angle_errors_deg).tolist(),
-            "bearing_error": (0.5 * formation.bearing_errors.sum(axis=1)).tolist(),
-            "neighbour_distance_error": (
-                0.5 * np.maximum(formation.neighbour_distances - self.config.d_ref, 0.0).sum(axis=1)
-            ).tolist(),
-            "centroid_distance": formation.centroid_distances.tolist(),
-            "collisions_obstacle": obstacle_contacts,
-            "collisions_agent": agent_contacts,
+        rows = zip(
+            self.agents,
+            np.abs(formation.angle_errors_deg).tolist(),
+            (0.5 * formation.bearing_errors.sum(axis=1)).tolist(),
+            (0.5 * np.maximum(formation.neighbour_distances - self.config.d_ref, 0.0).sum(axis=1)).tolist(),
+            formation.centroid_distances.tolist(),
+            obstacle_contacts,
+            agent_contacts,
+            terms.T.tolist(),
+        )
+        return {
+            agent: {
+                "angle_error_deg": angle,
+                "bearing_error": bearing,
+                "neighbour_distance_error": distance,
+                "centroid_distance": centroid,
+                "goal_distance": self.goal_distance,
+                "collisions_obstacle": obstacle_contact,
+                "collisions_agent": agent_contact,
+                "success": success,
+                "reward_terms": dict(zip(REWARD_TERMS, agent_terms)),
+            }
+            for agent, angle, bearing, distance, centroid, obstacle_contact, agent_contact, agent_terms in rows
         }
-        term_rows = terms.T.tolist()
-        infos = {}
-        for index, agent in enumerate(self.agents):
-            info = {name: values[index] for name, values in columns.items()}
-            info["goal_distance"] = self.goal_distance
-            info["success"] = success
-            info["reward_terms"] = dict(zip(REWARD_TERMS, term_rows[index]))
-            infos[agent] = info
-        return infos
 
     # Rendering ----------------------------------------------------------------------------------------------------
 
