@@ -146,7 +146,7 @@ def test_truncation_at_max_steps_with_r_late() -> None:
     env.reset(seed=0)
     rng = np.random.default_rng(0)
     for step in range(1, 6):
-        _, rewards, terminations, truncations, infos = env.step(random_actions(env, rng))
+        _, _, terminations, truncations, infos = env.step(random_actions(env, rng))
         assert not any(terminations.values())
         assert all(truncations.values()) == (step == 5)
         assert infos["agent_0"]["reward_terms"]["time"] == (-10.0 if step == 5 else 0.0)
@@ -161,7 +161,7 @@ def test_termination_when_the_centroid_reaches_the_goal() -> None:
     # centroid (5, 5), goal 0.41 m to the right: one full step right moves the centroid 0.015 m -> 0.395 <= eta_g 0.4
     env.reset(options={"scenario": hexagon_scenario((5.0, 5.0), (5.41, 5.0))})
     actions = {agent: np.array([1.0, 0.0]) for agent in env.agents}
-    _, rewards, terminations, truncations, infos = env.step(actions)
+    _, _, terminations, truncations, infos = env.step(actions)
     assert all(terminations.values()) and not any(truncations.values())
     assert infos["agent_0"]["success"] is True
     assert infos["agent_0"]["goal_distance"] == pytest.approx(0.395)

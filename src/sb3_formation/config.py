@@ -8,8 +8,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from dataclasses import dataclass
 from typing import Any, Literal
+
+import numpy as np
 
 from .geometry import interior_angle_deg
 
@@ -132,6 +135,8 @@ class FormationConfig:
         for name in ("physics_substeps", "lidar_rays", "max_steps", "max_placement_tries"):
             _check(name, getattr(self, name), "an integer >= 1", lambda v: _is_int(v) and v >= 1)
         _check("stage", self.stage, "1, 2 or 3", lambda v: _is_int(v) and v in (1, 2, 3))
+        for name in ("n_agents", "physics_substeps", "lidar_rays", "max_steps", "max_placement_tries", "stage"):
+            object.__setattr__(self, name, int(getattr(self, name)))  # numpy integers become plain ints
         _check("formation_scale", self.formation_scale, "in (0, 1)", lambda v: 0 < v < 1)
         _check("layout", self.layout, f"one of {LAYOUTS}", lambda v: v in LAYOUTS)
         _check("team_reward", self.team_reward, "True or False", lambda v: isinstance(v, bool))
@@ -186,6 +191,7 @@ class FormationConfig:
     def reward_coefficients(self, stage: int | None = None) -> dict[str, float]:
         """Coefficient of every reward term in ``stage`` (default: ``self.stage``), with the stage's disabled terms at 0."""
         stage = self.stage if stage is None else stage
+        _check_stage(stage)
         disabled = self.stage_disabled_terms[stage - 1]
         return {term: 0.0 if term in disabled else float(getattr(self, f"k_{term}")) for term in REWARD_TERMS}
 
@@ -219,7 +225,12 @@ class FormationConfig:
 
 
 def _is_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
+
+
+def _check_stage(stage: Any) -> None:
+    if not (_is_int(stage) and stage in (1, 2, 3)):
+        raise ValueError(f"stage must be 1, 2 or 3, got {stage!r}")
 
 
 def _check(name: str, value: Any, allowed: str, ok: Any) -> None:

@@ -157,10 +157,8 @@ class FormationEnv(ParallelEnv):
 
     def set_stage(self, stage: int) -> None:
         """Switch the curriculum stage (1, 2 or 3); takes effect for rewards at once and for placements at the next reset."""
-        if stage not in (1, 2, 3):
-            raise ValueError(f"stage must be 1, 2 or 3, got {stage!r}")
-        self.stage = stage
-        coefficients = self.config.reward_coefficients(stage)
+        coefficients = self.config.reward_coefficients(stage)  # validates the stage
+        self.stage = int(stage)
         self._coefficients = np.array([coefficients[name] for name in REWARD_TERMS])
 
     # Episode ------------------------------------------------------------------------------------------------------

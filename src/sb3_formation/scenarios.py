@@ -166,6 +166,8 @@ def sample_scenario(config: FormationConfig, stage: int, rng: np.random.Generato
     :param stage: curriculum stage 1, 2 or 3
     :param rng: the environment's generator; the only source of randomness
     """
+    if stage not in (1, 2, 3):
+        raise ValueError(f"stage must be 1, 2 or 3, got {stage!r}")
     layout = CURRICULUM_LAYOUTS[config.layout]
     for _ in range(config.max_placement_tries):
         goal = np.array([rng.choice(layout.goal_x), rng.uniform(*layout.goal_y)])
