@@ -262,3 +262,44 @@ def test_rgb_array_render() -> None:
 def test_render_mode_is_validated() -> None:
     with pytest.raises(ValueError, match="render_mode"):
         FormationEnv(render_mode="video")
+
+
+def test_every_observation_field_matches_the_state_after_steps() -> None:
+    """Each field, read by name, recomputed from positions and velocities with plain numpy."""
+    config = FormationConfig.preset("ch5-angle", stage=3)
+    env = FormationEnv(config)
+    env.reset(seed=11)
+    rng = np.random.default_rng(11)
+    for _ in range(20):
+        previous_offset = env.goal - env.world.positions.mean(axis=0)
+        actions = random_actions(env, rng)
+        observations, rewards, _, _, _ = env.step(actions)
+    positions, velocities, goal = env.world.positions, env.world.velocities, env.goal
+    centroid = positions.mean(axis=0)
+    layout = env.observation_layout
+    for index, agent in enumerate(env.agents):
+        previous, following = (index - 1) % 6, (index + 1) % 6
+        to_previous, to_following = positions[previous] - positions[index], positions[following] - positions[index]
+        distances = [np.hypot(*to_previous), np.hypot(*to_following)]
+        angles = np.degrees(np.arctan2(to_previous[1], to_previous[0]) - np.arctan2(to_following[1], to_following[0])) % 360
+        expected = {
+            "velocity": velocities[index],
+            "neighbour_offsets": np.r_[to_previous, to_following],
+            "neighbour_relative_velocities": np.r_[
+                velocities[previous] - velocities[index], velocities[following] - velocities[index]
+            ],
+            "goal_offset": goal - positions[index],
+            "centroid_goal_offset": goal - centroid,
+            "centroid_goal_offset_change": (goal - centroid) - previous_offset,
+            "neighbour_distances": distances,
+            "centroid_distance": [np.hypot(*(positions[index] - centroid))],
+            "neighbour_distance_errors": np.array(distances) - 1.5,
+            "centroid_distance_error": [1.2 - np.hypot(*(positions[index] - centroid))],
+            "angle_error": [120.0 - angles],
+            "flag_orientation": [float(0 < angles < 180)],
+            "time_step": [20.0],
+            "previous_action": np.clip(actions[agent], -1, 1),
+            "previous_reward": [rewards[agent]],
+        }
+        for name, value in expected.items():
+            np.testing.assert_allclose(observations[agent][layout[name]], value, rtol=1e-5, atol=1e-5, err_msg=name)

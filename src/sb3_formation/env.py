@@ -280,7 +280,6 @@ class FormationEnv(ParallelEnv):
         lidar_obstacles, lidar_agents = self.lidar.scan(self.world.positions)
         return build_observations(
             self._observation_buffer,
-            self.observation_layout,
             lidar_obstacles,
             lidar_agents,
             self.world.positions,

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from .config import FormationConfig
@@ -92,7 +93,6 @@ def observation_layout(fields: list[ObservationField]) -> dict[str, slice]:
 
 def build_observations(
     out: np.ndarray,
-    layout: dict[str, slice],
     lidar_obstacles: np.ndarray,
     lidar_agents: np.ndarray,
     positions: np.ndarray,
@@ -106,10 +106,9 @@ def build_observations(
     previous_actions: np.ndarray,
     previous_rewards: np.ndarray,
 ) -> np.ndarray:
-    """Every agent's observation, written into ``out`` (returned as a new copy), in the order of ``layout``.
+    """Every agent's observation, written into ``out`` and returned as a new array, in the order of :func:`observation_fields`.
 
     :param out: ``(n, dim)`` float32 work array
-    :param layout: field name -> slice, from :func:`observation_layout`
     :param lidar_obstacles: ``(n, rays)`` obstacle readings in [0, 1]
     :param lidar_agents: ``(n, rays)`` agent readings in [0, 1]
     :param positions: ``(n, 2)`` positions (m)
@@ -118,34 +117,99 @@ def build_observations(
     :param formation: the team's formation now
     :param previous_centroid_goal_offset: ``(2,)`` c_g^v one step earlier (m)
     :param neighbours: ``(n, 2)`` neighbour indices
-    :param config: task configuration
+    :param config: task configuration (d_ref, eta_c)
     :param step: current time step t
     :param previous_actions: ``(n, 2)`` last clipped actions
     :param previous_rewards: ``(n,)`` last rewards
     """
-    n_agents = len(positions)
-    centroid_goal_offset = goal - formation.centroid
-    values = {
-        "lidar_obstacles": lidar_obstacles,
-        "lidar_agents": lidar_agents,
-        "velocity": velocities,
-        "neighbour_offsets": formation.neighbour_offsets.reshape(n_agents, 4),
-        "neighbour_relative_velocities": (velocities[neighbours] - velocities[:, None, :]).reshape(n_agents, 4),
-        "goal_offset": goal - positions,
-        "centroid_goal_offset": centroid_goal_offset,
-        "centroid_goal_offset_change": centroid_goal_offset - previous_centroid_goal_offset,
-        "neighbour_distances": formation.neighbour_distances,
-        "centroid_distance": formation.centroid_distances[:, None],
-        "neighbour_distance_errors": formation.neighbour_distances - config.d_ref,
-        "centroid_distance_error": (config.eta_c - formation.centroid_distances)[:, None],
-        "angle_error": formation.angle_errors_deg[:, None],
-        "neighbour_angle_errors": formation.angle_errors_deg[neighbours],
-        "flag_orientation": formation.orientation_flags[:, None],
-        "flag_range": formation.range_flag,
-        "time_step": step,
-        "previous_action": previous_actions,
-        "previous_reward": previous_rewards[:, None],
-    }
-    for name, field_slice in layout.items():
-        out[:, field_slice] = values[name]
+    _fill_observations(
+        out,
+        lidar_obstacles,
+        lidar_agents,
+        positions,
+        velocities,
+        goal,
+        formation.centroid,
+        previous_centroid_goal_offset,
+        formation.neighbour_offsets,
+        formation.neighbour_distances,
+        formation.centroid_distances,
+        formation.angle_errors_deg,
+        formation.orientation_flags,
+        formation.range_flag,
+        neighbours,
+        config.d_ref,
+        config.eta_c,
+        step,
+        previous_actions,
+        previous_rewards,
+    )
     return out.copy()
+
+
+@numba.njit(cache=True)
+def _fill_observations(
+    out: np.ndarray,
+    lidar_obstacles: np.ndarray,
+    lidar_agents: np.ndarray,
+    positions: np.ndarray,
+    velocities: np.ndarray,
+    goal: np.ndarray,
+    centroid: np.ndarray,
+    previous_centroid_goal_offset: np.ndarray,
+    neighbour_offsets: np.ndarray,
+    neighbour_distances: np.ndarray,
+    centroid_distances: np.ndarray,
+    angle_errors_deg: np.ndarray,
+    orientation_flags: np.ndarray,
+    range_flag: bool,
+    neighbours: np.ndarray,
+    d_ref: float,
+    eta_c: float,
+    step: int,
+    previous_actions: np.ndarray,
+    previous_rewards: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """Compiled core of :func:`build_observations`: one row per agent, fields in the order of :func:`observation_fields`."""
+    n_rays = lidar_obstacles.shape[1]
+    for agent in range(out.shape[0]):
+        row = out[agent]
+        row[:n_rays] = lidar_obstacles[agent]
+        row[n_rays : 2 * n_rays] = lidar_agents[agent]
+        column = 2 * n_rays
+        values = [
+            velocities[agent, 0],
+            velocities[agent, 1],
+            neighbour_offsets[agent, 0, 0],
+            neighbour_offsets[agent, 0, 1],
+            neighbour_offsets[agent, 1, 0],
+            neighbour_offsets[agent, 1, 1],
+            velocities[neighbours[agent, 0], 0] - velocities[agent, 0],
+            velocities[neighbours[agent, 0], 1] - velocities[agent, 1],
+            velocities[neighbours[agent, 1], 0] - velocities[agent, 0],
+            velocities[neighbours[agent, 1], 1] - velocities[agent, 1],
+            goal[0] - positions[agent, 0],
+            goal[1] - positions[agent, 1],
+            goal[0] - centroid[0],
+            goal[1] - centroid[1],
+            goal[0] - centroid[0] - previous_centroid_goal_offset[0],
+            goal[1] - centroid[1] - previous_centroid_goal_offset[1],
+            neighbour_distances[agent, 0],
+            neighbour_distances[agent, 1],
+            centroid_distances[agent],
+            neighbour_distances[agent, 0] - d_ref,
+            neighbour_distances[agent, 1] - d_ref,
+            eta_c - centroid_distances[agent],
+            angle_errors_deg[agent],
+            angle_errors_deg[neighbours[agent, 0]],
+            angle_errors_deg[neighbours[agent, 1]],
+            1.0 if orientation_flags[agent] else 0.0,
+            1.0 if range_flag else 0.0,
+            float(step),
+            previous_actions[agent, 0],
+            previous_actions[agent, 1],
+            previous_rewards[agent],
+        ]
+        for value in values:
+            row[column] = value
+            column += 1
