@@ -318,7 +318,7 @@ def test_reward_terms_ch4_team_goal_progress() -> None:
     np.testing.assert_allclose(row(terms, "goal"), -0.1, atol=1e-9)
 
 
-# combine_rewards and stage coefficients ------------------------------------------------------------------------
+# combine_rewards ------------------------------------------------------------------------------------------------
 
 
 def coefficient_vector(coefficients: dict[str, float]) -> np.ndarray:
@@ -363,58 +363,3 @@ def test_combine_rewards_clipping() -> None:
     goal_only = np.zeros(len(REWARD_TERMS))
     goal_only[TERM_ROW["goal"]] = 1.0
     np.testing.assert_allclose(combine_rewards(terms, goal_only, 10.0), [9.0, -6.0, 1.0, 10.0])
-
-
-CH5_BEARING_FULL = {
-    "time": 1.0,
-    "angle": 0.0,
-    "bearing": 0.3,
-    "dist": 1.0,
-    "centroid": 1.0,
-    "goal": 0.5,
-    "move": 0.3,
-    "velocity": 0.1,
-    "coll": 0.5,
-}
-CH4_FULL = {
-    "time": 0.0,
-    "angle": 0.4,
-    "bearing": 0.0,
-    "dist": 2.0,
-    "centroid": 0.0,
-    "goal": 0.5,
-    "move": 2.0,
-    "velocity": 0.0,
-    "coll": 1.0,
-}
-
-
-@pytest.mark.parametrize(
-    ("preset", "stage", "expected"),
-    [
-        ("ch5-bearing", 1, {**CH5_BEARING_FULL, "dist": 0.0, "angle": 0.0, "bearing": 0.0}),
-        ("ch5-bearing", 2, {**CH5_BEARING_FULL, "angle": 0.0, "bearing": 0.0}),
-        ("ch5-bearing", 3, CH5_BEARING_FULL),
-        ("ch5-angle", 1, {**CH5_BEARING_FULL, "dist": 0.0, "angle": 0.0, "bearing": 0.0}),
-        ("ch5-angle", 2, {**CH5_BEARING_FULL, "angle": 0.0, "bearing": 0.0}),
-        ("ch5-angle", 3, {**CH5_BEARING_FULL, "angle": 0.3, "bearing": 0.0}),
-        ("ch4-individual", 1, {**CH4_FULL, "angle": 0.0}),
-        ("ch4-individual", 2, CH4_FULL),
-        ("ch4-team", 1, {**CH4_FULL, "angle": 0.0}),
-        ("ch4-team", 3, CH4_FULL),
-    ],
-)
-def test_reward_coefficients_per_stage(preset: str, stage: int, expected: dict[str, float]) -> None:
-    """Each stage zeroes exactly its disabled terms (ch5: stage 1 dist/angle/bearing, stage 2 angle/bearing; ch4:
-    stage 1 angle); the rest keep the preset's coefficients (Tables 4.1, 5.1)."""
-    coefficients = FormationConfig.preset(preset).reward_coefficients(stage)
-    assert list(coefficients) == list(REWARD_TERMS)
-    assert coefficients == pytest.approx(expected)
-
-
-def test_reward_coefficients_default_stage() -> None:
-    """Without an argument, the config's own stage is used."""
-    config = FormationConfig.preset("ch5-bearing", stage=2)
-    assert config.reward_coefficients() == config.reward_coefficients(2)
-    assert config.reward_coefficients()["dist"] == 1.0
-    assert FormationConfig.preset("ch5-bearing").reward_coefficients()["dist"] == 0.0  # presets start in stage 1

@@ -25,6 +25,7 @@ STILL_SPEED = 1e-6
 #: Row of each term in the ``(len(REWARD_TERMS), n)`` array returned by :func:`reward_terms`.
 TERM_ROW: dict[str, int] = {name: row for row, name in enumerate(REWARD_TERMS)}
 _TIME, _ANGLE, _BEARING, _DIST, _CENTROID, _GOAL, _MOVE, _VELOCITY, _COLL = (TERM_ROW[name] for name in REWARD_TERMS)
+_N_TERMS = len(REWARD_TERMS)
 
 
 @numba.njit(cache=True)
@@ -134,7 +135,7 @@ def _reward_terms(
 ) -> np.ndarray:  # pragma: no cover - compiled
     (m_ang, d_ref, m_dist, eta_c, r_c, eta_g, r_reached, k1, dt, v_max, r_j, r_o, d_safe, r_late, agent_radius) = constants
     n_agents = velocities.shape[0]
-    terms = np.empty((9, n_agents))
+    terms = np.empty((_N_TERMS, n_agents))
     agent_contact = nearest_agent_distances <= 2.0 * agent_radius
     obstacle_near = nearest_obstacle_gaps < d_safe
     for agent in range(n_agents):
