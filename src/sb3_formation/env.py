@@ -252,7 +252,7 @@ class FormationEnv(ParallelEnv):
         if not np.isfinite(array).all():
             bad = self.agents[int(np.flatnonzero(~np.isfinite(array).all(axis=1))[0])]
             raise ValueError(f"action of {bad} is not finite: {np.asarray(actions[bad]).tolist()}")
-        return np.clip(array, -1.0, 1.0)
+        return np.minimum(np.maximum(array, -1.0), 1.0)
 
     def _raise_for_actions(self, actions: dict[AgentID, np.ndarray]) -> None:
         missing = [agent for agent in self.agents if agent not in actions]

@@ -181,30 +181,31 @@ def reward_terms(
 
     :param config: task configuration (constants of Tables 4.1 / 5.1, ``team_reward``)
     :param step: step count t + 1 after this step
-    :param formation: formation measured after the step
+    :param formation: formation measured after the step (:func:`~sb3_formation.geometry.measure_formation`)
     :param previous_goal_distance: centroid-goal distance (m) before the step
     :param goal_distance: centroid-goal distance (m) after the step
     :param previous_velocities: ``(n, 2)`` velocities (m/s) before the step
     :param velocities: ``(n, 2)`` velocities (m/s) after the step
-    :param neighbours: ``(n, k)`` neighbour indices
+    :param neighbours: ``(n, k)`` int64 neighbour indices
     :param nearest_agent_distances: ``(n,)`` centre distance (m) to the nearest other agent
     :param nearest_obstacle_gaps: ``(n,)`` surface gap (m) to the nearest obstacle or wall
     :param constants: ``reward_constants(config)``, if already packed
+    Arrays are float64 unless said otherwise.
     :return: ``(len(REWARD_TERMS), n)`` array; row ``TERM_ROW[name]`` holds term ``name``
     """
     return _reward_terms(
         step,
-        np.ascontiguousarray(formation.angle_errors_deg, dtype=np.float64),
-        np.ascontiguousarray(formation.bearing_errors, dtype=np.float64),
-        np.ascontiguousarray(formation.neighbour_distances, dtype=np.float64),
-        np.ascontiguousarray(formation.centroid_distances, dtype=np.float64),
+        formation.angle_errors_deg,
+        formation.bearing_errors,
+        formation.neighbour_distances,
+        formation.centroid_distances,
         float(previous_goal_distance),
         float(goal_distance),
-        np.ascontiguousarray(previous_velocities, dtype=np.float64),
-        np.ascontiguousarray(velocities, dtype=np.float64),
-        np.ascontiguousarray(neighbours, dtype=np.int64),
-        np.ascontiguousarray(nearest_agent_distances, dtype=np.float64),
-        np.ascontiguousarray(nearest_obstacle_gaps, dtype=np.float64),
+        previous_velocities,
+        velocities,
+        neighbours,
+        nearest_agent_distances,
+        nearest_obstacle_gaps,
         reward_constants(config) if constants is None else constants,
         config.max_steps,
         config.team_reward,
@@ -218,4 +219,4 @@ def combine_rewards(terms: np.ndarray, coefficients: np.ndarray, clip: float) ->
     :param coefficients: ``(len(REWARD_TERMS),)`` coefficients (0 for a term switched off)
     :param clip: clip bound
     """
-    return np.clip(coefficients @ terms, -clip, clip)
+    return np.minimum(np.maximum(coefficients @ terms, -clip), clip)

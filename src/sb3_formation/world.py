@@ -24,6 +24,7 @@ OBSTACLE_COLLISION_TYPE = 2  #: obstacles and walls
 WALL_THICKNESS = 1.0  #: m; the walls' inner faces lie exactly on the world's border
 COLLISION_SLOP = 1e-3  #: m; Pymunk's allowed overlap (its default 0.1 is for pixel units)
 _STATE_FIELDS = pymunk.batch.BodyFields.POSITION | pymunk.batch.BodyFields.VELOCITY
+_VELOCITY_FIELD = pymunk.batch.BodyFields.VELOCITY
 
 
 @numba.njit(cache=True)
@@ -82,6 +83,8 @@ class World:
         contiguous = rows == list(range(rows[0], rows[0] + len(rows)))
         self._agent_rows = slice(rows[0], rows[0] + len(rows)) if contiguous else np.array(rows)
         self._body_velocities = np.zeros((len(body_ids), 2))  # static bodies keep velocity 0
+        self._write_buffer.set_float_buf(self._body_velocities.ravel())  # Pymunk reads this array's memory
+        self._substep = config.dt / config.physics_substeps
         self.positions = np.array(scenario.agent_positions, dtype=np.float64)
         self.velocities = np.zeros_like(self.positions)
 
@@ -114,13 +117,11 @@ class World:
         config = self.config
         commanded = clamp_speed(self.velocities + forces * (config.dt / config.agent_mass), config.v_max)
         self._body_velocities[self._agent_rows] = commanded
-        self._write_buffer.set_float_buf(self._body_velocities.ravel())
-        pymunk.batch.set_space_bodies(self.space, pymunk.batch.BodyFields.VELOCITY, self._write_buffer)
+        pymunk.batch.set_space_bodies(self.space, _VELOCITY_FIELD, self._write_buffer)
         self._agent_pairs.clear()
         self._obstacle_pairs.clear()
-        substep = config.dt / config.physics_substeps
         for _ in range(config.physics_substeps):
-            self.space.step(substep)
+            self.space.step(self._substep)
         self._read_buffer.clear()
         pymunk.batch.get_space_bodies(self.space, _STATE_FIELDS, self._read_buffer)
         state = np.frombuffer(self._read_buffer.float_buf(), dtype=np.float64).reshape(-1, 4)[self._agent_rows]
