@@ -303,3 +303,15 @@ def test_every_observation_field_matches_the_state_after_steps() -> None:
         }
         for name, value in expected.items():
             np.testing.assert_allclose(observations[agent][layout[name]], value, rtol=1e-5, atol=1e-5, err_msg=name)
+
+
+def test_docstring_observation_table_matches_the_layout() -> None:
+    """The thesis-style table in the class docstring lists every field with its true index range."""
+    env = FormationEnv(FormationConfig.preset("ch5-bearing"))
+    rows = {}
+    for line in FormationEnv.__doc__.splitlines():
+        cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+        if len(cells) == 4 and cells[1] in env.observation_layout:
+            first, _, last = cells[0].partition("-")
+            rows[cells[1]] = slice(int(first), int(last or first) + 1)
+    assert rows == env.observation_layout
