@@ -120,17 +120,17 @@ class FormationEnv(ParallelEnv):
         n_agents = self.config.n_agents
         self.possible_agents: list[AgentID] = [f"agent_{index}" for index in range(n_agents)]
         self.agents: list[AgentID] = []
-        self._agent_index = {agent: index for index, agent in enumerate(self.possible_agents)}
-        self._fields = observation_fields(self.config)
-        self.observation_layout: dict[str, slice] = observation_layout(self._fields)
-        low = np.concatenate([field.low for field in self._fields]).astype(np.float32)
-        high = np.concatenate([field.high for field in self._fields]).astype(np.float32)
+        fields = observation_fields(self.config)
+        self.observation_layout: dict[str, slice] = observation_layout(fields)
+        low = np.concatenate([field.low for field in fields]).astype(np.float32)
+        high = np.concatenate([field.high for field in fields]).astype(np.float32)
         observation_space = gymnasium.spaces.Box(low, high, dtype=np.float32)
         action_space = gymnasium.spaces.Box(-1.0, 1.0, (2,), dtype=np.float32)
         self.observation_spaces = dict.fromkeys(self.possible_agents, observation_space)
         self.action_spaces = dict.fromkeys(self.possible_agents, action_space)
         self._observation_buffer = np.empty((n_agents, observation_space.shape[0]), dtype=np.float32)
-        self.binary_observation_mask = np.concatenate([np.full(field.size, field.binary) for field in self._fields])
+        #: True for the 0/1 flag entries of the observation (left alone by normalisation)
+        self.binary_observation_mask = np.concatenate([np.full(field.size, field.binary) for field in fields])
         self.neighbours = ring_neighbours(n_agents)
         self.reference_bearings = reference_bearings(n_agents)
         config = self.config
