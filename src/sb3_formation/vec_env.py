@@ -1,0 +1,370 @@
+"""``FormationVecEnv``: many teams of a :class:`FormationEnv` as one SB3 ``VecEnv`` with one slot per agent.
+
+Slot k is agent ``k % n_agents`` of team ``k // n_agents``, so one SB3 ``PPO`` shares its parameters across every
+agent of every team. All slots of a team end together and are reset in the same step, as SB3 expects of a ``VecEnv``.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import time
+from collections.abc import Iterable, Sequence
+from multiprocessing.connection import Connection
+from typing import Any
+
+import gymnasium
+import numpy as np
+from stable_baselines3.common.vec_env import VecEnv
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
+
+from .config import REWARD_TERMS, FormationConfig
+from .env import FormationEnv
+
+
+class EpisodeStatistics:
+    """Running sums of one team's episode, turned into the team's episode summary when it ends."""
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        """Start a new episode."""
+        self.length = 0
+        self.mean_return = 0.0
+        self.errors = np.zeros(3)
+        self.collisions = np.zeros(2, dtype=np.int64)
+        self.terms = np.zeros(len(REWARD_TERMS))
+
+    def add(self, rewards: np.ndarray, infos: Sequence[dict[str, Any]]) -> None:
+        """Add one step: the team's rewards and per-agent infos."""
+        self.length += 1
+        self.mean_return += float(rewards.mean())
+        self.errors += np.mean(
+            [(info["angle_error_deg"], info["bearing_error"], info["neighbour_distance_error"]) for info in infos], axis=0
+        )
+        self.collisions += np.sum([(info["collisions_obstacle"], info["collisions_agent"]) for info in infos], axis=0)
+        self.terms += np.mean([list(info["reward_terms"].values()) for info in infos], axis=0)
+
+    def summary(self, success: bool, stage: int) -> dict[str, Any]:
+        """The episode's means over steps (and over agents), collision totals, success and curriculum stage."""
+        steps = max(self.length, 1)
+        angle, bearing, distance = self.errors / steps
+        return {
+            "success": success,
+            "length": self.length,
+            "return": self.mean_return,
+            "angle_error_deg": float(angle),
+            "bearing_error": float(bearing),
+            "neighbour_distance_error": float(distance),
+            "collisions_obstacle": int(self.collisions[0]),
+            "collisions_agent": int(self.collisions[1]) // 2,  # each touching pair is reported by both agents
+            "reward_terms": dict(zip(REWARD_TERMS, (self.terms / steps).tolist())),
+            "stage": stage,
+        }
+
+
+class TeamBatch:
+    """A block of teams stepped in one process: the unit of both the in-process and the worker-process VecEnv.
+
+    :param config: task configuration of every team
+    :param n_teams: number of teams in this block
+    :param team_observations: each slot also sees its whole team's observations (for a team critic)
+    :param render_mode: render mode of the teams' envs
+    """
+
+    def __init__(self, config: FormationConfig, n_teams: int, team_observations: bool, render_mode: str | None) -> None:
+        self.envs = [FormationEnv(config, render_mode=render_mode) for _ in range(n_teams)]
+        self.n_agents = config.n_agents
+        self.team_observations = team_observations
+        self.statistics = [EpisodeStatistics() for _ in range(n_teams)]
+        self.start_time = time.time()
+
+    def _slot_observations(self, observations: dict[str, np.ndarray], env: FormationEnv) -> np.ndarray:
+        own = np.stack([observations[agent] for agent in env.possible_agents])
+        if not self.team_observations:
+            return own
+        return np.hstack([own, np.broadcast_to(own.reshape(1, -1), (self.n_agents, own.size))])
+
+    def reset(self, seeds: Sequence[int | None], options: Sequence[dict[str, Any]]) -> np.ndarray:
+        """Reset every team; team j with ``seeds[j]`` and ``options[j]``. :return: ``(n_teams * n, obs_dim)``"""
+        observations = []
+        for env, statistics, seed, team_options in zip(self.envs, self.statistics, seeds, options):
+            team_observation, _ = env.reset(seed=seed, options=team_options or None)
+            statistics.reset()
+            observations.append(self._slot_observations(team_observation, env))
+        return np.concatenate(observations)
+
+    def step(self, actions: np.ndarray, first_team: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict[str, Any]]]:
+        """Step every team with its agents' rows of ``actions``; teams that end are reset at once.
+
+        :param actions: ``(n_teams * n, 2)`` actions
+        :param first_team: global index of this block's first team (for error messages)
+        :return: observations, rewards, dones and infos of every slot, in SB3's ``VecEnv`` conventions
+        """
+        n_agents = self.n_agents
+        observations, rewards, dones, infos = [], [], [], []
+        for team, (env, statistics) in enumerate(zip(self.envs, self.statistics)):
+            team_actions = actions[team * n_agents : (team + 1) * n_agents]
+            try:
+                result = env.step(dict(zip(env.possible_agents, team_actions)))
+            except ValueError as error:
+                raise ValueError(f"team {first_team + team}: {error}") from error
+            team_observation, team_reward, terminations, truncations, team_info = result
+            agent_rewards = np.array([team_reward[agent] for agent in env.possible_agents])
+            slot_infos = [team_info[agent] for agent in env.possible_agents]
+            statistics.add(agent_rewards, slot_infos)
+            slot_observations = self._slot_observations(team_observation, env)
+            terminated = terminations[env.possible_agents[0]]
+            truncated = truncations[env.possible_agents[0]]
+            done = terminated or truncated
+            if done:
+                for info, terminal_observation in zip(slot_infos, slot_observations):
+                    info["terminal_observation"] = terminal_observation
+                    info["TimeLimit.truncated"] = truncated and not terminated
+                summary = statistics.summary(success=terminated, stage=env.stage)
+                slot_infos[0]["episode"] = {
+                    "r": summary["return"],
+                    "l": summary["length"],
+                    "t": round(time.time() - self.start_time, 6),
+                }
+                slot_infos[0]["is_success"] = terminated
+                slot_infos[0]["formation_episode"] = summary
+                reset_observation, _ = env.reset()
+                statistics.reset()
+                slot_observations = self._slot_observations(reset_observation, env)
+            observations.append(slot_observations)
+            rewards.append(agent_rewards)
+            dones.append(np.full(n_agents, done))
+            infos.extend(slot_infos)
+        return np.concatenate(observations), np.concatenate(rewards), np.concatenate(dones), infos
+
+    def get_attr(self, name: str, teams: Iterable[int]) -> list[Any]:
+        """Attribute ``name`` of each of ``teams`` (indices within this block)."""
+        return [getattr(self.envs[team], name) for team in teams]
+
+    def set_attr(self, name: str, teams: Iterable[int], value: Any) -> None:
+        """Set attribute ``name`` of each of ``teams``."""
+        for team in teams:
+            setattr(self.envs[team], name, value)
+
+    def env_method(self, name: str, teams: Iterable[int], args: tuple, kwargs: dict[str, Any]) -> list[Any]:
+        """Call method ``name`` of each of ``teams``."""
+        return [getattr(self.envs[team], name)(*args, **kwargs) for team in teams]
+
+    def get_images(self) -> list[np.ndarray]:
+        """One ``rgb_array`` frame per team."""
+        return [env.render() for env in self.envs]
+
+    def close(self) -> None:
+        """Close every team's env."""
+        for env in self.envs:
+            env.close()
+
+
+def _worker(remote: Connection, parent_remote: Connection, batch_arguments: tuple) -> None:  # pragma: no cover - subprocess
+    parent_remote.close()
+    batch = TeamBatch(*batch_arguments)
+    try:
+        while True:
+            command, data = remote.recv()
+            if command == "close":
+                batch.close()
+                break
+            try:
+                result = getattr(batch, command)(*data)
+            except Exception as error:  # report to the parent, which raises it
+                remote.send(("error", error))
+            else:
+                remote.send(("ok", result))
+    except (EOFError, KeyboardInterrupt):
+        pass
+    finally:
+        remote.close()
+
+
+class _WorkerBatch:
+    """A :class:`TeamBatch` in its own process, driven over a pipe (the same methods, called asynchronously)."""
+
+    def __init__(self, context: multiprocessing.context.BaseContext, batch_arguments: tuple) -> None:
+        self.remote, work_remote = context.Pipe()
+        self.process = context.Process(target=_worker, args=(work_remote, self.remote, batch_arguments), daemon=True)
+        self.process.start()
+        work_remote.close()
+
+    def send(self, command: str, *data: Any) -> None:
+        self.remote.send((command, data))
+
+    def receive(self) -> Any:
+        status, result = self.remote.recv()
+        if status == "error":
+            raise result
+        return result
+
+    def close(self) -> None:
+        try:
+            self.remote.send(("close", ()))
+        except (BrokenPipeError, EOFError):
+            pass
+        self.process.join(timeout=10)
+        if self.process.is_alive():
+            self.process.terminate()
+        self.remote.close()
+
+
+class FormationVecEnv(VecEnv):
+    """``n_envs`` teams of ``config.n_agents`` agents as an SB3 ``VecEnv`` of ``n_envs * n_agents`` slots.
+
+    - Slot k is agent ``k % n_agents`` of team ``k // n_agents``; every slot has the env's per-agent spaces (with
+      ``team_observations`` the observation is [own, then every team member's, agent 0 first], for a team critic).
+    - All slots of a team end together and are reset in the same step; an ended slot's info has
+      ``terminal_observation`` and ``TimeLimit.truncated`` (True exactly for time-outs, so PPO bootstraps them).
+    - Seeding: ``seed(s)`` (as ``PPO(seed=s)`` calls it) gives team j the seed ``s + j * n_agents``, the seed SB3
+      assigns to the team's first slot; each team then draws its scenarios from its own generator.
+    - ``get_attr``, ``set_attr`` and ``env_method`` reach the teams of the given slots; a call on several slots of
+      one team acts once on that team, and results are repeated for each requested slot.
+    - Episode statistics are counted once per team: the info of the team's first slot carries ``episode``
+      (``r`` = return averaged over the team's agents, ``l`` = length), ``is_success`` and ``formation_episode``
+      (means over the episode of the formation errors and reward terms, collision totals, success, stage).
+    - With ``n_workers > 1`` the teams are split into contiguous blocks stepped in worker processes; each team is
+      independent, so the same seed gives the same rollouts for any ``n_workers``.
+
+    :param config: task configuration of every team
+    :param n_envs: number of teams
+    :param team_observations: give every slot its whole team's observations (for a team critic)
+    :param n_workers: worker processes (1: step every team in this process)
+    :param render_mode: ``None`` or ``"rgb_array"``; ``render()`` tiles the teams' frames
+    :param start_method: multiprocessing start method for the workers (default: ``forkserver`` where available)
+    """
+
+    def __init__(
+        self,
+        config: FormationConfig,
+        n_envs: int,
+        team_observations: bool = False,
+        n_workers: int = 1,
+        render_mode: str | None = None,
+        start_method: str | None = None,
+    ) -> None:
+        if not (isinstance(n_envs, int) and n_envs >= 1):
+            raise ValueError(f"n_envs must be an integer >= 1, got {n_envs!r}")
+        if not (isinstance(n_workers, int) and 1 <= n_workers <= n_envs):
+            raise ValueError(f"n_workers must be an integer in [1, n_envs={n_envs}], got {n_workers!r}")
+        self.config = config
+        self.n_teams = n_envs
+        self.n_agents = config.n_agents
+        self.team_observations = team_observations
+        self.n_workers = n_workers
+        probe = FormationEnv(config)
+        agent_space = probe.observation_space(probe.possible_agents[0])
+        self.agent_observation_dim = agent_space.shape[0]
+        self.binary_observation_mask = probe.binary_observation_mask
+        self.observation_layout = probe.observation_layout
+        blocks = 1 + self.n_agents if team_observations else 1
+        observation_space = gymnasium.spaces.Box(np.tile(agent_space.low, blocks), np.tile(agent_space.high, blocks))
+        self._team_blocks = [block.tolist() for block in np.array_split(np.arange(n_envs), n_workers)]
+        arguments = [(config, len(block), team_observations, render_mode) for block in self._team_blocks]
+        if n_workers == 1:
+            self._batches: list[TeamBatch | _WorkerBatch] = [TeamBatch(*arguments[0])]
+        else:
+            if start_method is None:
+                start_method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+            context = multiprocessing.get_context(start_method)
+            self._batches = [_WorkerBatch(context, batch_arguments) for batch_arguments in arguments]
+        self._actions: np.ndarray | None = None
+        super().__init__(n_envs * self.n_agents, observation_space, probe.action_space(probe.possible_agents[0]))
+
+    # Slot and team bookkeeping -----------------------------------------------------------------------------------
+
+    def _teams_of(self, indices: VecEnvIndices) -> list[int]:
+        """Teams of the given slots, in order of first appearance."""
+        return list(dict.fromkeys(slot // self.n_agents for slot in self._get_indices(indices)))
+
+    def _per_block(self, teams: Iterable[int]) -> list[tuple[int, list[int]]]:
+        """Group global team indices by block: (block index, team indices within the block)."""
+        grouped: dict[int, list[int]] = {}
+        for team in teams:
+            for block, block_teams in enumerate(self._team_blocks):
+                if team in block_teams:
+                    grouped.setdefault(block, []).append(team - block_teams[0])
+        return list(grouped.items())
+
+    def _run(self, command: str, arguments: dict[int, tuple]) -> dict[int, Any]:
+        """Call ``command`` on the blocks in ``arguments`` (block -> arguments): workers first, all in parallel."""
+        for block, block_arguments in arguments.items():
+            batch = self._batches[block]
+            if isinstance(batch, _WorkerBatch):
+                batch.send(command, *block_arguments)
+        return {
+            block: batch.receive() if isinstance(batch, _WorkerBatch) else getattr(batch, command)(*block_arguments)
+            for block, batch in ((block, self._batches[block]) for block in arguments)
+        }
+
+    def _call_teams(self, command: str, teams: list[int], *data: Any) -> dict[int, Any]:
+        """Run ``command(data[0], local_teams, *data[1:])`` on the blocks holding ``teams``; return team -> result."""
+        grouped = self._per_block(teams)
+        results = self._run(command, {block: (data[0], local, *data[1:]) for block, local in grouped})
+        values: dict[int, Any] = {}
+        for block, local in grouped:
+            block_values = results[block] if results[block] is not None else [None] * len(local)
+            values.update(zip((self._team_blocks[block][0] + team for team in local), block_values))
+        return values
+
+    # VecEnv interface --------------------------------------------------------------------------------------------
+
+    def reset(self) -> VecEnvObs:
+        arguments = {
+            block: (
+                [self._seeds[team * self.n_agents] for team in teams],
+                [self._options[team * self.n_agents] for team in teams],
+            )
+            for block, teams in enumerate(self._team_blocks)
+        }
+        observations = self._run("reset", arguments)
+        self._reset_seeds()
+        self._reset_options()
+        return np.concatenate([observations[block] for block in range(len(self._batches))])
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = np.asarray(actions).reshape(self.num_envs, -1)
+
+    def step_wait(self) -> VecEnvStepReturn:
+        n_agents = self.n_agents
+        arguments = {
+            block: (self._actions[teams[0] * n_agents : (teams[-1] + 1) * n_agents], teams[0])
+            for block, teams in enumerate(self._team_blocks)
+        }
+        results = self._run("step", arguments)
+        observations, rewards, dones, infos = zip(*(results[block] for block in range(len(self._batches))))
+        return (
+            np.concatenate(observations),
+            np.concatenate(rewards).astype(np.float32),
+            np.concatenate(dones),
+            [info for block_infos in infos for info in block_infos],
+        )
+
+    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+        slots = list(self._get_indices(indices))
+        values = self._call_teams("get_attr", self._teams_of(slots), attr_name)
+        return [values[slot // self.n_agents] for slot in slots]
+
+    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+        self._call_teams("set_attr", self._teams_of(indices), attr_name, value)
+
+    def env_method(
+        self, method_name: str, *method_args: Any, indices: VecEnvIndices = None, **method_kwargs: Any
+    ) -> list[Any]:
+        slots = list(self._get_indices(indices))
+        values = self._call_teams("env_method", self._teams_of(slots), method_name, method_args, method_kwargs)
+        return [values[slot // self.n_agents] for slot in slots]
+
+    def env_is_wrapped(self, wrapper_class: type[gymnasium.Wrapper], indices: VecEnvIndices = None) -> list[bool]:
+        return [False for _ in self._get_indices(indices)]
+
+    def get_images(self) -> Sequence[np.ndarray | None]:
+        """One frame per team (not per slot), which ``render()`` tiles."""
+        frames = self._run("get_images", {block: () for block in range(len(self._batches))})
+        return [frame for block in range(len(self._batches)) for frame in frames[block]]
+
+    def close(self) -> None:
+        for batch in self._batches:
+            batch.close()
