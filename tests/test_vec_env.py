@@ -77,7 +77,7 @@ def test_goal_reached_terminates_without_truncated_flag() -> None:
     venv.reset()
     actions = np.zeros((12, 2))
     actions[:N_AGENTS, 0] = 1.0
-    _, rewards, dones, infos = venv.step(actions)
+    _, _, dones, infos = venv.step(actions)
     assert dones.tolist() == [True] * 6 + [False] * 6
     assert all(info["TimeLimit.truncated"] is False for info in infos[:N_AGENTS])
     assert infos[0]["is_success"] is True and infos[0]["formation_episode"]["success"] is True
