@@ -346,3 +346,18 @@ def test_stage_arguments_are_validated_and_numpy_integers_accepted() -> None:
             config.reward_coefficients(stage)
     numpy_sized = FormationConfig.preset("ch5-bearing", n_agents=np.int64(4), stage=np.int64(2))
     assert numpy_sized.n_agents == 4 and type(numpy_sized.n_agents) is int and type(numpy_sized.stage) is int
+
+
+def test_travel_per_substep_must_stay_below_the_agent_radius() -> None:
+    # 1.0 m/s * 0.3 s / 2 sub-steps = 0.15 m < 0.2 m: fine; 2.0 m/s gives 0.3 m >= 0.2 m: rejected
+    FormationConfig.preset("ch5-bearing", v_max=1.0)
+    with pytest.raises(ValueError, match=r"0\.300 m per Pymunk sub-step.*physics_substeps"):
+        FormationConfig.preset("ch5-bearing", v_max=2.0)
+    FormationConfig.preset("ch5-bearing", v_max=2.0, physics_substeps=4)  # 0.15 m per sub-step
+
+
+def test_largest_team_that_fits_the_start_formation() -> None:
+    # circumradius 0.9 * 1.2 = 1.08 m; side 2 * 1.08 * sin(pi / n): n = 16 -> 0.421 m > 0.4 m; n = 17 -> 0.397 m < 0.4 m
+    assert FormationConfig.preset("ch5-bearing", n_agents=16).start_side_length == pytest.approx(0.421395, abs=1e-6)
+    with pytest.raises(ValueError, match="n_agents=17 does not fit.*at most 16"):
+        FormationConfig.preset("ch5-bearing", n_agents=17)

@@ -268,7 +268,10 @@ def test_every_observation_field_matches_the_state_after_steps() -> None:
     """Each field, read by name, recomputed from positions and velocities with plain numpy."""
     config = FormationConfig.preset("ch5-angle", stage=3)
     env = FormationEnv(config)
-    env.reset(seed=11)
+    # an irregular hexagon with one side longer than d_ref = 1.5 m, so that flag_range is 0 and errors differ by agent
+    positions = [[5.0, 4.0], [6.0, 4.3], [6.4, 5.4], [5.2, 6.0], [4.1, 5.6], [3.9, 4.2]]  # side 3-4: 1.17, 4-5: 1.41
+    positions[4] = [3.6, 5.9]  # side 3-4 now 1.70 m
+    env.reset(options={"scenario": Scenario(positions, [12.0, 8.0])})
     rng = np.random.default_rng(11)
     for _ in range(20):
         previous_offset = env.goal - env.world.positions.mean(axis=0)
@@ -277,6 +280,14 @@ def test_every_observation_field_matches_the_state_after_steps() -> None:
     positions, velocities, goal = env.world.positions, env.world.velocities, env.goal
     centroid = positions.mean(axis=0)
     layout = env.observation_layout
+    angle_errors, sides = [], []
+    for index in range(6):
+        to_previous = positions[(index - 1) % 6] - positions[index]
+        to_following = positions[(index + 1) % 6] - positions[index]
+        beta = np.degrees(np.arctan2(to_previous[1], to_previous[0]) - np.arctan2(to_following[1], to_following[0])) % 360
+        angle_errors.append(120.0 - beta)
+        sides.append(np.hypot(*to_following))
+    range_ok = max(sides) <= 1.5
     for index, agent in enumerate(env.agents):
         previous, following = (index - 1) % 6, (index + 1) % 6
         to_previous, to_following = positions[previous] - positions[index], positions[following] - positions[index]
@@ -296,6 +307,8 @@ def test_every_observation_field_matches_the_state_after_steps() -> None:
             "neighbour_distance_errors": np.array(distances) - 1.5,
             "centroid_distance_error": [1.2 - np.hypot(*(positions[index] - centroid))],
             "angle_error": [120.0 - angles],
+            "neighbour_angle_errors": [angle_errors[previous], angle_errors[following]],
+            "flag_range": [float(range_ok)],
             "flag_orientation": [float(0 < angles < 180)],
             "time_step": [20.0],
             "previous_action": np.clip(actions[agent], -1, 1),
@@ -315,3 +328,27 @@ def test_docstring_observation_table_matches_the_layout() -> None:
             first, _, last = cells[0].partition("-")
             rows[cells[1]] = slice(int(first), int(last or first) + 1)
     assert rows == env.observation_layout
+
+
+def test_wall_contact_is_counted_and_penalised() -> None:
+    config = FormationConfig.preset("ch5-bearing", stage=3)
+    env = FormationEnv(config)
+    positions = [[0.25, 5.0], [3.0, 3.0], [4.0, 3.0], [5.0, 3.0], [6.0, 3.0], [7.0, 3.0]]
+    env.reset(options={"scenario": Scenario(positions, [12.0, 8.0])})
+    actions = {agent: np.zeros(2) for agent in env.agents}
+    actions["agent_0"] = np.array([-1.0, 0.0])
+    _, _, _, _, infos = env.step(actions)  # 0.05 m gap, 0.015 m per step: in contact after 4 steps
+    assert infos["agent_0"]["reward_terms"]["coll"] == -5.0  # r_o: the gap 0.05 - 0.015 = 0.035 m < d_safe 0.05 m
+    for _ in range(4):
+        _, _, _, _, infos = env.step(actions)
+    assert [infos[agent]["collisions_obstacle"] for agent in env.agents] == [1, 0, 0, 0, 0, 0]
+    assert infos["agent_1"]["reward_terms"]["coll"] == 0.0
+
+
+def test_non_numeric_action_names_the_agent() -> None:
+    env = FormationEnv(FormationConfig.preset("ch5-bearing"))
+    env.reset(seed=0)
+    actions = {agent: np.zeros(2) for agent in env.agents}
+    actions["agent_3"] = ["a", 1]
+    with pytest.raises(ValueError, match="agent_3 is not numeric"):
+        env.step(actions)

@@ -29,7 +29,7 @@ class FormationConfig:
 
     :param world_width: width of the walled world (m), thesis 4.3 / 5.3
     :param world_height: height of the walled world (m)
-    :param n_agents: number of agents n in the team (>= 3)
+    :param n_agents: number of agents n in the team (>= 3; with the thesis's eta_c and R_a at most 16 fit the start)
     :param agent_radius: agent radius R_a (m)
     :param agent_mass: agent mass m (kg)
     :param v_max: maximum agent speed (m/s); speeds are clamped to it
@@ -150,11 +150,19 @@ class FormationConfig:
             if unknown:
                 raise ValueError(f"stage_disabled_terms names unknown reward terms {unknown}; valid: {list(REWARD_TERMS)}")
         object.__setattr__(self, "stage_disabled_terms", disabled)
+        travel = self.v_max * self.dt / self.physics_substeps
+        if travel >= self.agent_radius:
+            raise ValueError(
+                f"an agent would move {travel:.3f} m per Pymunk sub-step (v_max * dt / physics_substeps), not less than "
+                f"agent_radius={self.agent_radius} m, and could pass through walls and obstacles: raise physics_substeps "
+                "or lower v_max or dt"
+            )
         side = self.start_side_length
         if side <= 2 * self.agent_radius:
             raise ValueError(
                 f"n_agents={self.n_agents} does not fit the starting formation: its side {side:.3f} m "
-                f"(from d_ref, eta_c, formation_scale) is below the agent diameter {2 * self.agent_radius:.3f} m"
+                f"(from d_ref, eta_c, formation_scale) is below the agent diameter {2 * self.agent_radius:.3f} m; "
+                "with the thesis's sizes at most 16 agents fit within eta_c, so raise eta_c or lower agent_radius"
             )
         extent = 2 * (self.start_circumradius + self.agent_radius)
         if extent >= min(self.world_width, self.world_height):

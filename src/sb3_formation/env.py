@@ -90,7 +90,8 @@ class FormationEnv(ParallelEnv):
     two neighbours of norm(g_ref - g)), ``neighbour_distance_error`` (m, mean positive part), ``centroid_distance`` (m,
     agent to centroid), ``goal_distance`` (m, centroid to goal), ``collisions_obstacle`` and ``collisions_agent``
     (obstacles or walls, and other agents, touched during this step; a pair is counted once per step), ``success``
-    and ``reward_terms``.
+    and ``reward_terms``. Contacts are Pymunk's, over the step's sub-steps; the collision reward reads the distances
+    at the end of the step (eqs 24/39), so a touch that has already ended by then is counted but not penalised.
 
     ## Reset options
 
@@ -262,10 +263,13 @@ class FormationEnv(ParallelEnv):
         if unknown:
             raise ValueError(f"actions given for agents that are not live: {unknown}; live agents are {self.agents}")
         for agent in self.agents:
-            shape = np.shape(actions[agent])
-            if shape != (2,):
-                raise ValueError(f"action of {agent} must have shape (2,), got {shape}")
-        raise ValueError(f"actions must be numbers, got {actions!r}")
+            try:
+                action = np.asarray(actions[agent], dtype=np.float64)
+            except (ValueError, TypeError) as error:
+                raise ValueError(f"action of {agent} is not numeric: {actions[agent]!r}") from error
+            if action.shape != (2,):
+                raise ValueError(f"action of {agent} must have shape (2,), got {action.shape}")
+        raise ValueError(f"actions could not be read as one (2,) array per agent: {actions!r}")
 
     def _goal_distance(self) -> float:
         """Distance (m) from the centroid to the goal."""

@@ -368,3 +368,55 @@ class FormationVecEnv(VecEnv):
     def close(self) -> None:
         for batch in self._batches:
             batch.close()
+
+
+#: Parallel teams in the thesis: 6 workers x 2 envs (thesis 4.3), 7 x 2 (thesis 5.3), by curriculum layout.
+THESIS_TEAMS: dict[str, int] = {"ch4": 12, "ch5": 14}
+
+
+def make_formation_vec_env(
+    preset: str = "ch5-bearing",
+    n_envs: int | None = None,
+    n_agents: int | None = None,
+    stage: int | None = None,
+    seed: int | None = None,
+    n_workers: int = 1,
+    normalize: bool = True,
+    team_critic: bool | None = None,
+    render_mode: str | None = None,
+    **config_overrides: Any,
+) -> VecEnv:
+    """The one call a notebook needs: ``n_envs`` teams of a thesis preset as an SB3 ``VecEnv``, one slot per agent.
+
+    :param preset: ``"ch4-individual"``, ``"ch4-team"``, ``"ch5-angle"`` or ``"ch5-bearing"``
+    :param n_envs: number of teams (default: the thesis's, 12 in chapter 4 and 14 in chapter 5)
+    :param n_agents: team size (default: the preset's)
+    :param stage: curriculum stage (default: the preset's, 1)
+    :param seed: seed of the teams' scenario generators (team j gets ``seed + j * n_agents``); ``None``: random
+    :param n_workers: worker processes stepping the teams
+    :param normalize: wrap in :class:`~sb3_formation.normalization.ScaleNormalizeVecEnv`
+    :param team_critic: give every slot its team's observations (default: when the preset uses the team reward)
+    :param render_mode: ``None`` or ``"rgb_array"``
+    :param config_overrides: further :class:`FormationConfig` fields
+    """
+    from .normalization import ScaleNormalizeVecEnv
+
+    overrides = dict(config_overrides)
+    if n_agents is not None:
+        overrides["n_agents"] = n_agents
+    if stage is not None:
+        overrides["stage"] = stage
+    config = FormationConfig.preset(preset, **overrides)
+    team_observations = config.team_reward if team_critic is None else team_critic
+    venv = FormationVecEnv(
+        config,
+        n_envs=THESIS_TEAMS[config.layout] if n_envs is None else n_envs,
+        team_observations=team_observations,
+        n_workers=n_workers,
+        render_mode=render_mode,
+    )
+    if seed is not None:
+        venv.seed(seed)
+    if normalize:
+        return ScaleNormalizeVecEnv(venv, venv.agent_observation_dim, venv.binary_observation_mask)
+    return venv
