@@ -1,0 +1,225 @@
+"""SB3 callbacks: the thesis's curriculum, formation metrics for TensorBoard, and a progress bar.
+
+A PPO *iteration* is one rollout of ``n_steps`` steps in every slot followed by one training phase; the callbacks
+count iterations with ``_on_rollout_end``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import deque
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.logger import TensorBoardOutputFormat
+
+from .config import REWARD_TERMS
+
+#: PPO iterations per curriculum stage in the thesis, by layout: thesis 4.3 (chapter 4) and 5.3 (chapter 5).
+THESIS_STAGE_ITERATIONS: dict[str, tuple[int, int, int]] = {"ch4": (10000, 10000, 20000), "ch5": (5000, 5000, 15000)}
+
+#: Per team-episode metrics: TensorBoard key -> key of the VecEnv's ``formation_episode`` summary.
+EPISODE_METRICS: dict[str, str] = {
+    "formation/angle_error_deg": "angle_error_deg",
+    "formation/bearing_error": "bearing_error",
+    "formation/neighbour_distance_error": "neighbour_distance_error",
+    "episode/success_rate": "success",
+    "episode/length": "length",
+    "episode/collisions_obstacle": "collisions_obstacle",
+    "episode/collisions_agent": "collisions_agent",
+}
+
+
+def finished_episodes(infos: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The team-episode summaries (``formation_episode``) among one step's infos."""
+    return [info["formation_episode"] for info in infos if "formation_episode" in info]
+
+
+class CurriculumCallback(BaseCallback):
+    """Advance the curriculum stage 1 -> 2 -> 3 after a number of PPO iterations per stage (thesis 4.3, 5.3).
+
+    With ``success_threshold`` a stage also ends early once the success rate over the last ``window`` team-episodes
+    of that stage reaches it. Stage changes reach every team through ``env_method("set_stage", ...)``: rewards
+    change at once, placements at each team's next reset. The state (stage, iterations) is saved with checkpoints.
+
+    :param iterations_per_stage: PPO iterations of stages 1, 2 and 3
+    :param success_threshold: success rate in [0, 1] that ends stages 1 and 2 early, or ``None``
+    :param window: team-episodes in the rolling success rate
+    :param verbose: 1 prints each stage change
+    """
+
+    def __init__(
+        self,
+        iterations_per_stage: Sequence[int],
+        success_threshold: float | None = None,
+        window: int = 100,
+        verbose: int = 0,
+    ) -> None:
+        super().__init__(verbose)
+        iterations = tuple(int(value) for value in iterations_per_stage)
+        if len(iterations) != 3 or any(value < 0 for value in iterations):
+            raise ValueError(f"iterations_per_stage must be three integers >= 0, got {iterations_per_stage!r}")
+        if success_threshold is not None and not 0.0 <= success_threshold <= 1.0:
+            raise ValueError(f"success_threshold must be in [0, 1] or None, got {success_threshold!r}")
+        self.iterations_per_stage = iterations
+        self.success_threshold = success_threshold
+        self.window = window
+        self.stage = 1
+        self.iteration = 0
+        self.stage_iteration = 0
+        self.successes: deque[bool] = deque(maxlen=window)
+
+    @property
+    def total_iterations(self) -> int:
+        """Iterations of the whole curriculum."""
+        return sum(self.iterations_per_stage)
+
+    def state_dict(self) -> dict[str, Any]:
+        """What a checkpoint must keep to resume the curriculum where it was."""
+        return {
+            "stage": self.stage,
+            "iteration": self.iteration,
+            "stage_iteration": self.stage_iteration,
+            "successes": list(self.successes),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`."""
+        self.stage = int(state["stage"])
+        self.iteration = int(state["iteration"])
+        self.stage_iteration = int(state["stage_iteration"])
+        self.successes = deque((bool(value) for value in state["successes"]), maxlen=self.window)
+
+    def _on_training_start(self) -> None:
+        self._apply_stage()
+
+    def _apply_stage(self) -> None:
+        self.training_env.env_method("set_stage", self.stage)
+        self.logger.record("curriculum/stage", self.stage)
+
+    def _on_step(self) -> bool:
+        for episode in finished_episodes(self.locals["infos"]):
+            if episode["stage"] == self.stage:
+                self.successes.append(bool(episode["success"]))
+        return True
+
+    def _on_rollout_end(self) -> None:
+        self.iteration += 1
+        self.stage_iteration += 1
+        if self.stage == 3:
+            return
+        done = self.stage_iteration >= self.iterations_per_stage[self.stage - 1]
+        early = (
+            self.success_threshold is not None
+            and len(self.successes) == self.window
+            and float(np.mean(self.successes)) >= self.success_threshold
+        )
+        if done or early:
+            self.stage += 1
+            self.stage_iteration = 0
+            self.successes.clear()
+            if self.verbose:
+                reason = "success rate reached" if early and not done else "iterations done"
+                print(f"curriculum: stage {self.stage} from iteration {self.iteration} ({reason})")
+            self._apply_stage()
+
+
+class FormationMetricsCallback(BaseCallback):
+    """Log formation metrics per team-episode to SB3's logger (and so to TensorBoard), once per iteration.
+
+    Means over the last ``window`` finished team-episodes (as SB3 does for ``rollout/ep_rew_mean``) of
+    ``formation/angle_error_deg``, ``formation/bearing_error``, ``formation/neighbour_distance_error``,
+    ``episode/success_rate``, ``episode/length``, ``episode/collisions_obstacle``, ``episode/collisions_agent`` and
+    ``reward/<term>`` (each reward term's per-step mean before its coefficient), plus ``curriculum/stage``. At the
+    start of training it writes ``hparams`` (the run's settings, as text) and a custom-scalars layout that groups
+    these charts in TensorBoard.
+
+    :param hyperparameters: settings to write as text (e.g. the resolved run configuration)
+    :param window: team-episodes in the rolling means
+    """
+
+    def __init__(self, hyperparameters: dict[str, Any] | None = None, window: int = 100, verbose: int = 0) -> None:
+        super().__init__(verbose)
+        self.hyperparameters = hyperparameters or {}
+        self.episodes: deque[dict[str, Any]] = deque(maxlen=window)
+
+    def _on_training_start(self) -> None:
+        text = "\n".join(f"    {key}: {json.dumps(value)}" for key, value in sorted(self.hyperparameters.items()))
+        self.logger.record("hparams", text or "    (none)", exclude=("stdout", "log", "json", "csv"))
+        writer = next(
+            (output.writer for output in self.logger.output_formats if isinstance(output, TensorBoardOutputFormat)), None
+        )
+        if writer is not None:
+            writer.add_custom_scalars(custom_scalars_layout())
+
+    def _on_step(self) -> bool:
+        self.episodes.extend(finished_episodes(self.locals["infos"]))
+        return True
+
+    def _on_rollout_end(self) -> None:
+        self.logger.record("curriculum/stage", self.training_env.get_attr("stage", indices=[0])[0])
+        if not self.episodes:
+            return
+        for key, field in EPISODE_METRICS.items():
+            self.logger.record(key, float(np.mean([episode[field] for episode in self.episodes])))
+        for term in REWARD_TERMS:
+            self.logger.record(f"reward/{term}", float(np.mean([episode["reward_terms"][term] for episode in self.episodes])))
+
+
+def custom_scalars_layout() -> dict[str, dict[str, list]]:
+    """TensorBoard custom-scalars layout: one category per namespace, one chart per metric."""
+    return {
+        "formation": {key.split("/")[1]: ["Multiline", [key]] for key in EPISODE_METRICS if key.startswith("formation/")},
+        "episode": {
+            **{key.split("/")[1]: ["Multiline", [key]] for key in EPISODE_METRICS if key.startswith("episode/")},
+            "return": ["Multiline", ["rollout/ep_rew_mean"]],
+        },
+        "reward terms": {"terms": ["Multiline", [f"reward/{term}" for term in REWARD_TERMS]]},
+        "curriculum": {"stage": ["Multiline", ["curriculum/stage"]]},
+        "ppo": {
+            "losses": ["Multiline", ["train/policy_gradient_loss", "train/value_loss"]],
+            "kl": ["Multiline", ["train/approx_kl"]],
+            "clip fraction": ["Multiline", ["train/clip_fraction"]],
+        },
+    }
+
+
+class ProgressBarCallback(BaseCallback):
+    """A tqdm progress bar over PPO iterations showing stage, steps per second and the rolling success rate.
+
+    :param total_iterations: iterations of the whole run
+    :param curriculum: the run's curriculum callback (for the stage and the success rate)
+    :param initial_iteration: iterations already done (when resuming)
+    """
+
+    def __init__(self, total_iterations: int, curriculum: CurriculumCallback, initial_iteration: int = 0) -> None:
+        super().__init__()
+        self.total_iterations = total_iterations
+        self.curriculum = curriculum
+        self.initial_iteration = initial_iteration
+        self.successes: deque[bool] = deque(maxlen=100)
+        self.bar: Any = None
+
+    def _on_training_start(self) -> None:
+        from tqdm.auto import tqdm
+
+        self.bar = tqdm(total=self.total_iterations, initial=self.initial_iteration, unit="it", dynamic_ncols=True)
+        self._start = (time.perf_counter(), self.num_timesteps)
+
+    def _on_step(self) -> bool:
+        self.successes.extend(bool(episode["success"]) for episode in finished_episodes(self.locals["infos"]))
+        return True
+
+    def _on_rollout_end(self) -> None:
+        elapsed = time.perf_counter() - self._start[0]
+        speed = (self.num_timesteps - self._start[1]) / max(elapsed, 1e-9)
+        success = f"{np.mean(self.successes):.0%}" if self.successes else "-"
+        self.bar.set_postfix_str(f"stage {self.curriculum.stage}, {speed:,.0f} agent-steps/s, success {success}")
+        self.bar.update(1)
+
+    def _on_training_end(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
