@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -232,7 +233,7 @@ def train_command(args: argparse.Namespace) -> int:
             f"training {settings.preset}: n={settings.config().n_agents}, iterations per stage "
             f"{list(settings.resolved_iterations())}, {settings.resolved_n_envs()} teams"
         )
-        run_dir = train(settings)
+        run_dir = train(settings, command=args.command_line)
     print(f"run folder: {run_dir}")
     print(f"tensorboard --logdir {Path(run_dir).parent}")
     return 0
@@ -271,7 +272,9 @@ def evaluate_command(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``sb3-formation`` console script."""
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
+    args.command_line = shlex.join(["sb3-formation", *argv])
     commands = {"rollout": rollout_command, "train": train_command, "evaluate": evaluate_command}
     try:
         return commands[args.command](args)

@@ -1,0 +1,307 @@
+"""Evaluation: the Wilson interval, evaluate() on fixed-seed episodes (with a tiny PPO and with a scripted policy),
+models that do not fit the env, and loading trained models."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from collections.abc import Iterator
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+from stable_baselines3 import PPO
+
+from sb3_formation import FormationPolicy, make_formation_vec_env
+from sb3_formation.evaluation import EPISODE_ERRORS, check_model_fits, evaluate, wilson_interval
+from sb3_formation.training import FINAL_MODEL, FINAL_NORMALIZER, TrainedModel, load_trained, save_model
+from sb3_formation.vec_env import FormationVecEnv
+
+Z95 = 1.959963984540054
+
+# Wilson interval -----------------------------------------------------------------------------------------------------
+
+
+def wilson_by_quadratic(successes: int, trials: int, z: float = Z95) -> tuple[float, float]:
+    """The Wilson bounds as the roots p of (p - p_hat)^2 = z^2 p (1 - p) / n, i.e.
+    (1 + z^2/n) p^2 - (2 p_hat + z^2/n) p + p_hat^2 = 0 (a derivation independent of the centre/half-width form)."""
+    p_hat = successes / trials
+    a, b, c = 1 + z * z / trials, -(2 * p_hat + z * z / trials), p_hat * p_hat
+    root = math.sqrt(max(b * b - 4 * a * c, 0.0))
+    return (-b - root) / (2 * a), (-b + root) / (2 * a)
+
+
+@pytest.mark.parametrize(
+    ("successes", "trials", "low", "high"),
+    [
+        # z^2 = 1.959963984540054^2 = 3.841459, so z^2/n = 0.3841459 and 1 + z^2/n = 1.3841459 for n = 10.
+        # 0/10: p_hat = 0, the quadratic is 1.3841459 p^2 - 0.3841459 p = 0, roots 0 and 0.3841459 / 1.3841459 = 0.277533
+        (0, 10, 0.0, 0.277533),
+        # 5/10: centre (0.5 + z^2/20) / 1.3841459 = 0.6920729 / 1.3841459 = 0.5; half-width
+        # z sqrt(0.5 * 0.5 / 10 + z^2 / 400) / 1.3841459 = 1.959964 * sqrt(0.025 + 0.0096036) / 1.3841459
+        # = 1.959964 * 0.1860204 / 1.3841459 = 0.263407, so 0.5 -/+ 0.263407
+        (5, 10, 0.236593, 0.763407),
+        # 10/10: the mirror image of 0/10: 1 - 0.277533 = 0.722467, and 1
+        (10, 10, 0.722467, 1.0),
+    ],
+)
+def test_wilson_interval_matches_hand_computed_values(successes: int, trials: int, low: float, high: float) -> None:
+    assert wilson_interval(successes, trials) == pytest.approx((low, high), abs=1e-6)
+
+
+@pytest.mark.parametrize("trials", [1, 3, 6, 7, 10, 13, 25, 100])
+def test_wilson_interval_contains_the_observed_rate(trials: int) -> None:
+    for successes in range(1, trials):
+        low, high = wilson_interval(successes, trials)
+        assert 0.0 < low < successes / trials < high < 1.0
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="src bug: the end at 0 or at all successes comes from centre -/+ half-width with rounding error, e.g. "
+    "wilson_interval(0, 3)[0] == 5.6e-17 and wilson_interval(10, 10)[1] == 0.9999999999999999, so the interval "
+    "excludes the observed rate 0 or 1",
+)
+@pytest.mark.parametrize("trials", [3, 10])
+def test_wilson_interval_is_exact_at_the_ends(trials: int) -> None:
+    assert wilson_interval(0, trials)[0] == 0.0
+    assert wilson_interval(trials, trials)[1] == 1.0
+
+
+@pytest.mark.parametrize(("successes", "trials"), [(0, 1), (1, 1), (3, 7), (1, 3), (99, 100), (500, 1000)])
+def test_wilson_interval_solves_the_wilson_quadratic(successes: int, trials: int) -> None:
+    assert wilson_interval(successes, trials) == pytest.approx(wilson_by_quadratic(successes, trials), abs=1e-12)
+
+
+def test_wilson_interval_narrows_with_trials_and_follows_z() -> None:
+    widths = [np.diff(wilson_interval(n // 2, n))[0] for n in (10, 100, 1000)]
+    assert widths[0] > widths[1] > widths[2] > 0
+    assert wilson_interval(5, 10, z=0.0) == pytest.approx((0.5, 0.5))
+    low99, high99 = wilson_interval(5, 10, z=2.5758293035489)
+    assert low99 < 0.236593 and high99 > 0.763407
+
+
+@pytest.mark.parametrize(("successes", "trials"), [(0, 0), (1, 0), (-1, 10), (11, 10), (0, -3)])
+def test_wilson_interval_rejects_invalid_counts(successes: int, trials: int) -> None:
+    with pytest.raises(ValueError, match="successes"):
+        wilson_interval(successes, trials)
+
+
+# A tiny trained model ------------------------------------------------------------------------------------------------
+
+MAX_STEPS = 30
+SMALL_NETS = {"net_arch": {"pi": [16], "vf": [16]}}
+
+
+@pytest.fixture(scope="module")
+def tiny() -> Iterator[SimpleNamespace]:
+    """A PPO with small nets trained for one iteration, as a TrainedModel built by hand, and its normalised env."""
+    env = make_formation_vec_env("ch5-bearing", n_envs=1, seed=0, max_steps=MAX_STEPS)
+    model = PPO(FormationPolicy, env, n_steps=8, batch_size=24, n_epochs=1, seed=0, device="cpu", policy_kwargs=SMALL_NETS)
+    model.learn(8 * env.num_envs)
+    trained = TrainedModel(model, env.venv.config, env.state_dict(), team_observations=False)
+    yield SimpleNamespace(trained=trained, env=env)
+    env.close()
+
+
+def comparable(episodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    return [{key: value for key, value in episode.items() if key != "team"} for episode in episodes]
+
+
+def check_summary(summary: dict[str, Any], episodes: list[dict[str, Any]]) -> None:
+    """The summary agrees with the per-episode list."""
+    successful = [episode for episode in episodes if episode["success"]]
+    assert summary["episodes"] == len(episodes)
+    assert summary["successes"] == len(successful)
+    assert summary["success_rate"] == len(successful) / len(episodes)
+    assert summary["success_rate_ci95"] == list(wilson_interval(len(successful), len(episodes)))
+    means = summary["successful_episode_means"]
+    assert set(means) == {*EPISODE_ERRORS, "length"}
+    for name in means:
+        if successful:
+            assert means[name] == pytest.approx(np.mean([episode[name] for episode in successful]), rel=1e-12)
+        else:
+            assert means[name] is None
+
+
+def test_evaluate_summary_agrees_with_its_episodes(tiny: SimpleNamespace) -> None:
+    result = evaluate(tiny.trained, episodes=5, stage=3, seed=11, n_envs=2)
+    assert len(result.episodes) == 5
+    assert (result.stage, result.seed, result.deterministic) == (3, 11, True)
+    summary = result.summary
+    assert (summary["stage"], summary["seed"], summary["deterministic"]) == (3, 11, True)
+    check_summary(summary, result.episodes)
+    # stage 3 starts metres from the goal and an agent moves 1.5 cm per step: every episode is a time-out
+    assert summary["successes"] == 0 and summary["success_rate_ci95"][0] == 0.0
+    assert [episode["length"] for episode in result.episodes] == [MAX_STEPS] * 5
+    assert all(episode["stage"] == 3 for episode in result.episodes)
+    # two teams with a quota of 3 each, interleaved and cut to 5
+    assert [episode["team"] for episode in result.episodes] == [0, 1, 0, 1, 0]
+
+
+@pytest.mark.parametrize(("episodes", "n_envs"), [(1, 8), (3, 8), (4, 2), (5, 3)])
+def test_evaluate_plays_exactly_the_requested_episodes(tiny: SimpleNamespace, episodes: int, n_envs: int) -> None:
+    result = evaluate(tiny.trained, episodes=episodes, stage=1, seed=2, n_envs=n_envs, env_overrides={"max_steps": 4})
+    assert len(result.episodes) == episodes == result.summary["episodes"]
+    n_teams = min(episodes, n_envs)
+    assert [episode["team"] for episode in result.episodes] == [k % n_teams for k in range(episodes)]
+    assert all(episode["length"] == 4 and episode["stage"] == 1 for episode in result.episodes)
+
+
+def test_evaluate_is_reproducible_by_seed(tiny: SimpleNamespace) -> None:
+    first = evaluate(tiny.trained, episodes=4, stage=3, seed=5, n_envs=2)
+    again = evaluate(tiny.trained, episodes=4, stage=3, seed=5, n_envs=2)
+    other = evaluate(tiny.trained, episodes=4, stage=3, seed=7, n_envs=2)
+    assert first.episodes == again.episodes
+    assert first.summary == again.summary
+    assert comparable(first.episodes) != comparable(other.episodes)
+    for mine, theirs in zip(first.episodes, other.episodes):
+        assert mine["angle_error_deg"] != theirs["angle_error_deg"]  # other scenarios, other errors
+
+
+def test_evaluate_rejects_no_episodes(tiny: SimpleNamespace) -> None:
+    with pytest.raises(ValueError, match="episodes"):
+        evaluate(tiny.trained, episodes=0)
+
+
+# A scripted policy that reaches the goal -----------------------------------------------------------------------------
+
+
+class TowardsGoal:
+    """A stand-in for ``PPO``: every agent pushes at full force along the centroid-to-goal offset it observes.
+
+    evaluate() uses only ``predict`` and ``observation_space``. With normaliser statistics of the same variance for
+    every feature the observed offset is the raw one scaled by a constant, so it points the right way. The
+    observations seen and the actions taken are recorded.
+    """
+
+    def __init__(self, observation_space: Any, offset: slice) -> None:
+        self.observation_space = observation_space
+        self.offset = offset
+        self.seen: list[np.ndarray] = []
+        self.actions: list[np.ndarray] = []
+
+    def predict(self, observation: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, None]:
+        assert deterministic
+        offset = observation[:, self.offset].astype(np.float64)
+        actions = (offset / np.maximum(np.linalg.norm(offset, axis=1, keepdims=True), 1e-12)).astype(np.float32)
+        self.seen.append(observation.copy())
+        self.actions.append(actions)
+        return actions, None
+
+
+def scripted(tiny: SimpleNamespace, variance: float) -> TrainedModel:
+    """The tiny model's config with a scripted policy and normaliser statistics of the same variance everywhere."""
+    state = dict(tiny.env.state_dict())
+    state["var"] = np.full_like(state["var"], variance)
+    state["count"] = np.array(1.0)
+    state["clip_obs"] = np.array(np.nan)  # no clipping: offsets of several metres stay as they are
+    policy = TowardsGoal(tiny.env.observation_space, tiny.env.venv.observation_layout["centroid_goal_offset"])
+    return TrainedModel(policy, tiny.trained.config, state, team_observations=False)
+
+
+# v_max 1 m/s: 30 cm per step, so the 6 m or more from a stage-3 start to the goal take about 25 steps
+FAST = {"v_max": 1.0, "max_steps": 100}
+
+
+@pytest.mark.parametrize("stage", [1, 3])
+def test_evaluate_counts_successes_of_a_policy_that_reaches_the_goal(tiny: SimpleNamespace, stage: int) -> None:
+    trained = scripted(tiny, variance=1.0)  # observations are (up to sqrt(1 + 1e-8)) unscaled
+    result = evaluate(trained, episodes=6, stage=stage, seed=3, n_envs=3, env_overrides=FAST)
+    assert all(episode["success"] for episode in result.episodes)
+    assert all(episode["length"] < FAST["max_steps"] for episode in result.episodes)  # ended by the goal, not time
+    summary = result.summary
+    assert summary["successes"] == 6 and summary["success_rate"] == 1.0
+    assert summary["success_rate_ci95"] == pytest.approx([wilson_interval(6, 6)[0], 1.0])
+    check_summary(summary, result.episodes)
+    for name in (*EPISODE_ERRORS, "length"):
+        assert summary["successful_episode_means"][name] == pytest.approx(np.mean([e[name] for e in result.episodes]))
+
+
+def test_evaluate_mixes_successes_and_time_outs(tiny: SimpleNamespace) -> None:
+    """With too few steps for the farther starts some episodes fail; the means cover only the successful ones."""
+    trained = scripted(tiny, variance=1.0)
+    lengths = [e["length"] for e in evaluate(trained, episodes=8, stage=1, seed=3, n_envs=4, env_overrides=FAST).episodes]
+    cut = int(np.median(lengths))  # about half of these episodes need more steps than this
+    result = evaluate(trained, episodes=8, stage=1, seed=3, n_envs=4, env_overrides={**FAST, "max_steps": cut})
+    outcomes = [episode["success"] for episode in result.episodes]
+    assert any(outcomes) and not all(outcomes)
+    assert [episode["success"] for episode in result.episodes] == [length <= cut for length in lengths]
+    check_summary(result.summary, result.episodes)
+    successful_lengths = [length for length in lengths if length <= cut]
+    assert result.summary["successful_episode_means"]["length"] == pytest.approx(np.mean(successful_lengths))
+
+
+def test_evaluate_normalises_with_the_stored_statistics_frozen(tiny: SimpleNamespace) -> None:
+    """The policy sees the raw observations divided by sqrt(var + epsilon) (flags untouched), for the whole evaluation."""
+    trained = scripted(tiny, variance=4.0)
+    result = evaluate(trained, episodes=2, stage=3, seed=9, n_envs=2, env_overrides=FAST)
+    assert all(episode["success"] for episode in result.episodes)
+    policy = trained.model
+    # replay the policy's actions on the raw VecEnv that evaluate() builds
+    raw = FormationVecEnv(trained.config.replace(**FAST, stage=3), n_envs=2)
+    raw.seed(9)
+    observations = [raw.reset()]
+    for actions in policy.actions[:-1]:
+        observations.append(raw.step(actions)[0])
+    raw.close()
+    scale = np.where(tiny.env.venv.binary_observation_mask, 1.0, math.sqrt(4.0 + float(trained.normalizer_state["epsilon"])))
+    assert len(policy.seen) == len(observations) > 20
+    for seen, expected in zip(policy.seen, observations):
+        np.testing.assert_allclose(seen, (expected / scale).astype(np.float32), rtol=1e-6, atol=1e-7)
+
+
+# Models that do not fit -----------------------------------------------------------------------------------------------
+
+
+def test_evaluate_rejects_a_team_size_the_model_was_not_trained_for(tiny: SimpleNamespace) -> None:
+    assert tiny.trained.config.n_agents == 6
+    with pytest.raises(ValueError, match=r"n_agents=6 in the model, 3 in the env"):
+        evaluate(tiny.trained, episodes=2, env_overrides={"n_agents": 3})
+
+
+def test_check_model_fits_names_every_difference(tiny: SimpleNamespace) -> None:
+    config = tiny.trained.config
+    check_model_fits(tiny.trained, config)  # fits
+    check_model_fits(tiny.trained, config.replace(max_steps=7, stage=3, v_max=0.5))  # observation size unchanged
+    with pytest.raises(ValueError) as raised:
+        check_model_fits(tiny.trained, config.replace(n_agents=3, lidar_rays=45))
+    message = str(raised.value)
+    assert "n_agents=6 in the model, 3 in the env" in message
+    assert "lidar_rays=90 in the model, 45 in the env" in message
+
+
+# Loading trained models ----------------------------------------------------------------------------------------------
+
+
+def test_load_trained_needs_a_model_in_the_folder(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError, match=re.escape(str(tmp_path))):
+        load_trained(tmp_path)
+    missing = tmp_path / "nowhere.zip"
+    with pytest.raises(FileNotFoundError, match=re.escape(str(missing))):
+        load_trained(missing)
+
+
+def test_load_trained_needs_the_normaliser_beside_the_model(tiny: SimpleNamespace, tmp_path: Path) -> None:
+    path = tmp_path / "model.zip"
+    tiny.trained.model.save(path)
+    with pytest.raises(FileNotFoundError, match=re.escape(str(tmp_path / FINAL_NORMALIZER))):
+        load_trained(path)
+
+
+def test_load_trained_round_trips_a_saved_model(tiny: SimpleNamespace, tmp_path: Path) -> None:
+    model = tiny.trained.model
+    model.formation_config = dataclasses.asdict(tiny.trained.config)  # as training.train() does
+    save_model(model, tiny.env, tmp_path, FINAL_MODEL, FINAL_NORMALIZER)
+    for path in (tmp_path, tmp_path / FINAL_MODEL):
+        loaded = load_trained(path, device="cpu")
+        assert loaded.config == tiny.trained.config
+        assert loaded.team_observations is False
+        assert set(loaded.normalizer_state) == set(tiny.trained.normalizer_state)
+        for key, value in tiny.trained.normalizer_state.items():
+            np.testing.assert_array_equal(loaded.normalizer_state[key], value)
+    original = evaluate(tiny.trained, episodes=2, stage=3, seed=4, n_envs=2)
+    assert evaluate(loaded, episodes=2, stage=3, seed=4, n_envs=2).episodes == original.episodes

@@ -1,0 +1,198 @@
+"""Training runs end to end: thesis PPO settings, the train CLI, run folders, TensorBoard, checkpoints and resuming."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from sb3_formation import REWARD_TERMS
+from sb3_formation.cli import build_parser, main, preset_for, train_settings
+from sb3_formation.policies import FormationPolicy
+from sb3_formation.training import STATE_FILE, TrainSettings, latest_checkpoint, thesis_ppo_kwargs
+
+#: Tiny runs: one team, episodes of 20 steps, so every iteration of 128 steps ends several team-episodes.
+QUICK = ["--n-envs", "1", "--env", "max_steps=20", "--no-progress"]
+SCALARS = [
+    "formation/angle_error_deg",
+    "formation/bearing_error",
+    "formation/neighbour_distance_error",
+    "episode/success_rate",
+    "episode/length",
+    "episode/collisions_obstacle",
+    "episode/collisions_agent",
+    "curriculum/stage",
+    *(f"reward/{term}" for term in REWARD_TERMS),
+]
+
+
+def run_cli(*arguments: str, cwd: Path) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "sb3_formation.cli", *arguments],
+        cwd=cwd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def only_run_dir(logdir: Path) -> Path:
+    runs = [path for path in logdir.iterdir() if path.is_dir()]
+    assert len(runs) == 1, runs
+    return runs[0]
+
+
+def test_thesis_ppo_kwargs() -> None:
+    kwargs = thesis_ppo_kwargs("ch5-bearing")
+    assert kwargs["policy"] is FormationPolicy
+    expected = {"n_steps": 128, "batch_size": 512, "n_epochs": 10, "learning_rate": 5e-5, "gamma": 0.995}
+    expected.update({"gae_lambda": 0.95, "clip_range": 0.2, "clip_range_vf": 20.0, "target_kl": 0.03})
+    assert {name: kwargs[name] for name in expected} == expected
+    assert kwargs["policy_kwargs"] == {"sigma": 0.7, "action_scale": 1.0}
+    assert thesis_ppo_kwargs("ch4-individual")["policy_kwargs"]["action_scale"] == 0.01  # thesis 4.1.2
+    assert thesis_ppo_kwargs("ch4-team")["policy_kwargs"]["team_size"] == 3
+    assert thesis_ppo_kwargs("ch4-team", n_agents=5)["policy_kwargs"]["team_size"] == 5
+
+
+def test_reward_and_agents_flags_map_to_presets() -> None:
+    assert preset_for("bearing", 6, False) == "ch5-bearing"
+    assert preset_for("angle", None, False) == "ch4-individual"
+    assert preset_for("angle", 3, True) == "ch4-team"
+    assert preset_for("angle", 6, False) == "ch5-angle"
+    settings = train_settings(build_parser().parse_args(["train", "--reward", "bearing", "--agents", "6"]))
+    assert settings.preset == "ch5-bearing" and settings.config().n_agents == 6
+    assert settings.resolved_iterations() == (5000, 5000, 15000) and settings.resolved_n_envs() == 14
+
+
+def test_yaml_settings_are_overridden_by_flags_and_unknown_keys_fail(tmp_path: Path) -> None:
+    config_file = tmp_path / "run.yaml"
+    config_file.write_text(
+        yaml.safe_dump({"preset": "ch4-team", "iterations": [3, 2, 1], "seed": 4, "env": {"max_steps": 99}})
+    )
+    arguments = ["train", "--config", str(config_file), "--seed", "7", "--env", "eta_g=0.7"]
+    settings = train_settings(build_parser().parse_args(arguments))
+    assert (settings.preset, settings.seed, settings.resolved_iterations()) == ("ch4-team", 7, (3, 2, 1))
+    assert settings.config().max_steps == 99 and settings.config().eta_g == 0.7
+    config_file.write_text(yaml.safe_dump({"preset": "ch4-team", "learning_rate": 1e-3}))
+    with pytest.raises(ValueError, match=r"unknown setting\(s\) \['learning_rate'\]"):
+        train_settings(build_parser().parse_args(["train", "--config", str(config_file)]))
+    with pytest.raises(ValueError, match="unknown ppo setting"):
+        TrainSettings(ppo={"learning_rat": 1e-3})
+    with pytest.raises(ValueError, match="unknown FormationConfig field"):
+        TrainSettings(env={"n_agent": 3})
+
+
+def test_train_cli_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["train", "--config", str(tmp_path / "missing.yaml")]) == 2
+    assert "missing.yaml" in capsys.readouterr().err
+    assert main(["train", "--resume", str(tmp_path)]) == 2
+    assert "config.yaml" in capsys.readouterr().err
+    assert main(["train", "--resume", str(tmp_path), "--seed", "3"]) == 2
+    assert "--seed" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["train", "--iterations", "1,2"])
+
+
+@pytest.mark.slow
+def test_train_run_folder_and_tensorboard(tmp_path: Path) -> None:
+    process = run_cli("train", "--preset", "ch5-bearing", "--iterations", "1,1,1", "--logdir", "runs", *QUICK, cwd=tmp_path)
+    _, stderr = process.communicate(timeout=300)
+    assert process.returncode == 0, stderr
+    run_dir = only_run_dir(tmp_path / "runs")
+    assert run_dir.name.startswith("ch5-bearing_6a_s0_")
+    for name in ("config.yaml", "command.txt", "final_model.zip", "final_normalizer.npz"):
+        assert (run_dir / name).is_file(), name
+    assert (run_dir / "command.txt").read_text().startswith("sb3-formation train --preset ch5-bearing --iterations 1,1,1")
+    assert yaml.safe_load((run_dir / "config.yaml").read_text())["env"]["max_steps"] == 20
+    state = json.loads((latest_checkpoint(run_dir) / STATE_FILE).read_text())
+    assert state["num_timesteps"] == 3 * 128 * 6 and state["curriculum"]["stage"] == 3
+    events = EventAccumulator(str(run_dir / "tensorboard"))
+    events.Reload()
+    scalars = set(events.Tags()["scalars"])
+    assert set(SCALARS) <= scalars, set(SCALARS) - scalars
+    assert [event.value for event in events.Scalars("curriculum/stage")] == [2.0, 3.0, 3.0]  # logged after each rollout
+    assert all(event.value == 20.0 for event in events.Scalars("episode/length"))  # no success in 20 steps
+    assert any("hparams" in tag for tag in events.Tags()["tensors"])
+
+
+@pytest.mark.slow
+def test_team_critic_run_trains_and_evaluates(tmp_path: Path) -> None:
+    process = run_cli(
+        "train", "--reward", "angle", "--team-reward", "--iterations", "1,0,1", "--logdir", "runs", *QUICK, cwd=tmp_path
+    )
+    _, stderr = process.communicate(timeout=300)
+    assert process.returncode == 0, stderr
+    run_dir = only_run_dir(tmp_path / "runs")
+    assert run_dir.name.startswith("ch4-team_3a_")
+    out = tmp_path / "summary.json"
+    assert main(["evaluate", str(run_dir), "--episodes", "3", "--n-envs", "2", "--out", str(out)]) == 0
+    summary = json.loads(out.read_text())
+    assert summary["episodes"] == 3 and summary["stage"] == 3
+
+
+def wait_for(predicate, timeout: float = 240.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.2)
+
+
+@pytest.mark.slow
+def test_killed_run_resumes_with_stage_timesteps_and_statistics(tmp_path: Path) -> None:
+    arguments = ["train", "--iterations", "2,2,4", "--checkpoint-every", "1", "--logdir", "runs", *QUICK]
+    process = run_cli(*arguments, cwd=tmp_path)
+    wait_for(lambda: (tmp_path / "runs").exists() and any((tmp_path / "runs").iterdir()))
+    run_dir = only_run_dir(tmp_path / "runs")
+    wait_for(lambda: latest_checkpoint(run_dir) is not None and latest_checkpoint(run_dir).name >= "iteration_000003")
+    process.send_signal(signal.SIGKILL)
+    process.wait(timeout=30)
+    killed_at = json.loads((latest_checkpoint(run_dir) / STATE_FILE).read_text())
+    assert not (run_dir / "final_model.zip").exists()
+    resumed = run_cli("train", "--resume", str(run_dir), cwd=tmp_path)
+    _, stderr = resumed.communicate(timeout=300)
+    assert resumed.returncode == 0, stderr
+    final = json.loads((latest_checkpoint(run_dir) / STATE_FILE).read_text())
+    slots, steps_per_iteration = 6, 128 * 6
+    assert final["curriculum"]["iteration"] == 8 and final["curriculum"]["stage"] == 3
+    # a restart from scratch would add 8 iterations to what the killed run had done; a resume adds the rest
+    assert final["num_timesteps"] == 8 * steps_per_iteration
+    assert (
+        killed_at["curriculum"]["iteration"] >= 3
+        and killed_at["num_timesteps"] == killed_at["curriculum"]["iteration"] * steps_per_iteration
+    )
+    # normaliser statistics continue: two resets of every slot (start, resume) plus one row per slot and step
+    with np.load(run_dir / "final_normalizer.npz") as statistics:
+        assert float(statistics["count"]) == slots * (2 + 8 * 128)
+
+
+@pytest.mark.slow
+def test_sigterm_checkpoints_and_stops(tmp_path: Path) -> None:
+    process = run_cli(
+        "train", "--iterations", "1,1,200", "--checkpoint-every", "100", "--logdir", "runs", *QUICK, cwd=tmp_path
+    )
+    wait_for(lambda: (tmp_path / "runs").exists() and any((tmp_path / "runs").iterdir()))
+    run_dir = only_run_dir(tmp_path / "runs")
+    wait_for(
+        lambda: (
+            (run_dir / "tensorboard" / "progress.csv").exists()
+            and len((run_dir / "tensorboard" / "progress.csv").read_text().splitlines()) >= 3
+        )
+    )
+    process.send_signal(signal.SIGTERM)
+    process.communicate(timeout=120)
+    assert process.returncode == 0
+    checkpoint = latest_checkpoint(run_dir)
+    state = json.loads((checkpoint / STATE_FILE).read_text())
+    assert 2 <= state["curriculum"]["iteration"] < 202 and state["curriculum"]["stage"] == 3
+    assert not (run_dir / "final_model.zip").exists()
+    assert not [path for path in (run_dir / "checkpoints").iterdir() if path.name.startswith(".")]  # no half-written folder
+    assert os.path.getsize(checkpoint / "model.zip") > 0
