@@ -359,5 +359,5 @@ def test_travel_per_substep_must_stay_below_the_agent_radius() -> None:
 def test_largest_team_that_fits_the_start_formation() -> None:
     # circumradius 0.9 * 1.2 = 1.08 m; side 2 * 1.08 * sin(pi / n): n = 16 -> 0.421 m > 0.4 m; n = 17 -> 0.397 m < 0.4 m
     assert FormationConfig.preset("ch5-bearing", n_agents=16).start_side_length == pytest.approx(0.421395, abs=1e-6)
-    with pytest.raises(ValueError, match="n_agents=17 does not fit.*at most 16"):
+    with pytest.raises(ValueError, match=r"n_agents=17 does not fit.*at most 16"):
         FormationConfig.preset("ch5-bearing", n_agents=17)
