@@ -16,8 +16,14 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
+# The main job: a short training run through all three curriculum stages (thesis PPO settings and networks, a tiny
+# budget), then an evaluation of the trained policy on fixed-seed stage-3 episodes.
+RUN_LOGDIR := runs/make-run
+
 run: setup
-	$(BIN)/sb3-formation rollout --preset ch5-bearing --episodes 2 --max-steps 300 --seed 0 --out runs/rollout_final_frame.png
+	$(BIN)/sb3-formation train --preset ch5-bearing --iterations 3,3,6 --n-envs 4 --seed 0 --logdir $(RUN_LOGDIR)
+	$(BIN)/sb3-formation evaluate "$$(ls -td $(RUN_LOGDIR)/*/ | head -n 1)" --episodes 8 --n-envs 4 --seed 0
+	@echo "Training curves: tensorboard --logdir runs   (tensorboard is in $(BIN)/)"
 
 lint: setup
 	$(BIN)/ruff check src tests benchmarks
@@ -32,6 +38,7 @@ format: setup
 
 bench: setup
 	$(BIN)/python benchmarks/env_throughput.py
+	$(BIN)/python benchmarks/train_throughput.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .ruff_cache

@@ -59,12 +59,6 @@ def test_wilson_interval_contains_the_observed_rate(trials: int) -> None:
         assert 0.0 < low < successes / trials < high < 1.0
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="src bug: the end at 0 or at all successes comes from centre -/+ half-width with rounding error, e.g. "
-    "wilson_interval(0, 3)[0] == 5.6e-17 and wilson_interval(10, 10)[1] == 0.9999999999999999, so the interval "
-    "excludes the observed rate 0 or 1",
-)
 @pytest.mark.parametrize("trials", [3, 10])
 def test_wilson_interval_is_exact_at_the_ends(trials: int) -> None:
     assert wilson_interval(0, trials)[0] == 0.0

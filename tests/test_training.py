@@ -119,7 +119,7 @@ def test_train_run_folder_and_tensorboard(tmp_path: Path) -> None:
     events.Reload()
     scalars = set(events.Tags()["scalars"])
     assert set(SCALARS) <= scalars, set(SCALARS) - scalars
-    assert [event.value for event in events.Scalars("curriculum/stage")] == [2.0, 3.0, 3.0]  # logged after each rollout
+    assert [event.value for event in events.Scalars("curriculum/stage")] == [1.0, 2.0, 3.0]  # stage of each iteration
     assert all(event.value == 20.0 for event in events.Scalars("episode/length"))  # no success in 20 steps
     assert any("hparams" in tag for tag in events.Tags()["tensors"])
 

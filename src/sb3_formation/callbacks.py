@@ -64,6 +64,8 @@ class CurriculumCallback(BaseCallback):
             raise ValueError(f"iterations_per_stage must be three integers >= 0, got {iterations_per_stage!r}")
         if success_threshold is not None and not 0.0 <= success_threshold <= 1.0:
             raise ValueError(f"success_threshold must be in [0, 1] or None, got {success_threshold!r}")
+        if not isinstance(window, int) or window < 1:
+            raise ValueError(f"window must be an integer >= 1, got {window!r}")
         self.iterations_per_stage = iterations
         self.success_threshold = success_threshold
         self.window = window
@@ -94,11 +96,8 @@ class CurriculumCallback(BaseCallback):
         self.successes = deque((bool(value) for value in state["successes"]), maxlen=self.window)
 
     def _on_training_start(self) -> None:
-        self._apply_stage()
-
-    def _apply_stage(self) -> None:
+        self._advance_finished_stages()
         self.training_env.env_method("set_stage", self.stage)
-        self.logger.record("curriculum/stage", self.stage)
 
     def _on_step(self) -> bool:
         for episode in finished_episodes(self.locals["infos"]):
@@ -109,22 +108,29 @@ class CurriculumCallback(BaseCallback):
     def _on_rollout_end(self) -> None:
         self.iteration += 1
         self.stage_iteration += 1
-        if self.stage == 3:
-            return
-        done = self.stage_iteration >= self.iterations_per_stage[self.stage - 1]
         early = (
-            self.success_threshold is not None
+            self.stage < 3
+            and self.success_threshold is not None
             and len(self.successes) == self.window
             and float(np.mean(self.successes)) >= self.success_threshold
         )
-        if done or early:
-            self.stage += 1
-            self.stage_iteration = 0
-            self.successes.clear()
-            if self.verbose:
-                reason = "success rate reached" if early and not done else "iterations done"
-                print(f"curriculum: stage {self.stage} from iteration {self.iteration} ({reason})")
-            self._apply_stage()
+        if early:
+            self._next_stage("success rate reached")
+        self._advance_finished_stages()
+
+    def _advance_finished_stages(self) -> None:
+        """Move past every stage whose iterations are done (a stage of 0 iterations is skipped at once)."""
+        while self.stage < 3 and self.stage_iteration >= self.iterations_per_stage[self.stage - 1]:
+            self._next_stage("iterations done")
+
+    def _next_stage(self, reason: str) -> None:
+        self.stage += 1
+        self.stage_iteration = 0
+        self.successes.clear()
+        if self.verbose:
+            print(f"curriculum: stage {self.stage} from iteration {self.iteration} ({reason})")
+        if self.training_env is not None:
+            self.training_env.env_method("set_stage", self.stage)
 
 
 class FormationMetricsCallback(BaseCallback):
@@ -133,7 +139,8 @@ class FormationMetricsCallback(BaseCallback):
     Means over the last ``window`` finished team-episodes (as SB3 does for ``rollout/ep_rew_mean``) of
     ``formation/angle_error_deg``, ``formation/bearing_error``, ``formation/neighbour_distance_error``,
     ``episode/success_rate``, ``episode/length``, ``episode/collisions_obstacle``, ``episode/collisions_agent`` and
-    ``reward/<term>`` (each reward term's per-step mean before its coefficient), plus ``curriculum/stage``. At the
+    ``reward/<term>`` (each reward term's per-step mean before its coefficient), plus ``curriculum/stage`` (the stage
+    the iteration's rollout ran in). At the
     start of training it writes ``hparams`` (the run's settings, as text) and a custom-scalars layout that groups
     these charts in TensorBoard.
 
@@ -155,12 +162,15 @@ class FormationMetricsCallback(BaseCallback):
         if writer is not None:
             writer.add_custom_scalars(custom_scalars_layout())
 
+    def _on_rollout_start(self) -> None:
+        # recorded now, dumped after this rollout: the stage this iteration's rollout runs in
+        self.logger.record("curriculum/stage", self.training_env.get_attr("stage", indices=[0])[0])
+
     def _on_step(self) -> bool:
         self.episodes.extend(finished_episodes(self.locals["infos"]))
         return True
 
     def _on_rollout_end(self) -> None:
-        self.logger.record("curriculum/stage", self.training_env.get_attr("stage", indices=[0])[0])
         if not self.episodes:
             return
         for key, field in EPISODE_METRICS.items():

@@ -30,7 +30,9 @@ def wilson_interval(successes: int, trials: int, z: float = 1.959963984540054) -
     denominator = 1 + z * z / trials
     centre = (rate + z * z / (2 * trials)) / denominator
     half_width = z * math.sqrt(rate * (1 - rate) / trials + z * z / (4 * trials * trials)) / denominator
-    return max(0.0, centre - half_width), min(1.0, centre + half_width)
+    low = 0.0 if successes == 0 else max(0.0, centre - half_width)  # exact ends: no rounding residue at 0 or n
+    high = 1.0 if successes == trials else min(1.0, centre + half_width)
+    return low, high
 
 
 @dataclass
