@@ -13,7 +13,7 @@ import argparse
 import statistics
 import time
 
-import torch
+import torch as th
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 
@@ -48,15 +48,34 @@ class PhaseTimer(BaseCallback):
         return True
 
 
-def measure(workers: int, iterations: int, preset: str = "ch5-bearing") -> tuple[float, float, int]:
-    """Median rollout and training seconds per iteration, and agent-steps per iteration."""
+def measure(workers: int, iterations: int, preset: str = "ch5-bearing") -> tuple[float, float, float, int]:
+    """Median rollout, training and gradient-floor seconds per iteration, and agent-steps per iteration."""
     env = make_formation_vec_env(preset, seed=0, n_workers=workers)
     model = PPO(env=env, seed=0, device="cpu", **thesis_ppo_kwargs(preset))
     timer = PhaseTimer()
     steps = model.n_steps * env.num_envs
     model.learn((iterations + 1) * steps, callback=timer)
     env.close()
-    return statistics.median(timer.rollouts[1:]), statistics.median(timer.trainings[1:]), steps
+    floor = statistics.median(gradient_floor(model) for _ in range(iterations))
+    return statistics.median(timer.rollouts[1:]), statistics.median(timer.trainings[1:]), floor, steps
+
+
+def gradient_floor(model: PPO) -> float:
+    """Reference: seconds of the bare gradient work of one iteration (forward, backward and Adam step of the same
+    networks on as many minibatches as PPO trains on), without PPO's losses, buffers or bookkeeping."""
+    policy = model.policy
+    samples = model.n_steps * model.get_env().num_envs
+    minibatches = model.n_epochs * -(-samples // model.batch_size)
+    observations = th.randn(model.batch_size, *model.observation_space.shape)
+    actions = th.zeros(model.batch_size, 2)
+    start = time.perf_counter()
+    for _ in range(minibatches):
+        values, log_prob, _ = policy.evaluate_actions(observations, actions)
+        loss = values.square().mean() - log_prob.mean()
+        policy.optimizer.zero_grad()
+        loss.backward()
+        policy.optimizer.step()
+    return time.perf_counter() - start
 
 
 def main() -> None:
@@ -64,16 +83,19 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=4)
     parser.add_argument("--workers", default="1,2")
     args = parser.parse_args()
-    print(
-        f"PPO throughput, ch5-bearing, n = 6, 14 teams, thesis networks and settings; torch threads {torch.get_num_threads()}"
-    )
+    print(f"PPO throughput, ch5-bearing, n = 6, 14 teams, thesis networks and settings; torch threads {th.get_num_threads()}")
     print(f"medians of {args.iterations} iterations after one warm-up")
     for workers in (int(value) for value in args.workers.split(",")):
-        rollout, training, steps = measure(workers, args.iterations)
+        rollout, training, floor, steps = measure(workers, args.iterations)
         total = rollout + training
         print(
             f"  workers={workers}: rollout {rollout:5.2f} s + training {training:5.2f} s per iteration of {steps} "
             f"agent-steps -> {steps / total:,.0f} agent-steps/s; rollout share {rollout / total:.0%}"
+        )
+        print(
+            f"             reference, bare gradient work of an iteration {floor:5.2f} s: training / reference "
+            f"{training / floor:.2f}x; the whole loop at this machine's gradient speed could reach at most "
+            f"{steps / floor:,.0f} agent-steps/s"
         )
     print("  targets: >= 2,000 agent-steps/s overall, rollout < 20 % of an iteration")
 

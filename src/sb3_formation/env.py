@@ -192,12 +192,40 @@ class FormationEnv(ParallelEnv):
         zeros = [0] * n_agents
         terms = np.zeros((len(REWARD_TERMS), n_agents))
         infos = self._infos(zeros, zeros, terms, success=False)
-        return dict(zip(self.agents, self._observations())), infos
+        return dict(zip(self.agents, self._observations())), dict(zip(self.agents, infos))
 
     def step(self, actions: dict[AgentID, np.ndarray]) -> tuple[dict, dict, dict, dict, dict]:
         if not self.agents:
             raise RuntimeError("step() called on a finished episode (or before reset()); call reset() first")
-        clipped = self._action_array(actions)
+        agents = self.agents
+        observations, rewards, terminated, truncated, infos = self._advance(self._action_array(actions))
+        return (
+            dict(zip(agents, observations)),
+            dict(zip(agents, rewards.tolist())),
+            dict.fromkeys(agents, terminated),
+            dict.fromkeys(agents, truncated),
+            dict(zip(agents, infos)),
+        )
+
+    def step_array(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool, bool, list[dict[str, Any]]]:
+        """:meth:`step` with arrays in agent order, for vectorised wrappers such as :class:`FormationVecEnv`.
+
+        :param actions: ``(n, 2)`` actions, row i for agent i (clipped to [-1, 1]; NaN or infinite values raise)
+        :return: observations ``(n, dim)``, rewards ``(n,)``, terminated, truncated, and the agents' infos in order
+        """
+        if not self.agents:
+            raise RuntimeError("step_array() called on a finished episode (or before reset()); call reset() first")
+        actions = np.asarray(actions, dtype=np.float64)
+        if actions.shape != (len(self.possible_agents), 2):
+            raise ValueError(f"actions must have shape ({len(self.possible_agents)}, 2), got {actions.shape}")
+        finite = np.isfinite(actions).all(axis=1)
+        if not finite.all():
+            bad = int(np.flatnonzero(~finite)[0])
+            raise ValueError(f"action of {self.possible_agents[bad]} is not finite: {actions[bad].tolist()}")
+        return self._advance(np.minimum(np.maximum(actions, -1.0), 1.0))
+
+    def _advance(self, clipped: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool, bool, list[dict[str, Any]]]:
+        """One step under validated, clipped ``(n, 2)`` actions."""
         config, world = self.config, self.world
         previous_velocities = world.velocities
         previous_goal_distance = self.goal_distance
@@ -229,16 +257,9 @@ class FormationEnv(ParallelEnv):
         self.previous_rewards = rewards
         observations = self._observations()
         infos = self._infos(agent_contacts, obstacle_contacts, terms, success)
-        agents = self.agents
         if success or truncated:
             self.agents = []
-        return (
-            dict(zip(agents, observations)),
-            dict(zip(agents, rewards.tolist())),
-            dict.fromkeys(agents, success),
-            dict.fromkeys(agents, truncated),
-            infos,
-        )
+        return observations, rewards, success, truncated, infos
 
     # Internals ----------------------------------------------------------------------------------------------------
 
@@ -300,10 +321,10 @@ class FormationEnv(ParallelEnv):
 
     def _infos(
         self, agent_contacts: list[int], obstacle_contacts: list[int], terms: np.ndarray, success: bool
-    ) -> dict[AgentID, dict[str, Any]]:
+    ) -> list[dict[str, Any]]:
+        """Every agent's info, in agent order."""
         formation = self.formation
         rows = zip(
-            self.agents,
             np.abs(formation.angle_errors_deg).tolist(),
             (0.5 * formation.bearing_errors.sum(axis=1)).tolist(),
             (0.5 * np.maximum(formation.neighbour_distances - self.config.d_ref, 0.0).sum(axis=1)).tolist(),
@@ -312,8 +333,8 @@ class FormationEnv(ParallelEnv):
             agent_contacts,
             terms.T.tolist(),
         )
-        return {
-            agent: {
+        return [
+            {
                 "angle_error_deg": angle,
                 "bearing_error": bearing,
                 "neighbour_distance_error": distance,
@@ -324,8 +345,8 @@ class FormationEnv(ParallelEnv):
                 "success": success,
                 "reward_terms": dict(zip(REWARD_TERMS, agent_terms)),
             }
-            for agent, angle, bearing, distance, centroid, obstacle_contact, agent_contact, agent_terms in rows
-        }
+            for angle, bearing, distance, centroid, obstacle_contact, agent_contact, agent_terms in rows
+        ]
 
     # Rendering ----------------------------------------------------------------------------------------------------
 

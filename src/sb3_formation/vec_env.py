@@ -31,24 +31,29 @@ class EpisodeStatistics:
         """Start a new episode."""
         self.length = 0
         self.mean_return = 0.0
-        self.errors = np.zeros(3)
-        self.collisions = np.zeros(2, dtype=np.int64)
-        self.terms = np.zeros(len(REWARD_TERMS))
+        self.errors = [0.0, 0.0, 0.0]
+        self.collisions = [0, 0]
+        self.terms = [0.0] * len(REWARD_TERMS)
 
     def add(self, rewards: np.ndarray, infos: Sequence[dict[str, Any]]) -> None:
-        """Add one step: the team's rewards and per-agent infos."""
+        """Add one step: the team's rewards and per-agent infos (plain Python sums: a handful of agents per call)."""
+        n_agents = len(infos)
         self.length += 1
         self.mean_return += float(rewards.mean())
-        self.errors += np.mean(
-            [(info["angle_error_deg"], info["bearing_error"], info["neighbour_distance_error"]) for info in infos], axis=0
-        )
-        self.collisions += np.sum([(info["collisions_obstacle"], info["collisions_agent"]) for info in infos], axis=0)
-        self.terms += np.mean([list(info["reward_terms"].values()) for info in infos], axis=0)
+        errors, collisions, terms = self.errors, self.collisions, self.terms
+        for info in infos:
+            errors[0] += info["angle_error_deg"] / n_agents
+            errors[1] += info["bearing_error"] / n_agents
+            errors[2] += info["neighbour_distance_error"] / n_agents
+            collisions[0] += info["collisions_obstacle"]
+            collisions[1] += info["collisions_agent"]
+            for index, value in enumerate(info["reward_terms"].values()):
+                terms[index] += value / n_agents
 
     def summary(self, success: bool, stage: int) -> dict[str, Any]:
         """The episode's means over steps (and over agents), collision totals, success and curriculum stage."""
         steps = max(self.length, 1)
-        angle, bearing, distance = self.errors / steps
+        angle, bearing, distance = (error / steps for error in self.errors)
         return {
             "success": success,
             "length": self.length,
@@ -56,9 +61,9 @@ class EpisodeStatistics:
             "angle_error_deg": float(angle),
             "bearing_error": float(bearing),
             "neighbour_distance_error": float(distance),
-            "collisions_obstacle": int(self.collisions[0]),
-            "collisions_agent": int(self.collisions[1]) // 2,  # each touching pair is reported by both agents
-            "reward_terms": dict(zip(REWARD_TERMS, (self.terms / steps).tolist())),
+            "collisions_obstacle": self.collisions[0],
+            "collisions_agent": self.collisions[1] // 2,  # each touching pair is reported by both agents
+            "reward_terms": {name: value / steps for name, value in zip(REWARD_TERMS, self.terms)},
             "stage": stage,
         }
 
@@ -79,8 +84,8 @@ class TeamBatch:
         self.statistics = [EpisodeStatistics() for _ in range(n_teams)]
         self.start_time = time.time()
 
-    def _slot_observations(self, observations: dict[str, np.ndarray], env: FormationEnv) -> np.ndarray:
-        own = np.stack([observations[agent] for agent in env.possible_agents])
+    def _slot_observations(self, own: np.ndarray) -> np.ndarray:
+        """Slot observations from the team's ``(n, dim)`` observations (with the team block for a team critic)."""
         if not self.team_observations:
             return own
         return np.hstack([own, np.broadcast_to(own.reshape(1, -1), (self.n_agents, own.size))])
@@ -91,7 +96,7 @@ class TeamBatch:
         for env, statistics, seed, team_options in zip(self.envs, self.statistics, seeds, options):
             team_observation, _ = env.reset(seed=seed, options=team_options or None)
             statistics.reset()
-            observations.append(self._slot_observations(team_observation, env))
+            observations.append(self._slot_observations(np.stack(list(team_observation.values()))))
         return np.concatenate(observations)
 
     def step(self, actions: np.ndarray, first_team: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict[str, Any]]]:
@@ -104,18 +109,13 @@ class TeamBatch:
         n_agents = self.n_agents
         observations, rewards, dones, infos = [], [], [], []
         for team, (env, statistics) in enumerate(zip(self.envs, self.statistics)):
-            team_actions = actions[team * n_agents : (team + 1) * n_agents]
             try:
-                result = env.step(dict(zip(env.possible_agents, team_actions)))
+                result = env.step_array(actions[team * n_agents : (team + 1) * n_agents])
             except ValueError as error:
                 raise ValueError(f"team {first_team + team}: {error}") from error
-            team_observation, team_reward, terminations, truncations, team_info = result
-            agent_rewards = np.array([team_reward[agent] for agent in env.possible_agents])
-            slot_infos = [team_info[agent] for agent in env.possible_agents]
+            team_observations, agent_rewards, terminated, truncated, slot_infos = result
             statistics.add(agent_rewards, slot_infos)
-            slot_observations = self._slot_observations(team_observation, env)
-            terminated = terminations[env.possible_agents[0]]
-            truncated = truncations[env.possible_agents[0]]
+            slot_observations = self._slot_observations(team_observations)
             done = terminated or truncated
             if done:
                 for info, terminal_observation in zip(slot_infos, slot_observations):
@@ -131,7 +131,7 @@ class TeamBatch:
                 slot_infos[0]["formation_episode"] = summary
                 reset_observation, _ = env.reset()
                 statistics.reset()
-                slot_observations = self._slot_observations(reset_observation, env)
+                slot_observations = self._slot_observations(np.stack(list(reset_observation.values())))
             observations.append(slot_observations)
             rewards.append(agent_rewards)
             dones.append(np.full(n_agents, done))
