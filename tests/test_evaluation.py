@@ -119,6 +119,7 @@ def check_summary(summary: dict[str, Any], episodes: list[dict[str, Any]]) -> No
             assert means[name] == pytest.approx(np.mean([episode[name] for episode in successful]), rel=1e-12)
         else:
             assert means[name] is None
+        assert summary["all_episode_means"][name] == pytest.approx(np.mean([episode[name] for episode in episodes]), rel=1e-12)
 
 
 def test_evaluate_summary_agrees_with_its_episodes(tiny: SimpleNamespace) -> None:

@@ -259,8 +259,11 @@ def evaluate_command(args: argparse.Namespace) -> int:
         f"{summary['episodes']} episodes (stage {summary['stage']}, seed {summary['seed']}): success rate "
         f"{summary['success_rate']:.1%} (95% CI {low:.1%} - {high:.1%})"
     )
-    for name, value in summary["successful_episode_means"].items():
-        print(f"  mean {name} over successful episodes: {'-' if value is None else f'{value:.3f}'}")
+    successful, everything = summary["successful_episode_means"], summary["all_episode_means"]
+    print(f"  {'mean over':<28}{'successful episodes':>22}{'all episodes':>16}")
+    for name in everything:
+        value = successful[name]
+        print(f"  {name:<28}{'-' if value is None else f'{value:.3f}':>22}{everything[name]:>16.3f}")
     out = args.out
     if out is None:
         base = args.target if args.target.is_dir() else args.target.parent

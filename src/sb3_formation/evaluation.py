@@ -62,11 +62,17 @@ class EvaluationResult:
             "stage": self.stage,
             "seed": self.seed,
             "deterministic": self.deterministic,
-            "successful_episode_means": {
-                name: float(np.mean([episode[name] for episode in successes])) if successes else None
-                for name in (*EPISODE_ERRORS, "length")
-            },
+            "successful_episode_means": _means(successes),
+            "all_episode_means": _means(self.episodes),
         }
+
+
+def _means(episodes: list[dict[str, Any]]) -> dict[str, float | None]:
+    """Mean of each error, collision count and length over ``episodes`` (``None`` when there are none)."""
+    return {
+        name: float(np.mean([episode[name] for episode in episodes])) if episodes else None
+        for name in (*EPISODE_ERRORS, "length")
+    }
 
 
 #: Fields that shape the observation vector: a model only fits envs that agree on them.
