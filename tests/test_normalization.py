@@ -272,11 +272,13 @@ def test_save_is_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None
 def test_load_rejects_mismatched_agent_obs_dim(tmp_path: Path) -> None:
     path = tmp_path / "stats.npz"
     make_wrapper().save(path)
-    with pytest.raises(ValueError, match=r"agent_obs_dim 5.*agent_obs_dim 6"):
+    with pytest.raises(ValueError, match=r"observation size 5 is not a multiple of agent_obs_dim 6"):
         ScaleNormalizeVecEnv.load(path, make_venv(), agent_obs_dim=6)
+    with pytest.raises(ValueError, match=r"stats.npz.*agent_obs_dim 5 but this environment has agent_obs_dim 10"):
+        ScaleNormalizeVecEnv.load(path, make_venv(n_blocks=2), agent_obs_dim=10, binary_mask=np.zeros(10, dtype=bool))
     # an environment whose observation size is not a multiple of the saved agent_obs_dim
     other = DummyVecEnv([lambda: gymnasium.make("CartPole-v1")])
-    with pytest.raises(ValueError, match=r"agent_obs_dim 5.*observation size 4"):
+    with pytest.raises(ValueError, match=r"observation size 4 is not a multiple of agent_obs_dim 5"):
         ScaleNormalizeVecEnv.load(path, other)
 
 
@@ -285,9 +287,9 @@ def test_load_rejects_mismatched_mask(tmp_path: Path) -> None:
     make_wrapper().save(path)
     wrong = BINARY_MASK.copy()
     wrong[0] = True
-    with pytest.raises(ValueError, match=r"size 5 \(1 binary\).*size 5 \(2 binary\).*features \[0\]"):
+    with pytest.raises(ValueError, match=r"1 of 5 binary.*2 of 5 binary.*features \[0\]"):
         ScaleNormalizeVecEnv.load(path, make_venv(), binary_mask=wrong)
-    with pytest.raises(ValueError, match=r"size 5 .*size 6"):
+    with pytest.raises(ValueError, match=r"shape \(6,\) but agent_obs_dim is 5"):
         ScaleNormalizeVecEnv.load(path, make_venv(), binary_mask=np.zeros(6, dtype=bool))
 
 

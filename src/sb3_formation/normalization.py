@@ -292,37 +292,17 @@ class ScaleNormalizeVecEnv(VecEnvWrapper):
             raise FileNotFoundError(f"no saved normalisation statistics at {str(path)!r}")
         with np.load(path, allow_pickle=False) as data:
             state = {key: data[key] for key in data.files}
-        for key in ("agent_obs_dim", "binary_mask"):
-            if key not in state:
-                raise ValueError(f"{str(path)!r} is not a ScaleNormalizeVecEnv file: it has no {key!r}")
-        saved_dim = int(state["agent_obs_dim"])
-        if agent_obs_dim is not None and int(agent_obs_dim) != saved_dim:
-            raise ValueError(
-                f"{str(path)!r} holds statistics for agent_obs_dim {saved_dim} but the environment has agent_obs_dim "
-                f"{int(agent_obs_dim)}"
-            )
-        saved_mask = np.asarray(state["binary_mask"])
-        if binary_mask is not None:
-            expected = np.asarray(binary_mask)
-            if expected.shape != saved_mask.shape or not np.array_equal(expected, saved_mask):
-                raise ValueError(
-                    f"{str(path)!r} holds a binary_mask of size {saved_mask.size} ({int(saved_mask.sum())} binary) but "
-                    f"the environment's has size {expected.size} ({int(expected.astype(bool).sum())} binary)"
-                    + (
-                        f"; they differ at features {np.flatnonzero(saved_mask != expected.astype(bool)).tolist()}"
-                        if expected.shape == saved_mask.shape
-                        else ""
-                    )
-                )
-        obs_shape = venv.observation_space.shape
-        obs_size = obs_shape[0] if obs_shape is not None and len(obs_shape) == 1 else None
-        if obs_size is not None and obs_size % saved_dim != 0:
-            raise ValueError(
-                f"{str(path)!r} holds statistics for agent_obs_dim {saved_dim}, but the environment's observation size "
-                f"{obs_size} is not a multiple of it"
-            )
+        missing = [key for key in STATE_KEYS if key not in state]
+        if missing:
+            raise ValueError(f"{str(path)!r} is not a ScaleNormalizeVecEnv file: it lacks {missing}")
         wrapper = ScaleNormalizeVecEnv(
-            venv, saved_dim, saved_mask, training=training, epsilon=float(state.get("epsilon", 1e-8))
+            venv,
+            int(state["agent_obs_dim"]) if agent_obs_dim is None else agent_obs_dim,
+            np.asarray(state["binary_mask"]) if binary_mask is None else np.asarray(binary_mask),
+            training=training,
         )
-        wrapper.load_state_dict(state)
+        try:
+            wrapper.load_state_dict(state)  # checks sizes, mask and statistics against the env's
+        except ValueError as error:
+            raise ValueError(f"{str(path)!r}: {error}") from error
         return wrapper
