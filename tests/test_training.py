@@ -13,12 +13,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from stable_baselines3.common.save_util import load_from_zip_file
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_formation import REWARD_TERMS
 from sb3_formation.cli import build_parser, main, preset_for, train_settings
 from sb3_formation.policies import FormationPolicy
-from sb3_formation.training import STATE_FILE, TrainSettings, latest_checkpoint, thesis_ppo_kwargs
+from sb3_formation.training import (
+    STATE_FILE,
+    TrainSettings,
+    latest_checkpoint,
+    make_training_env,
+    reduce_to_overrides,
+    thesis_ppo_kwargs,
+)
 
 #: Tiny runs: one team, episodes of 20 steps, so every iteration of 128 steps ends several team-episodes.
 QUICK = ["--n-envs", "1", "--env", "max_steps=20", "--no-progress"]
@@ -91,6 +99,29 @@ def test_yaml_settings_are_overridden_by_flags_and_unknown_keys_fail(tmp_path: P
         TrainSettings(env={"n_agent": 3})
 
 
+def test_a_resolved_config_can_be_reused_with_another_preset() -> None:
+    resolved = TrainSettings(preset="ch4-individual", env={"max_steps": 50}, ppo={"policy_kwargs": {"net_arch": [8]}})
+    values = reduce_to_overrides(yaml.safe_load(yaml.safe_dump(resolved.to_dict())))
+    assert values["env"] == {"max_steps": 50} and values["ppo"] == {"policy_kwargs": {"net_arch": [8]}}
+    moved = TrainSettings.from_dict({**values, "preset": "ch5-bearing"})
+    config = moved.config()
+    assert (config.layout, config.k_bearing, config.n_agents, config.max_steps) == ("ch5", 0.3, 6, 50)
+    assert moved.ppo_kwargs()["policy_kwargs"] == {"sigma": 0.7, "action_scale": 1.0, "net_arch": [8]}
+    # policy_kwargs overrides are merged into the thesis's, not replacing them (the team critic keeps its team)
+    team = TrainSettings(preset="ch4-team", ppo={"policy_kwargs": {"net_arch": {"pi": [8], "vf": [8, 8]}}})
+    assert team.ppo_kwargs()["policy_kwargs"]["team_size"] == 3
+
+
+def test_training_env_is_placed_for_the_curriculum_stage() -> None:
+    env = make_training_env(TrainSettings(n_envs=2, env={"max_steps": 20}), stage=3)
+    env.seed(0)
+    env.reset()
+    assert env.get_attr("stage") == [3] * 12
+    for scenario in env.get_attr("scenario", indices=[0, 6]):
+        assert scenario.obstacles[:, 2].tolist() == [0.8, 0.8]  # ch5 stage 3, not stage 1's 2 m obstacles
+    env.close()
+
+
 def test_train_cli_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["train", "--config", str(tmp_path / "missing.yaml")]) == 2
     assert "missing.yaml" in capsys.readouterr().err
@@ -98,23 +129,34 @@ def test_train_cli_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureF
     assert "config.yaml" in capsys.readouterr().err
     assert main(["train", "--resume", str(tmp_path), "--seed", "3"]) == 2
     assert "--seed" in capsys.readouterr().err
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("preset: [unclosed")
+    assert main(["train", "--config", str(broken)]) == 2
+    assert "broken.yaml is not valid YAML" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["train", "--iterations", "1,2"])
 
 
 @pytest.mark.slow
 def test_train_run_folder_and_tensorboard(tmp_path: Path) -> None:
-    process = run_cli("train", "--preset", "ch5-bearing", "--iterations", "1,1,1", "--logdir", "runs", *QUICK, cwd=tmp_path)
+    arguments = ["train", "--preset", "ch5-bearing", "--iterations", "1,1,1", "--checkpoint-every", "1", "--logdir", "runs"]
+    process = run_cli(*arguments, *QUICK, cwd=tmp_path)
     _, stderr = process.communicate(timeout=300)
     assert process.returncode == 0, stderr
     run_dir = only_run_dir(tmp_path / "runs")
     assert run_dir.name.startswith("ch5-bearing_6a_s0_")
     for name in ("config.yaml", "command.txt", "final_model.zip", "final_normalizer.npz"):
         assert (run_dir / name).is_file(), name
-    assert (run_dir / "command.txt").read_text().startswith("sb3-formation train --preset ch5-bearing --iterations 1,1,1")
+    assert (run_dir / "command.txt").read_text().startswith("sb3-formation train --preset ch5-bearing --iterations 1,1,1 ")
     assert yaml.safe_load((run_dir / "config.yaml").read_text())["env"]["max_steps"] == 20
     state = json.loads((latest_checkpoint(run_dir) / STATE_FILE).read_text())
     assert state["num_timesteps"] == 3 * 128 * 6 and state["curriculum"]["stage"] == 3
+    # a checkpoint holds the model after its iteration's update (SB3 counts one update per epoch)
+    assert sorted(path.name for path in (run_dir / "checkpoints").iterdir()) == [f"iteration_00000{k}" for k in (1, 2, 3)]
+    updates = [
+        load_from_zip_file(run_dir / "checkpoints" / f"iteration_00000{k}" / "model.zip")[0]["_n_updates"] for k in (1, 2, 3)
+    ]
+    assert 1 <= updates[0] < updates[1] < updates[2]
     events = EventAccumulator(str(run_dir / "tensorboard"))
     events.Reload()
     scalars = set(events.Tags()["scalars"])
@@ -196,3 +238,28 @@ def test_sigterm_checkpoints_and_stops(tmp_path: Path) -> None:
     assert not (run_dir / "final_model.zip").exists()
     assert not [path for path in (run_dir / "checkpoints").iterdir() if path.name.startswith(".")]  # no half-written folder
     assert os.path.getsize(checkpoint / "model.zip") > 0
+
+
+@pytest.mark.slow
+def test_ctrl_c_with_workers_checkpoints_and_stops(tmp_path: Path) -> None:
+    """Ctrl-C reaches the whole process group; the workers ignore it and the parent stops cleanly."""
+    arguments = ["train", "--iterations", "1,1,200", "--checkpoint-every", "100", "--workers", "2", "--n-envs", "2"]
+    process = subprocess.Popen(
+        [sys.executable, "-m", "sb3_formation.cli", *arguments, "--logdir", "runs", "--env", "max_steps=20", "--no-progress"],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    wait_for(lambda: (tmp_path / "runs").exists() and any((tmp_path / "runs").iterdir()))
+    run_dir = only_run_dir(tmp_path / "runs")
+    progress = run_dir / "tensorboard" / "progress.csv"
+    wait_for(lambda: progress.exists() and len(progress.read_text().splitlines()) >= 3)
+    os.killpg(process.pid, signal.SIGINT)
+    stdout, stderr = process.communicate(timeout=120)
+    assert process.returncode == 0, stderr
+    assert "Traceback" not in stderr and "--resume" in stdout
+    state = json.loads((latest_checkpoint(run_dir) / STATE_FILE).read_text())
+    assert state["curriculum"]["iteration"] >= 2
+    assert state["num_timesteps"] == state["curriculum"]["iteration"] * 128 * 12  # the interrupted rollout is dropped

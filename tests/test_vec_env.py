@@ -172,3 +172,22 @@ def test_bad_actions_and_arguments_name_the_problem() -> None:
         FormationVecEnv(FormationConfig.preset("ch5-bearing"), n_envs=2, n_workers=3)
     with pytest.raises(ValueError, match="n_envs"):
         FormationVecEnv(FormationConfig.preset("ch5-bearing"), n_envs=0)
+
+
+def test_worker_errors_leave_the_other_workers_in_step() -> None:
+    venv = FormationVecEnv(FormationConfig.preset("ch5-bearing", stage=2), n_envs=2, n_workers=2)
+    venv.seed(0)
+    first = venv.reset()
+    actions = np.zeros((12, 2))
+    actions[1, 0] = np.nan  # team 0, in the first worker
+    with pytest.raises(ValueError, match="team 0: action of agent_1 is not finite"):
+        venv.step(actions)
+    assert venv.get_attr("stage") == [2] * 12  # no stale reply of the second worker is read here
+    venv.seed(0)
+    assert venv.reset().tobytes() == first.tobytes()
+    venv._batches[1].process.kill()
+    venv._batches[1].process.join()
+    with pytest.raises(RuntimeError, match=r"worker \(pid \d+\) died"):
+        venv.step(np.zeros((12, 2)))
+    venv.close()
+    venv.close()  # a second close is harmless

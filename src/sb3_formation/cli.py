@@ -16,7 +16,7 @@ from .config import PRESETS, FormationConfig
 from .env import FormationEnv
 from .evaluation import evaluate
 from .rollout import random_policy, run_episode
-from .training import TrainSettings, atomic_write_text, load_trained, resume, train
+from .training import TrainSettings, atomic_write_text, load_trained, reduce_to_overrides, resume, train
 
 #: Thesis evaluation sizes: 500 episodes in chapter 4 (thesis 4.4), 200 in chapter 5 (thesis 5.4), by layout.
 THESIS_EVALUATION_EPISODES = {"ch4": 500, "ch5": 200}
@@ -169,10 +169,13 @@ def train_settings(args: argparse.Namespace) -> TrainSettings:
     if args.config is not None:
         if not args.config.exists():
             raise FileNotFoundError(f"--config: no such file {args.config}")
-        loaded = yaml.safe_load(args.config.read_text()) or {}
+        try:
+            loaded = yaml.safe_load(args.config.read_text()) or {}
+        except yaml.YAMLError as error:
+            raise ValueError(f"{args.config} is not valid YAML: {error}") from error
         if not isinstance(loaded, dict):
             raise ValueError(f"{args.config} must hold a mapping of settings, not {type(loaded).__name__}")
-        values.update(loaded)
+        values.update(reduce_to_overrides(loaded))
     env = dict(values.get("env") or {})
     if args.preset is not None:
         values["preset"] = args.preset
@@ -281,7 +284,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     commands = {"rollout": rollout_command, "train": train_command, "evaluate": evaluate_command}
     try:
         return commands[args.command](args)
-    except (ValueError, FileNotFoundError, TypeError) as error:  # bad input: one line naming the problem
+    except (ValueError, TypeError, OSError) as error:  # bad input or files: one line naming the problem
         if args.debug:
             raise
         print(f"sb3-formation: error: {error}", file=sys.stderr)

@@ -1,8 +1,8 @@
 """Scale-only observation normalisation (thesis 3.1.4, design.md "Sensors and observation").
 
-Continuous observation values are divided by a running standard deviation per feature, without subtracting the mean and
-without clipping; the 0/1 flags are left as they are. The running variance is kept with Stable-Baselines3's
-``RunningMeanStd`` (Chan, Golub & LeVeque's parallel update, the batch form of Welford's algorithm).
+Continuous observation values are divided by a running standard deviation per feature, without subtracting the mean,
+then clipped to [-10, 10] (``clip_obs``); the 0/1 flags are left as they are. The running variance is kept with
+Stable-Baselines3's ``RunningMeanStd`` (Chan, Golub & LeVeque's parallel update, the batch form of Welford's algorithm).
 
 Every slot of the wrapped ``VecEnv`` is one agent. Its observation is one or more blocks with the same per-agent layout:
 normally just the agent's own observation (k = 1); with a team critic, its own observation followed by those of the

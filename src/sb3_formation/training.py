@@ -25,7 +25,7 @@ import numpy as np
 import yaml
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
-from stable_baselines3.common.logger import configure
+from stable_baselines3.common.logger import CSVOutputFormat, Logger, TensorBoardOutputFormat
 
 from .callbacks import THESIS_STAGE_ITERATIONS, CurriculumCallback, FormationMetricsCallback, ProgressBarCallback
 from .config import PRESETS, FormationConfig
@@ -151,7 +151,9 @@ class TrainSettings:
     def ppo_kwargs(self) -> dict[str, Any]:
         """``PPO`` keyword arguments: the thesis's for the preset, then the overrides."""
         kwargs = thesis_ppo_kwargs(self.preset, self.config().n_agents)
-        kwargs.update(self.ppo)
+        overrides = dict(self.ppo)
+        kwargs["policy_kwargs"] = {**kwargs["policy_kwargs"], **overrides.pop("policy_kwargs", {})}
+        kwargs.update(overrides)
         return kwargs
 
 
@@ -164,6 +166,32 @@ def _plain(value: Any) -> Any:
     return value
 
 
+def reduce_to_overrides(values: dict[str, Any]) -> dict[str, Any]:
+    """A settings mapping whose ``env:`` and ``ppo:`` keep only what differs from its own preset's defaults.
+
+    A run's ``config.yaml`` holds every resolved value; reduced, it can be reused with another preset or team size
+    (``--config old/config.yaml --reward bearing``) without pinning the old preset's coefficients.
+    """
+    preset = values.get("preset", TrainSettings.preset)
+    if preset not in PRESETS:
+        return values  # reported by TrainSettings
+    env = dict(values.get("env") or {})
+    defaults = _plain(dataclasses.asdict(FormationConfig.preset(preset)))
+    env = {name: value for name, value in env.items() if name not in defaults or defaults[name] != _plain(value)}
+    n_agents = env.get("n_agents", defaults["n_agents"])
+    ppo = dict(values.get("ppo") or {})
+    thesis = _plain({name: value for name, value in thesis_ppo_kwargs(preset, n_agents).items() if name != "policy"})
+    policy_kwargs = {
+        name: value
+        for name, value in (ppo.pop("policy_kwargs", None) or {}).items()
+        if thesis["policy_kwargs"].get(name) != _plain(value)
+    }
+    ppo = {name: value for name, value in ppo.items() if name not in thesis or thesis[name] != _plain(value)}
+    if policy_kwargs:
+        ppo["policy_kwargs"] = policy_kwargs
+    return {**values, "env": env, "ppo": ppo}
+
+
 #: PPO settings a run may override (``ppo:`` in YAML).
 PPO_OVERRIDABLE = frozenset(set(THESIS_PPO) | {"ent_coef", "vf_coef", "max_grad_norm", "normalize_advantage", "policy_kwargs"})
 
@@ -173,17 +201,40 @@ PPO_OVERRIDABLE = frozenset(set(THESIS_PPO) | {"ent_coef", "vf_coef", "max_grad_
 
 @contextmanager
 def atomic_directory(target: Path) -> Iterator[Path]:
-    """Write into a temporary sibling folder, then rename it to ``target`` (replacing it) only if all went well."""
+    """Write into a hidden temporary sibling folder, then rename it to ``target`` only if all went well.
+
+    An existing ``target`` is first renamed aside (hidden) and deleted after the swap, so a crash at any point leaves
+    either the old or the new folder under a hidden name or under ``target``, never a half-written ``target``.
+    """
     target.parent.mkdir(parents=True, exist_ok=True)
     temporary = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
     try:
         yield temporary
+        _fsync_directory(temporary)
+        aside = None
         if target.exists():
-            shutil.rmtree(target)
+            aside = Path(tempfile.mkdtemp(prefix=f".{target.name}.old.", dir=target.parent))
+            os.replace(target, aside / target.name)
         os.replace(temporary, target)
+        _fsync_directory(target.parent)
+        if aside is not None:
+            shutil.rmtree(aside, ignore_errors=True)
     finally:
         if temporary.exists():
             shutil.rmtree(temporary, ignore_errors=True)
+
+
+def _fsync_directory(folder: Path) -> None:
+    """Flush a folder's files and the folder itself to disk."""
+    for path in folder.iterdir():
+        if path.is_file():
+            with open(path, "rb") as stream:
+                os.fsync(stream.fileno())
+    handle = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(handle)
+    finally:
+        os.close(handle)
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -225,9 +276,10 @@ def latest_checkpoint(run_dir: Path) -> Path | None:
 class CheckpointCallback(BaseCallback):
     """Write a checkpoint every ``every`` iterations, and stop training cleanly when a stop is requested.
 
-    A checkpoint is a folder ``checkpoints/iteration_<k>`` written atomically (built under a temporary name, then
-    renamed), holding the model (with its optimiser state), the normaliser statistics and ``state.json`` (curriculum
-    state, iteration and timestep count). Only the ``keep`` most recent are kept.
+    A checkpoint is a folder ``checkpoints/iteration_<k>`` written atomically (see :func:`atomic_directory`) after the
+    k-th PPO update, holding the model (with its optimiser state), the normaliser statistics and ``state.json``
+    (curriculum state and timestep count). Only the ``keep`` most recent are kept. When a stop is requested the
+    rollout under way is dropped: the checkpoint holds the state after the last completed iteration.
 
     :param run_dir: the run folder
     :param curriculum: the run's curriculum callback (its state goes into each checkpoint)
@@ -246,17 +298,19 @@ class CheckpointCallback(BaseCallback):
     def _on_step(self) -> bool:
         return not self.stop_requested
 
-    def _on_rollout_end(self) -> None:
-        if self.curriculum.iteration % self.every == 0:
+    def _on_rollout_start(self) -> None:
+        # a rollout starts after the previous iteration's update (SB3 calls train() after the rollout-end callbacks)
+        iteration = self.curriculum.iteration
+        if iteration > 0 and iteration % self.every == 0:
             self.save()
 
     def save(self) -> Path:
-        """Write a checkpoint of the current state and return its folder."""
+        """Write a checkpoint of the state after the last completed iteration and return its folder."""
         iteration = self.curriculum.iteration
+        self.model.num_timesteps = iteration * self.model.n_steps * self.model.get_env().num_envs  # drop a partial rollout
         target = self.run_dir / "checkpoints" / f"iteration_{iteration:06d}"
-        normalizer = self.model.get_env()
         with atomic_directory(target) as folder:
-            save_model(self.model, normalizer, folder, MODEL_FILE, NORMALIZER_FILE)
+            save_model(self.model, self.model.get_env(), folder, MODEL_FILE, NORMALIZER_FILE)
             state = {"num_timesteps": self.model.num_timesteps, "curriculum": self.curriculum.state_dict()}
             (folder / STATE_FILE).write_text(json.dumps(state, indent=2))
         for old in sorted((self.run_dir / "checkpoints").glob("iteration_*"))[: -self.keep]:
@@ -282,9 +336,9 @@ def stop_on_signals(checkpoint: CheckpointCallback) -> Iterator[None]:
 # Runs ---------------------------------------------------------------------------------------------------------------
 
 
-def make_training_env(settings: TrainSettings, normalizer_path: Path | None = None) -> ScaleNormalizeVecEnv:
-    """The normalised VecEnv of a run (with saved normaliser statistics when resuming)."""
-    config = settings.config()
+def make_training_env(settings: TrainSettings, stage: int, normalizer_path: Path | None = None) -> ScaleNormalizeVecEnv:
+    """The normalised VecEnv of a run, its teams placed for ``stage`` (with saved normaliser statistics to resume)."""
+    config = settings.config().replace(stage=stage)
     venv = FormationVecEnv(
         config,
         n_envs=settings.resolved_n_envs(),
@@ -298,15 +352,18 @@ def make_training_env(settings: TrainSettings, normalizer_path: Path | None = No
 
 
 def new_run_dir(settings: TrainSettings) -> Path:
-    """A fresh folder ``<logdir>/<preset>_<n>a_s<seed>_<timestamp>``."""
+    """A fresh folder ``<logdir>/<preset>_<n>a_s<seed>_<timestamp>`` (``-2``, ``-3``, ... if taken)."""
     stamp = time.strftime("%Y%m%d-%H%M%S")
     base = Path(settings.logdir) / f"{settings.preset}_{settings.config().n_agents}a_s{settings.seed}_{stamp}"
-    run_dir, suffix = base, 1
-    while run_dir.exists():
-        suffix += 1
-        run_dir = base.with_name(f"{base.name}-{suffix}")
-    run_dir.mkdir(parents=True)
-    return run_dir
+    base.parent.mkdir(parents=True, exist_ok=True)
+    for suffix in range(1, 1000):
+        run_dir = base if suffix == 1 else base.with_name(f"{base.name}-{suffix}")
+        try:
+            run_dir.mkdir()
+        except FileExistsError:
+            continue
+        return run_dir
+    raise FileExistsError(f"no free run folder name next to {base}")
 
 
 def train(settings: TrainSettings, command: str | None = None) -> Path:
@@ -318,26 +375,33 @@ def train(settings: TrainSettings, command: str | None = None) -> Path:
     run_dir = new_run_dir(settings)
     atomic_write_text(run_dir / "config.yaml", yaml.safe_dump(settings.to_dict(), sort_keys=False))
     atomic_write_text(run_dir / "command.txt", (command or " ".join(sys.argv)) + "\n")
-    env = make_training_env(settings)
-    kwargs = settings.ppo_kwargs()
-    model = PPO(env=env, seed=settings.seed, device=settings.device, verbose=0, **kwargs)
+    curriculum = CurriculumCallback(settings.resolved_iterations(), settings.success_threshold)
+    env = make_training_env(settings, curriculum.stage)
+    model = PPO(env=env, seed=settings.seed, device=settings.device, verbose=0, **settings.ppo_kwargs())
     model.formation_config = dataclasses.asdict(settings.config())
-    _learn(model, settings, run_dir, CurriculumCallback(settings.resolved_iterations(), settings.success_threshold))
+    _learn(model, settings, run_dir, curriculum)
     return run_dir
 
 
 def resume(run_dir: str | os.PathLike[str]) -> Path:
-    """Continue a run from its latest checkpoint: same curriculum stage, timestep count, normaliser and optimiser."""
+    """Continue a run from its latest checkpoint: same curriculum stage, timestep count, normaliser and optimiser.
+
+    The random generators are re-seeded from the run's seed and the checkpoint's iteration, so resuming the same
+    checkpoint twice gives the same continuation.
+    """
     run_dir = Path(run_dir)
     settings = load_settings(run_dir)
     checkpoint = latest_checkpoint(run_dir)
     if checkpoint is None:
         raise FileNotFoundError(f"{run_dir} has no complete checkpoint under checkpoints/ to resume from")
+    for leftover in (run_dir / "checkpoints").glob(".iteration_*"):  # folders of a write that was killed
+        shutil.rmtree(leftover, ignore_errors=True)
     state = json.loads((checkpoint / STATE_FILE).read_text())
-    env = make_training_env(settings, checkpoint / NORMALIZER_FILE)
-    model = PPO.load(checkpoint / MODEL_FILE, env=env, device=settings.device)
     curriculum = CurriculumCallback(settings.resolved_iterations(), settings.success_threshold)
     curriculum.load_state_dict(state["curriculum"])
+    env = make_training_env(settings, curriculum.stage, checkpoint / NORMALIZER_FILE)
+    model = PPO.load(checkpoint / MODEL_FILE, env=env, device=settings.device)
+    model.set_random_seed(int(np.random.SeedSequence([settings.seed, curriculum.iteration]).generate_state(1)[0]))
     _learn(model, settings, run_dir, curriculum)
     return run_dir
 
@@ -351,7 +415,11 @@ def load_settings(run_dir: Path) -> TrainSettings:
 
 
 def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: CurriculumCallback) -> None:
-    model.set_logger(configure(str(run_dir / "tensorboard"), ["tensorboard", "csv"]))
+    folder = run_dir / "tensorboard"
+    folder.mkdir(exist_ok=True)
+    # one CSV per session (SB3's CSV writer truncates its file); TensorBoard appends events to the same folder
+    csv_name = "progress.csv" if curriculum.iteration == 0 else f"progress_from_iteration_{curriculum.iteration}.csv"
+    model.set_logger(Logger(str(folder), [TensorBoardOutputFormat(str(folder)), CSVOutputFormat(str(folder / csv_name))]))
     checkpoint = CheckpointCallback(run_dir, curriculum, settings.checkpoint_every)
     callbacks: list[BaseCallback] = [curriculum, FormationMetricsCallback(settings.to_dict()), checkpoint]
     remaining = curriculum.total_iterations - curriculum.iteration
@@ -367,7 +435,9 @@ def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: Curri
                 progress_bar=False,
             )
         checkpoint.save()
-    if not checkpoint.stop_requested:
+    if checkpoint.stop_requested:
+        print(f"stopped by a signal; checkpoint {latest_checkpoint(run_dir)}; continue with --resume {run_dir}")
+    else:
         save_model(model, model.get_env(), run_dir, FINAL_MODEL, FINAL_NORMALIZER)
     model.get_env().close()
 

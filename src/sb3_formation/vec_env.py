@@ -7,6 +7,7 @@ agent of every team. All slots of a team end together and are reset in the same 
 from __future__ import annotations
 
 import multiprocessing
+import signal
 import time
 from collections.abc import Iterable, Sequence
 from multiprocessing.connection import Connection
@@ -162,6 +163,8 @@ class TeamBatch:
 
 
 def _worker(remote: Connection, parent_remote: Connection, batch_arguments: tuple) -> None:  # pragma: no cover - subprocess
+    # Ctrl-C in a terminal reaches the whole process group: the parent decides how to stop, workers carry on until closed
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     parent_remote.close()
     batch = TeamBatch(*batch_arguments)
     try:
@@ -192,18 +195,28 @@ class _WorkerBatch:
         work_remote.close()
 
     def send(self, command: str, *data: Any) -> None:
-        self.remote.send((command, data))
+        try:
+            self.remote.send((command, data))
+        except (BrokenPipeError, ConnectionResetError, OSError) as error:
+            raise self._died() from error
 
-    def receive(self) -> Any:
-        status, result = self.remote.recv()
-        if status == "error":
-            raise result
-        return result
+    def receive(self) -> tuple[str, Any]:
+        """The worker's reply: ``("ok", result)`` or ``("error", exception)``."""
+        try:
+            return self.remote.recv()
+        except (EOFError, ConnectionResetError, OSError) as error:
+            raise self._died() from error
+
+    def _died(self) -> RuntimeError:
+        self.process.join(timeout=1)
+        return RuntimeError(f"FormationVecEnv worker (pid {self.process.pid}) died, exit code {self.process.exitcode}")
 
     def close(self) -> None:
+        if self.remote.closed:
+            return
         try:
             self.remote.send(("close", ()))
-        except (BrokenPipeError, EOFError):
+        except (BrokenPipeError, ConnectionResetError, OSError):
             pass
         self.process.join(timeout=10)
         if self.process.is_alive():
@@ -289,15 +302,30 @@ class FormationVecEnv(VecEnv):
         return list(grouped.items())
 
     def _run(self, command: str, arguments: dict[int, tuple]) -> dict[int, Any]:
-        """Call ``command`` on the blocks in ``arguments`` (block -> arguments): workers first, all in parallel."""
+        """Call ``command`` on the blocks in ``arguments`` (block -> arguments): workers first, all in parallel.
+
+        Every worker's reply is read before an error is raised, so no stale reply is left in a pipe.
+        """
         for block, block_arguments in arguments.items():
             batch = self._batches[block]
             if isinstance(batch, _WorkerBatch):
                 batch.send(command, *block_arguments)
-        return {
-            block: batch.receive() if isinstance(batch, _WorkerBatch) else getattr(batch, command)(*block_arguments)
-            for block, batch in ((block, self._batches[block]) for block in arguments)
-        }
+        results: dict[int, Any] = {}
+        errors: list[BaseException] = []
+        for block, block_arguments in arguments.items():
+            batch = self._batches[block]
+            try:
+                if isinstance(batch, _WorkerBatch):
+                    status, results[block] = batch.receive()
+                    if status == "error":
+                        errors.append(results[block])
+                else:
+                    results[block] = getattr(batch, command)(*block_arguments)
+            except Exception as error:  # keep draining the other workers
+                errors.append(error)
+        if errors:
+            raise errors[0]
+        return results
 
     def _call_teams(self, command: str, teams: list[int], *data: Any) -> dict[int, Any]:
         """Run ``command(data[0], local_teams, *data[1:])`` on the blocks holding ``teams``; return team -> result."""
