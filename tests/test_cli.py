@@ -20,7 +20,7 @@ def test_rollout_prints_episodes_and_saves_the_final_frame(tmp_path: Path, capsy
     assert main([*arguments, "--out", str(tmp_path / "first.png")]) == 0
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
     assert [line["episode"] for line in lines] == [0, 1]
-    assert all(line["steps"] == 40 and line["success"] is False for line in lines)
+    assert all(line["length"] == 40 and line["success"] is False for line in lines)
     assert main(["rollout", "--episodes", "1", "--max-steps", "10", "--out", str(out)]) == 0
     image = np.asarray(Image.open(out))
     assert image.shape == (600, 900, 3) and image.std() > 5
@@ -38,10 +38,10 @@ def test_rollout_summary_matches_a_manual_episode() -> None:
         observations, rewards, _, _, infos = twin.step({agent: rng.uniform(-1.0, 1.0, 2) for agent in observations})
         total += sum(rewards.values()) / len(rewards)
         angles += [info["angle_error_deg"] for info in infos.values()]
-    assert summary.steps == 25
-    assert summary.mean_agent_return == pytest.approx(total)
-    assert summary.angle_error_deg == pytest.approx(np.mean(angles))
-    assert summary.final_goal_distance == pytest.approx(twin.goal_distance)
+    assert summary["length"] == 25 and summary["stage"] == 2
+    assert summary["return"] == pytest.approx(total)
+    assert summary["angle_error_deg"] == pytest.approx(np.mean(angles))
+    assert summary["final_goal_distance"] == pytest.approx(twin.goal_distance)
 
 
 def test_bad_input_is_a_clear_error(capsys: pytest.CaptureFixture[str]) -> None:

@@ -148,14 +148,14 @@ def rollout_command(args: argparse.Namespace) -> int:
     for episode in range(args.episodes):
         summary = run_episode(env, policy, seed=args.seed + episode)
         if args.json:
-            print(json.dumps({"episode": episode, **summary.as_dict()}))
+            print(json.dumps({"episode": episode, **summary}))
         else:
             print(
-                f"episode {episode}: steps={summary.steps} success={summary.success} "
-                f"return={summary.mean_agent_return:.2f} angle_error={summary.angle_error_deg:.1f} deg "
-                f"bearing_error={summary.bearing_error:.3f} distance_error={summary.neighbour_distance_error:.3f} m "
-                f"goal_distance={summary.final_goal_distance:.2f} m "
-                f"collisions obstacle/agent={summary.collisions_obstacle}/{summary.collisions_agent}"
+                f"episode {episode}: steps={summary['length']} success={summary['success']} "
+                f"return={summary['return']:.2f} angle_error={summary['angle_error_deg']:.1f} deg "
+                f"bearing_error={summary['bearing_error']:.3f} distance_error={summary['neighbour_distance_error']:.3f} m "
+                f"goal_distance={summary['final_goal_distance']:.2f} m "
+                f"collisions obstacle/agent={summary['collisions_obstacle']}/{summary['collisions_agent']}"
             )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(env.render()).save(args.out)

@@ -18,55 +18,9 @@ import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
-from .config import REWARD_TERMS, FormationConfig
+from .config import FormationConfig
 from .env import FormationEnv
-
-
-class EpisodeStatistics:
-    """Running sums of one team's episode, turned into the team's episode summary when it ends."""
-
-    def __init__(self) -> None:
-        self.reset()
-
-    def reset(self) -> None:
-        """Start a new episode."""
-        self.length = 0
-        self.mean_return = 0.0
-        self.errors = [0.0, 0.0, 0.0]
-        self.collisions = [0, 0]
-        self.terms = [0.0] * len(REWARD_TERMS)
-
-    def add(self, rewards: np.ndarray, infos: Sequence[dict[str, Any]]) -> None:
-        """Add one step: the team's rewards and per-agent infos (plain Python sums: a handful of agents per call)."""
-        n_agents = len(infos)
-        self.length += 1
-        self.mean_return += float(rewards.mean())
-        errors, collisions, terms = self.errors, self.collisions, self.terms
-        for info in infos:
-            errors[0] += info["angle_error_deg"] / n_agents
-            errors[1] += info["bearing_error"] / n_agents
-            errors[2] += info["neighbour_distance_error"] / n_agents
-            collisions[0] += info["collisions_obstacle"]
-            collisions[1] += info["collisions_agent"]
-            for index, value in enumerate(info["reward_terms"].values()):
-                terms[index] += value / n_agents
-
-    def summary(self, success: bool, stage: int) -> dict[str, Any]:
-        """The episode's means over steps (and over agents), collision totals, success and curriculum stage."""
-        steps = max(self.length, 1)
-        angle, bearing, distance = (error / steps for error in self.errors)
-        return {
-            "success": success,
-            "length": self.length,
-            "return": self.mean_return,
-            "angle_error_deg": float(angle),
-            "bearing_error": float(bearing),
-            "neighbour_distance_error": float(distance),
-            "collisions_obstacle": self.collisions[0],
-            "collisions_agent": self.collisions[1] // 2,  # each touching pair is reported by both agents
-            "reward_terms": {name: value / steps for name, value in zip(REWARD_TERMS, self.terms)},
-            "stage": stage,
-        }
+from .rollout import EpisodeStatistics
 
 
 class TeamBatch:
