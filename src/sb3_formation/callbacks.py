@@ -136,7 +136,8 @@ class CurriculumCallback(BaseCallback):
 class FormationMetricsCallback(BaseCallback):
     """Log formation metrics per team-episode to SB3's logger (and so to TensorBoard), once per iteration.
 
-    Means over the last ``window`` finished team-episodes (as SB3 does for ``rollout/ep_rew_mean``) of
+    Means over the last ``window`` finished team-episodes (as SB3 does for ``rollout/ep_rew_mean``; the window runs
+    across stage changes, and an episode counts for the stage it ended in) of
     ``formation/angle_error_deg``, ``formation/bearing_error``, ``formation/neighbour_distance_error``,
     ``episode/success_rate``, ``episode/length``, ``episode/collisions_obstacle``, ``episode/collisions_agent`` and
     ``reward/<term>`` (each reward term's per-step mean before its coefficient), plus ``curriculum/stage`` (the stage
