@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from issue_names import EPISODE_SCALARS
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.logger import configure
@@ -360,16 +361,7 @@ class EpisodeRecorder(BaseCallback):
         self.finished_at_rollout_end.append(list(self.finished))
 
 
-METRIC_TAGS = [
-    "formation/angle_error_deg",
-    "formation/bearing_error",
-    "formation/neighbour_distance_error",
-    "episode/success_rate",
-    "episode/length",
-    "episode/collisions_obstacle",
-    "episode/collisions_agent",
-    *[f"reward/{term}" for term in REWARD_TERMS],
-]
+METRIC_TAGS = EPISODE_SCALARS
 HYPERPARAMETERS = {"preset": "ch5-bearing", "n_steps": N_STEPS, "iterations": [3, 0, 0], "success_threshold": None}
 WINDOW = 3
 

@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from issue_names import EPISODE_SCALARS
 from stable_baselines3.common.save_util import load_from_zip_file
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from sb3_formation import REWARD_TERMS
 from sb3_formation.cli import build_parser, main, preset_for, train_settings
 from sb3_formation.policies import FormationPolicy
 from sb3_formation.training import (
@@ -30,17 +30,7 @@ from sb3_formation.training import (
 
 #: Tiny runs: one team, episodes of 20 steps, so every iteration of 128 steps ends several team-episodes.
 QUICK = ["--n-envs", "1", "--env", "max_steps=20", "--no-progress"]
-SCALARS = [
-    "formation/angle_error_deg",
-    "formation/bearing_error",
-    "formation/neighbour_distance_error",
-    "episode/success_rate",
-    "episode/length",
-    "episode/collisions_obstacle",
-    "episode/collisions_agent",
-    "curriculum/stage",
-    *(f"reward/{term}" for term in REWARD_TERMS),
-]
+SCALARS = [*EPISODE_SCALARS, "curriculum/stage"]
 
 
 def run_cli(*arguments: str, cwd: Path) -> subprocess.Popen:
