@@ -3,7 +3,9 @@ models that do not fit the env, and loading trained models."""
 
 from __future__ import annotations
 
+import csv
 import dataclasses
+import json
 import math
 import re
 from collections.abc import Iterator
@@ -15,10 +17,16 @@ import numpy as np
 import pytest
 from stable_baselines3 import PPO
 
-from sb3_formation import FormationPolicy, make_formation_vec_env
-from sb3_formation.evaluation import EPISODE_ERRORS, check_model_fits, evaluate, wilson_interval
+from sb3_formation import FormationEnv, FormationPolicy, make_formation_vec_env
+from sb3_formation.evaluation import (
+    EPISODE_COLUMNS,
+    EPISODE_METRICS,
+    Trajectories,
+    check_model_fits,
+    evaluate,
+    wilson_interval,
+)
 from sb3_formation.training import FINAL_MODEL, FINAL_NORMALIZER, TrainedModel, load_trained, save_model
-from sb3_formation.vec_env import FormationVecEnv
 
 Z95 = 1.959963984540054
 
@@ -106,20 +114,21 @@ def comparable(episodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def check_summary(summary: dict[str, Any], episodes: list[dict[str, Any]]) -> None:
-    """The summary agrees with the per-episode list."""
+    """The summary agrees with the per-episode list (means and population stds recomputed with numpy)."""
     successful = [episode for episode in episodes if episode["success"]]
     assert summary["episodes"] == len(episodes)
     assert summary["successes"] == len(successful)
     assert summary["success_rate"] == len(successful) / len(episodes)
     assert summary["success_rate_ci95"] == list(wilson_interval(len(successful), len(episodes)))
-    means = summary["successful_episode_means"]
-    assert set(means) == {*EPISODE_ERRORS, "length"}
-    for name in means:
-        if successful:
-            assert means[name] == pytest.approx(np.mean([episode[name] for episode in successful]), rel=1e-12)
-        else:
-            assert means[name] is None
-        assert summary["all_episode_means"][name] == pytest.approx(np.mean([episode[name] for episode in episodes]), rel=1e-12)
+    for key, group in (("successful_episodes", successful), ("all_episodes", episodes)):
+        assert set(summary[key]) == set(EPISODE_METRICS)
+        for name, statistics in summary[key].items():
+            if group:
+                values = np.array([episode[name] for episode in group], dtype=np.float64)
+                assert statistics["mean"] == pytest.approx(values.sum() / len(values), rel=1e-12, abs=1e-15)
+                assert statistics["std"] == pytest.approx(math.sqrt(((values - values.mean()) ** 2).mean()), abs=1e-12)
+            else:
+                assert statistics == {"mean": None, "std": None}
 
 
 def test_evaluate_summary_agrees_with_its_episodes(tiny: SimpleNamespace) -> None:
@@ -179,8 +188,10 @@ class TowardsGoal:
         self.seen: list[np.ndarray] = []
         self.actions: list[np.ndarray] = []
 
-    def predict(self, observation: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, None]:
-        assert deterministic
+    def predict(
+        self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
+    ) -> tuple[np.ndarray, None]:
+        assert deterministic and state is None
         offset = observation[:, self.offset].astype(np.float64)
         actions = (offset / np.maximum(np.linalg.norm(offset, axis=1, keepdims=True), 1e-12)).astype(np.float32)
         self.seen.append(observation.copy())
@@ -212,8 +223,8 @@ def test_evaluate_counts_successes_of_a_policy_that_reaches_the_goal(tiny: Simpl
     assert summary["successes"] == 6 and summary["success_rate"] == 1.0
     assert summary["success_rate_ci95"] == pytest.approx([wilson_interval(6, 6)[0], 1.0])
     check_summary(summary, result.episodes)
-    for name in (*EPISODE_ERRORS, "length"):
-        assert summary["successful_episode_means"][name] == pytest.approx(np.mean([e[name] for e in result.episodes]))
+    for name in EPISODE_METRICS:
+        assert summary["successful_episodes"][name] == summary["all_episodes"][name]
 
 
 def test_evaluate_mixes_successes_and_time_outs(tiny: SimpleNamespace) -> None:
@@ -227,24 +238,27 @@ def test_evaluate_mixes_successes_and_time_outs(tiny: SimpleNamespace) -> None:
     assert [episode["success"] for episode in result.episodes] == [length <= cut for length in lengths]
     check_summary(result.summary, result.episodes)
     successful_lengths = [length for length in lengths if length <= cut]
-    assert result.summary["successful_episode_means"]["length"] == pytest.approx(np.mean(successful_lengths))
+    assert result.summary["successful_episodes"]["length"]["mean"] == pytest.approx(np.mean(successful_lengths))
 
 
 def test_evaluate_normalises_with_the_stored_statistics_frozen(tiny: SimpleNamespace) -> None:
     """The policy sees the raw observations divided by sqrt(var + epsilon) (flags untouched), for the whole evaluation."""
     trained = scripted(tiny, variance=4.0)
-    result = evaluate(trained, episodes=2, stage=3, seed=9, n_envs=2, env_overrides=FAST)
+    result = evaluate(trained, episodes=2, stage=3, seed=9, n_envs=1, env_overrides=FAST)
     assert all(episode["success"] for episode in result.episodes)
     policy = trained.model
-    # replay the policy's actions on the raw VecEnv that evaluate() builds
-    raw = FormationVecEnv(trained.config.replace(**FAST, stage=3), n_envs=2)
-    raw.seed(9)
-    observations = [raw.reset()]
-    for actions in policy.actions[:-1]:
-        observations.append(raw.step(actions)[0])
-    raw.close()
+    # replay the policy's actions on a raw env: episode k starts from reset(seed=9 + k)
+    env = FormationEnv(trained.config.replace(**FAST, stage=3))
+    observations, actions = [], iter(policy.actions)
+    for episode in range(2):
+        team, _ = env.reset(seed=9 + episode)
+        observations.append(np.stack(list(team.values())))
+        while env.agents:
+            team, *_ = env.step(dict(zip(env.agents, next(actions))))
+            if env.agents:
+                observations.append(np.stack(list(team.values())))
     scale = np.where(tiny.env.venv.binary_observation_mask, 1.0, math.sqrt(4.0 + float(trained.normalizer_state["epsilon"])))
-    assert len(policy.seen) == len(observations) > 20
+    assert len(policy.seen) == len(observations) == sum(episode["length"] for episode in result.episodes) > 20
     for seen, expected in zip(policy.seen, observations):
         np.testing.assert_allclose(seen, (expected / scale).astype(np.float32), rtol=1e-6, atol=1e-7)
 
@@ -300,3 +314,165 @@ def test_load_trained_round_trips_a_saved_model(tiny: SimpleNamespace, tmp_path:
             np.testing.assert_array_equal(loaded.normalizer_state[key], value)
     original = evaluate(tiny.trained, episodes=2, stage=3, seed=4, n_envs=2)
     assert evaluate(loaded, episodes=2, stage=3, seed=4, n_envs=2).episodes == original.episodes
+
+
+# Episode files and trajectories --------------------------------------------------------------------------------------
+
+
+def recomputed_from_trajectories(trajectories: Trajectories, index: int) -> dict[str, Any]:
+    """An episode's row as recomputed from its recorded steps: means over steps 1..T of the means over agents, contact
+    totals, and the neighbour distances > d_comm from the positions (ring neighbours i - 1, i + 1)."""
+    steps = trajectories.steps(index)
+    config = trajectories.config
+    positions = steps["positions"][1:]
+    succeeding = np.roll(positions, -1, axis=1)
+    comm_exceeded = (np.linalg.norm(succeeding - positions, axis=2) > config.d_comm).any(axis=1)
+    centroids = steps["positions"].mean(axis=1)
+    return {
+        "length": len(positions),
+        "success": bool(trajectories.success[index]),
+        "angle_error_deg": steps["angle_error_deg"][1:].mean(),
+        "bearing_error": steps["bearing_error"][1:].mean(),
+        "neighbour_distance_error": steps["neighbour_distance_error"][1:].mean(),
+        "collisions_obstacle": int(steps["collisions_obstacle"][1:].sum()),
+        "collisions_agent": int(steps["collisions_agent"][1:].sum()) // 2,
+        "comm_exceeded_fraction": comm_exceeded.mean(),
+        "final_goal_distance": float(np.linalg.norm(centroids[-1] - trajectories.goals[index])),
+        "goal_distance": np.linalg.norm(centroids - trajectories.goals[index], axis=1),
+    }
+
+
+@pytest.fixture(scope="module")
+def wandering(tiny: SimpleNamespace, tmp_path_factory: pytest.TempPathFactory) -> SimpleNamespace:
+    """The tiny PPO sampling its actions at 1 m/s: agents wander apart (beyond d_comm), some touch; all episodes saved."""
+    result = evaluate(
+        tiny.trained, episodes=4, stage=1, seed=21, n_envs=2, deterministic=False, env_overrides=WANDER, record=4
+    )
+    folder = tmp_path_factory.mktemp("eval")
+    return SimpleNamespace(result=result, folder=folder, files=result.save(folder))
+
+
+WANDER = {"v_max": 1.0, "max_steps": 40}
+
+
+def test_episode_rows_match_their_recorded_trajectories(wandering: SimpleNamespace) -> None:
+    result, trajectories = wandering.result, wandering.result.trajectories
+    assert trajectories is not None and trajectories.episodes.tolist() == [0, 1, 2, 3]
+    assert trajectories.seeds.tolist() == [21, 22, 23, 24]
+    assert sum(row["comm_exceeded_fraction"] > 0 for row in result.episodes) >= 1  # the check is not vacuous
+    for index, row in enumerate(result.episodes):
+        expected = recomputed_from_trajectories(trajectories, index)
+        np.testing.assert_allclose(trajectories.steps(index)["goal_distance"], expected.pop("goal_distance"), atol=1e-9)
+        for name, value in expected.items():
+            assert row[name] == pytest.approx(value, rel=1e-9, abs=1e-12), name
+        # the padding after the episode's end is NaN and row 0 has no errors or actions
+        assert np.isnan(trajectories.angle_error_deg[index, 0]).all() and np.isnan(trajectories.actions[index, 0]).all()
+        assert np.isnan(trajectories.positions[index, row["length"] + 1 :]).all()
+    check_summary(result.summary, result.episodes)
+
+
+def test_recorded_steps_replay_in_a_fresh_env(wandering: SimpleNamespace) -> None:
+    """Positions and goal/obstacles of a recorded episode are what the env gives for its seed and recorded actions."""
+    trajectories = wandering.result.trajectories
+    env = FormationEnv(trajectories.config)
+    for index in range(len(trajectories)):
+        env.reset(seed=int(trajectories.seeds[index]))
+        np.testing.assert_array_equal(env.goal, trajectories.goals[index])
+        np.testing.assert_array_equal(
+            env.obstacles, trajectories.obstacles[index][~np.isnan(trajectories.obstacles[index, :, 0])]
+        )
+        steps = trajectories.steps(index)
+        for actions, positions in zip(steps["actions"][1:], steps["positions"][1:]):
+            env.step(dict(zip(env.agents, actions)))
+            np.testing.assert_array_equal(env.world.positions, positions)
+        assert not env.agents
+
+
+def test_saved_files_hold_the_summary_rows_and_trajectories(wandering: SimpleNamespace) -> None:
+    result, files = wandering.result, wandering.files
+    assert set(files) == {"summary", "episodes", "trajectories"}
+    assert json.loads(files["summary"].read_text()) == result.summary
+    with open(files["episodes"], newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert list(rows[0]) == list(EPISODE_COLUMNS)
+    assert [int(row["episode"]) for row in rows] == [0, 1, 2, 3]
+    for row, episode in zip(rows, result.episodes):
+        assert row["success"] == str(episode["success"])
+        for name in ("length", "collisions_obstacle", "collisions_agent", "seed", "team"):
+            assert int(row[name]) == episode[name]
+        for name in ("angle_error_deg", "comm_exceeded_fraction", "return", "reward_goal"):
+            assert float(row[name]) == episode[name]  # repr round-trips floats exactly
+    loaded = Trajectories.load(files["trajectories"])
+    assert loaded.config == result.trajectories.config
+    for item in dataclasses.fields(Trajectories):
+        if item.name != "config":
+            np.testing.assert_array_equal(getattr(loaded, item.name), getattr(result.trajectories, item.name))
+
+
+def test_only_the_first_episodes_are_recorded(tiny: SimpleNamespace) -> None:
+    result = evaluate(tiny.trained, episodes=5, stage=1, seed=2, n_envs=2, env_overrides={"max_steps": 6}, record=2)
+    assert result.trajectories.episodes.tolist() == [0, 1]
+    assert result.trajectories.positions.shape == (2, 7, 6, 2)
+    assert evaluate(tiny.trained, episodes=2, stage=1, seed=2, env_overrides={"max_steps": 6}, record=0).trajectories is None
+
+
+def test_trajectories_load_names_a_bad_file(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError, match=r"nothing\.npz"):
+        Trajectories.load(tmp_path / "nothing.npz")
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, positions=np.zeros(3))
+    with pytest.raises(ValueError, match=r"bad\.npz"):
+        Trajectories.load(bad)
+
+
+# Seeds, teams and workers --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("n_envs", "n_workers"), [(1, 1), (3, 1), (2, 2)])
+def test_episode_k_plays_the_scenario_of_seed_plus_k(tiny: SimpleNamespace, n_envs: int, n_workers: int) -> None:
+    result = evaluate(tiny.trained, episodes=5, stage=3, seed=40, n_envs=n_envs, n_workers=n_workers, record=5)
+    env = FormationEnv(tiny.trained.config.replace(stage=3))
+    for index in range(5):
+        env.reset(seed=40 + index)
+        np.testing.assert_array_equal(result.trajectories.goals[index], env.goal)
+        np.testing.assert_array_equal(result.trajectories.positions[index, 0], env.world.positions)
+
+
+def test_worker_processes_give_the_same_episodes_for_a_batch_independent_policy(tiny: SimpleNamespace) -> None:
+    """A policy acting row by row (numpy) is unaffected by how teams are batched: 1 or 2 workers, 1 or 3 teams agree."""
+    trained = scripted(tiny, variance=1.0)
+    runs = [
+        evaluate(trained, episodes=5, stage=1, seed=3, n_envs=n_envs, n_workers=n_workers, env_overrides=FAST)
+        for n_envs, n_workers in ((1, 1), (3, 1), (3, 2))
+    ]
+    for run in runs[1:]:
+        assert comparable(run.episodes) == comparable(runs[0].episodes)
+        assert run.summary == runs[0].summary
+
+
+class Failing(TowardsGoal):
+    def predict(self, observation: np.ndarray, state: Any = None, episode_start: Any = None, deterministic: bool = True):
+        raise ArithmeticError("policy exploded")
+
+
+def test_a_failing_worker_is_reported(tiny: SimpleNamespace) -> None:
+    trained = scripted(tiny, variance=1.0)
+    trained = dataclasses.replace(trained, model=Failing(trained.model.observation_space, trained.model.offset))
+    with pytest.raises(RuntimeError, match="ArithmeticError: policy exploded"):
+        evaluate(trained, episodes=2, stage=1, seed=3, n_envs=2, n_workers=2, env_overrides=FAST)
+
+
+def test_stochastic_evaluation_is_seeded(tiny: SimpleNamespace) -> None:
+    first = evaluate(tiny.trained, episodes=2, stage=1, seed=8, deterministic=False, env_overrides=WANDER)
+    again = evaluate(tiny.trained, episodes=2, stage=1, seed=8, deterministic=False, env_overrides=WANDER)
+    greedy = evaluate(tiny.trained, episodes=2, stage=1, seed=8, deterministic=True, env_overrides=WANDER)
+    assert first.episodes == again.episodes
+    assert comparable(first.episodes) != comparable(greedy.episodes)
+    assert first.summary["deterministic"] is False
+
+
+def test_evaluate_rejects_bad_worker_and_record_counts(tiny: SimpleNamespace) -> None:
+    with pytest.raises(ValueError, match="n_workers"):
+        evaluate(tiny.trained, episodes=2, n_envs=2, n_workers=3)
+    with pytest.raises(ValueError, match="record"):
+        evaluate(tiny.trained, episodes=2, record=-1)

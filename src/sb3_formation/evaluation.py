@@ -1,20 +1,70 @@
-"""Evaluating a trained policy on fixed-seed curriculum episodes (thesis 4.4, 5.4): success rate and errors."""
+"""Evaluating a policy on fixed-seed curriculum episodes (thesis 4.4, 5.4): success rate, errors and trajectories.
+
+Episode k of an evaluation with seed s is played from ``FormationEnv.reset(seed=s + k)``, so every policy evaluated
+with the same seed meets the same scenarios (start, goal, obstacles) whatever the number of teams or workers. The
+policy is anything with Stable-Baselines3's ``predict(observation, state, episode_start, deterministic)``; its
+observations are scaled with frozen normaliser statistics, as in training.
+"""
 
 from __future__ import annotations
 
+import csv
+import dataclasses
+import hashlib
+import io
+import json
 import math
+import multiprocessing
+import os
+import traceback
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
+import cloudpickle
 import numpy as np
+import torch
+from tqdm.auto import tqdm
 
-from .config import FormationConfig
-from .normalization import ScaleNormalizeVecEnv
-from .training import TrainedModel
-from .vec_env import FormationVecEnv
+from .config import REWARD_TERMS, FormationConfig
+from .env import FormationEnv
+from .normalization import observation_scale, scale_observations
+from .rollout import EpisodeStatistics
+from .training import TrainedModel, atomic_write_text
+from .vec_env import slot_observations
 
-#: Means over successful episodes reported by :func:`evaluate` (keys of the VecEnv's episode summaries).
-EPISODE_ERRORS = ("angle_error_deg", "bearing_error", "neighbour_distance_error", "collisions_obstacle", "collisions_agent")
+#: Per-episode metrics summarised with mean and std over successful episodes and over all episodes.
+EPISODE_METRICS = (
+    "angle_error_deg",
+    "bearing_error",
+    "neighbour_distance_error",
+    "length",
+    "collisions_obstacle",
+    "collisions_agent",
+    "comm_exceeded_fraction",
+)
+#: Columns of ``episodes.csv``, in order (``reward_<term>``: the term's mean per step and agent).
+EPISODE_COLUMNS = (
+    "episode",
+    "seed",
+    "team",
+    "stage",
+    "success",
+    "length",
+    "return",
+    "angle_error_deg",
+    "bearing_error",
+    "neighbour_distance_error",
+    "collisions_obstacle",
+    "collisions_agent",
+    "comm_exceeded_fraction",
+    "final_goal_distance",
+    *(f"reward_{term}" for term in REWARD_TERMS),
+)
+#: Per-step, per-agent arrays of :class:`Trajectories`, read from the agents' step infos.
+STEP_ERRORS = ("angle_error_deg", "bearing_error", "neighbour_distance_error", "collisions_obstacle", "collisions_agent")
+SUMMARY_FILE, EPISODES_FILE, TRAJECTORIES_FILE = "summary.json", "episodes.csv", "trajectories.npz"
 
 
 def wilson_interval(successes: int, trials: int, z: float = 1.959963984540054) -> tuple[float, float]:
@@ -36,19 +86,315 @@ def wilson_interval(successes: int, trials: int, z: float = 1.959963984540054) -
 
 
 @dataclass
+class Trajectories:
+    """Step-by-step records of evaluation episodes, padded with NaN after each episode's end.
+
+    Row 0 of the per-step arrays is the state after ``reset``; row t (1 <= t <= ``lengths[k]``) is the state after
+    step t. Errors, collisions and actions have no value in row 0 (NaN). Error columns are those of the agents' step
+    infos: ``angle_error_deg`` = abs(beta_ref - beta^i) (deg), ``bearing_error`` = half the sum of norm(g_ref - g) over
+    the two neighbours, ``neighbour_distance_error`` = half the sum of max(d_j^i - d_ref, 0) (m), collisions = contacts
+    of the agent that step.
+
+    :param config: task configuration of the episodes
+    :param episodes: ``(K,)`` evaluation episode indices
+    :param seeds: ``(K,)`` reset seeds
+    :param lengths: ``(K,)`` steps played
+    :param success: ``(K,)`` whether the centroid reached the goal
+    :param goals: ``(K, 2)`` goal positions (m)
+    :param obstacles: ``(K, M, 3)`` obstacle x, y, radius (m), NaN rows when an episode has fewer
+    :param positions: ``(K, T + 1, n, 2)`` agent positions (m)
+    :param velocities: ``(K, T + 1, n, 2)`` agent velocities (m/s)
+    :param actions: ``(K, T + 1, n, 2)`` actions applied in the step that led to the row (clipped to [-1, 1])
+    :param angle_error_deg: ``(K, T + 1, n)``
+    :param bearing_error: ``(K, T + 1, n)``
+    :param neighbour_distance_error: ``(K, T + 1, n)``
+    :param collisions_obstacle: ``(K, T + 1, n)``
+    :param collisions_agent: ``(K, T + 1, n)`` (each touching pair counted by both agents)
+    :param goal_distance: ``(K, T + 1)`` centroid-goal distance (m)
+    """
+
+    config: FormationConfig
+    episodes: np.ndarray
+    seeds: np.ndarray
+    lengths: np.ndarray
+    success: np.ndarray
+    goals: np.ndarray
+    obstacles: np.ndarray
+    positions: np.ndarray
+    velocities: np.ndarray
+    actions: np.ndarray
+    angle_error_deg: np.ndarray
+    bearing_error: np.ndarray
+    neighbour_distance_error: np.ndarray
+    collisions_obstacle: np.ndarray
+    collisions_agent: np.ndarray
+    goal_distance: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.episodes)
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write every array (and the configuration as JSON) to an ``.npz`` file, atomically."""
+        path = Path(path)
+        arrays = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "config"}
+        arrays["config_json"] = np.array(json.dumps(dataclasses.asdict(self.config)))
+        buffer = io.BytesIO()
+        np.savez_compressed(buffer, **arrays)
+        atomic_write_text(path, buffer.getvalue())
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> Trajectories:
+        """Read a file written by :meth:`save`."""
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"no trajectories at {path}: run `sb3-formation evaluate` first")
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {key: data[key] for key in data.files}
+            config = FormationConfig(**json.loads(str(arrays.pop("config_json"))))
+            return cls(config=config, **arrays)
+        except (KeyError, TypeError, ValueError, OSError) as error:
+            raise ValueError(f"{path} is not a trajectories file written by sb3-formation: {error}") from error
+
+    def steps(self, index: int) -> dict[str, np.ndarray]:
+        """The per-step arrays of the ``index``-th recorded episode without padding (``lengths[index] + 1`` rows)."""
+        rows = int(self.lengths[index]) + 1
+        names = (*STEP_ERRORS, "positions", "velocities", "actions", "goal_distance")
+        return {name: getattr(self, name)[index, :rows] for name in names}
+
+
+class _Recorder:
+    """Collects one episode's per-step records for :class:`Trajectories`."""
+
+    def __init__(self, env: FormationEnv) -> None:
+        n_agents = env.config.n_agents
+        nan = np.full(n_agents, np.nan)
+        self.goal, self.obstacles = env.goal.copy(), np.asarray(env.obstacles, dtype=np.float64).reshape(-1, 3)
+        self.rows: dict[str, list[np.ndarray]] = {name: [nan] for name in STEP_ERRORS}
+        self.rows["positions"] = [env.world.positions.copy()]
+        self.rows["velocities"] = [env.world.velocities.copy()]
+        self.rows["actions"] = [np.full((n_agents, 2), np.nan)]
+        self.rows["goal_distance"] = [np.array(env.goal_distance)]
+
+    def add(self, env: FormationEnv, actions: np.ndarray, infos: list[dict[str, Any]]) -> None:
+        for name in STEP_ERRORS:
+            self.rows[name].append(np.array([info[name] for info in infos], dtype=np.float64))
+        self.rows["positions"].append(env.world.positions.copy())
+        self.rows["velocities"].append(env.world.velocities.copy())
+        self.rows["actions"].append(np.clip(actions, -1.0, 1.0).astype(np.float64))
+        self.rows["goal_distance"].append(np.array(env.goal_distance))
+
+
+@dataclass
+class _PlayJob:
+    """What one process plays: its episodes, and everything needed to act in them (picklable)."""
+
+    agent: Any
+    config: FormationConfig
+    normalizer_state: dict[str, np.ndarray]
+    team_observations: bool
+    seed: int
+    episodes: list[int]
+    n_teams: int
+    deterministic: bool
+    record: int
+
+
+def _play(
+    job: _PlayJob,
+    on_episode: Callable[[], None] | None = None,
+    on_step: Callable[[FormationEnv, int, list[dict[str, Any]] | None], None] | None = None,
+) -> tuple[list[dict[str, Any]], list[tuple[int, _Recorder, bool]]]:
+    """Play ``job.episodes`` on ``job.n_teams`` teams; a team that ends an episode starts the next one left.
+
+    :param on_episode: called after each episode
+    :param on_step: called with (env, episode, infos) after each reset (infos ``None``) and each step
+    :return: one row per episode (in the order they ended), and (episode, recorder, success) of recorded episodes
+    """
+    config, n_agents = job.config, job.config.n_agents
+    scale = observation_scale(job.normalizer_state)
+    clip = float(job.normalizer_state["clip_obs"])
+    clip_obs = None if math.isnan(clip) else clip
+    envs = [FormationEnv(config, render_mode="rgb_array" if on_step else None) for _ in range(job.n_teams)]
+    queue = list(reversed(job.episodes))
+    current: list[int | None] = [None] * job.n_teams
+    statistics = [EpisodeStatistics() for _ in envs]
+    comm_exceeded = [0] * job.n_teams
+    recorders: list[_Recorder | None] = [None] * job.n_teams
+    episode_starts = np.ones(job.n_teams * n_agents, dtype=bool)
+    rows: list[dict[str, Any]] = []
+    recorded: list[tuple[int, _Recorder, bool]] = []
+
+    def start(team: int) -> np.ndarray | None:
+        if not queue:
+            current[team] = None
+            return None
+        episode = current[team] = queue.pop()
+        env = envs[team]
+        team_observation, _ = env.reset(seed=job.seed + episode)
+        statistics[team].reset()
+        comm_exceeded[team] = 0
+        recorders[team] = _Recorder(env) if episode < job.record else None
+        if on_step is not None:
+            on_step(env, episode, None)
+        return slot_observations(np.stack(list(team_observation.values())), job.team_observations)
+
+    first = [start(team) for team in range(job.n_teams)]
+    width = next(o for o in first if o is not None).shape[1]
+    # a team left without an episode (more teams than episodes) holds zeros and is never stepped
+    observations = np.concatenate([np.zeros((n_agents, width), np.float32) if o is None else o for o in first])
+    states = None
+    while any(episode is not None for episode in current):
+        actions, states = job.agent.predict(
+            scale_observations(observations, scale, clip_obs),
+            state=states,
+            episode_start=episode_starts,
+            deterministic=job.deterministic,
+        )
+        actions = np.asarray(actions).reshape(job.n_teams * n_agents, 2)
+        episode_starts[:] = False
+        for team, episode in enumerate(current):
+            if episode is None:
+                continue
+            env, block = envs[team], slice(team * n_agents, (team + 1) * n_agents)
+            team_observations, rewards, terminated, truncated, infos = env.step_array(actions[block])
+            statistics[team].add(rewards, infos)
+            comm_exceeded[team] += bool((env.formation.neighbour_distances > config.d_comm).any())
+            if recorders[team] is not None:
+                recorders[team].add(env, actions[block], infos)
+            if on_step is not None:
+                on_step(env, episode, infos)
+            if not (terminated or truncated):
+                observations[block] = slot_observations(team_observations, job.team_observations)
+                continue
+            summary = statistics[team].summary(success=terminated, stage=env.stage)
+            terms = summary.pop("reward_terms")
+            rows.append(
+                {
+                    "episode": episode,
+                    "seed": job.seed + episode,
+                    "team": team,
+                    **summary,
+                    "comm_exceeded_fraction": comm_exceeded[team] / summary["length"],
+                    "final_goal_distance": env.goal_distance,
+                    **{f"reward_{name}": value for name, value in terms.items()},
+                }
+            )
+            if recorders[team] is not None:
+                recorded.append((episode, recorders[team], terminated))
+            if on_episode is not None:
+                on_episode()
+            following = start(team)
+            if following is not None:
+                observations[block] = following
+                episode_starts[block] = True
+    for env in envs:
+        env.close()
+    return rows, recorded
+
+
+def _stack(config: FormationConfig, recorded: list[tuple[int, _Recorder, bool]]) -> Trajectories | None:
+    """Pad the recorded episodes to one length and stack them, in episode order."""
+    if not recorded:
+        return None
+    recorded = sorted(recorded, key=lambda item: item[0])
+    lengths = np.array([len(recorder.rows["positions"]) - 1 for _, recorder, _ in recorded], dtype=np.int64)
+    rows = int(lengths.max()) + 1
+    arrays: dict[str, np.ndarray] = {}
+    for name in recorded[0][1].rows:
+        padded = []
+        for _, recorder, _ in recorded:
+            values = np.stack(recorder.rows[name]).astype(np.float64)
+            pad = np.full((rows - len(values), *values.shape[1:]), np.nan)
+            padded.append(np.concatenate([values, pad]))
+        arrays[name] = np.stack(padded)
+    most_obstacles = max(len(recorder.obstacles) for _, recorder, _ in recorded)
+    obstacles = np.full((len(recorded), most_obstacles, 3), np.nan)
+    for index, (_, recorder, _) in enumerate(recorded):
+        obstacles[index, : len(recorder.obstacles)] = recorder.obstacles
+    episodes = np.array([episode for episode, _, _ in recorded], dtype=np.int64)
+    return Trajectories(
+        config=config,
+        episodes=episodes,
+        seeds=np.zeros_like(episodes),  # set by the caller, who knows the base seed
+        lengths=lengths,
+        success=np.array([success for _, _, success in recorded], dtype=bool),
+        goals=np.stack([recorder.goal for _, recorder, _ in recorded]).astype(np.float64),
+        obstacles=obstacles,
+        **arrays,
+    )
+
+
+def _worker(job: bytes, progress: Any) -> None:  # pragma: no cover - runs in a subprocess
+    """Play a pickled :class:`_PlayJob` and put ("episode", None) per episode, then ("done", result) or ("error", text)."""
+    try:
+        play_job: _PlayJob = cloudpickle.loads(job)
+        torch.set_num_threads(1)
+        torch.manual_seed(play_job.seed + play_job.episodes[0])
+        result = _play(play_job, on_episode=lambda: progress.put(("episode", None)))
+        progress.put(("done", result))
+    except BaseException as error:  # report to the parent, which raises it
+        progress.put(("error", f"{type(error).__name__}: {error}\n{traceback.format_exc()}"))
+
+
+def _play_in_workers(jobs: list[_PlayJob], on_episode: Callable[[], None]) -> tuple[list, list]:
+    """Play each job in its own process (``forkserver`` where available); gather rows and recordings."""
+    method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+    context = multiprocessing.get_context(method)
+    progress = context.Queue()
+    processes = [context.Process(target=_worker, args=(cloudpickle.dumps(job), progress), daemon=True) for job in jobs]
+    for process in processes:
+        process.start()
+    rows: list[dict[str, Any]] = []
+    recorded: list = []
+    pending, errors = len(processes), []
+    try:
+        while pending:
+            try:
+                kind, payload = progress.get(timeout=5)
+            except Exception:  # queue.Empty: check that the workers are still there
+                dead = [p for p in processes if not p.is_alive() and p.exitcode not in (0, None)]
+                if dead:
+                    raise RuntimeError(f"evaluation worker (pid {dead[0].pid}) died, exit code {dead[0].exitcode}") from None
+                continue
+            if kind == "episode":
+                on_episode()
+            elif kind == "done":
+                rows.extend(payload[0])
+                recorded.extend(payload[1])
+                pending -= 1
+            else:
+                errors.append(payload)
+                pending -= 1
+    finally:
+        for process in processes:
+            process.join(timeout=10)
+            if process.is_alive():
+                process.terminate()
+    if errors:
+        raise RuntimeError(f"an evaluation worker failed: {errors[0]}")
+    return rows, recorded
+
+
+@dataclass
 class EvaluationResult:
     """Outcome of :func:`evaluate`.
 
-    :param episodes: one summary per episode (success, length, return, mean errors, collisions, reward terms, team)
+    :param episodes: one row per episode, in episode order (the columns of :data:`EPISODE_COLUMNS`)
+    :param trajectories: step-by-step records of the first episodes (``None`` if none were recorded)
     :param stage: curriculum stage of the episodes
-    :param seed: seed of the teams' scenario generators
+    :param seed: episode k was played from ``reset(seed=seed + k)``
     :param deterministic: whether the policy's mean actions were used
+    :param model: where the model came from (``file`` and ``sha256``), if known
     """
 
     episodes: list[dict[str, Any]]
+    trajectories: Trajectories | None
     stage: int
     seed: int
     deterministic: bool
+    n_agents: int
+    model: dict[str, str] | None = None
     summary: dict[str, Any] = field(init=False)
 
     def __post_init__(self) -> None:
@@ -62,16 +408,39 @@ class EvaluationResult:
             "stage": self.stage,
             "seed": self.seed,
             "deterministic": self.deterministic,
-            "successful_episode_means": _means(successes),
-            "all_episode_means": _means(self.episodes),
+            "n_agents": self.n_agents,
+            "model": self.model,
+            "successful_episodes": _mean_and_std(successes),
+            "all_episodes": _mean_and_std(self.episodes),
         }
 
+    def save(self, folder: str | os.PathLike[str]) -> dict[str, Path]:
+        """Write ``summary.json``, ``episodes.csv`` and (if recorded) ``trajectories.npz`` into ``folder``, atomically.
 
-def _means(episodes: list[dict[str, Any]]) -> dict[str, float | None]:
-    """Mean of each error, collision count and length over ``episodes`` (``None`` when there are none)."""
+        :return: the files written, by kind
+        """
+        folder = Path(folder)
+        files = {"summary": folder / SUMMARY_FILE, "episodes": folder / EPISODES_FILE}
+        atomic_write_text(files["summary"], json.dumps(self.summary, indent=2))
+        table = io.StringIO()
+        writer = csv.DictWriter(table, fieldnames=EPISODE_COLUMNS, lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(self.episodes)
+        atomic_write_text(files["episodes"], table.getvalue())
+        if self.trajectories is not None:
+            files["trajectories"] = folder / TRAJECTORIES_FILE
+            self.trajectories.save(files["trajectories"])
+        return files
+
+
+def _mean_and_std(episodes: list[dict[str, Any]]) -> dict[str, dict[str, float | None]]:
+    """Mean and population std of each of :data:`EPISODE_METRICS` over ``episodes`` (``None`` when there are none)."""
     return {
-        name: float(np.mean([episode[name] for episode in episodes])) if episodes else None
-        for name in (*EPISODE_ERRORS, "length")
+        name: {
+            "mean": float(np.mean([episode[name] for episode in episodes])) if episodes else None,
+            "std": float(np.std([episode[name] for episode in episodes])) if episodes else None,
+        }
+        for name in EPISODE_METRICS
     }
 
 
@@ -90,6 +459,12 @@ def check_model_fits(trained: TrainedModel, config: FormationConfig) -> None:
         raise ValueError("the model does not fit this env's observations: " + "; ".join(differences))
 
 
+def model_fingerprint(path: str | os.PathLike[str]) -> dict[str, str]:
+    """The file and SHA-256 of a saved model, to tell whether a stored evaluation is of the same model."""
+    digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    return {"file": str(path), "sha256": digest}
+
+
 def evaluate(
     trained: TrainedModel,
     episodes: int,
@@ -98,39 +473,68 @@ def evaluate(
     n_envs: int = 8,
     deterministic: bool = True,
     env_overrides: dict[str, Any] | None = None,
+    n_workers: int = 1,
+    record: int = 5,
+    progress_bar: bool = False,
 ) -> EvaluationResult:
-    """Play ``episodes`` episodes of ``stage`` with a trained policy, on scenarios fixed by ``seed``.
+    """Play ``episodes`` episodes of ``stage`` with a trained policy; episode k starts from ``reset(seed=seed + k)``.
 
-    The episodes are spread over ``n_envs`` teams; team j draws its scenarios from the seed ``seed + j * n_agents``
-    and plays a fixed quota of episodes, so two policies evaluated with the same seed meet the same scenarios.
+    With one worker the episodes are spread over ``n_envs`` teams whose observations go through the policy in one
+    batch; with ``n_workers`` > 1 worker processes, worker w plays episodes w, w + n_workers, ... on its share of the
+    teams. The scenarios depend only on ``seed``; the same (seed, n_envs, n_workers) gives bit-identical results.
 
-    :param trained: the model with its configuration and normaliser statistics (:func:`load_trained`)
+    :param trained: the policy (anything with SB3's ``predict``) with its configuration and normaliser statistics
     :param episodes: number of episodes
     :param stage: curriculum stage of the scenarios (3 in the thesis's evaluations)
     :param seed: seed of the scenarios
-    :param n_envs: teams played in parallel
-    :param deterministic: use the policy's mean action (else sample)
+    :param n_envs: teams played at once (over all workers)
+    :param deterministic: use the policy's mean action (else sample; the sampling is seeded from ``seed``)
     :param env_overrides: :class:`FormationConfig` fields to change from the model's training configuration
+    :param n_workers: processes playing the episodes
+    :param record: record the step-by-step trajectories of the first ``record`` episodes
+    :param progress_bar: show a tqdm progress bar of the episodes played
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
+    if not 1 <= n_workers <= n_envs:
+        raise ValueError(f"n_workers must be in [1, n_envs={n_envs}], got {n_workers}")
+    if record < 0:
+        raise ValueError(f"record must be >= 0, got {record}")
     config = trained.config.replace(**{**(env_overrides or {}), "stage": stage})
     check_model_fits(trained, config)
-    n_teams = min(n_envs, episodes)
-    venv = FormationVecEnv(config, n_envs=n_teams, team_observations=trained.team_observations)
-    venv.seed(seed)
-    env = ScaleNormalizeVecEnv(venv, venv.agent_observation_dim, venv.binary_observation_mask, training=False)
-    env.load_state_dict(trained.normalizer_state)
-    quota = math.ceil(episodes / n_teams)
-    results: list[list[dict[str, Any]]] = [[] for _ in range(n_teams)]
-    observations = env.reset()
-    while any(len(team) < quota for team in results):
-        actions, _ = trained.model.predict(observations, deterministic=deterministic)
-        observations, _, _, infos = env.step(actions)
-        for team in range(n_teams):
-            summary = infos[team * config.n_agents].get("formation_episode")
-            if summary is not None and len(results[team]) < quota:
-                results[team].append({**summary, "team": team})
-    env.close()
-    ordered = [results[team][index] for index in range(quota) for team in range(n_teams)][:episodes]
-    return EvaluationResult(ordered, stage, seed, deterministic)
+    n_workers = min(n_workers, episodes)
+    teams = np.array_split(np.arange(min(n_envs, episodes)), n_workers)
+    jobs = [
+        _PlayJob(
+            agent=trained.model.policy if hasattr(trained.model, "policy") else trained.model,
+            config=config,
+            normalizer_state=trained.normalizer_state,
+            team_observations=trained.team_observations,
+            seed=seed,
+            episodes=list(range(worker, episodes, n_workers)),
+            n_teams=len(teams[worker]),
+            deterministic=deterministic,
+            record=record,
+        )
+        for worker in range(n_workers)
+    ]
+    with tqdm(total=episodes, desc="evaluating", unit="episode", disable=not progress_bar) as bar:
+        if n_workers == 1:
+            with torch.random.fork_rng():
+                torch.manual_seed(seed)
+                rows, recorded = _play(jobs[0], on_episode=lambda: bar.update(1))
+        else:
+            rows, recorded = _play_in_workers(jobs, on_episode=lambda: bar.update(1))
+    trajectories = _stack(config, recorded)
+    if trajectories is not None:
+        trajectories.seeds = trajectories.episodes + seed
+    source = getattr(trained, "source", None)
+    return EvaluationResult(
+        episodes=sorted(rows, key=lambda row: row["episode"]),
+        trajectories=trajectories,
+        stage=stage,
+        seed=seed,
+        deterministic=deterministic,
+        n_agents=config.n_agents,
+        model=None if source is None else model_fingerprint(source),
+    )

@@ -130,12 +130,8 @@ class ScaleNormalizeVecEnv(VecEnvWrapper):
         size = self.n_blocks * self.agent_obs_dim
         if obs.ndim == 0 or obs.shape[-1] != size:
             raise ValueError(f"observation of shape {obs.shape} does not end in the expected size {size}")
-        scale = np.sqrt(self.obs_rms.var + self.epsilon)
-        scale[self.binary_mask] = 1.0  # dividing by exactly 1 leaves the flags bit-identical
-        blocks = obs.reshape((*obs.shape[:-1], self.n_blocks, self.agent_obs_dim)).astype(np.float64) / scale
-        if self.clip_obs is not None:  # flags are 0/1, so clipping leaves them alone
-            blocks = np.clip(blocks, -self.clip_obs, self.clip_obs)
-        return blocks.reshape(obs.shape).astype(np.float32)
+        statistics = {"var": self.obs_rms.var, "epsilon": self.epsilon, "binary_mask": self.binary_mask}
+        return scale_observations(obs, observation_scale(statistics), self.clip_obs)
 
     def get_original_obs(self) -> np.ndarray:
         """
@@ -306,3 +302,27 @@ class ScaleNormalizeVecEnv(VecEnvWrapper):
         except ValueError as error:
             raise ValueError(f"{str(path)!r}: {error}") from error
         return wrapper
+
+
+def observation_scale(state: dict[str, Any]) -> np.ndarray:
+    """The divisor of each per-agent feature under the statistics ``state`` (:meth:`ScaleNormalizeVecEnv.state_dict`).
+
+    :return: ``sqrt(var + epsilon)``, exactly 1 for the binary features (so they pass through bit-identical)
+    """
+    scale = np.sqrt(np.asarray(state["var"], dtype=np.float64) + float(state["epsilon"]))
+    scale[np.asarray(state["binary_mask"], dtype=bool)] = 1.0
+    return scale
+
+
+def scale_observations(obs: np.ndarray, scale: np.ndarray, clip_obs: float | None) -> np.ndarray:
+    """Divide every ``scale.size``-long block of ``obs`` by ``scale`` and clip to ``[-clip_obs, clip_obs]``.
+
+    :param obs: observations of shape ``(..., k * scale.size)``
+    :param scale: per-feature divisors (:func:`observation_scale`)
+    :param clip_obs: bound of the scaled values, ``None`` for none (flags are 0/1, so clipping leaves them alone)
+    :return: float32 array of the shape of ``obs``
+    """
+    blocks = obs.reshape((*obs.shape[:-1], -1, scale.size)).astype(np.float64) / scale
+    if clip_obs is not None:
+        blocks = np.clip(blocks, -clip_obs, clip_obs)
+    return blocks.reshape(obs.shape).astype(np.float32)

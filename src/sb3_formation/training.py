@@ -237,12 +237,12 @@ def _fsync_directory(folder: Path) -> None:
         os.close(handle)
 
 
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file in the same folder and a rename."""
+def atomic_write_text(path: Path, text: str | bytes) -> None:
+    """Write ``text`` (or bytes) to ``path`` through a temporary file in the same folder and a rename."""
     path.parent.mkdir(parents=True, exist_ok=True)
     handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
-        with os.fdopen(handle, "w") as stream:
+        with os.fdopen(handle, "wb" if isinstance(text, bytes) else "w") as stream:
             stream.write(text)
             stream.flush()
             os.fsync(stream.fileno())
@@ -453,6 +453,7 @@ class TrainedModel:
     config: FormationConfig
     normalizer_state: dict[str, np.ndarray]
     team_observations: bool
+    source: Path | None = None  #: the model file it was loaded from
 
 
 def load_trained(path: str | os.PathLike[str], device: str = "auto") -> TrainedModel:
@@ -487,4 +488,4 @@ def load_trained(path: str | os.PathLike[str], device: str = "auto") -> TrainedM
     with np.load(normalizer_path, allow_pickle=False) as data:
         normalizer_state = {key: data[key] for key in data.files}
     team_observations = model.policy.team_size is not None
-    return TrainedModel(model, config, normalizer_state, team_observations)
+    return TrainedModel(model, config, normalizer_state, team_observations, source=model_path)

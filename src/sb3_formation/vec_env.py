@@ -23,6 +23,18 @@ from .env import FormationEnv
 from .rollout import EpisodeStatistics
 
 
+def slot_observations(own: np.ndarray, team_observations: bool) -> np.ndarray:
+    """The slots' observations from a team's ``(n, dim)`` observations.
+
+    :param own: row i is agent i's observation
+    :param team_observations: append the whole team's observations (agent 0 first) to every row, for a team critic
+    :return: ``own``, or ``(n, (1 + n) * dim)``
+    """
+    if not team_observations:
+        return own
+    return np.hstack([own, np.broadcast_to(own.reshape(1, -1), (own.shape[0], own.size))])
+
+
 class TeamBatch:
     """A block of teams stepped in one process: the unit of both the in-process and the worker-process VecEnv.
 
@@ -40,10 +52,7 @@ class TeamBatch:
         self.start_time = time.time()
 
     def _slot_observations(self, own: np.ndarray) -> np.ndarray:
-        """Slot observations from the team's ``(n, dim)`` observations (with the team block for a team critic)."""
-        if not self.team_observations:
-            return own
-        return np.hstack([own, np.broadcast_to(own.reshape(1, -1), (self.n_agents, own.size))])
+        return slot_observations(own, self.team_observations)
 
     def reset(self, seeds: Sequence[int | None], options: Sequence[dict[str, Any]]) -> np.ndarray:
         """Reset every team; team j with ``seeds[j]`` and ``options[j]``. :return: ``(n_teams * n, obs_dim)``"""
