@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import csv
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from PIL import Image
 
 from sb3_formation import FormationConfig, FormationEnv
 from sb3_formation.cli import main
+from sb3_formation.evaluation import Trajectories
 from sb3_formation.rollout import random_policy, run_episode
 
 
@@ -53,3 +56,107 @@ def test_bad_input_is_a_clear_error(capsys: pytest.CaptureFixture[str]) -> None:
     assert "--bogus" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["rollout", "--preset", "ch9"])
+
+
+# evaluate, plot, render and compare on real (tiny) training runs ------------------------------------------------------
+
+TINY_RUN = {"ppo": {"policy_kwargs": {"net_arch": {"pi": [16], "vf": [16]}}}}
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    """Two seeds of a tiny ch5-bearing training run (3 iterations, small networks, 20-step episodes)."""
+    folder = tmp_path_factory.mktemp("runs")
+    config = folder / "tiny.yaml"
+    config.write_text(yaml.safe_dump(TINY_RUN))
+    for seed in (0, 1):
+        arguments = ["train", "--config", str(config), "--iterations", "1,0,2", "--n-envs", "1", "--seed", str(seed)]
+        assert main([*arguments, "--env", "max_steps=20", "--logdir", str(folder / "logs"), "--no-progress"]) == 0
+    return sorted((folder / "logs").iterdir())
+
+
+def evaluate_quietly(target: Path, *extra: str) -> int:
+    return main(["evaluate", str(target), "--episodes", "3", "--n-envs", "2", "--no-progress", *extra])
+
+
+def test_evaluate_writes_summary_episodes_and_trajectories(runs: list[Path], capsys: pytest.CaptureFixture[str]) -> None:
+    assert evaluate_quietly(runs[0], "--trajectories", "2") == 0
+    output = capsys.readouterr().out
+    assert "success rate 0.0% (95% CI 0.0% - 56.1%)" in output  # Wilson upper bound for 0 of 3: 3.8415 / 6.8415
+    summary = json.loads((runs[0] / "eval" / "summary.json").read_text())
+    assert summary["episodes"] == 3 and summary["stage"] == 3 and summary["seed"] == 0 and summary["deterministic"]
+    assert summary["model"]["file"] == str(runs[0] / "final_model.zip")
+    with open(runs[0] / "eval" / "episodes.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert [int(row["episode"]) for row in rows] == [0, 1, 2] and all(row["length"] == "20" for row in rows)
+    lengths = [float(row["length"]) for row in rows]
+    assert summary["all_episodes"]["length"] == {"mean": 20.0, "std": 0.0} == {"mean": np.mean(lengths), "std": 0.0}
+    assert Trajectories.load(runs[0] / "eval" / "trajectories.npz").episodes.tolist() == [0, 1]
+
+
+def test_plot_draws_every_figure(runs: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    for run in runs:
+        assert evaluate_quietly(run) == 0
+    assert main(["plot", "trajectories", str(runs[0]), "--episodes", "0,2", "--every", "5"]) == 0
+    figures = runs[0] / "eval" / "figures"
+    assert sorted(path.name for path in figures.iterdir()) == ["trajectory_000.png", "trajectory_002.png"]
+    assert main(["plot", "errors", str(runs[0] / "eval"), "--out", str(tmp_path / "errors.svg")]) == 0
+    assert (tmp_path / "errors.svg").read_text().lstrip().startswith("<?xml")
+    assert main(["plot", "bars", *map(str, runs), "--labels", "a,b", "--over", "all", "--out", str(tmp_path / "b.pdf")]) == 0
+    assert (tmp_path / "b.pdf").read_bytes().startswith(b"%PDF")
+    assert main(["plot", "training", *map(str, runs), "--window", "2", "--out", str(tmp_path / "training.png")]) == 0
+    for path in (figures / "trajectory_000.png", tmp_path / "training.png"):
+        assert np.asarray(Image.open(path).convert("L")).std() > 10  # not blank
+    assert "figure written to" in capsys.readouterr().out
+
+
+def test_render_writes_a_video_of_the_episodes(runs: list[Path], tmp_path: Path) -> None:
+    out = tmp_path / "video.gif"
+    assert main(["render", str(runs[0]), "--episodes", "2", "--max-steps", "6", "--out", str(out), "--seed", "3"]) == 0
+    assert Image.open(out).n_frames == 2 * 7  # each episode: its reset frame and 6 steps
+
+
+def test_compare_prints_a_table_and_reuses_matching_evaluations(
+    runs: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    arguments = ["compare", *map(str, runs), "--episodes", "3", "--n-envs", "2", "--labels", "seed 0,seed 1", "--no-progress"]
+    arguments += ["--out", str(tmp_path / "compare.png"), "--table", str(tmp_path / "compare.md")]
+    assert main(arguments) == 0
+    assert main(arguments) == 0
+    output = capsys.readouterr().out
+    assert output.count("reusing") >= 2  # the second call reuses both runs' eval/
+    table = (tmp_path / "compare.md").read_text().splitlines()
+    assert table[0].startswith("| policy | episodes | success rate (95 % CI) |")
+    assert table[2].startswith("| seed 0 | 3 | 0.0% (0.0% - 56.1%) |") and table[3].startswith("| seed 1 | 3 |")
+    assert (tmp_path / "compare.png").is_file()
+    assert main([*arguments, "--seed", "5"]) == 0  # another protocol: evaluated again
+    assert "reusing" not in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["evaluate", "{empty}"], "holds no final_model.zip and no checkpoint"),
+        (["evaluate", "{run}", "--agents", "3"], "n_agents=6 in the model, 3 in the env"),
+        (["plot", "histogram", "{run}"], "unknown figure 'histogram'"),
+        (["plot", "training", "{empty}"], "config.yaml"),
+        (["plot", "training", "{run}", "--labels", "x", "--window", "3", "--out", "{tmp}/t.jpg"], "jpg"),
+        (["plot", "trajectories", "{empty}"], "no trajectories.npz in"),
+        (["plot", "trajectories", "{run}", "--episodes", "9"], "episodes [9] were not recorded"),
+        (["render", "{run}", "--out", "{tmp}/video.avi", "--max-steps", "2"], "avi"),
+        (["compare", "{run}", "{run}"], "labels must differ"),
+    ],
+)
+def test_bad_input_to_evaluation_commands_is_one_line(
+    runs: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str], arguments: list[str], message: str
+) -> None:
+    (runs[0] / "eval").mkdir(exist_ok=True)
+    if not (runs[0] / "eval" / "trajectories.npz").exists():
+        assert evaluate_quietly(runs[0]) == 0
+    capsys.readouterr()
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    names = {"run": str(runs[0]), "empty": str(empty), "tmp": str(tmp_path)}
+    assert main([argument.format(**names) for argument in arguments]) == 2
+    error = capsys.readouterr().err
+    assert message in error and error.count("\n") == 1 and "Traceback" not in error

@@ -165,9 +165,9 @@ def test_team_critic_run_trains_and_evaluates(tmp_path: Path) -> None:
     assert process.returncode == 0, stderr
     run_dir = only_run_dir(tmp_path / "runs")
     assert run_dir.name.startswith("ch4-team_3a_")
-    out = tmp_path / "summary.json"
-    assert main(["evaluate", str(run_dir), "--episodes", "3", "--n-envs", "2", "--out", str(out)]) == 0
-    summary = json.loads(out.read_text())
+    out = tmp_path / "evaluation"
+    assert main(["evaluate", str(run_dir), "--episodes", "3", "--n-envs", "2", "--out", str(out), "--no-progress"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
     assert summary["episodes"] == 3 and summary["stage"] == 3
 
 

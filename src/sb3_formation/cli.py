@@ -14,9 +14,18 @@ from PIL import Image
 
 from .config import PRESETS, FormationConfig
 from .env import FormationEnv
-from .evaluation import evaluate
+from .evaluation import (
+    SUMMARY_FILE,
+    TRAJECTORIES_FILE,
+    Trajectories,
+    comparison_table,
+    evaluate,
+    model_fingerprint,
+)
+from .plots import FIGURES, plot_error_curves, plot_evaluation_bars, plot_training_curves, plot_trajectory, save_figure
 from .rollout import random_policy, run_episode
-from .training import TrainSettings, atomic_write_text, load_trained, reduce_to_overrides, resume, train
+from .training import TrainSettings, atomic_write_text, load_settings, load_trained, reduce_to_overrides, resume, train
+from .video import render_episodes
 
 #: Thesis evaluation sizes: 500 episodes in chapter 4 (thesis 4.4), 200 in chapter 5 (thesis 5.4), by layout.
 THESIS_EVALUATION_EPISODES = {"ch4": 500, "ch5": 200}
@@ -44,6 +53,28 @@ def _assignment(text: str) -> tuple[str, object]:
     if not separator or not name:
         raise argparse.ArgumentTypeError(f"expected FIELD=VALUE, got {text!r}")
     return name.strip(), yaml.safe_load(value)
+
+
+def _indices(text: str) -> list[int]:
+    try:
+        values = [int(part) for part in text.split(",")]
+    except ValueError:
+        values = []
+    if not values or min(values) < 0:
+        raise argparse.ArgumentTypeError(f"expected episode indices such as 0,2,5, got {text!r}")
+    return values
+
+
+def _add_protocol_arguments(parser: argparse.ArgumentParser) -> None:
+    """The evaluation protocol's options, shared by ``evaluate`` and ``compare``."""
+    parser.add_argument("--episodes", type=_positive_int, help="episodes (thesis: 500 in ch. 4, 200 in ch. 5)")
+    parser.add_argument("--stage", type=int, choices=(1, 2, 3), default=3, help="curriculum stage (default 3)")
+    parser.add_argument("--seed", type=int, default=0, help="episode k plays the scenario of seed + k (default 0)")
+    parser.add_argument("--n-envs", type=_positive_int, default=8, help="teams played at once (default 8)")
+    parser.add_argument("--workers", type=_positive_int, default=1, help="worker processes (default 1)")
+    parser.add_argument("--stochastic", action="store_true", help="sample actions instead of using the mean")
+    parser.add_argument("--device", default="auto", help="torch device (default auto)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def preset_for(reward: str | None, n_agents: int | None, team_reward: bool) -> str:
@@ -101,19 +132,62 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--resume", type=Path, metavar="RUN_DIR", help="continue a run from its latest checkpoint")
     evaluate = commands.add_parser(
         "evaluate",
-        help="evaluate a trained policy: success rate with a 95%% interval and errors",
-        description="Play fixed-seed episodes with a trained policy and report the success rate (95%% Wilson "
-        "interval) and, over successful episodes, the mean errors and collisions.",
+        help="evaluate a trained policy: success rate with a 95%% interval, errors, episodes.csv, trajectories",
+        description="Play fixed-seed episodes (episode k from seed + k) with a trained policy and write "
+        "summary.json (success rate with a 95%% Wilson interval; mean and std of errors, steps and collisions), "
+        "episodes.csv (one row per episode) and trajectories.npz (every step of the first episodes).",
     )
     evaluate.add_argument("target", type=Path, help="a run folder or a model .zip (normaliser beside it)")
-    evaluate.add_argument("--episodes", type=_positive_int, help="episodes (thesis: 500 in ch. 4, 200 in ch. 5)")
-    evaluate.add_argument("--stage", type=int, choices=(1, 2, 3), default=3, help="curriculum stage (default 3)")
-    evaluate.add_argument("--seed", type=int, default=0, help="seed of the scenarios (default 0)")
-    evaluate.add_argument("--n-envs", type=_positive_int, default=8, help="teams played in parallel (default 8)")
+    _add_protocol_arguments(evaluate)
     evaluate.add_argument("--agents", type=int, help="team size (default: the model's; must match it)")
-    evaluate.add_argument("--stochastic", action="store_true", help="sample actions instead of using the mean")
-    evaluate.add_argument("--device", default="auto", help="torch device (default auto)")
-    evaluate.add_argument("--out", type=Path, help="JSON file (default: <run>/eval/summary.json)")
+    evaluate.add_argument(
+        "--trajectories", type=int, default=5, metavar="K", help="record every step of the first K episodes (default 5)"
+    )
+    evaluate.add_argument("--out", type=Path, help="folder for the files (default: <run>/eval)")
+    plot = commands.add_parser(
+        "plot",
+        help="draw thesis-style figures: trajectories, errors, bars, training",
+        description="trajectories: paths, obstacles, goal and formation of recorded evaluation episodes (one file per "
+        "episode); errors: mean angle and distance error against the step; bars: evaluation errors of one or several "
+        "runs side by side; training: episode reward and success rate against the iteration, mean and std over runs.",
+    )
+    plot.add_argument("figure", help=f"one of {', '.join(FIGURES)}")
+    plot.add_argument("targets", type=Path, nargs="+", help="run folders (or eval folders / files for trajectories, errors)")
+    plot.add_argument("--out", type=Path, help="figure file; .png (default), .svg or .pdf")
+    plot.add_argument("--episodes", type=_indices, help="recorded episodes to draw, e.g. 0,2 (default: all recorded)")
+    plot.add_argument("--every", type=_positive_int, default=25, help="steps between formation outlines (default 25)")
+    plot.add_argument("--labels", help="comma-separated label per run (runs with the same label are seeds of one curve)")
+    plot.add_argument("--window", type=_positive_int, default=100, help="rolling-mean window in iterations (default 100)")
+    plot.add_argument("--over", choices=("successful", "all"), default="successful", help="episodes for the bar means")
+    render = commands.add_parser(
+        "render",
+        help="write an MP4 or GIF of evaluation episodes",
+        description="Play evaluation episodes with a trained policy and write them as a video, with the step, "
+        "success and current errors drawn on each frame. The format follows --out: .mp4 or .gif.",
+    )
+    render.add_argument("target", type=Path, help="a run folder or a model .zip (normaliser beside it)")
+    render.add_argument("--episodes", type=_positive_int, default=1, help="episodes (default 1)")
+    render.add_argument("--out", type=Path, help="video file, .mp4 or .gif (default: <run>/eval/episodes.mp4)")
+    render.add_argument("--stage", type=int, choices=(1, 2, 3), default=3, help="curriculum stage (default 3)")
+    render.add_argument("--seed", type=int, default=0, help="episode k plays the scenario of seed + k (default 0)")
+    render.add_argument("--fps", type=_positive_int, default=20, help="frames per second (default 20)")
+    render.add_argument("--frame-every", type=_positive_int, default=1, help="keep every k-th step as a frame")
+    render.add_argument("--max-steps", type=_positive_int, help="cut episodes at this many steps (default: the model's)")
+    render.add_argument("--stochastic", action="store_true", help="sample actions instead of using the mean")
+    render.add_argument("--device", default="auto", help="torch device (default auto)")
+    compare = commands.add_parser(
+        "compare",
+        help="evaluate several runs on the same seeds; print a Markdown table and draw the bar chart",
+        description="Evaluate every run on the same fixed-seed episodes (reusing its eval/ when it holds the same "
+        "protocol for the same model file), print a Markdown table and write the evaluation bar chart.",
+    )
+    compare.add_argument("targets", type=Path, nargs="+", help="run folders or model .zip files")
+    _add_protocol_arguments(compare)
+    compare.add_argument("--labels", help="comma-separated label per run (default: the run folder names)")
+    compare.add_argument("--over", choices=("successful", "all"), default="successful", help="episodes for the means")
+    compare.add_argument("--out", type=Path, default=Path("compare.png"), help="bar chart file (default compare.png)")
+    compare.add_argument("--table", type=Path, help="also write the Markdown table to this file")
+    compare.add_argument("--force", action="store_true", help="evaluate again even if eval/ matches")
     rollout = commands.add_parser(
         "rollout",
         help="play episodes with a random policy, print per-episode metrics and save the final frame",
@@ -242,37 +316,189 @@ def train_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def evaluate_command(args: argparse.Namespace) -> int:
-    """``sb3-formation evaluate``: success rate with a Wilson interval and errors over successful episodes."""
-    trained = load_trained(args.target, device=args.device)
-    episodes = args.episodes or THESIS_EVALUATION_EPISODES[trained.config.layout]
-    overrides = {} if args.agents is None else {"n_agents": args.agents}
-    result = evaluate(
-        trained,
-        episodes,
-        stage=args.stage,
-        seed=args.seed,
-        n_envs=args.n_envs,
-        deterministic=not args.stochastic,
-        env_overrides=overrides,
-    )
-    summary = result.summary
+def _run_folder(target: Path) -> Path:
+    """The folder of a run (or of a model file)."""
+    return target if target.is_dir() else target.parent
+
+
+def _print_summary(summary: dict) -> None:
     low, high = summary["success_rate_ci95"]
     print(
         f"{summary['episodes']} episodes (stage {summary['stage']}, seed {summary['seed']}): success rate "
         f"{summary['success_rate']:.1%} (95% CI {low:.1%} - {high:.1%})"
     )
-    successful, everything = summary["successful_episode_means"], summary["all_episode_means"]
-    print(f"  {'mean over':<28}{'successful episodes':>22}{'all episodes':>16}")
-    for name in everything:
-        value = successful[name]
-        print(f"  {name:<28}{'-' if value is None else f'{value:.3f}':>22}{everything[name]:>16.3f}")
-    out = args.out
-    if out is None:
-        base = args.target if args.target.is_dir() else args.target.parent
-        out = base / "eval" / "summary.json"
-    atomic_write_text(out, json.dumps(summary, indent=2))
-    print(f"summary written to {out}")
+    successful, everything = summary["successful_episodes"], summary["all_episodes"]
+    print(f"  {'mean ± std over':<26}{'successful episodes':>24}{'all episodes':>24}")
+    for name, statistics in everything.items():
+        mine = successful[name]
+        cell = "-" if mine["mean"] is None else f"{mine['mean']:.3f} ± {mine['std']:.3f}"
+        print(f"  {name:<26}{cell:>24}{statistics['mean']:>15.3f} ± {statistics['std']:.3f}")
+
+
+def _evaluate_run(args: argparse.Namespace, target: Path, episodes: int | None, out: Path | None = None) -> dict:
+    """Evaluate one run with the protocol options of ``args``, save its files, and return its summary."""
+    trained = load_trained(target, device=args.device)
+    result = evaluate(
+        trained,
+        episodes or THESIS_EVALUATION_EPISODES[trained.config.layout],
+        stage=args.stage,
+        seed=args.seed,
+        n_envs=args.n_envs,
+        deterministic=not args.stochastic,
+        env_overrides={} if getattr(args, "agents", None) is None else {"n_agents": args.agents},
+        n_workers=min(args.workers, args.n_envs),
+        record=getattr(args, "trajectories", 5),
+        progress_bar=not args.no_progress,
+    )
+    files = result.save(out or _run_folder(target) / "eval")
+    print(f"{target}: evaluation written to {files['summary'].parent}")
+    return result.summary
+
+
+def evaluate_command(args: argparse.Namespace) -> int:
+    """``sb3-formation evaluate``: success rate with a Wilson interval, errors, episode table and trajectories."""
+    if args.trajectories < 0:
+        raise ValueError(f"--trajectories must be >= 0, got {args.trajectories}")
+    _print_summary(_evaluate_run(args, args.target, args.episodes, args.out))
+    return 0
+
+
+def _labels(text: str | None, targets: Sequence[Path]) -> list[str]:
+    """One label per target: from ``--labels`` (comma-separated) or the folder names."""
+    if text is None:
+        return [_run_folder(target).name for target in targets]
+    labels = [label.strip() for label in text.split(",")]
+    if len(labels) != len(targets):
+        raise ValueError(f"--labels gives {len(labels)} labels for {len(targets)} runs")
+    return labels
+
+
+def _eval_file(target: Path, name: str) -> Path:
+    """``name`` of an evaluation given as the file itself, an eval folder or a run folder."""
+    for candidate in (target, target / name, target / "eval" / name):
+        if candidate.is_file() and candidate.name == name:
+            return candidate
+    raise FileNotFoundError(f"no {name} in {target}: run `sb3-formation evaluate {target}` first")
+
+
+def _load_summary(target: Path) -> dict:
+    path = _eval_file(target, SUMMARY_FILE)
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{path} is not valid JSON: {error}") from error
+
+
+def plot_command(args: argparse.Namespace) -> int:
+    """``sb3-formation plot FIGURE TARGET...``: one of the thesis-style figures, as PNG, SVG or PDF."""
+    if args.figure not in FIGURES:
+        raise ValueError(f"unknown figure {args.figure!r}: choose one of {', '.join(FIGURES)}")
+    if args.figure in ("trajectories", "errors"):
+        if len(args.targets) != 1:
+            raise ValueError(f"{args.figure} draws one evaluation; got {len(args.targets)} targets")
+        path = _eval_file(args.targets[0], TRAJECTORIES_FILE)
+        trajectories = Trajectories.load(path)
+        indices = _recorded_indices(trajectories, args.episodes)
+        default = path.parent / "figures" / ("trajectory.png" if args.figure == "trajectories" else "errors.png")
+        out = args.out or default
+        if args.figure == "errors":
+            written = [save_figure(plot_error_curves(trajectories, indices), out)]
+        else:
+            written = [
+                save_figure(
+                    plot_trajectory(trajectories, index, every=args.every),
+                    out.with_name(f"{out.stem}_{int(trajectories.episodes[index]):03d}{out.suffix or '.png'}"),
+                )
+                for index in indices
+            ]
+    elif args.figure == "bars":
+        labels = _labels(args.labels, args.targets)
+        summaries = dict(zip(labels, (_load_summary(target) for target in args.targets)))
+        written = [save_figure(plot_evaluation_bars(summaries, over=args.over), args.out or Path("evaluation_bars.png"))]
+    else:
+        labels = _labels(args.labels, args.targets) if args.labels else [_setup_label(t) for t in args.targets]
+        groups: dict[str, list[Path]] = {}
+        for label, target in zip(labels, args.targets):
+            groups.setdefault(label, []).append(target)
+        figure = plot_training_curves(groups, window=args.window)
+        written = [save_figure(figure, args.out or Path("training_curves.png"))]
+    for path in written:
+        print(f"figure written to {path}")
+    return 0
+
+
+def _recorded_indices(trajectories: Trajectories, episodes: list[int] | None) -> list[int]:
+    """Positions in ``trajectories`` of the requested evaluation episodes (all recorded ones by default)."""
+    recorded = trajectories.episodes.tolist()
+    if episodes is None:
+        return list(range(len(recorded)))
+    missing = [episode for episode in episodes if episode not in recorded]
+    if missing:
+        raise ValueError(f"episodes {missing} were not recorded; recorded episodes: {recorded}")
+    return [recorded.index(episode) for episode in episodes]
+
+
+def _setup_label(run_dir: Path) -> str:
+    """A training-curve label naming a run's set-up (preset and team size), so seeds of one set-up share it."""
+    settings = load_settings(run_dir)
+    return f"{settings.preset} ({settings.config().n_agents} agents)"
+
+
+def render_command(args: argparse.Namespace) -> int:
+    """``sb3-formation render``: a video of evaluation episodes."""
+    trained = load_trained(args.target, device=args.device)
+    out = args.out or _run_folder(args.target) / "eval" / "episodes.mp4"
+    frames = render_episodes(
+        trained,
+        out,
+        episodes=args.episodes,
+        stage=args.stage,
+        seed=args.seed,
+        deterministic=not args.stochastic,
+        fps=args.fps,
+        frame_every=args.frame_every,
+        env_overrides={} if args.max_steps is None else {"max_steps": args.max_steps},
+        progress_bar=True,
+    )
+    print(f"{frames} frames written to {out}")
+    return 0
+
+
+def _matching_summary(target: Path, args: argparse.Namespace, episodes: int | None) -> dict | None:
+    """The run's stored evaluation summary if it is of the same model file under the same protocol, else ``None``."""
+    try:
+        summary = _load_summary(target)
+        model = load_trained(target, device="cpu").source
+    except (FileNotFoundError, ValueError):
+        return None
+    protocol = {"stage": args.stage, "seed": args.seed, "deterministic": not args.stochastic}
+    if episodes is not None:
+        protocol["episodes"] = episodes
+    same_model = (summary.get("model") or {}).get("sha256") == model_fingerprint(model)["sha256"]
+    return summary if same_model and all(summary.get(key) == value for key, value in protocol.items()) else None
+
+
+def compare_command(args: argparse.Namespace) -> int:
+    """``sb3-formation compare RUN...``: every run on the same seeds, a Markdown table and the bar chart."""
+    labels = _labels(args.labels, args.targets)
+    if len(set(labels)) != len(labels):
+        raise ValueError(f"labels must differ, got {labels}")
+    episodes = args.episodes
+    if episodes is None:  # the thesis's protocol of the runs' chapter (the larger one if they mix chapters)
+        layouts = {load_trained(target, device="cpu").config.layout for target in args.targets}
+        episodes = max(THESIS_EVALUATION_EPISODES[layout] for layout in layouts)
+    summaries = {}
+    for label, target in zip(labels, args.targets):
+        summary = None if args.force else _matching_summary(target, args, episodes)
+        if summary is not None:
+            print(f"{target}: reusing {_eval_file(target, SUMMARY_FILE)}")
+        summaries[label] = summary or _evaluate_run(args, target, episodes)
+    table = comparison_table(summaries, over=args.over)
+    print(table)
+    if args.table is not None:
+        atomic_write_text(args.table, table + "\n")
+        print(f"table written to {args.table}")
+    print(f"figure written to {save_figure(plot_evaluation_bars(summaries, over=args.over), args.out)}")
     return 0
 
 
@@ -281,7 +507,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     args.command_line = shlex.join(["sb3-formation", *argv])
-    commands = {"rollout": rollout_command, "train": train_command, "evaluate": evaluate_command}
+    commands = {
+        "rollout": rollout_command,
+        "train": train_command,
+        "evaluate": evaluate_command,
+        "plot": plot_command,
+        "render": render_command,
+        "compare": compare_command,
+    }
     try:
         return commands[args.command](args)
     except (ValueError, TypeError, OSError) as error:  # bad input or files: one line naming the problem

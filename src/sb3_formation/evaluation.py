@@ -186,7 +186,7 @@ class _Recorder:
 
 
 @dataclass
-class _PlayJob:
+class PlayJob:
     """What one process plays: its episodes, and everything needed to act in them (picklable)."""
 
     agent: Any
@@ -200,8 +200,8 @@ class _PlayJob:
     record: int
 
 
-def _play(
-    job: _PlayJob,
+def play_episodes(
+    job: PlayJob,
     on_episode: Callable[[], None] | None = None,
     on_step: Callable[[FormationEnv, int, list[dict[str, Any]] | None], None] | None = None,
 ) -> tuple[list[dict[str, Any]], list[tuple[int, _Recorder, bool]]]:
@@ -293,8 +293,8 @@ def _play(
     return rows, recorded
 
 
-def _stack(config: FormationConfig, recorded: list[tuple[int, _Recorder, bool]]) -> Trajectories | None:
-    """Pad the recorded episodes to one length and stack them, in episode order."""
+def _stack(config: FormationConfig, seed: int, recorded: list[tuple[int, _Recorder, bool]]) -> Trajectories | None:
+    """Pad the recorded episodes (of an evaluation with ``seed``) to one length and stack them, in episode order."""
     if not recorded:
         return None
     recorded = sorted(recorded, key=lambda item: item[0])
@@ -316,7 +316,7 @@ def _stack(config: FormationConfig, recorded: list[tuple[int, _Recorder, bool]])
     return Trajectories(
         config=config,
         episodes=episodes,
-        seeds=np.zeros_like(episodes),  # set by the caller, who knows the base seed
+        seeds=episodes + seed,
         lengths=lengths,
         success=np.array([success for _, _, success in recorded], dtype=bool),
         goals=np.stack([recorder.goal for _, recorder, _ in recorded]).astype(np.float64),
@@ -326,18 +326,18 @@ def _stack(config: FormationConfig, recorded: list[tuple[int, _Recorder, bool]])
 
 
 def _worker(job: bytes, progress: Any) -> None:  # pragma: no cover - runs in a subprocess
-    """Play a pickled :class:`_PlayJob` and put ("episode", None) per episode, then ("done", result) or ("error", text)."""
+    """Play a pickled :class:`PlayJob` and put ("episode", None) per episode, then ("done", result) or ("error", text)."""
     try:
-        play_job: _PlayJob = cloudpickle.loads(job)
+        play_job: PlayJob = cloudpickle.loads(job)
         torch.set_num_threads(1)
         torch.manual_seed(play_job.seed + play_job.episodes[0])
-        result = _play(play_job, on_episode=lambda: progress.put(("episode", None)))
+        result = play_episodes(play_job, on_episode=lambda: progress.put(("episode", None)))
         progress.put(("done", result))
     except BaseException as error:  # report to the parent, which raises it
         progress.put(("error", f"{type(error).__name__}: {error}\n{traceback.format_exc()}"))
 
 
-def _play_in_workers(jobs: list[_PlayJob], on_episode: Callable[[], None]) -> tuple[list, list]:
+def _play_in_workers(jobs: list[PlayJob], on_episode: Callable[[], None]) -> tuple[list, list]:
     """Play each job in its own process (``forkserver`` where available); gather rows and recordings."""
     method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
     context = multiprocessing.get_context(method)
@@ -505,7 +505,7 @@ def evaluate(
     n_workers = min(n_workers, episodes)
     teams = np.array_split(np.arange(min(n_envs, episodes)), n_workers)
     jobs = [
-        _PlayJob(
+        PlayJob(
             agent=trained.model.policy if hasattr(trained.model, "policy") else trained.model,
             config=config,
             normalizer_state=trained.normalizer_state,
@@ -522,12 +522,10 @@ def evaluate(
         if n_workers == 1:
             with torch.random.fork_rng():
                 torch.manual_seed(seed)
-                rows, recorded = _play(jobs[0], on_episode=lambda: bar.update(1))
+                rows, recorded = play_episodes(jobs[0], on_episode=lambda: bar.update(1))
         else:
             rows, recorded = _play_in_workers(jobs, on_episode=lambda: bar.update(1))
-    trajectories = _stack(config, recorded)
-    if trajectories is not None:
-        trajectories.seeds = trajectories.episodes + seed
+    trajectories = _stack(config, seed, recorded)
     source = getattr(trained, "source", None)
     return EvaluationResult(
         episodes=sorted(rows, key=lambda row: row["episode"]),
@@ -538,3 +536,34 @@ def evaluate(
         n_agents=config.n_agents,
         model=None if source is None else model_fingerprint(source),
     )
+
+
+#: Columns of :func:`comparison_table` after the success rate: metric and heading.
+TABLE_METRICS = (
+    ("angle_error_deg", "angle error (deg)"),
+    ("bearing_error", "bearing error"),
+    ("neighbour_distance_error", "distance error (m)"),
+    ("length", "steps"),
+    ("collisions_obstacle", "obstacle collisions"),
+    ("collisions_agent", "agent collisions"),
+)
+
+
+def comparison_table(summaries: dict[str, dict[str, Any]], over: str = "successful") -> str:
+    """A Markdown table of evaluation summaries: success rate with its 95 % interval, then mean ± std of each metric.
+
+    :param summaries: policy label -> :attr:`EvaluationResult.summary`
+    :param over: ``"successful"`` (the thesis's choice) or ``"all"`` episodes for the means
+    """
+    if over not in ("successful", "all"):
+        raise ValueError(f"over must be 'successful' or 'all', got {over!r}")
+    headings = ["policy", "episodes", "success rate (95 % CI)", *(heading for _, heading in TABLE_METRICS)]
+    lines = ["| " + " | ".join(headings) + " |", "|" + "|".join(["---"] + ["---:"] * (len(headings) - 1)) + "|"]
+    for label, summary in summaries.items():
+        low, high = summary["success_rate_ci95"]
+        cells = [label, str(summary["episodes"]), f"{summary['success_rate']:.1%} ({low:.1%} - {high:.1%})"]
+        for name, _ in TABLE_METRICS:
+            statistics = summary[f"{over}_episodes"][name]
+            cells.append("-" if statistics["mean"] is None else f"{statistics['mean']:.3g} ± {statistics['std']:.2g}")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)

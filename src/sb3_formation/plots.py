@@ -42,6 +42,8 @@ TRAINING_SCALARS: dict[str, str] = {"rollout/ep_rew_mean": "episode_reward", "ep
 TRAINING_LABELS: dict[str, str] = {"episode_reward": "mean episode reward", "success_rate": "success rate"}
 #: File formats :func:`save_figure` writes.
 FIGURE_FORMATS = ("png", "svg", "pdf")
+#: Figure names of ``sb3-formation plot``.
+FIGURES = ("trajectories", "errors", "bars", "training")
 PNG_DPI = 150
 OBSTACLE_COLOUR, GOAL_COLOUR = (0.55, 0.55, 0.59), (0.16, 0.67, 0.27)
 

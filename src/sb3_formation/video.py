@@ -1,0 +1,372 @@
+"""Videos of evaluation episodes: frames of :class:`FormationEnv` with a caption, streamed to an MP4 or a GIF.
+
+MP4 files are H.264 (``yuv420p``) written through the ffmpeg binary of ``imageio-ffmpeg``, frame by frame (a
+2500-step episode is never held in memory); GIFs are written with Pillow, which needs every frame at once (as palette
+images, 0.5 MB per frame): use MP4 for long episodes. Either way the video goes to a temporary file beside the
+target, which replaces the target only once the video is complete.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import math
+import os
+import secrets
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+import torch
+from PIL import Image, ImageDraw, ImageFont
+from tqdm.auto import tqdm
+
+from .env import FormationEnv
+from .evaluation import PlayJob, check_model_fits, play_episodes
+from .training import TrainedModel
+
+#: File suffixes :class:`VideoWriter` can write.
+VIDEO_SUFFIXES = (".mp4", ".gif")
+#: GIF frame delays are whole centiseconds and browsers slow down delays under 2 cs: GIFs play at most 50 fps.
+GIF_MAX_FPS = 50
+
+
+# Captions ------------------------------------------------------------------------------------------------------------
+
+
+#: A drawing context to measure text with.
+_MEASURE = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+
+
+@functools.lru_cache(maxsize=8)
+def _font(size: int) -> ImageFont.FreeTypeFont | ImageFont.ImageFont:
+    """Pillow's default font at ``size`` px (a fixed-size bitmap font when Pillow was built without FreeType)."""
+    return ImageFont.load_default(size=size)
+
+
+def overlay_text(
+    frame: np.ndarray, lines: Sequence[str], font_size: int = 16, margin: int = 8, opacity: float = 0.75
+) -> np.ndarray:
+    """Write ``lines`` in black in the top-left corner of ``frame``, on a semi-opaque white box.
+
+    :param frame: ``(H, W, 3)`` uint8 image (not modified)
+    :param lines: text lines, top to bottom
+    :param font_size: font height (px)
+    :param margin: gap between the frame's corner and the box, and between the box's border and the text (px)
+    :param opacity: opacity of the white box, in [0, 1]
+    :return: a new ``(H, W, 3)`` uint8 image; only the box's pixels differ from ``frame``
+    """
+    if frame.ndim != 3 or frame.shape[2] != 3 or frame.dtype != np.uint8:
+        raise ValueError(f"frame must be an (H, W, 3) uint8 array, got shape {frame.shape} and dtype {frame.dtype}")
+    if not 0.0 <= opacity <= 1.0:
+        raise ValueError(f"opacity must be in [0, 1], got {opacity}")
+    output = frame.copy()
+    if not lines:
+        return output
+    text, font, corner = "\n".join(lines), _font(font_size), (margin, margin)
+    _, _, right, bottom = _MEASURE.multiline_textbbox(corner, text, font=font, spacing=4)
+    height, width = frame.shape[:2]
+    box_bottom, box_right = min(math.ceil(bottom) + 2 * margin, height), min(math.ceil(right) + 2 * margin, width)
+    if box_bottom <= margin or box_right <= margin:  # a frame too small for any box
+        return output
+    box = output[margin:box_bottom, margin:box_right].astype(np.float32)
+    image = Image.fromarray(np.rint(box + opacity * (255.0 - box)).astype(np.uint8))
+    ImageDraw.Draw(image).multiline_text(corner, text, fill=(0, 0, 0), font=font, spacing=4)
+    output[margin:box_bottom, margin:box_right] = np.asarray(image)
+    return output
+
+
+def _mean(infos: list[dict[str, Any]], key: str) -> float:
+    return float(np.mean([info[key] for info in infos]))
+
+
+def episode_caption(episode: int, env: FormationEnv, infos: list[dict[str, Any]] | None) -> list[str]:
+    """Caption lines of a frame: episode and step, outcome, the agents' mean formation errors, goal distance.
+
+    :param episode: evaluation episode index
+    :param env: the env, after the reset or step that ``infos`` come from
+    :param infos: the agents' step infos, or ``None`` right after a reset (the errors are then shown as "-")
+    """
+    if infos is not None and infos[0]["success"]:
+        status = "success"
+    elif infos is not None and env.step_count >= env.config.max_steps:
+        status = "time-out"
+    else:
+        status = "running"
+
+    def error(key: str, digits: int, unit: str = "") -> str:
+        return "-" if infos is None else f"{_mean(infos, key):.{digits}f}{unit}"
+
+    return [
+        f"episode {episode}   step {env.step_count} / {env.config.max_steps}",
+        status,
+        f"angle error {error('angle_error_deg', 1, ' deg')}",
+        f"bearing error {error('bearing_error', 3)}",
+        f"neighbour distance error {error('neighbour_distance_error', 2, ' m')}",
+        f"goal distance {env.goal_distance:.2f} m",
+    ]
+
+
+# Writers -------------------------------------------------------------------------------------------------------------
+
+
+def _check_suffix(path: Path) -> str:
+    suffix = path.suffix.lower()
+    if suffix not in VIDEO_SUFFIXES:
+        raise ValueError(f"cannot write a video to {path}: unknown suffix {path.suffix!r}, use one of {VIDEO_SUFFIXES}")
+    return suffix
+
+
+class _Mp4Stream:
+    """H.264 frames piped to ffmpeg; odd frame sizes are padded to even ones (repeating the last row or column)."""
+
+    def __init__(self, path: Path, size: tuple[int, int], fps: int, crf: int) -> None:
+        try:
+            import imageio_ffmpeg
+        except ImportError as error:
+            raise ImportError("writing .mp4 videos needs imageio-ffmpeg: pip install imageio-ffmpeg") from error
+        width, height = size
+        self.pad = ((0, height % 2), (0, width % 2), (0, 0))
+        self.generator = imageio_ffmpeg.write_frames(
+            str(path),
+            (width + width % 2, height + height % 2),
+            fps=fps,
+            codec="libx264",
+            pix_fmt_out="yuv420p",
+            quality=None,  # the constant rate factor below instead
+            macro_block_size=1,  # no rescaling: frames are padded to even sizes here
+            ffmpeg_log_level="error",
+            output_params=["-crf", str(crf), "-movflags", "+faststart"],
+        )
+        self.generator.send(None)
+
+    def write(self, frame: np.ndarray) -> None:
+        frame = np.pad(frame, self.pad, mode="edge") if any(after for _, after in self.pad) else frame
+        self.generator.send(np.ascontiguousarray(frame))
+
+    def close(self) -> None:
+        self.generator.close()  # waits for ffmpeg to finish the file
+
+
+class _GifStream:
+    """Frames quantised to a palette each (median cut: exact for the env's renderings, which have fewer than 256
+    colours), kept as palette images (0.5 MB per 900 x 600 frame) and written by Pillow on :meth:`close`.
+
+    Frame k is shown for round(100 (k + 1) / fps) - round(100 k / fps) cs, so the total length is exact.
+    """
+
+    def __init__(self, stream: BinaryIO, fps: int) -> None:
+        self.stream, self.fps = stream, fps
+        self.images: list[Image.Image] = []
+
+    def write(self, frame: np.ndarray) -> None:
+        self.images.append(Image.fromarray(frame).quantize(256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE))
+
+    def close(self) -> None:
+        delays = [round(100 * (k + 1) / self.fps) - round(100 * k / self.fps) for k in range(len(self.images))]
+        first, *others = self.images
+        first.save(self.stream, format="GIF", save_all=True, append_images=others, duration=[10 * d for d in delays], loop=0)
+
+
+def _create_beside(path: Path) -> tuple[Path, int]:
+    """Create a new, empty hidden file in ``path``'s folder with the permissions ``open`` would give (unlike mkstemp).
+
+    :return: its path and an open descriptor for writing
+    """
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
+    for _ in range(100):
+        candidate = path.with_name(f".{path.stem}.{secrets.token_hex(4)}{path.suffix}")
+        with contextlib.suppress(FileExistsError):
+            return candidate, os.open(candidate, flags, 0o666)
+    raise FileExistsError(f"could not create a temporary file beside {path}")
+
+
+class VideoWriter:
+    """Stream ``(H, W, 3)`` uint8 frames into an ``.mp4`` (H.264) or ``.gif`` file; use as a context manager.
+
+    Frames go to a temporary file in the target's folder (created if needed), which replaces ``path`` on
+    :meth:`close`; :meth:`abort` (or an exception inside the ``with`` block) deletes it and leaves ``path`` as it was.
+    Every frame must have the size of the first. MP4 frames of odd width or height are padded by one pixel.
+
+    :param path: target file; its suffix picks the format (one of :data:`VIDEO_SUFFIXES`)
+    :param fps: frames per second (at most :data:`GIF_MAX_FPS` for a GIF)
+    :param crf: H.264 constant rate factor of an MP4, 0 (lossless) to 51 (worst)
+    """
+
+    def __init__(self, path: str | os.PathLike[str], fps: int = 20, crf: int = 18) -> None:
+        self.path = Path(path)
+        self.suffix = _check_suffix(self.path)
+        if fps < 1:
+            raise ValueError(f"fps must be >= 1, got {fps}")
+        if self.suffix == ".gif" and fps > GIF_MAX_FPS:
+            raise ValueError(f"fps must be <= {GIF_MAX_FPS} for a GIF, got {fps}")
+        if not 0 <= crf <= 51:
+            raise ValueError(f"crf must be in [0, 51], got {crf}")
+        self.fps, self.crf = fps, crf
+        self.frames = 0  #: frames written so far
+        self.size: tuple[int, int] | None = None  #: (width, height) of the frames (px), known after the first
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        temporary, handle = _create_beside(self.path)
+        self._temporary: Path | None = temporary
+        self._file: BinaryIO | None = os.fdopen(handle, "wb")
+        self._stream: _Mp4Stream | _GifStream | None = None
+
+    def append(self, frame: np.ndarray) -> None:
+        """Write one ``(H, W, 3)`` uint8 frame."""
+        if self._temporary is None:
+            raise RuntimeError(f"the video writer of {self.path} is closed")
+        frame = np.asarray(frame)
+        if frame.ndim != 3 or frame.shape[2] != 3 or frame.dtype != np.uint8:
+            raise ValueError(f"frames must be (H, W, 3) uint8 arrays, got shape {frame.shape} and dtype {frame.dtype}")
+        size = (frame.shape[1], frame.shape[0])
+        if self._stream is None:
+            self.size = size
+            if self.suffix == ".gif":
+                self._stream = _GifStream(self._file, self.fps)
+            else:
+                self._file.close()  # ffmpeg writes the file itself
+                self._file = None
+                self._stream = _Mp4Stream(self._temporary, size, self.fps, self.crf)
+        elif size != self.size:
+            raise ValueError(f"frame {self.frames} is {size[0]}x{size[1]} px, the first was {self.size[0]}x{self.size[1]}")
+        self._stream.write(frame)
+        self.frames += 1
+
+    def close(self) -> None:
+        """Finish the file and move it to ``path``; an error (or no frame at all) aborts instead."""
+        if self._temporary is None:
+            return
+        try:
+            if self._stream is None:
+                raise ValueError(f"no frames were written to {self.path}")
+            stream, self._stream = self._stream, None
+            stream.close()
+            if self._file is not None:
+                self._file.close()
+                self._file = None
+            with open(self._temporary, "rb+") as written:
+                if os.fstat(written.fileno()).st_size == 0:
+                    raise RuntimeError(f"ffmpeg wrote nothing for {self.path}")
+                os.fsync(written.fileno())
+            os.replace(self._temporary, self.path)
+            self._temporary = None
+        finally:
+            self.abort()
+
+    def abort(self) -> None:
+        """Stop writing and delete the temporary file; ``path`` is left untouched."""
+        if self._stream is not None:
+            stream, self._stream = self._stream, None
+            with contextlib.suppress(Exception):
+                stream.close()
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+        if self._temporary is not None:
+            self._temporary.unlink(missing_ok=True)
+            self._temporary = None
+
+    def __enter__(self) -> VideoWriter:
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None, traceback: Any) -> None:
+        if kind is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def write_video(frames: Iterable[np.ndarray], path: str | os.PathLike[str], fps: int = 20) -> int:
+    """Write ``frames`` (``(H, W, 3)`` uint8, consumed one at a time) to an ``.mp4`` or ``.gif`` file.
+
+    :param frames: the frames, all of one size
+    :param path: target file, replaced only once the video is complete
+    :param fps: frames per second
+    :return: the number of frames written
+    """
+    with VideoWriter(path, fps) as writer:
+        for frame in frames:
+            writer.append(frame)
+    return writer.frames
+
+
+# Evaluation episodes -------------------------------------------------------------------------------------------------
+
+
+def frames_per_episode(length: int, frame_every: int) -> int:
+    """Frames :func:`render_episodes` keeps of an episode of ``length`` steps: steps 0, k, 2k, ... and the last one.
+
+    :param length: steps played (>= 1)
+    :param frame_every: keep every ``frame_every``-th step
+    """
+    return length // frame_every + 1 + (length % frame_every != 0)
+
+
+def render_episodes(
+    trained: TrainedModel,
+    path: str | os.PathLike[str],
+    episodes: int = 1,
+    stage: int = 3,
+    seed: int = 0,
+    deterministic: bool = True,
+    fps: int = 20,
+    frame_every: int = 1,
+    env_overrides: dict[str, Any] | None = None,
+    progress_bar: bool = False,
+    draw_lidar: bool = False,
+) -> int:
+    """Play evaluation episodes on one team and write them, captioned, one after the other to a video file.
+
+    Episode k is played from ``reset(seed=seed + k)`` as in :func:`~sb3_formation.evaluation.evaluate` (sampled
+    actions come from ``torch.manual_seed(seed)``, as with ``evaluate(..., n_envs=1)``). Of each episode the frames
+    after steps 0, ``frame_every``, 2 ``frame_every``, ... and after its last step are kept (see
+    :func:`frames_per_episode`); step 0 is the state after the reset.
+
+    :param trained: the policy (anything with SB3's ``predict``) with its configuration and normaliser statistics
+    :param path: ``.mp4`` or ``.gif`` file, replaced only once the video is complete
+    :param episodes: number of episodes
+    :param stage: curriculum stage of the scenarios
+    :param seed: seed of the scenarios
+    :param deterministic: use the policy's mean action
+    :param fps: frames per second of the video
+    :param frame_every: keep every ``frame_every``-th step (the video plays ``frame_every`` times faster)
+    :param env_overrides: :class:`FormationConfig` fields to change from the model's training configuration
+    :param progress_bar: show a tqdm progress bar of the episodes played
+    :param draw_lidar: also draw the lidar rays
+    :return: the number of frames written
+    """
+    for name, value in (("episodes", episodes), ("fps", fps), ("frame_every", frame_every)):
+        if value < 1:
+            raise ValueError(f"{name} must be >= 1, got {value}")
+    path = Path(path)
+    _check_suffix(path)
+    config = trained.config.replace(**{**(env_overrides or {}), "stage": stage})
+    check_model_fits(trained, config)
+    job = PlayJob(
+        agent=trained.model.policy if hasattr(trained.model, "policy") else trained.model,
+        config=config,
+        normalizer_state=trained.normalizer_state,
+        team_observations=trained.team_observations,
+        seed=seed,
+        episodes=list(range(episodes)),
+        n_teams=1,
+        deterministic=deterministic,
+        record=0,
+    )
+    with (
+        VideoWriter(path, fps) as writer,
+        tqdm(total=episodes, desc="rendering", unit="episode", disable=not progress_bar) as bar,
+    ):
+
+        def on_step(env: FormationEnv, episode: int, infos: list[dict[str, Any]] | None) -> None:
+            if infos is None:
+                env.render_lidar = draw_lidar
+            ended = infos is not None and (infos[0]["success"] or env.step_count >= env.config.max_steps)
+            if env.step_count % frame_every == 0 or ended:
+                writer.append(overlay_text(env.render(), episode_caption(episode, env, infos)))
+
+        with torch.random.fork_rng():
+            torch.manual_seed(seed)
+            play_episodes(job, on_episode=lambda: bar.update(1), on_step=on_step)
+    return writer.frames
