@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -130,6 +131,15 @@ def test_trajectory_draws_the_world_paths_and_collisions(trajectories: Trajector
     assert len([circle for circle in short.patches if isinstance(circle, Circle) and circle.get_fill()]) == 2
     legend = [text.get_text() for text in figure.legends[0].get_texts()]
     assert {"agent 0", "agent 1", "agent 2", "start", "end", "obstacle collision", "agent collision"} <= set(legend)
+
+
+def test_a_lasting_contact_is_marked_once_where_it_begins(trajectories: Trajectories) -> None:
+    touching = trajectories.collisions_obstacle.copy()
+    touching[0, 2:5, 1] = 1.0  # agent 1 touches the obstacle in steps 2, 3 and 4
+    touching[0, 6, 1] = 1.0  # and again in step 6
+    figure = plot_trajectory(dataclasses.replace(trajectories, collisions_obstacle=touching), 0)
+    markers = next(c for c in figure.axes[0].collections if c.get_gid() == "collisions_obstacle")
+    np.testing.assert_array_equal(markers.get_offsets(), trajectories.positions[0, [2, 6], 1])
 
 
 @pytest.mark.parametrize(("every", "steps"), [(1, [0, 1, 2, 3, 4, 5, 6]), (2, [0, 2, 4, 6]), (4, [0, 4, 6]), (25, [0, 6])])

@@ -83,7 +83,8 @@ def formation_steps(length: int, every: int) -> list[int]:
 
 
 def plot_trajectory(trajectories: Trajectories, index: int, every: int = 25) -> Figure:
-    """One episode to scale: obstacles, the goal ring, each agent's path, the formation every ``every`` steps, collisions.
+    """One episode to scale: obstacles, the goal ring, each agent's path, the formation every ``every`` steps, and a
+    mark where an agent's contact with an obstacle (red x) or another agent (black +) begins.
 
     :param trajectories: recorded evaluation episodes
     :param index: which recorded episode (row of the arrays, not the evaluation episode number)
@@ -140,7 +141,9 @@ def plot_trajectory(trajectories: Trajectories, index: int, every: int = 25) -> 
         ("collisions_agent", "+", "black", "agent collision"),
     )
     for name, marker, colour, label in collisions:
-        hit_rows, hit_agents = np.nonzero(np.nan_to_num(steps[name], nan=0.0) > 0)
+        touching = np.nan_to_num(steps[name], nan=0.0) > 0
+        onsets = touching & ~np.vstack([np.zeros((1, n_agents), dtype=bool), touching[:-1]])  # a long touch: one mark
+        hit_rows, hit_agents = np.nonzero(onsets)
         if len(hit_rows):
             points = positions[hit_rows, hit_agents]
             markers = ax.scatter(points[:, 0], points[:, 1], marker=marker, color=colour, s=50, linewidths=1.5, zorder=5)
