@@ -114,6 +114,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=_iterations,
         help="PPO iterations of stages 1,2,3 (thesis: 10000,10000,20000 in ch. 4, 5000,5000,15000 in ch. 5)",
     )
+    train.add_argument(
+        "--recurrent",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="recurrent actor and critic (default: as in the thesis, on for chapter-5 presets, off for chapter 4)",
+    )
+    train.add_argument("--cell", choices=("gru", "lstm"), help="recurrent cell (default gru)")
     train.add_argument("--n-envs", type=_positive_int, help="parallel teams (thesis: 12 in ch. 4, 14 in ch. 5)")
     train.add_argument("--workers", type=_positive_int, help="worker processes stepping the teams (default 1)")
     train.add_argument("--seed", type=int, help="seed of PPO and of the scenarios (default 0)")
@@ -271,6 +278,8 @@ def train_settings(args: argparse.Namespace) -> TrainSettings:
         "logdir": args.logdir,
         "checkpoint_every": args.checkpoint_every,
         "success_threshold": args.success_threshold,
+        "recurrent": args.recurrent,
+        "cell": args.cell,
     }
     values.update({name: value for name, value in flags.items() if value is not None})
     if args.no_progress:
@@ -297,18 +306,21 @@ def train_command(args: argparse.Namespace) -> int:
                 "logdir",
                 "checkpoint_every",
                 "success_threshold",
+                "recurrent",
+                "cell",
                 "env",
             )
-            if getattr(args, name) not in (None, False)
+            if getattr(args, name) is not None
         ]
         if given:
             raise ValueError(f"--resume continues a run with its own settings; drop {', '.join('--' + g for g in given)}")
         run_dir = resume(args.resume)
     else:
         settings = train_settings(args)
+        policy = f"recurrent ({settings.cell})" if settings.resolved_recurrent() else "MLP"
         print(
             f"training {settings.preset}: n={settings.config().n_agents}, iterations per stage "
-            f"{list(settings.resolved_iterations())}, {settings.resolved_n_envs()} teams"
+            f"{list(settings.resolved_iterations())}, {settings.resolved_n_envs()} teams, {policy} policy"
         )
         run_dir = train(settings, command=args.command_line)
     print(f"run folder: {run_dir}")

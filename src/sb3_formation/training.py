@@ -15,6 +15,7 @@ import signal
 import sys
 import tempfile
 import time
+import zipfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -26,11 +27,13 @@ import yaml
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.logger import CSVOutputFormat, Logger, TensorBoardOutputFormat
+from stable_baselines3.common.save_util import load_from_zip_file
 
 from .callbacks import THESIS_STAGE_ITERATIONS, CurriculumCallback, FormationMetricsCallback, ProgressBarCallback
 from .config import PRESETS, FormationConfig
 from .normalization import ScaleNormalizeVecEnv
 from .policies import FormationPolicy
+from .recurrent import CELLS, RecurrentFormationPolicy, RecurrentFormationPPO
 from .vec_env import THESIS_TEAMS, FormationVecEnv
 
 #: The thesis's PPO settings (thesis 4.3 and 5.3; design.md "Policy and PPO"). SB3 stops an epoch loop early when the
@@ -51,20 +54,34 @@ MODEL_FILE, NORMALIZER_FILE, STATE_FILE = "model.zip", "normalizer.npz", "state.
 FINAL_MODEL, FINAL_NORMALIZER = "final_model.zip", "final_normalizer.npz"
 
 
-def thesis_ppo_kwargs(preset: str, n_agents: int | None = None) -> dict[str, Any]:
-    """Keyword arguments of ``PPO`` for a thesis preset: the settings of :data:`THESIS_PPO` and the thesis policy.
+def thesis_ppo_kwargs(preset: str, n_agents: int | None = None, recurrent: bool = False, cell: str = "gru") -> dict[str, Any]:
+    """Keyword arguments of ``PPO`` (or, with ``recurrent``, :class:`RecurrentFormationPPO`) for a thesis preset.
 
-    The policy is :class:`FormationPolicy` with sigma 0.7, the actor output scaled by 0.01 for ``ch4-individual``
-    (thesis 4.1.2) and the team critic of fig. 4.3 for presets with the team reward.
+    The policy is :class:`FormationPolicy` (or :class:`RecurrentFormationPolicy`, thesis figs 5.1 and 5.2) with sigma
+    0.7, the actor output scaled by 0.01 for ``ch4-individual`` (thesis 4.1.2) and the team critic of fig. 4.3 for
+    presets with the team reward (MLP only).
 
     :param preset: a thesis preset name
     :param n_agents: team size (default: the preset's); the team critic needs it
+    :param recurrent: the recurrent actor and critic of chapter 5
+    :param cell: recurrent cell, ``"gru"`` or ``"lstm"``
     """
     config = FormationConfig.preset(preset, **({} if n_agents is None else {"n_agents": n_agents}))
     policy_kwargs: dict[str, Any] = {"sigma": 0.7, "action_scale": 0.01 if preset == "ch4-individual" else 1.0}
+    if recurrent:
+        if config.team_reward:
+            raise ValueError(f"{preset} uses the team critic, which has no recurrent version: train it without recurrent")
+        if cell not in CELLS:
+            raise ValueError(f"cell must be one of {CELLS}, got {cell!r}")
+        return {"policy": RecurrentFormationPolicy, **THESIS_PPO, "policy_kwargs": {**policy_kwargs, "cell": cell}}
     if config.team_reward:
         policy_kwargs["team_size"] = config.n_agents
     return {"policy": FormationPolicy, **THESIS_PPO, "policy_kwargs": policy_kwargs}
+
+
+def algorithm_for(policy: type) -> type[PPO]:
+    """The PPO class that trains ``policy``: :class:`RecurrentFormationPPO` for a recurrent policy, else SB3's ``PPO``."""
+    return RecurrentFormationPPO if issubclass(policy, RecurrentFormationPolicy) else PPO
 
 
 @dataclass
@@ -81,6 +98,8 @@ class TrainSettings:
     :param checkpoint_every: write a checkpoint every this many iterations
     :param success_threshold: end curriculum stages 1-2 early at this rolling success rate (``None``: never)
     :param progress_bar: show a progress bar
+    :param recurrent: recurrent actor and critic (default: as in the thesis, for chapter-5 presets only)
+    :param cell: recurrent cell, ``"gru"`` or ``"lstm"``
     :param env: :class:`FormationConfig` fields overriding the preset's (e.g. ``n_agents``)
     :param ppo: ``PPO`` keyword arguments overriding the thesis's (e.g. ``learning_rate``)
     """
@@ -95,6 +114,8 @@ class TrainSettings:
     checkpoint_every: int = 50
     success_threshold: float | None = None
     progress_bar: bool = True
+    recurrent: bool | None = None
+    cell: str = "gru"
     env: dict[str, Any] = field(default_factory=dict)
     ppo: dict[str, Any] = field(default_factory=dict)
 
@@ -113,6 +134,9 @@ class TrainSettings:
         unknown = sorted(set(self.ppo) - PPO_OVERRIDABLE)
         if unknown:
             raise ValueError(f"unknown ppo setting(s) {unknown}; valid: {sorted(PPO_OVERRIDABLE)}")
+        if self.recurrent not in (None, True, False):
+            raise ValueError(f"recurrent must be true, false or null (the preset's default), got {self.recurrent!r}")
+        self.ppo_kwargs()  # validates recurrent, cell and the policy
 
     @classmethod
     def field_names(cls) -> tuple[str, ...]:
@@ -132,6 +156,7 @@ class TrainSettings:
         values = dataclasses.asdict(self)
         values["iterations"] = list(self.resolved_iterations())
         values["n_envs"] = self.resolved_n_envs()
+        values["recurrent"] = self.resolved_recurrent()
         values["env"] = _plain(dataclasses.asdict(self.config()))
         values["ppo"] = _plain({name: value for name, value in self.ppo_kwargs().items() if name != "policy"})
         return values
@@ -148,9 +173,13 @@ class TrainSettings:
         """Number of teams, the thesis's unless given."""
         return self.n_envs if self.n_envs is not None else THESIS_TEAMS[self.config().layout]
 
+    def resolved_recurrent(self) -> bool:
+        """Whether the policy is recurrent: as given, else the thesis's choice (chapter 5 only)."""
+        return self.recurrent if self.recurrent is not None else self.config().layout == "ch5"
+
     def ppo_kwargs(self) -> dict[str, Any]:
         """``PPO`` keyword arguments: the thesis's for the preset, then the overrides."""
-        kwargs = thesis_ppo_kwargs(self.preset, self.config().n_agents)
+        kwargs = thesis_ppo_kwargs(self.preset, self.config().n_agents, self.resolved_recurrent(), self.cell)
         overrides = dict(self.ppo)
         kwargs["policy_kwargs"] = {**kwargs["policy_kwargs"], **overrides.pop("policy_kwargs", {})}
         kwargs.update(overrides)
@@ -180,7 +209,14 @@ def reduce_to_overrides(values: dict[str, Any]) -> dict[str, Any]:
     env = {name: value for name, value in env.items() if name not in defaults or defaults[name] != _plain(value)}
     n_agents = env.get("n_agents", defaults["n_agents"])
     ppo = dict(values.get("ppo") or {})
-    thesis = _plain({name: value for name, value in thesis_ppo_kwargs(preset, n_agents).items() if name != "policy"})
+    recurrent = values.get("recurrent")
+    if recurrent is None:
+        recurrent = FormationConfig.preset(preset).layout == "ch5"
+    try:
+        thesis_kwargs = thesis_ppo_kwargs(preset, n_agents, bool(recurrent), values.get("cell", "gru"))
+    except ValueError:
+        return values  # reported by TrainSettings
+    thesis = _plain({name: value for name, value in thesis_kwargs.items() if name != "policy"})
     policy_kwargs = {
         name: value
         for name, value in (ppo.pop("policy_kwargs", None) or {}).items()
@@ -377,7 +413,8 @@ def train(settings: TrainSettings, command: str | None = None) -> Path:
     atomic_write_text(run_dir / "command.txt", (command or " ".join(sys.argv)) + "\n")
     curriculum = CurriculumCallback(settings.resolved_iterations(), settings.success_threshold)
     env = make_training_env(settings, curriculum.stage)
-    model = PPO(env=env, seed=settings.seed, device=settings.device, verbose=0, **settings.ppo_kwargs())
+    kwargs = settings.ppo_kwargs()
+    model = algorithm_for(kwargs["policy"])(env=env, seed=settings.seed, device=settings.device, verbose=0, **kwargs)
     model.formation_config = dataclasses.asdict(settings.config())
     _learn(model, settings, run_dir, curriculum)
     return run_dir
@@ -400,7 +437,7 @@ def resume(run_dir: str | os.PathLike[str]) -> Path:
     curriculum = CurriculumCallback(settings.resolved_iterations(), settings.success_threshold)
     curriculum.load_state_dict(state["curriculum"])
     env = make_training_env(settings, curriculum.stage, checkpoint / NORMALIZER_FILE)
-    model = PPO.load(checkpoint / MODEL_FILE, env=env, device=settings.device)
+    model = algorithm_for(settings.ppo_kwargs()["policy"]).load(checkpoint / MODEL_FILE, env=env, device=settings.device)
     model.set_random_seed(int(np.random.SeedSequence([settings.seed, curriculum.iteration]).generate_state(1)[0]))
     _learn(model, settings, run_dir, curriculum)
     return run_dir
@@ -480,12 +517,15 @@ def load_trained(path: str | os.PathLike[str], device: str = "auto") -> TrainedM
         raise FileNotFoundError(f"no model at {path}: give a run folder or a model .zip")
     if not normalizer_path.exists():
         raise FileNotFoundError(f"the normaliser statistics of {model_path} are missing: expected {normalizer_path}")
-    model = PPO.load(model_path, device=device)
+    data = load_from_zip_file(model_path, load_data=True, device="cpu")[0] if zipfile.is_zipfile(model_path) else None
+    if data is None or "policy_class" not in data:
+        raise ValueError(f"{model_path} is not a model saved by Stable-Baselines3")
+    model = algorithm_for(data["policy_class"]).load(model_path, device=device)
     stored = getattr(model, "formation_config", None)
     if stored is None:
         raise ValueError(f"{model_path} was not saved by sb3-formation: it carries no formation_config")
     config = FormationConfig(**{**stored, "stage_disabled_terms": tuple(tuple(t) for t in stored["stage_disabled_terms"])})
     with np.load(normalizer_path, allow_pickle=False) as data:
         normalizer_state = {key: data[key] for key in data.files}
-    team_observations = model.policy.team_size is not None
+    team_observations = getattr(model.policy, "team_size", None) is not None
     return TrainedModel(model, config, normalizer_state, team_observations, source=model_path)
