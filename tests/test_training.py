@@ -14,15 +14,18 @@ import numpy as np
 import pytest
 import yaml
 from issue_names import EPISODE_SCALARS
+from PIL import Image
 from stable_baselines3.common.save_util import load_from_zip_file
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_formation.cli import build_parser, main, preset_for, train_settings
 from sb3_formation.policies import FormationPolicy
+from sb3_formation.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
 from sb3_formation.training import (
     STATE_FILE,
     TrainSettings,
     latest_checkpoint,
+    load_trained,
     make_training_env,
     reduce_to_overrides,
     thesis_ppo_kwargs,
@@ -102,6 +105,25 @@ def test_a_resolved_config_can_be_reused_with_another_preset() -> None:
     assert team.ppo_kwargs()["policy_kwargs"]["team_size"] == 3
 
 
+def test_recurrent_policy_follows_the_thesis_chapter_unless_told() -> None:
+    assert TrainSettings(preset="ch5-bearing").resolved_recurrent() is True  # thesis 5.1.2: recurrent networks
+    assert TrainSettings(preset="ch5-angle").ppo_kwargs()["policy"] is RecurrentFormationPolicy
+    assert TrainSettings(preset="ch4-individual").ppo_kwargs()["policy"] is FormationPolicy
+    assert TrainSettings(preset="ch5-bearing", recurrent=False).ppo_kwargs()["policy"] is FormationPolicy
+    lstm = TrainSettings(preset="ch4-individual", recurrent=True, cell="lstm").ppo_kwargs()
+    assert lstm["policy"] is RecurrentFormationPolicy and lstm["policy_kwargs"]["cell"] == "lstm"
+    assert lstm["policy_kwargs"]["action_scale"] == 0.01
+    with pytest.raises(ValueError, match="team critic"):
+        TrainSettings(preset="ch4-team", recurrent=True)
+    with pytest.raises(ValueError, match="cell"):
+        TrainSettings(cell="rnn")
+    assert TrainSettings(preset="ch5-bearing").to_dict()["recurrent"] is True
+    parser = build_parser()
+    assert train_settings(parser.parse_args(["train", "--no-recurrent"])).resolved_recurrent() is False
+    chosen = train_settings(parser.parse_args(["train", "--preset", "ch4-team", "--no-recurrent", "--cell", "lstm"]))
+    assert chosen.recurrent is False and chosen.ppo_kwargs()["policy"] is FormationPolicy
+
+
 def test_training_env_is_placed_for_the_curriculum_stage() -> None:
     env = make_training_env(TrainSettings(n_envs=2, env={"max_steps": 20}), stage=3)
     env.seed(0)
@@ -179,8 +201,11 @@ def wait_for(predicate, timeout: float = 240.0) -> None:
 
 
 @pytest.mark.slow
-def test_killed_run_resumes_with_stage_timesteps_and_statistics(tmp_path: Path) -> None:
-    arguments = ["train", "--iterations", "2,2,4", "--checkpoint-every", "1", "--logdir", "runs", *QUICK]
+def test_killed_recurrent_run_resumes_evaluates_and_renders(tmp_path: Path) -> None:
+    """`train --reward bearing --agents 6` trains the recurrent policy (chapter 5) through checkpoints, a SIGKILL and a
+    resume with the same stage, timesteps and statistics; the result is evaluated and rendered."""
+    arguments = ["train", "--reward", "bearing", "--agents", "6", "--iterations", "2,2,4", "--checkpoint-every", "1"]
+    arguments += ["--logdir", "runs", *QUICK]
     process = run_cli(*arguments, cwd=tmp_path)
     wait_for(lambda: (tmp_path / "runs").exists() and any((tmp_path / "runs").iterdir()))
     run_dir = only_run_dir(tmp_path / "runs")
@@ -204,6 +229,13 @@ def test_killed_run_resumes_with_stage_timesteps_and_statistics(tmp_path: Path) 
     # normaliser statistics continue: two resets of every slot (start, resume) plus one row per slot and step
     with np.load(run_dir / "final_normalizer.npz") as statistics:
         assert float(statistics["count"]) == slots * (2 + 8 * 128)
+    assert yaml.safe_load((run_dir / "config.yaml").read_text())["recurrent"] is True
+    trained = load_trained(run_dir, device="cpu")
+    assert isinstance(trained.model, RecurrentFormationPPO) and trained.model.policy.cell == "gru"
+    assert main(["evaluate", str(run_dir), "--episodes", "2", "--n-envs", "2", "--no-progress"]) == 0
+    assert json.loads((run_dir / "eval" / "summary.json").read_text())["episodes"] == 2
+    assert main(["render", str(run_dir), "--max-steps", "4", "--out", str(tmp_path / "episode.gif")]) == 0
+    assert Image.open(tmp_path / "episode.gif").n_frames == 5
 
 
 @pytest.mark.slow
