@@ -2,9 +2,10 @@
 
 ch5-bearing, n = 6, the thesis's 14 teams (84 agent slots), PPO with the thesis's settings and networks (n_steps 128,
 batch 512, 10 epochs). Each iteration collects 128 x 84 = 10,752 agent-steps, then trains on them. Prints medians
-over the timed iterations (after one warm-up iteration) for one and two worker processes.
+over the timed iterations (after one warm-up iteration) for the MLP policy (chapter 4's networks) and the recurrent
+ones of chapter 5 (GRU, LSTM), with one worker process (``--workers 1,2`` adds more).
 
-Usage: ``python benchmarks/train_throughput.py [--iterations 4] [--workers 1,2]``
+Usage: ``python benchmarks/train_throughput.py [--iterations 4] [--workers 1] [--policies mlp,gru,lstm]``
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_formation import make_formation_vec_env
-from sb3_formation.training import thesis_ppo_kwargs
+from sb3_formation.recurrent import RecurrentFormationPolicy
+from sb3_formation.training import algorithm_for, thesis_ppo_kwargs
 
 
 class PhaseTimer(BaseCallback):
@@ -48,10 +50,14 @@ class PhaseTimer(BaseCallback):
         return True
 
 
-def measure(workers: int, iterations: int, preset: str = "ch5-bearing") -> tuple[float, float, float, int]:
-    """Median rollout, training and gradient-floor seconds per iteration, and agent-steps per iteration."""
+def measure(workers: int, iterations: int, policy: str, preset: str = "ch5-bearing") -> tuple[float, float, float, int]:
+    """Median rollout, training and gradient-floor seconds per iteration, and agent-steps per iteration.
+
+    :param policy: ``"mlp"``, ``"gru"`` or ``"lstm"``
+    """
     env = make_formation_vec_env(preset, seed=0, n_workers=workers)
-    model = PPO(env=env, seed=0, device="cpu", **thesis_ppo_kwargs(preset))
+    kwargs = thesis_ppo_kwargs(preset, recurrent=policy != "mlp", cell="gru" if policy == "mlp" else policy)
+    model = algorithm_for(kwargs["policy"])(env=env, seed=0, device="cpu", **kwargs)
     timer = PhaseTimer()
     steps = model.n_steps * env.num_envs
     model.learn((iterations + 1) * steps, callback=timer)
@@ -62,15 +68,21 @@ def measure(workers: int, iterations: int, preset: str = "ch5-bearing") -> tuple
 
 def gradient_floor(model: PPO) -> float:
     """Reference: seconds of the bare gradient work of one iteration (forward, backward and Adam step of the same
-    networks on as many minibatches as PPO trains on), without PPO's losses, buffers or bookkeeping."""
+    networks on as many minibatches as PPO trains on), without PPO's losses, buffers or bookkeeping. Recurrent
+    networks run over minibatches of whole 128-step sequences (no episode ends inside a rollout, as here)."""
     policy = model.policy
     samples = model.n_steps * model.get_env().num_envs
     minibatches = model.n_epochs * -(-samples // model.batch_size)
-    observations = th.randn(model.batch_size, *model.observation_space.shape)
-    actions = th.zeros(model.batch_size, 2)
+    recurrent = isinstance(policy, RecurrentFormationPolicy)
+    shape = (model.n_steps, model.batch_size // model.n_steps) if recurrent else (model.batch_size,)
+    observations = th.randn(*shape, *model.observation_space.shape)
+    actions = th.zeros(*shape, 2)
     start = time.perf_counter()
     for _ in range(minibatches):
-        values, log_prob, _ = policy.evaluate_actions(observations, actions)
+        if recurrent:
+            values, log_prob, _ = policy.evaluate_sequences(observations, actions, policy.initial_state(shape[1]))
+        else:
+            values, log_prob, _ = policy.evaluate_actions(observations, actions)
         loss = values.square().mean() - log_prob.mean()
         policy.optimizer.zero_grad()
         loss.backward()
@@ -81,22 +93,29 @@ def gradient_floor(model: PPO) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--iterations", type=int, default=4)
-    parser.add_argument("--workers", default="1,2")
+    parser.add_argument("--workers", default="1")
+    parser.add_argument("--policies", default="mlp,gru,lstm")
     args = parser.parse_args()
     print(f"PPO throughput, ch5-bearing, n = 6, 14 teams, thesis networks and settings; torch threads {th.get_num_threads()}")
     print(f"medians of {args.iterations} iterations after one warm-up")
-    for workers in (int(value) for value in args.workers.split(",")):
-        rollout, training, floor, steps = measure(workers, args.iterations)
-        total = rollout + training
-        print(
-            f"  workers={workers}: rollout {rollout:5.2f} s + training {training:5.2f} s per iteration of {steps} "
-            f"agent-steps -> {steps / total:,.0f} agent-steps/s; rollout share {rollout / total:.0%}"
-        )
-        print(
-            f"             reference, bare gradient work of an iteration {floor:5.2f} s: training / reference "
-            f"{training / floor:.2f}x; the whole loop at this machine's gradient speed could reach at most "
-            f"{steps / floor:,.0f} agent-steps/s"
-        )
+    throughput: dict[str, float] = {}
+    for policy in args.policies.split(","):
+        for workers in (int(value) for value in args.workers.split(",")):
+            rollout, training, floor, steps = measure(workers, args.iterations, policy)
+            total = rollout + training
+            throughput.setdefault(policy, steps / total)
+            print(
+                f"  {policy:<4} workers={workers}: rollout {rollout:5.2f} s + training {training:5.2f} s per iteration of "
+                f"{steps} agent-steps -> {steps / total:,.0f} agent-steps/s; rollout share {rollout / total:.0%}"
+            )
+            print(
+                f"             reference, bare gradient work of an iteration {floor:5.2f} s: training / reference "
+                f"{training / floor:.2f}x; the whole loop at this machine's gradient speed could reach at most "
+                f"{steps / floor:,.0f} agent-steps/s"
+            )
+    if "mlp" in throughput:
+        for policy in throughput.keys() - {"mlp"}:
+            print(f"  {policy} / mlp throughput: {throughput[policy] / throughput['mlp']:.2f}x")
     print("  targets: >= 2,000 agent-steps/s overall, rollout < 20 % of an iteration")
 
 
