@@ -185,7 +185,9 @@ class RecurrentFormationPolicy(BasePolicy):
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
+        data.pop("normalize_images", None)  # observations are flat vectors
         data.update(
+            lr_schedule=self._dummy_schedule,  # not needed to load the policy alone (as in SB3's ActorCriticPolicy)
             net_arch=self.net_arch,
             cell=self.cell,
             activation_fn=self.activation_fn,
