@@ -23,6 +23,7 @@ from sb3_formation.evaluation import (
     EPISODE_METRICS,
     Trajectories,
     check_model_fits,
+    comparison_table,
     evaluate,
     wilson_interval,
 )
@@ -476,3 +477,31 @@ def test_evaluate_rejects_bad_worker_and_record_counts(tiny: SimpleNamespace) ->
         evaluate(tiny.trained, episodes=2, n_envs=2, n_workers=3)
     with pytest.raises(ValueError, match="record"):
         evaluate(tiny.trained, episodes=2, record=-1)
+
+
+def test_comparison_table_rows_hold_rate_interval_and_mean_std() -> None:
+    def summary(successes: int, angle: float | None) -> dict[str, Any]:
+        statistics = {name: {"mean": None, "std": None} for name in EPISODE_METRICS}
+        if angle is not None:
+            statistics = {name: {"mean": 2.0, "std": 0.5} for name in EPISODE_METRICS}
+            statistics["angle_error_deg"] = {"mean": angle, "std": 3.25}
+            statistics["length"] = {"mean": 1234.4, "std": 101.0}
+        return {
+            "episodes": 10,
+            "success_rate": successes / 10,
+            "success_rate_ci95": list(wilson_interval(successes, 10)),
+            "successful_episodes": statistics,
+        }
+
+    lines = comparison_table({"team": summary(5, 31.25), "individual": summary(0, None)}).splitlines()
+    assert lines[0] == (
+        "| policy | episodes | success rate (95 % CI) | angle error (deg) | bearing error | distance error (m) | steps "
+        "| obstacle collisions | agent collisions |"
+    )
+    # 5/10: Wilson 23.7 % - 76.3 % (hand-computed above); 31.25 -> one decimal, 1234.4 -> whole, 2.0 -> 3 digits
+    assert (
+        lines[2] == "| team | 10 | 50.0% (23.7% - 76.3%) | 31.2 ± 3.25 | 2 ± 0.5 | 2 ± 0.5 | 1234 ± 101 | 2 ± 0.5 | 2 ± 0.5 |"
+    )
+    assert lines[3] == "| individual | 10 | 0.0% (0.0% - 27.8%) | - | - | - | - | - | - |"
+    with pytest.raises(ValueError, match="over"):
+        comparison_table({}, over="some")

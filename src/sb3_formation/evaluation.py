@@ -564,6 +564,13 @@ def comparison_table(summaries: dict[str, dict[str, Any]], over: str = "successf
         cells = [label, str(summary["episodes"]), f"{summary['success_rate']:.1%} ({low:.1%} - {high:.1%})"]
         for name, _ in TABLE_METRICS:
             statistics = summary[f"{over}_episodes"][name]
-            cells.append("-" if statistics["mean"] is None else f"{statistics['mean']:.3g} ± {statistics['std']:.2g}")
+            cells.append("-" if statistics["mean"] is None else f"{_number(statistics['mean'])} ± {_number(statistics['std'])}")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def _number(value: float) -> str:
+    """A table number: whole from 100, one decimal from 10, three significant digits below."""
+    if abs(value) >= 100:
+        return f"{value:.0f}"
+    return f"{value:.1f}" if abs(value) >= 10 else f"{value:.3g}"

@@ -20,7 +20,6 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, Patch, Polygon
 
 from .evaluation import Trajectories
-from .geometry import ring_neighbours
 from .rendering import AGENT_COLOURS
 from .training import atomic_write_text, load_settings
 
@@ -111,12 +110,8 @@ def plot_trajectory(trajectories: Trajectories, index: int, every: int = 25) -> 
     goal = trajectories.goals[row]
     ax.add_patch(Circle(tuple(goal), config.eta_g, fill=False, edgecolor=GOAL_COLOUR, linestyle="--", linewidth=1.5))
     ax.plot(*goal, marker="*", color=GOAL_COLOUR, markersize=10, linestyle="none")
-    order = [0]  # follow each agent's succeeding neighbour around the ring
-    successor = ring_neighbours(n_agents)[:, 1]
-    while len(order) < n_agents:
-        order.append(int(successor[order[-1]]))
     for step in polygon_steps:
-        vertices = positions[step, order]
+        vertices = positions[step]  # the ring 0 -> 1 -> ... -> n - 1 -> 0
         polygon = Polygon(vertices, closed=True, fill=False, edgecolor="black", linewidth=0.8, alpha=0.35, zorder=2)
         polygon.set_gid("formation")
         ax.add_patch(polygon)
