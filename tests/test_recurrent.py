@@ -21,6 +21,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 from torch import nn
 
 from sb3_formation.recurrent import (
+    DEFAULT_MAX_SEQUENCE_LENGTH,
     RecurrentFormationPolicy,
     RecurrentFormationPPO,
     RecurrentRolloutBuffer,
@@ -217,7 +218,12 @@ def test_sequence_layout_hand_example() -> None:
     np.testing.assert_array_equal(layout.position, [0, 1, 0, 1, 2, 0, 1, 2, 3, 4])
     np.testing.assert_array_equal(layout.lengths, [2, 3, 5])
     np.testing.assert_array_equal(layout.slots, [0, 0, 1])
-    np.testing.assert_array_equal(layout.carries_state, [True, False, False])
+    np.testing.assert_array_equal(layout.first_steps, [0, 2, 0])
+    # at most 2 steps: slot 0 [t0-1], [t2-3], [t4]; slot 1 [t0-1], [t2-3], [t4]
+    short = sequence_layout(starts, max_length=2)
+    np.testing.assert_array_equal(short.lengths, [2, 2, 1, 2, 2, 1])
+    np.testing.assert_array_equal(short.first_steps, [0, 2, 4, 0, 2, 4])
+    np.testing.assert_array_equal(short.slots, [0, 0, 0, 1, 1, 1])
 
 
 def test_sequence_layout_second_hand_example() -> None:
@@ -229,18 +235,19 @@ def test_sequence_layout_second_hand_example() -> None:
     np.testing.assert_array_equal(layout.position, [0, 1, 2, 3, 0, 0, 1, 0, 0, 0, 1, 2])
     np.testing.assert_array_equal(layout.lengths, [4, 1, 2, 1, 1, 3])
     np.testing.assert_array_equal(layout.slots, [0, 1, 1, 1, 2, 2])
-    np.testing.assert_array_equal(layout.carries_state, [True, True, False, False, False, False])
+    np.testing.assert_array_equal(layout.first_steps, [0, 0, 1, 3, 0, 1])
 
 
-def test_sequence_layout_random_arrays_never_cross_slots_or_episode_starts() -> None:
+@pytest.mark.parametrize("max_length", [None, 1, 2, 3])
+def test_sequence_layout_random_arrays_never_cross_slots_or_episode_starts(max_length: int | None) -> None:
     rng = np.random.default_rng(1234)
     for _ in range(200):
         steps, slots = int(rng.integers(1, 9)), int(rng.integers(1, 5))
         starts = rng.random((steps, slots)) < rng.choice([0.1, 0.4, 0.9])
-        layout = sequence_layout(starts.astype(np.float32))
+        layout = sequence_layout(starts.astype(np.float32), max_length)
         count = len(layout.lengths)
         assert layout.sequence.shape == layout.position.shape == (steps * slots,)
-        assert layout.slots.shape == layout.carries_state.shape == (count,)
+        assert layout.slots.shape == layout.first_steps.shape == (count,)
         members: dict[int, list[tuple[int, int]]] = {s: [] for s in range(count)}
         for slot in range(slots):
             for t in range(steps):
@@ -251,21 +258,24 @@ def test_sequence_layout_random_arrays_never_cross_slots_or_episode_starts() -> 
             times = [t for t, _ in steps_of]
             assert {slot for _, slot in steps_of} == {int(layout.slots[s])}
             assert times == list(range(times[0], times[0] + len(times)))  # consecutive in time
-            assert layout.lengths[s] == len(times)
+            assert layout.lengths[s] == len(times) and layout.first_steps[s] == times[0]
+            assert max_length is None or len(times) <= max_length
             np.testing.assert_array_equal(layout.position[[slot * steps + t for t, slot in steps_of]], range(len(times)))
             slot = int(layout.slots[s])
             assert not starts[times[1:], slot].any()  # only the first step may start an episode
-            assert times[0] == 0 or starts[times[0], slot]  # cut only at the rollout's start or an episode start
-            assert layout.carries_state[s] == (times[0] == 0 and not starts[0, slot])
-        assert count == slots + int(starts[1:].sum())
+            # cut only at the rollout's start, an episode start or a multiple of max_length
+            assert times[0] == 0 or starts[times[0], slot] or (max_length is not None and times[0] % max_length == 0)
+        cuts = np.zeros((steps, slots), dtype=bool)
+        cuts[:: max_length or steps] = True
+        assert count == int((cuts | starts).sum())
 
 
 # ---------------------------------------------------------------------------------------------------------------------
 # 2. RecurrentRolloutBuffer.sequence_batches
 
 
-def fill_buffer(starts: np.ndarray, cell: str) -> RecurrentRolloutBuffer:
-    """A full buffer whose entries encode (t, slot), with distinctive initial states per slot."""
+def fill_buffer(starts: np.ndarray, cell: str, max_length: int | None = None) -> RecurrentRolloutBuffer:
+    """A full buffer whose entries encode (t, slot), with distinctive states per (t, slot) (zeros at episode starts)."""
     steps, slots = starts.shape
     buffer = RecurrentRolloutBuffer(
         steps,
@@ -276,35 +286,38 @@ def fill_buffer(starts: np.ndarray, cell: str) -> RecurrentRolloutBuffer:
         gamma=0.8,
         n_envs=slots,
     )
+    buffer.max_sequence_length = max_length
     n = np.arange(slots, dtype=np.float32)
+    count = 1 if cell == "gru" else 2
     for t in range(steps):
         obs = np.stack([n, np.full(slots, t), 100 + 10 * n + t], axis=1).astype(np.float32)
         actions = np.stack([np.full(slots, t + 0.5), -n], axis=1).astype(np.float32)
         values = th.as_tensor(0.1 * (t + 1) * (n + 1)).view(-1, 1)
         log_probs = th.as_tensor(-(t + 10 * n) / 10)
+        keep = th.as_tensor(1.0 - starts[t], dtype=th.float32).view(1, -1, 1)
+        slot_ids = th.arange(slots).view(1, -1, 1) + 1
+        pi = tuple(keep * ((k + 1) * slot_ids + t + 0.01 * th.arange(PI_HIDDEN)) for k in range(count))
+        vf = tuple(keep * (-(k + 1) * slot_ids - t - 0.01 * th.arange(VF_HIDDEN)) for k in range(count))
+        buffer.add_states(RecurrentStates(tuple(x.float() for x in pi), tuple(x.float() for x in vf)))
         buffer.add(obs, actions, 1 + t + n, starts[t], values, log_probs)
     buffer.compute_returns_and_advantage(last_values=th.linspace(-1, 1, slots), dones=np.arange(slots) % 2 == 1)
-    count = 1 if cell == "gru" else 2
-    pi = tuple((k + 1) * (th.arange(slots).view(1, -1, 1) + 1) + 0.01 * th.arange(PI_HIDDEN) for k in range(count))
-    vf = tuple(-(k + 1) * (th.arange(slots).view(1, -1, 1) + 1) - 0.01 * th.arange(VF_HIDDEN) for k in range(count))
-    buffer.initial_states = RecurrentStates(tuple(x.float() for x in pi), tuple(x.float() for x in vf))
     return buffer
 
 
-def expected_sequences(starts: np.ndarray) -> set[tuple[int, int, int, bool]]:
-    """(slot, first t, length, carries the stored state) of each sequence, by a plain loop."""
+def expected_sequences(starts: np.ndarray, max_length: int | None = None) -> set[tuple[int, int, int]]:
+    """(slot, first t, length) of each sequence, by a plain loop."""
     steps, slots = starts.shape
     sequences = set()
     for slot in range(slots):
         first = 0
         for t in range(1, steps + 1):
-            if t == steps or starts[t, slot]:
-                sequences.add((slot, first, t - first, first == 0 and not starts[0, slot]))
+            if t == steps or starts[t, slot] or (max_length is not None and t % max_length == 0):
+                sequences.add((slot, first, t - first))
                 first = t
     return sequences
 
 
-def check_batches(buffer: RecurrentRolloutBuffer, batch_size: int, expected: set[tuple[int, int, int, bool]]) -> None:
+def check_batches(buffer: RecurrentRolloutBuffer, batch_size: int, expected: set[tuple[int, int, int]]) -> None:
     steps, slots = buffer.buffer_size, buffer.n_envs
     arrays = {
         "observations": buffer.observations,
@@ -315,9 +328,9 @@ def check_batches(buffer: RecurrentRolloutBuffer, batch_size: int, expected: set
         "returns": buffer.returns,
     }
     seen_steps: list[tuple[int, int]] = []
-    seen_sequences: list[tuple[int, int, int, bool]] = []
+    seen_sequences: list[tuple[int, int, int]] = []
     batches = list(buffer.sequence_batches(batch_size))
-    longest = max(length for _, _, length, _ in expected)
+    longest = max(length for _, _, length in expected)
     assert len(batches) <= math.ceil(steps * slots / batch_size)
     for batch in batches:
         mask = batch.mask.numpy()
@@ -334,19 +347,16 @@ def check_batches(buffer: RecurrentRolloutBuffer, batch_size: int, expected: set
             length = int(lengths[column])
             assert mask[:length, column].all() and not mask[length:, column].any()  # padding after the end only
             slot, first = (int(v) for v in batch.observations[0, column, :2])
-            carries = first == 0 and not buffer.episode_starts[0, slot]
-            seen_sequences.append((slot, first, length, carries))
+            seen_sequences.append((slot, first, length))
             seen_steps += [(t, slot) for t in range(first, first + length)]
             for name, array in arrays.items():
                 np.testing.assert_array_equal(
                     getattr(batch, name)[:length, column].numpy(), array[first : first + length, slot], err_msg=name
                 )
-            for got, stored in zip(
-                (*batch.states.pi, *batch.states.vf), (*buffer.initial_states.pi, *buffer.initial_states.vf)
-            ):
-                assert got.shape == (1, width, stored.shape[2])
-                want = stored[0, slot] if carries else th.zeros_like(stored[0, slot])
-                th.testing.assert_close(got[0, column], want, rtol=0, atol=0)
+            stored = buffer.step_states[first]  # the states the sequence's first step started from
+            for got, want in zip((*batch.states.pi, *batch.states.vf), (*stored.pi, *stored.vf)):
+                assert got.shape == (1, width, want.shape[2])
+                th.testing.assert_close(got[0, column], want[0, slot], rtol=0, atol=0)
     assert sorted(seen_sequences) == sorted(expected)
     assert sorted(seen_steps) == sorted((t, slot) for t in range(steps) for slot in range(slots))
 
@@ -356,13 +366,18 @@ def test_sequence_batches_hand_filled_buffer(cell: str) -> None:
     starts = np.zeros((6, 3), dtype=np.float32)
     starts[[0, 3], 0] = 1  # slot 0: episodes start at t = 0 and t = 3
     starts[[1, 5], 2] = 1  # slot 1 continues throughout; slot 2: starts at t = 1 and t = 5
-    expected = {(0, 0, 3, False), (0, 3, 3, False), (1, 0, 6, True), (2, 0, 1, True), (2, 1, 4, False), (2, 5, 1, False)}
+    expected = {(0, 0, 3), (0, 3, 3), (1, 0, 6), (2, 0, 1), (2, 1, 4), (2, 5, 1)}
     assert expected_sequences(starts) == expected  # the helper agrees with the hand count
     buffer = fill_buffer(starts, cell)
     for batch_size in (1, 3, 4, 7, 18, 100):
         for seed in range(3):
             np.random.seed(seed)  # noqa: NPY002 - sequence_batches shuffles with numpy's global generator
             check_batches(buffer, batch_size, expected)
+    # at most 4 steps: slot 1's 6 steps become [t0-3], [t4-5]; slot 2's [t1-4] becomes [t1-3], [t4]
+    short = {(0, 0, 3), (0, 3, 1), (0, 4, 2), (1, 0, 4), (1, 4, 2), (2, 0, 1), (2, 1, 3), (2, 4, 1), (2, 5, 1)}
+    assert expected_sequences(starts, 4) == short
+    np.random.seed(0)  # noqa: NPY002
+    check_batches(fill_buffer(starts, cell, max_length=4), 5, short)
     np.random.seed(0)  # noqa: NPY002
     assert [b.mask.shape[1] for b in buffer.sequence_batches(1)] == [1] * 6  # one sequence per batch
     assert [b.mask.shape[1] for b in buffer.sequence_batches(18)] == [6]  # everything in one batch
@@ -373,9 +388,10 @@ def test_sequence_batches_random_buffers() -> None:
     for _ in range(20):
         steps, slots = int(rng.integers(1, 8)), int(rng.integers(1, 4))
         starts = (rng.random((steps, slots)) < 0.3).astype(np.float32)
-        buffer = fill_buffer(starts, "lstm")
+        max_length = [None, 1, 2, 3][int(rng.integers(4))]
+        buffer = fill_buffer(starts, "lstm", max_length)
         np.random.seed(int(rng.integers(1000)))  # noqa: NPY002
-        check_batches(buffer, int(rng.integers(1, 10)), expected_sequences(starts))
+        check_batches(buffer, int(rng.integers(1, 10)), expected_sequences(starts, max_length))
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -547,7 +563,8 @@ class Recorder(BaseCallback):
         record = self.rollouts[-1]
         for name in ("observations", "actions", "rewards", "episode_starts", "values", "log_probs", "returns", "advantages"):
             record[name] = getattr(buffer, name).copy()
-        record["initial_states"] = RecurrentStates(*(tuple(x.clone() for x in s) for s in buffer.initial_states))
+        record["step_states"] = [RecurrentStates(*(tuple(x.clone() for x in s) for s in step)) for step in buffer.step_states]
+        record["initial_states"] = record["step_states"][0]
         record["last_states"] = RecurrentStates(*(tuple(x.clone() for x in s) for s in self.model._last_states))
 
     def _on_step(self) -> bool:
@@ -595,6 +612,11 @@ def test_collect_rollouts_replayed_step_by_step(cell: str) -> None:
                 assert rollout["episode_starts"][t, slot] == (step == 0)
                 if step == 0:
                     ref_pi[slot], ref_vf[slot] = reference.zeros("pi"), reference.zeros("vf")
+                entering = rollout["step_states"][t]  # stored for the update: the states this step started from
+                for got, want in zip(
+                    (*slot_state(entering.pi, slot), *slot_state(entering.vf, slot)), (*ref_pi[slot], *ref_vf[slot])
+                ):
+                    np.testing.assert_allclose(got, want, atol=1e-5)
                 mean, ref_pi[slot] = reference.actor_step(obs, ref_pi[slot])
                 values[t, slot], ref_vf[slot] = reference.critic_step(obs, ref_vf[slot])
                 np.testing.assert_allclose(rollout["values"][t, slot], values[t, slot], atol=2e-5)
@@ -762,3 +784,15 @@ def test_ppo_accepts_the_policy_name_and_a_subclass() -> None:
     assert isinstance(by_name.rollout_buffer, RecurrentRolloutBuffer)
     by_subclass = RecurrentFormationPPO(Subclass, make_env(), **small)
     assert type(by_subclass.policy) is Subclass
+
+
+def test_max_sequence_length_is_validated_and_saved(tmp_path: Path) -> None:
+    for bad in (0, -3, 2.5):
+        with pytest.raises(ValueError, match="max_sequence_length"):
+            make_model("gru", max_sequence_length=bad)
+    model = make_model("gru", max_sequence_length=3)
+    assert model.rollout_buffer.max_sequence_length == 3
+    model.save(tmp_path / "model.zip")
+    loaded = RecurrentFormationPPO.load(tmp_path / "model.zip", device="cpu")
+    assert loaded.max_sequence_length == loaded.rollout_buffer.max_sequence_length == 3
+    assert make_model("gru").max_sequence_length == DEFAULT_MAX_SEQUENCE_LENGTH == 16

@@ -564,7 +564,9 @@ def comparison_table(summaries: dict[str, dict[str, Any]], over: str = "successf
         cells = [label, str(summary["episodes"]), f"{summary['success_rate']:.1%} ({low:.1%} - {high:.1%})"]
         for name, _ in TABLE_METRICS:
             statistics = summary[f"{over}_episodes"][name]
-            cells.append("-" if statistics["mean"] is None else f"{_number(statistics['mean'])} ± {_number(statistics['std'])}")
+            cells.append(
+                "-" if statistics["mean"] is None else f"{_number(statistics['mean'])} ± {_number(statistics['std'])}"
+            )
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -3,10 +3,10 @@
 - :class:`RecurrentFormationPolicy`: actor 512 dense -> 256 recurrent -> 2 (fig. 5.1), critic 512 dense -> 512
   recurrent -> 256 dense -> 1 (fig. 5.2); GRU or LSTM cells; tanh activations, bounded action mean and fixed sigma
   as in :class:`~sb3_formation.policies.FormationPolicy`.
-- :class:`RecurrentRolloutBuffer`: SB3's ``RolloutBuffer`` plus each slot's hidden states at the rollout's start. For
-  training it cuts every slot's rollout into sequences at episode starts, so a sequence never spans two slots or two
-  episodes, and builds minibatches of whole sequences, padded to one length and masked, without a Python loop over
-  the sequences.
+- :class:`RecurrentRolloutBuffer`: SB3's ``RolloutBuffer`` plus the hidden states each step started from. For training
+  it cuts every slot's rollout into sequences at episode starts (and every ``max_sequence_length`` steps), so a
+  sequence never spans two slots or two episodes, and builds minibatches of whole sequences, padded to one length and
+  masked, without a Python loop over the sequences.
 - :class:`RecurrentFormationPPO`: SB3's ``PPO`` whose rollouts carry the hidden states (reset per slot at its
   episode's start) and whose update replays each sequence from its stored starting state.
 """
@@ -43,6 +43,11 @@ DEFAULT_RECURRENT_NET_ARCH: dict[str, Any] = {
     "vf_recurrent": 512,
     "vf_after": [256],
 }
+
+#: Longest sequence replayed in an update: 16 steps. Measured (benchmarks/train_throughput.py set-up, one minibatch of
+#: 512 steps, thesis networks): GRU 200 ms with 4 sequences of 128 steps, 86 ms with 32 of 16 (LSTM 204 -> 125 ms);
+#: shorter sequences gain little more. RLlib, the thesis's tool, cuts at 20 by default.
+DEFAULT_MAX_SEQUENCE_LENGTH = 16
 
 #: A recurrent head's state: ``(h,)`` for a GRU, ``(h, c)`` for an LSTM; each ``(1, n, hidden)``.
 CellState = tuple[th.Tensor, ...]
@@ -306,50 +311,60 @@ class SequenceLayout(NamedTuple):
     :param position: ``(N * T,)`` position of each step within its sequence
     :param lengths: ``(S,)`` sequence lengths
     :param slots: ``(S,)`` slot of each sequence
-    :param carries_state: ``(S,)`` whether a sequence starts from the rollout's stored state (it starts at t = 0 in a
-        continuing episode) rather than from zeros (it starts an episode)
+    :param first_steps: ``(S,)`` time step at which each sequence starts
     """
 
     sequence: np.ndarray
     position: np.ndarray
     lengths: np.ndarray
     slots: np.ndarray
-    carries_state: np.ndarray
+    first_steps: np.ndarray
 
 
-def sequence_layout(episode_starts: np.ndarray) -> SequenceLayout:
-    """Cut each slot's steps into sequences at the rollout's start and at every episode start.
+def sequence_layout(episode_starts: np.ndarray, max_length: int | None = None) -> SequenceLayout:
+    """Cut each slot's steps into sequences at the rollout's start, at every episode start and, with ``max_length``,
+    every ``max_length`` steps of the rollout (t = 0, max_length, 2 max_length, ...).
 
     :param episode_starts: ``(T, N)`` flags: the step is the first of an episode
+    :param max_length: longest sequence (``None``: the rollout's length)
     """
     steps = episode_starts.shape[0]
     starts = episode_starts.astype(bool).T.copy()  # (N, T), slot-major
-    continuing = ~starts[:, 0]
-    starts[:, 0] = True
+    starts[:, :: max_length or steps] = True
     flat = starts.reshape(-1)
     sequence = np.cumsum(flat) - 1
     first = np.flatnonzero(flat)
     lengths = np.diff(np.append(first, flat.size))
     position = np.arange(flat.size) - first[sequence]
-    return SequenceLayout(sequence, position, lengths, first // steps, (first % steps == 0) & continuing[first // steps])
+    return SequenceLayout(sequence, position, lengths, first // steps, first % steps)
 
 
 class RecurrentRolloutBuffer(RolloutBuffer):
-    """SB3's ``RolloutBuffer`` plus the slots' hidden states at the rollout's start, served as sequence minibatches.
+    """SB3's ``RolloutBuffer`` plus the hidden states each step started from, served as sequence minibatches.
 
-    Arguments are those of :class:`~stable_baselines3.common.buffers.RolloutBuffer`.
+    Arguments are those of :class:`~stable_baselines3.common.buffers.RolloutBuffer`; ``max_sequence_length`` cuts the
+    sequences (see :func:`sequence_layout`).
     """
 
-    initial_states: RecurrentStates | None = None
+    max_sequence_length: int | None = None
+
+    def reset(self) -> None:
+        super().reset()
+        self.step_states: list[RecurrentStates] = []
+
+    def add_states(self, states: RecurrentStates) -> None:
+        """Store the states (already reset where an episode starts) from which the slots act at the next ``add``."""
+        self.step_states.append(states)
 
     def sequence_batches(self, batch_size: int) -> Generator[SequenceBatch, None, None]:
         """Minibatches of whole sequences in random order, each about ``batch_size`` steps (at least one sequence).
 
-        A sequence is the steps of one slot from the rollout's start or an episode start to the step before the next
-        episode start or the rollout's end, so no minibatch row mixes slots or episodes.
+        A sequence is the steps of one slot from the rollout's start, an episode start or a multiple of
+        ``max_sequence_length`` to the step before the next one, so no minibatch row mixes slots or episodes. It is
+        replayed from the states stored for its first step.
         """
-        assert self.full and self.initial_states is not None, "fill the buffer (and its initial states) first"
-        layout = sequence_layout(self.episode_starts)
+        assert self.full and len(self.step_states) == self.buffer_size, "fill the buffer (and its states) first"
+        layout = sequence_layout(self.episode_starts, self.max_sequence_length)
         count, longest = len(layout.lengths), int(layout.lengths.max())
         mask = np.zeros((longest, count), dtype=bool)
         mask[layout.position, layout.sequence] = True
@@ -361,11 +376,17 @@ class RecurrentRolloutBuffer(RolloutBuffer):
             return self.to_torch(out)
 
         observations, actions = padded(self.observations), padded(self.actions)
-        values, log_probs, advantages, returns = (
-            padded(a) for a in (self.values, self.log_probs, self.advantages, self.returns)
+        values, log_probs = padded(self.values), padded(self.log_probs)
+        advantages, returns = padded(self.advantages), padded(self.returns)
+        steps, slots = (th.as_tensor(index, device=self.device) for index in (layout.first_steps, layout.slots))
+
+        def first_states(part: int, component: int) -> th.Tensor:
+            history = th.stack([states[part][component] for states in self.step_states])  # (T, 1, N, hidden)
+            return history[steps, 0, slots].unsqueeze(0)  # (1, S, hidden)
+
+        states = RecurrentStates(
+            *(tuple(first_states(part, component) for component in range(len(self.step_states[0][part]))) for part in (0, 1))
         )
-        keep = self.to_torch(layout.carries_state.astype(np.float32))
-        states = self.initial_states.select(th.as_tensor(layout.slots, device=self.device)).masked(keep)
         order = np.random.permutation(count)  # noqa: NPY002 - SB3 seeds numpy's global generator (set_random_seed)
         batch_of = (np.cumsum(layout.lengths[order]) - 1) // batch_size
         for batch in np.unique(batch_of):
@@ -395,13 +416,14 @@ class RecurrentFormationPPO(PPO):
 
     - Each slot's actor and critic states are carried from step to step and reset when the slot's episode starts;
       time-outs are bootstrapped with the critic's state after the last real step.
-    - The update cuts every slot's rollout into sequences at episode starts and forms minibatches of about
-      ``batch_size`` steps of whole sequences; each sequence is replayed from its state at the rollout's start (or
-      zeros at an episode start); losses are means over the real (unpadded) steps; advantages are normalised per
-      minibatch over those steps.
+    - The update cuts every slot's rollout into sequences at episode starts and every ``max_sequence_length`` steps,
+      and forms minibatches of about ``batch_size`` steps of whole sequences; each sequence is replayed from the
+      states stored for its first step during the rollout (zeros at an episode start); losses are means over the real
+      (unpadded) steps; advantages are normalised per minibatch over those steps.
 
     :param policy: :class:`RecurrentFormationPolicy` (the default)
     :param env: the environment
+    :param max_sequence_length: longest sequence replayed in an update (``None``: up to the rollout's length)
     :param kwargs: SB3 ``PPO`` arguments
     """
 
@@ -409,8 +431,15 @@ class RecurrentFormationPPO(PPO):
     rollout_buffer: RecurrentRolloutBuffer
 
     def __init__(
-        self, policy: type[RecurrentFormationPolicy] | str = RecurrentFormationPolicy, env: Any = None, **kwargs: Any
-    ):
+        self,
+        policy: type[RecurrentFormationPolicy] | str = RecurrentFormationPolicy,
+        env: Any = None,
+        max_sequence_length: int | None = DEFAULT_MAX_SEQUENCE_LENGTH,
+        **kwargs: Any,
+    ) -> None:
+        if max_sequence_length is not None and not (isinstance(max_sequence_length, int) and max_sequence_length >= 1):
+            raise ValueError(f"max_sequence_length must be None or an integer >= 1, got {max_sequence_length!r}")
+        self.max_sequence_length = max_sequence_length
         if policy == "RecurrentFormationPolicy":
             policy = RecurrentFormationPolicy
         if not (isinstance(policy, type) and issubclass(policy, RecurrentFormationPolicy)):
@@ -422,6 +451,7 @@ class RecurrentFormationPPO(PPO):
 
     def _setup_model(self) -> None:
         super()._setup_model()
+        self.rollout_buffer.max_sequence_length = self.max_sequence_length
         self._last_states = self.policy.initial_state(self.n_envs)
 
     def _excluded_save_params(self) -> list[str]:
@@ -436,13 +466,13 @@ class RecurrentFormationPPO(PPO):
         self.policy.set_training_mode(False)
         n_steps = 0
         rollout_buffer.reset()
-        rollout_buffer.initial_states = self._last_states
         callback.on_rollout_start()
         while n_steps < n_rollout_steps:
             with th.no_grad():
                 obs_tensor = obs_as_tensor(self._last_obs, self.device)
                 starts = th.as_tensor(self._last_episode_starts, dtype=th.float32, device=self.device)
-                actions, values, log_probs, self._last_states = self.policy(obs_tensor, self._last_states, starts)
+                entering = self._last_states.masked(1.0 - starts)  # reset where an episode starts
+                actions, values, log_probs, self._last_states = self.policy(obs_tensor, entering, starts)
             actions = actions.cpu().numpy()
             clipped_actions = np.clip(actions, self.action_space.low, self.action_space.high)
             new_obs, rewards, dones, infos = env.step(clipped_actions)
@@ -465,6 +495,7 @@ class RecurrentFormationPPO(PPO):
                         terminal, self._last_states.select(rows).vf, th.zeros(len(timeouts), device=self.device)
                     )
                 rewards[timeouts] += self.gamma * terminal_values.squeeze(-1).cpu().numpy()
+            rollout_buffer.add_states(entering)
             rollout_buffer.add(self._last_obs, actions, rewards, self._last_episode_starts, values, log_probs)
             self._last_obs = new_obs
             self._last_episode_starts = dones

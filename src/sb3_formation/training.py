@@ -137,6 +137,8 @@ class TrainSettings:
         if self.recurrent not in (None, True, False):
             raise ValueError(f"recurrent must be true, false or null (the preset's default), got {self.recurrent!r}")
         self.ppo_kwargs()  # validates recurrent, cell and the policy
+        if "max_sequence_length" in self.ppo and not self.resolved_recurrent():
+            raise ValueError("ppo: max_sequence_length applies to recurrent policies only; this run's policy is an MLP")
 
     @classmethod
     def field_names(cls) -> tuple[str, ...]:
@@ -229,7 +231,9 @@ def reduce_to_overrides(values: dict[str, Any]) -> dict[str, Any]:
 
 
 #: PPO settings a run may override (``ppo:`` in YAML).
-PPO_OVERRIDABLE = frozenset(set(THESIS_PPO) | {"ent_coef", "vf_coef", "max_grad_norm", "normalize_advantage", "policy_kwargs"})
+PPO_OVERRIDABLE = frozenset(
+    set(THESIS_PPO) | {"ent_coef", "vf_coef", "max_grad_norm", "normalize_advantage", "policy_kwargs", "max_sequence_length"}
+)
 
 
 # Atomic files and checkpoints ----------------------------------------------------------------------------------------
