@@ -69,12 +69,14 @@ def measure(workers: int, iterations: int, policy: str, preset: str = "ch5-beari
 def gradient_floor(model: PPO) -> float:
     """Reference: seconds of the bare gradient work of one iteration (forward, backward and Adam step of the same
     networks on as many minibatches as PPO trains on), without PPO's losses, buffers or bookkeeping. Recurrent
-    networks run over minibatches of whole 128-step sequences (no episode ends inside a rollout, as here)."""
+    networks run over minibatches of whole sequences of ``max_sequence_length`` steps (no episode ends inside a
+    rollout, as here)."""
     policy = model.policy
     samples = model.n_steps * model.get_env().num_envs
     minibatches = model.n_epochs * -(-samples // model.batch_size)
     recurrent = isinstance(policy, RecurrentFormationPolicy)
-    shape = (model.n_steps, model.batch_size // model.n_steps) if recurrent else (model.batch_size,)
+    length = (getattr(model, "max_sequence_length", None) or model.n_steps) if recurrent else 1
+    shape = (length, model.batch_size // length) if recurrent else (model.batch_size,)
     observations = th.randn(*shape, *model.observation_space.shape)
     actions = th.zeros(*shape, 2)
     start = time.perf_counter()

@@ -65,8 +65,13 @@ class RecurrentStates(NamedTuple):
 
     def masked(self, keep: th.Tensor) -> RecurrentStates:
         """Every state multiplied by ``keep`` (``(n,)``, 0 to reset a slot, 1 to keep it)."""
-        factor = keep.view(1, -1, 1)
-        return RecurrentStates(*(tuple(tensor * factor for tensor in state) for state in self))
+        return RecurrentStates(_kept(self.pi, keep), _kept(self.vf, keep))
+
+
+def _kept(state: CellState, keep: th.Tensor) -> CellState:
+    """``state`` with slot i's rows multiplied by ``keep[i]`` (0 resets the slot, 1 keeps it)."""
+    factor = keep.float().view(1, -1, 1)
+    return tuple(tensor * factor for tensor in state)
 
 
 def _mlp(input_dim: int, widths: list[int], activation_fn: type[nn.Module]) -> tuple[nn.Sequential, int]:
@@ -229,9 +234,8 @@ class RecurrentFormationPolicy(BasePolicy):
 
     def predict_values(self, obs: th.Tensor, vf_state: CellState, episode_starts: th.Tensor) -> th.Tensor:
         """Values ``(n, 1)`` of one step's observations from the critic's states (reset where ``episode_starts``)."""
-        keep = (1.0 - episode_starts.float()).view(1, -1, 1)
         features = self.extract_features(obs, self.features_extractor).unsqueeze(0)
-        critic_output, _ = self.critic(features, tuple(tensor * keep for tensor in vf_state))
+        critic_output, _ = self.critic(features, _kept(vf_state, 1.0 - episode_starts.float()))
         return self.value_net(critic_output[0])
 
     def evaluate_sequences(
@@ -280,12 +284,10 @@ class RecurrentFormationPolicy(BasePolicy):
                 if state is None
                 else tuple(th.as_tensor(np.asarray(array), dtype=th.float32, device=self.device) for array in state)
             )
-            starts = (
-                th.zeros(n, device=self.device) if episode_start is None else th.as_tensor(episode_start, device=self.device)
-            )
-            keep = (1.0 - starts.float().reshape(-1)).view(1, -1, 1)
+            if episode_start is not None:
+                pi_state = _kept(pi_state, 1.0 - th.as_tensor(episode_start, device=self.device).float().reshape(-1))
             features = self.extract_features(th.as_tensor(batch, device=self.device), self.features_extractor)
-            actor_output, pi_state = self.actor(features.unsqueeze(0), tuple(tensor * keep for tensor in pi_state))
+            actor_output, pi_state = self.actor(features.unsqueeze(0), pi_state)
             actions = self._distribution(actor_output[0]).get_actions(deterministic=deterministic)
         actions = np.clip(actions.cpu().numpy(), self.action_space.low, self.action_space.high)
         return (actions[0] if single else actions), tuple(tensor.cpu().numpy() for tensor in pi_state)
