@@ -505,3 +505,38 @@ def test_comparison_table_rows_hold_rate_interval_and_mean_std() -> None:
     assert lines[3] == "| individual | 10 | 0.0% (0.0% - 27.8%) | - | - | - | - | - | - |"
     with pytest.raises(ValueError, match="over"):
         comparison_table({}, over="some")
+
+
+class StepCounter:
+    """A stand-in for a recurrent policy: its state counts each slot's steps since its last episode start, and its
+    actions push towards the goal as :class:`TowardsGoal` does (so episodes end at different steps)."""
+
+    def __init__(self, towards_goal: TowardsGoal) -> None:
+        self.towards_goal = towards_goal
+        self.calls: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (episode_start, state in, state out)
+
+    def predict(
+        self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
+    ) -> tuple[np.ndarray, tuple[np.ndarray]]:
+        counts = np.zeros(len(observation)) if state is None else state[0].copy()
+        counts[episode_start] = 0
+        self.calls.append((episode_start.copy(), counts.copy(), counts + 1))
+        return self.towards_goal.predict(observation)[0], (counts + 1,)
+
+
+def test_evaluate_carries_recurrent_states_and_flags_episode_starts(tiny: SimpleNamespace) -> None:
+    trained = scripted(tiny, variance=1.0)
+    counter = StepCounter(trained.model)
+    result = evaluate(dataclasses.replace(trained, model=counter), episodes=5, stage=1, seed=3, n_envs=2, env_overrides=FAST)
+    n_agents = trained.config.n_agents
+    assert counter.calls[0][0].all()  # every slot starts an episode at the first call
+    for (_, _, returned), (starts, received, _) in zip(counter.calls, counter.calls[1:]):
+        np.testing.assert_array_equal(received, np.where(starts, 0, returned))  # the state comes back, reset at starts
+    # each team's slots start together, and each episode's start is flagged once: 5 episodes x 6 agents in all
+    flags = np.array([starts for starts, _, _ in counter.calls])
+    assert (flags.reshape(len(flags), -1, n_agents).all(axis=2) == flags.reshape(len(flags), -1, n_agents).any(axis=2)).all()
+    assert flags.sum() == 5 * n_agents
+    # slot 0's count just before each restart of team 0 is the length of team 0's episode that just ended
+    lengths = [int(call[2][0]) for call, following in zip(counter.calls, counter.calls[1:]) if following[0][0]]
+    team_lengths = [episode["length"] for episode in result.episodes if episode["team"] == 0]
+    assert len(team_lengths) >= 2 and lengths == team_lengths[:-1]  # the last one ends with no restart
