@@ -16,19 +16,27 @@ from .config import PRESETS, FormationConfig
 from .env import FormationEnv
 from .evaluation import (
     SUMMARY_FILE,
+    THESIS_EVALUATION_EPISODES,
     TRAJECTORIES_FILE,
     Trajectories,
     comparison_table,
     evaluate,
+    evaluate_run,
     model_fingerprint,
 )
 from .plots import FIGURES, plot_error_curves, plot_evaluation_bars, plot_training_curves, plot_trajectory, save_figure
 from .rollout import random_policy, run_episode
-from .training import TrainSettings, atomic_write_text, load_settings, load_trained, reduce_to_overrides, resume, train
+from .training import (
+    FINAL_MODEL,
+    TrainSettings,
+    atomic_write_text,
+    load_settings,
+    load_trained,
+    reduce_to_overrides,
+    resume,
+    train,
+)
 from .video import render_episodes
-
-#: Thesis evaluation sizes: 500 episodes in chapter 4 (thesis 4.4), 200 in chapter 5 (thesis 5.4), by layout.
-THESIS_EVALUATION_EPISODES = {"ch4": 500, "ch5": 200}
 
 
 def _positive_int(text: str) -> int:
@@ -137,6 +145,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     train.add_argument("--no-progress", action="store_true", help="no progress bar")
     train.add_argument("--resume", type=Path, metavar="RUN_DIR", help="continue a run from its latest checkpoint")
+    train.add_argument("--run-dir", type=Path, help="write the run into this folder (default: a new one under --logdir)")
     evaluate = commands.add_parser(
         "evaluate",
         help="evaluate a trained policy: success rate with a 95%% interval, errors, episodes.csv, trajectories",
@@ -195,6 +204,18 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument("--out", type=Path, default=Path("compare.png"), help="bar chart file (default compare.png)")
     compare.add_argument("--table", type=Path, help="also write the Markdown table to this file")
     compare.add_argument("--force", action="store_true", help="evaluate again even if eval/ matches")
+    sweep = commands.add_parser(
+        "sweep",
+        help="train and evaluate every seed of an experiment on Ray, then aggregate over the seeds",
+        description="Run every seed of an experiment YAML as a Ray task (this machine, or a cluster with --address); "
+        "each writes <logdir>/<experiment>/seed_<s>/, a normal run folder. Finished trials are skipped and "
+        "interrupted ones resumed when the sweep is started again. Needs pip install 'sb3-formation[ray]'.",
+    )
+    sweep.add_argument("experiment", type=Path, help="experiment YAML, e.g. experiments/quick-ch5-bearing.yaml")
+    sweep.add_argument("--seeds", type=_indices, help="comma-separated seeds (default: the experiment's)")
+    sweep.add_argument("--address", help="address of a running Ray cluster (default: start Ray on this machine)")
+    sweep.add_argument("--max-concurrent", type=_positive_int, help="trials at once (default: one per CPU)")
+    sweep.add_argument("--logdir", help="folder for the experiment's folder (default: the experiment's logdir)")
     rollout = commands.add_parser(
         "rollout",
         help="play episodes with a random policy, print per-episode metrics and save the final frame",
@@ -309,12 +330,14 @@ def train_command(args: argparse.Namespace) -> int:
                 "recurrent",
                 "cell",
                 "env",
+                "run_dir",
             )
             if getattr(args, name) is not None
         ]
         if given:
             raise ValueError(f"--resume continues a run with its own settings; drop {', '.join('--' + g for g in given)}")
         run_dir = resume(args.resume)
+        settings = load_settings(run_dir)
     else:
         settings = train_settings(args)
         policy = f"recurrent ({settings.cell})" if settings.resolved_recurrent() else "MLP"
@@ -322,8 +345,10 @@ def train_command(args: argparse.Namespace) -> int:
             f"training {settings.preset}: n={settings.config().n_agents}, iterations per stage "
             f"{list(settings.resolved_iterations())}, {settings.resolved_n_envs()} teams, {policy} policy"
         )
-        run_dir = train(settings, command=args.command_line)
+        run_dir = train(settings, command=args.command_line, run_dir=args.run_dir)
     print(f"run folder: {run_dir}")
+    if settings.evaluation is not None and (run_dir / FINAL_MODEL).exists():
+        _print_summary(evaluate_run(run_dir, settings.evaluation, progress_bar=settings.progress_bar).summary)
     print(f"tensorboard --logdir {Path(run_dir).parent}")
     return 0
 
@@ -514,6 +539,21 @@ def compare_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def sweep_command(args: argparse.Namespace) -> int:
+    """``sb3-formation sweep``: every (configuration x seed) trial on Ray; exit code 1 if a trial failed."""
+    try:
+        from .sweep import sweep
+    except ImportError as error:  # pragma: no cover - without the extra
+        raise ValueError(f"sweep needs Ray: pip install 'sb3-formation[ray]' ({error})") from error
+    result = sweep(
+        args.experiment, seeds=args.seeds, address=args.address, max_concurrent=args.max_concurrent, logdir=args.logdir
+    )
+    for seed, error in result.failed.items():
+        print(f"sb3-formation: trial seed {seed} failed: {error}", file=sys.stderr)
+    print(f"sweep folder: {result.folder}")
+    return 1 if result.failed else 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``sb3-formation`` console script."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -526,6 +566,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "plot": plot_command,
         "render": render_command,
         "compare": compare_command,
+        "sweep": sweep_command,
     }
     try:
         return commands[args.command](args)

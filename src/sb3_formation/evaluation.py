@@ -31,9 +31,11 @@ from .config import REWARD_TERMS, FormationConfig
 from .env import FormationEnv
 from .normalization import observation_scale, scale_observations
 from .rollout import EpisodeStatistics
-from .training import TrainedModel, atomic_write_text
+from .training import TrainedModel, atomic_write_text, load_trained
 from .vec_env import slot_observations
 
+#: Thesis evaluation sizes: 500 episodes in chapter 4 (thesis 4.4), 200 in chapter 5 (thesis 5.4), by layout.
+THESIS_EVALUATION_EPISODES = {"ch4": 500, "ch5": 200}
 #: Per-episode metrics summarised with mean and std over successful episodes and over all episodes.
 EPISODE_METRICS = (
     "angle_error_deg",
@@ -565,14 +567,37 @@ def comparison_table(summaries: dict[str, dict[str, Any]], over: str = "successf
         for name, _ in TABLE_METRICS:
             statistics = summary[f"{over}_episodes"][name]
             cells.append(
-                "-" if statistics["mean"] is None else f"{_number(statistics['mean'])} ± {_number(statistics['std'])}"
+                "-"
+                if statistics["mean"] is None
+                else f"{table_number(statistics['mean'])} ± {table_number(statistics['std'])}"
             )
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
-def _number(value: float) -> str:
+def table_number(value: float) -> str:
     """A table number: whole from 100, one decimal from 10, three significant digits below."""
     if abs(value) >= 100:
         return f"{value:.0f}"
     return f"{value:.1f}" if abs(value) >= 10 else f"{value:.3g}"
+
+
+def evaluate_run(
+    run_dir: str | os.PathLike[str], protocol: dict[str, Any] | None = None, device: str = "auto", progress_bar: bool = False
+) -> EvaluationResult:
+    """Evaluate a run folder's model and write ``eval/`` into it.
+
+    :param run_dir: a run folder (its final model, else its latest checkpoint)
+    :param protocol: :func:`evaluate` arguments (``episodes``, ``stage``, ``seed``, ``n_envs``, ``workers``,
+        ``deterministic``, ``record``); by default the thesis's: stage 3, 500 episodes in chapter 4, 200 in chapter 5
+    :param device: torch device
+    :param progress_bar: show a progress bar
+    """
+    protocol = dict(protocol or {})
+    trained = load_trained(run_dir, device=device)
+    episodes = protocol.pop("episodes", THESIS_EVALUATION_EPISODES[trained.config.layout])
+    if "workers" in protocol:
+        protocol["n_workers"] = protocol.pop("workers")
+    result = evaluate(trained, episodes, progress_bar=progress_bar, **protocol)
+    result.save(Path(run_dir) / "eval")
+    return result

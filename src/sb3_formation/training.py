@@ -98,6 +98,9 @@ class TrainSettings:
     :param checkpoint_every: write a checkpoint every this many iterations
     :param success_threshold: end curriculum stages 1-2 early at this rolling success rate (``None``: never)
     :param progress_bar: show a progress bar
+    :param seeds: the seeds of an experiment (``sb3-formation sweep`` trains one run per seed; ``train`` uses ``seed``)
+    :param evaluation: evaluate the final model with these :func:`~sb3_formation.evaluation.evaluate` settings
+        (``episodes``, ``stage``, ``seed``, ``n_envs``, ``workers``, ``deterministic``, ``record``) into ``eval/``
     :param recurrent: recurrent actor and critic (default: as in the thesis, for chapter-5 presets only)
     :param cell: recurrent cell, ``"gru"`` or ``"lstm"``
     :param env: :class:`FormationConfig` fields overriding the preset's (e.g. ``n_agents``)
@@ -114,6 +117,8 @@ class TrainSettings:
     checkpoint_every: int = 50
     success_threshold: float | None = None
     progress_bar: bool = True
+    seeds: list[int] | None = None
+    evaluation: dict[str, Any] | None = None
     recurrent: bool | None = None
     cell: str = "gru"
     env: dict[str, Any] = field(default_factory=dict)
@@ -134,6 +139,14 @@ class TrainSettings:
         unknown = sorted(set(self.ppo) - PPO_OVERRIDABLE)
         if unknown:
             raise ValueError(f"unknown ppo setting(s) {unknown}; valid: {sorted(PPO_OVERRIDABLE)}")
+        if self.seeds is not None:
+            self.seeds = list(self.seeds)
+            if not self.seeds or not all(isinstance(seed, int) and not isinstance(seed, bool) for seed in self.seeds):
+                raise ValueError(f"seeds must be a non-empty list of integers, got {self.seeds!r}")
+        if self.evaluation is not None:
+            unknown = sorted(set(self.evaluation) - EVALUATION_KEYS) if isinstance(self.evaluation, dict) else None
+            if unknown is None or unknown:
+                raise ValueError(f"evaluation must map some of {sorted(EVALUATION_KEYS)} to values, got {self.evaluation!r}")
         if self.recurrent not in (None, True, False):
             raise ValueError(f"recurrent must be true, false or null (the preset's default), got {self.recurrent!r}")
         self.ppo_kwargs()  # validates recurrent, cell and the policy
@@ -229,6 +242,9 @@ def reduce_to_overrides(values: dict[str, Any]) -> dict[str, Any]:
         ppo["policy_kwargs"] = policy_kwargs
     return {**values, "env": env, "ppo": ppo}
 
+
+#: Keys of a run's ``evaluation:`` settings (arguments of :func:`~sb3_formation.evaluation.evaluate`).
+EVALUATION_KEYS = frozenset({"episodes", "stage", "seed", "n_envs", "workers", "deterministic", "record"})
 
 #: PPO settings a run may override (``ppo:`` in YAML).
 PPO_OVERRIDABLE = frozenset(
@@ -416,13 +432,18 @@ def new_run_dir(settings: TrainSettings) -> Path:
     raise FileExistsError(f"no free run folder name next to {base}")
 
 
-def train(settings: TrainSettings, command: str | None = None) -> Path:
+def train(settings: TrainSettings, command: str | None = None, run_dir: str | os.PathLike[str] | None = None) -> Path:
     """Run the whole curriculum of ``settings`` in a new run folder and return the folder.
 
     :param settings: the run's settings
     :param command: the command line to record in ``command.txt`` (default: this process's)
+    :param run_dir: the run folder (created if needed; default: a new ``<logdir>/<preset>_<n>a_s<seed>_<time>``)
     """
-    run_dir = new_run_dir(settings)
+    if run_dir is None:
+        run_dir = new_run_dir(settings)
+    else:
+        run_dir = Path(run_dir)
+        run_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(run_dir / "config.yaml", yaml.safe_dump(settings.to_dict(), sort_keys=False))
     atomic_write_text(run_dir / "command.txt", (command or " ".join(sys.argv)) + "\n")
     curriculum = CurriculumCallback(settings.resolved_iterations(), settings.success_threshold)

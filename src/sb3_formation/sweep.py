@@ -1,0 +1,205 @@
+"""Multi-seed sweeps of an experiment on Ray: one trial per seed, each an ordinary run folder.
+
+``sweep("experiments/thesis-ch5-bearing.yaml")`` trains, then evaluates, one run per seed of the experiment as Ray
+tasks (Ray core, ``pip install 'sb3-formation[ray]'``), on this machine or, with ``address``, on a Ray cluster whose
+nodes share the log folder. Trial k writes ``<logdir>/<experiment>/seed_<s>/``; a trial whose run folder already holds
+its final model and evaluation is skipped, one with a checkpoint is resumed, so starting a sweep again finishes it.
+A failing trial is reported with its error and does not stop the others. At the end the sweep writes
+``aggregate.json``, ``aggregate.md`` (mean and std over seeds) and ``training_curves.png`` beside the run folders.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from .evaluation import EPISODE_METRICS, SUMMARY_FILE, TABLE_METRICS, evaluate_run, table_number
+from .training import FINAL_MODEL, TrainSettings, atomic_write_text, latest_checkpoint, reduce_to_overrides, resume, train
+
+
+def load_experiment(path: str | os.PathLike[str]) -> TrainSettings:
+    """An experiment's settings from its YAML file (the keys of :class:`TrainSettings`), validated."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no experiment file {path}")
+    try:
+        values = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as error:
+        raise ValueError(f"{path} is not valid YAML: {error}") from error
+    if not isinstance(values, dict):
+        raise ValueError(f"{path} must hold a mapping of settings, not {type(values).__name__}")
+    try:
+        return TrainSettings.from_dict(reduce_to_overrides(values))
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{path}: {error}") from error
+
+
+def run_trial(settings: dict[str, Any], run_dir: str) -> dict[str, Any]:
+    """Train (or resume, or skip) one seed's run in ``run_dir`` and evaluate it; the body of a sweep's Ray task.
+
+    :param settings: :meth:`TrainSettings.to_dict` of the trial
+    :param run_dir: the trial's run folder
+    :return: ``status`` ("skipped" or "trained"), ``run_dir`` and the evaluation ``summary``
+    """
+    folder = Path(run_dir)
+    trial = TrainSettings.from_dict(settings)
+    if (folder / FINAL_MODEL).exists() and (folder / "eval" / SUMMARY_FILE).exists():
+        return {"status": "skipped", "run_dir": run_dir, "summary": json.loads((folder / "eval" / SUMMARY_FILE).read_text())}
+    if not (folder / FINAL_MODEL).exists():
+        if latest_checkpoint(folder) is not None:
+            resume(folder)
+        else:
+            train(trial, command=f"sb3-formation sweep (trial {folder.name})", run_dir=folder)
+    summary = evaluate_run(folder, trial.evaluation).summary
+    return {"status": "trained", "run_dir": run_dir, "summary": summary}
+
+
+@dataclass
+class SweepResult:
+    """What :func:`sweep` did.
+
+    :param folder: the experiment's folder (run folders and aggregate files)
+    :param trials: per seed: ``status`` ("skipped", "trained" or "failed"), ``run_dir``, ``summary`` or ``error``
+    """
+
+    folder: Path
+    trials: dict[int, dict[str, Any]] = field(default_factory=dict)
+
+    @property
+    def failed(self) -> dict[int, str]:
+        """Seed -> error of the trials that failed."""
+        return {seed: trial["error"] for seed, trial in self.trials.items() if trial["status"] == "failed"}
+
+
+def aggregate(summaries: list[dict[str, Any]], over: str = "successful") -> dict[str, dict[str, float | None]]:
+    """Mean and std over seeds of the success rate and of each metric's per-seed mean (``None`` where no seed has one).
+
+    :param summaries: evaluation summaries, one per seed
+    :param over: per-seed means over ``"successful"`` (the thesis's choice) or ``"all"`` episodes
+    """
+    table: dict[str, dict[str, float | None]] = {}
+    rates = np.array([summary["success_rate"] for summary in summaries])
+    table["success_rate"] = {"mean": float(rates.mean()), "std": float(rates.std()), "seeds": len(rates)}
+    for name in EPISODE_METRICS:
+        values = [summary[f"{over}_episodes"][name]["mean"] for summary in summaries]
+        values = np.array([value for value in values if value is not None], dtype=np.float64)
+        table[name] = (
+            {"mean": float(values.mean()), "std": float(values.std()), "seeds": len(values)}
+            if len(values)
+            else {"mean": None, "std": None, "seeds": 0}
+        )
+    return table
+
+
+def aggregate_markdown(name: str, tables: dict[str, dict[str, dict[str, float | None]]]) -> str:
+    """A Markdown table of :func:`aggregate`'s results, one row per kind of episode mean (``successful``, ``all``)."""
+    headings = ["experiment", "means over", "seeds", "success rate", *(heading for _, heading in TABLE_METRICS)]
+    lines = ["| " + " | ".join(headings) + " |", "|" + "|".join(["---", "---"] + ["---:"] * (len(headings) - 2)) + "|"]
+    for over, table in tables.items():
+        cells = [name, f"{over} episodes", str(table["success_rate"]["seeds"])]
+        for metric in ("success_rate", *(metric for metric, _ in TABLE_METRICS)):
+            mean, std = table[metric]["mean"], table[metric]["std"]
+            if mean is None:
+                cells.append("-")
+            else:
+                cells.append(
+                    f"{mean:.1%} ± {std:.1%}" if metric == "success_rate" else f"{table_number(mean)} ± {table_number(std)}"
+                )
+        lines.append("| " + " | ".join(cells) + " |")
+    return (
+        "\n".join(lines) + "\n\nMean ± std over seeds of each seed's success rate and of its mean over the episodes named.\n"
+    )
+
+
+def sweep(
+    experiment: str | os.PathLike[str],
+    seeds: list[int] | None = None,
+    address: str | None = None,
+    max_concurrent: int | None = None,
+    logdir: str | os.PathLike[str] | None = None,
+    cpus_per_trial: float = 1.0,
+) -> SweepResult:
+    """Train and evaluate every seed of an experiment as Ray tasks, then aggregate over the seeds.
+
+    :param experiment: the experiment's YAML file (``experiments/<name>.yaml``)
+    :param seeds: the seeds (default: the experiment's ``seeds``, else its ``seed``)
+    :param address: a Ray cluster's address (default: start Ray on this machine with its cores)
+    :param max_concurrent: trials running at once (default: as many as the cluster's CPUs allow)
+    :param logdir: folder of the experiment's folder (default: the experiment's ``logdir``)
+    :param cpus_per_trial: CPUs Ray reserves for each trial
+    """
+    import ray
+
+    settings = load_experiment(experiment)
+    seeds = list(seeds or settings.seeds or [settings.seed])
+    if len(set(seeds)) != len(seeds):
+        raise ValueError(f"seeds must differ, got {seeds}")
+    if max_concurrent is not None and max_concurrent < 1:
+        raise ValueError(f"max_concurrent must be >= 1, got {max_concurrent}")
+    folder = Path(logdir or settings.logdir) / Path(experiment).stem
+    folder.mkdir(parents=True, exist_ok=True)
+    trials = {
+        seed: (TrainSettings.from_dict({**settings.to_dict(), "seed": seed, "progress_bar": False}), folder / f"seed_{seed}")
+        for seed in seeds
+    }
+    started_here = not ray.is_initialized()
+    if started_here:
+        ray.init(address=address, include_dashboard=False, log_to_driver=False)
+    try:
+        task = ray.remote(num_cpus=cpus_per_trial, max_retries=0)(run_trial)
+        limit = max_concurrent or max(1, math.floor(ray.cluster_resources().get("CPU", 1) / cpus_per_trial))
+        result = SweepResult(folder)
+        waiting = list(trials.items())
+        running: dict[Any, int] = {}
+        while waiting or running:
+            while waiting and len(running) < limit:
+                seed, (trial, run_dir) = waiting.pop(0)
+                running[task.remote(trial.to_dict(), str(run_dir))] = seed
+                print(f"trial seed {seed}: started in {run_dir}")
+            done, _ = ray.wait(list(running), num_returns=1)
+            seed = running.pop(done[0])
+            try:
+                result.trials[seed] = ray.get(done[0])
+            except Exception as error:  # a failed trial is reported; the others go on
+                message = _root_error(error)
+                result.trials[seed] = {"status": "failed", "run_dir": str(trials[seed][1]), "error": message}
+                print(f"trial seed {seed}: FAILED: {message}")
+            else:
+                print(f"trial seed {seed}: {result.trials[seed]['status']}")
+    finally:
+        if started_here:
+            ray.shutdown()
+    _write_aggregate(result, settings, Path(experiment).stem)
+    return result
+
+
+def _root_error(error: BaseException) -> str:
+    """The original exception of a Ray task error, as one line."""
+    cause = getattr(error, "cause", None) or error
+    text = "".join(traceback.format_exception_only(type(cause), cause)).strip().splitlines()
+    return text[-1] if text else repr(cause)
+
+
+def _write_aggregate(result: SweepResult, settings: TrainSettings, name: str) -> None:
+    """``aggregate.json``, ``aggregate.md`` and ``training_curves.png`` over the trials that have an evaluation."""
+    from .plots import plot_training_curves, save_figure
+
+    done = {seed: trial for seed, trial in sorted(result.trials.items()) if trial["status"] != "failed"}
+    if not done:
+        return
+    summaries = [trial["summary"] for trial in done.values()]
+    tables = {over: aggregate(summaries, over) for over in ("successful", "all")}
+    atomic_write_text(result.folder / "aggregate.json", json.dumps({"seeds": list(done), **tables}, indent=2))
+    markdown = aggregate_markdown(name, tables)
+    atomic_write_text(result.folder / "aggregate.md", markdown)
+    runs = [Path(trial["run_dir"]) for trial in done.values()]
+    save_figure(plot_training_curves({f"{name} ({settings.preset})": runs}), result.folder / "training_curves.png")
+    print(markdown)
