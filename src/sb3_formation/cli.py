@@ -545,9 +545,12 @@ def sweep_command(args: argparse.Namespace) -> int:
         from .sweep import sweep
     except ImportError as error:  # pragma: no cover - without the extra
         raise ValueError(f"sweep needs Ray: pip install 'sb3-formation[ray]' ({error})") from error
-    result = sweep(
-        args.experiment, seeds=args.seeds, address=args.address, max_concurrent=args.max_concurrent, logdir=args.logdir
-    )
+    options = {"seeds": args.seeds, "address": args.address, "max_concurrent": args.max_concurrent, "logdir": args.logdir}
+    try:
+        result = sweep(args.experiment, **options)
+    except KeyboardInterrupt:
+        print("sb3-formation: sweep interrupted; run the same command again to finish it", file=sys.stderr)
+        return 130
     for seed, error in result.failed.items():
         print(f"sb3-formation: trial seed {seed} failed: {error}", file=sys.stderr)
     print(f"sweep folder: {result.folder}")

@@ -153,18 +153,20 @@ def sweep(
     started_here = not ray.is_initialized()
     if started_here:
         ray.init(address=address, include_dashboard=False, log_to_driver=False)
+    running: dict[Any, int] = {}
     try:
         task = ray.remote(num_cpus=cpus_per_trial, max_retries=0)(run_trial)
         limit = max_concurrent or max(1, math.floor(ray.cluster_resources().get("CPU", 1) / cpus_per_trial))
         result = SweepResult(folder)
         waiting = list(trials.items())
-        running: dict[Any, int] = {}
         while waiting or running:
             while waiting and len(running) < limit:
                 seed, (trial, run_dir) = waiting.pop(0)
                 running[task.remote(trial.to_dict(), str(run_dir))] = seed
                 print(f"trial seed {seed}: started in {run_dir}")
-            done, _ = ray.wait(list(running), num_returns=1)
+            done, _ = ray.wait(list(running), num_returns=1, timeout=0.5)  # a timeout keeps Ctrl-C responsive
+            if not done:
+                continue
             seed = running.pop(done[0])
             try:
                 result.trials[seed] = ray.get(done[0])
@@ -175,6 +177,8 @@ def sweep(
             else:
                 print(f"trial seed {seed}: {result.trials[seed]['status']}")
     finally:
+        for reference in running:  # interrupted: stop the trials under way (they resume when the sweep starts again)
+            ray.cancel(reference, force=True)
         if started_here:
             ray.shutdown()
     _write_aggregate(result, settings, Path(experiment).stem)
