@@ -410,6 +410,15 @@ def test_saved_files_hold_the_summary_rows_and_trajectories(wandering: SimpleNam
             np.testing.assert_array_equal(getattr(loaded, item.name), getattr(result.trajectories, item.name))
 
 
+def test_saving_an_evaluation_without_trajectories_removes_older_ones(wandering: SimpleNamespace) -> None:
+    files = dataclasses.replace(wandering.result, trajectories=None).save(wandering.folder / "again")
+    assert "trajectories" not in files
+    wandering.result.save(wandering.folder / "again")
+    assert (wandering.folder / "again" / "trajectories.npz").exists()
+    dataclasses.replace(wandering.result, trajectories=None).save(wandering.folder / "again")
+    assert not (wandering.folder / "again" / "trajectories.npz").exists()
+
+
 def test_only_the_first_episodes_are_recorded(tiny: SimpleNamespace) -> None:
     result = evaluate(tiny.trained, episodes=5, stage=1, seed=2, n_envs=2, env_overrides={"max_steps": 6}, record=2)
     assert result.trajectories.episodes.tolist() == [0, 1]
@@ -449,6 +458,8 @@ def test_worker_processes_give_the_same_episodes_for_a_batch_independent_policy(
     for run in runs[1:]:
         assert comparable(run.episodes) == comparable(runs[0].episodes)
         assert run.summary == runs[0].summary
+    # with 2 workers, worker 1 plays episodes 1, 3 on team 2 (teams are split 0-1 | 2): rows name the global team
+    assert {row["team"] for row in runs[2].episodes if row["episode"] % 2 == 1} == {2}
 
 
 class Failing(TowardsGoal):

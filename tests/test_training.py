@@ -120,8 +120,12 @@ def test_recurrent_policy_follows_the_thesis_chapter_unless_told() -> None:
     assert TrainSettings(preset="ch5-bearing").to_dict()["recurrent"] is True
     parser = build_parser()
     assert train_settings(parser.parse_args(["train", "--no-recurrent"])).resolved_recurrent() is False
-    chosen = train_settings(parser.parse_args(["train", "--preset", "ch4-team", "--no-recurrent", "--cell", "lstm"]))
+    chosen = train_settings(parser.parse_args(["train", "--preset", "ch4-team", "--no-recurrent"]))
     assert chosen.recurrent is False and chosen.ppo_kwargs()["policy"] is FormationPolicy
+    with pytest.raises(ValueError, match="cell 'lstm' applies to recurrent policies only"):
+        train_settings(parser.parse_args(["train", "--preset", "ch5-bearing", "--no-recurrent", "--cell", "lstm"]))
+    assert TrainSettings(preset="ch4-team").to_dict()["cell"] is None
+    assert TrainSettings(preset="ch5-angle", cell="lstm").to_dict()["cell"] == "lstm"
 
 
 def test_training_env_is_placed_for_the_curriculum_stage() -> None:

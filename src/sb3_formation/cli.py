@@ -63,6 +63,13 @@ def _assignment(text: str) -> tuple[str, object]:
     return name.strip(), yaml.safe_load(value)
 
 
+def _seed(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
 def _indices(text: str) -> list[int]:
     try:
         values = [int(part) for part in text.split(",")]
@@ -77,7 +84,7 @@ def _add_protocol_arguments(parser: argparse.ArgumentParser) -> None:
     """The evaluation protocol's options, shared by ``evaluate`` and ``compare``."""
     parser.add_argument("--episodes", type=_positive_int, help="episodes (thesis: 500 in ch. 4, 200 in ch. 5)")
     parser.add_argument("--stage", type=int, choices=(1, 2, 3), default=3, help="curriculum stage (default 3)")
-    parser.add_argument("--seed", type=int, default=0, help="episode k plays the scenario of seed + k (default 0)")
+    parser.add_argument("--seed", type=_seed, default=0, help="episode k plays the scenario of seed + k (default 0)")
     parser.add_argument("--n-envs", type=_positive_int, default=8, help="teams played at once (default 8)")
     parser.add_argument("--workers", type=_positive_int, default=1, help="worker processes (default 1)")
     parser.add_argument("--stochastic", action="store_true", help="sample actions instead of using the mean")
@@ -131,7 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--cell", choices=("gru", "lstm"), help="recurrent cell (default gru)")
     train.add_argument("--n-envs", type=_positive_int, help="parallel teams (thesis: 12 in ch. 4, 14 in ch. 5)")
     train.add_argument("--workers", type=_positive_int, help="worker processes stepping the teams (default 1)")
-    train.add_argument("--seed", type=int, help="seed of PPO and of the scenarios (default 0)")
+    train.add_argument("--seed", type=_seed, help="seed of PPO and of the scenarios (default 0)")
     train.add_argument("--device", help="torch device: auto, cpu, cuda (default auto)")
     train.add_argument("--logdir", help="folder for run folders (default runs/)")
     train.add_argument("--checkpoint-every", type=_positive_int, help="iterations between checkpoints (default 50)")
@@ -185,7 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--episodes", type=_positive_int, default=1, help="episodes (default 1)")
     render.add_argument("--out", type=Path, help="video file, .mp4 or .gif (default: <run>/eval/episodes.mp4)")
     render.add_argument("--stage", type=int, choices=(1, 2, 3), default=3, help="curriculum stage (default 3)")
-    render.add_argument("--seed", type=int, default=0, help="episode k plays the scenario of seed + k (default 0)")
+    render.add_argument("--seed", type=_seed, default=0, help="episode k plays the scenario of seed + k (default 0)")
     render.add_argument("--fps", type=_positive_int, default=20, help="frames per second (default 20)")
     render.add_argument("--frame-every", type=_positive_int, default=1, help="keep every k-th step as a frame")
     render.add_argument("--max-steps", type=_positive_int, help="cut episodes at this many steps (default: the model's)")
@@ -412,7 +419,7 @@ def _labels(text: str | None, targets: Sequence[Path]) -> list[str]:
 
 def _eval_file(target: Path, name: str) -> Path:
     """``name`` of an evaluation given as the file itself, an eval folder or a run folder."""
-    for candidate in (target, target / name, target / "eval" / name):
+    for candidate in (target, target / name, _run_folder(target) / "eval" / name):
         if candidate.is_file() and candidate.name == name:
             return candidate
     raise FileNotFoundError(f"no {name} in {target}: run `sb3-formation evaluate {target}` first")
@@ -421,9 +428,12 @@ def _eval_file(target: Path, name: str) -> Path:
 def _load_summary(target: Path) -> dict:
     path = _eval_file(target, SUMMARY_FILE)
     try:
-        return json.loads(path.read_text())
+        summary = json.loads(path.read_text())
     except json.JSONDecodeError as error:
         raise ValueError(f"{path} is not valid JSON: {error}") from error
+    if not isinstance(summary, dict) or "success_rate" not in summary:
+        raise ValueError(f"{path} is not an evaluation summary written by sb3-formation")
+    return summary
 
 
 def plot_command(args: argparse.Namespace) -> int:
@@ -573,7 +583,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     }
     try:
         return commands[args.command](args)
-    except (ValueError, TypeError, OSError) as error:  # bad input or files: one line naming the problem
+    except (ValueError, TypeError, OSError, RuntimeError) as error:  # bad input, files, a failed worker: one line
         if args.debug:
             raise
         print(f"sb3-formation: error: {error}", file=sys.stderr)

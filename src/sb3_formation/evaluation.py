@@ -17,6 +17,7 @@ import math
 import multiprocessing
 import os
 import traceback
+import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,7 +30,7 @@ from tqdm.auto import tqdm
 
 from .config import REWARD_TERMS, FormationConfig
 from .env import FormationEnv
-from .normalization import observation_scale, scale_observations
+from .normalization import STATE_KEYS, observation_scale, scale_observations
 from .rollout import EpisodeStatistics
 from .training import TrainedModel, atomic_write_text, load_trained
 from .vec_env import slot_observations
@@ -155,7 +156,7 @@ class Trajectories:
                 arrays = {key: data[key] for key in data.files}
             config = FormationConfig(**json.loads(str(arrays.pop("config_json"))))
             return cls(config=config, **arrays)
-        except (KeyError, TypeError, ValueError, OSError) as error:
+        except (KeyError, TypeError, ValueError, OSError, zipfile.BadZipFile) as error:
             raise ValueError(f"{path} is not a trajectories file written by sb3-formation: {error}") from error
 
     def steps(self, index: int) -> dict[str, np.ndarray]:
@@ -200,6 +201,7 @@ class PlayJob:
     n_teams: int
     deterministic: bool
     record: int
+    first_team: int = 0  #: global index of this job's first team (episode rows name global teams)
 
 
 def play_episodes(
@@ -275,7 +277,7 @@ def play_episodes(
                 {
                     "episode": episode,
                     "seed": job.seed + episode,
-                    "team": team,
+                    "team": job.first_team + team,
                     **summary,
                     "comm_exceeded_fraction": comm_exceeded[team] / summary["length"],
                     "final_goal_distance": env.goal_distance,
@@ -327,16 +329,17 @@ def _stack(config: FormationConfig, seed: int, recorded: list[tuple[int, _Record
     )
 
 
-def _worker(job: bytes, progress: Any) -> None:  # pragma: no cover - runs in a subprocess
-    """Play a pickled :class:`PlayJob` and put ("episode", None) per episode, then ("done", result) or ("error", text)."""
+def _worker(index: int, job: bytes, progress: Any) -> None:  # pragma: no cover - runs in a subprocess
+    """Play a pickled :class:`PlayJob`; put (index, "episode", None) per episode, then (index, "done", result) or
+    (index, "error", text)."""
     try:
         play_job: PlayJob = cloudpickle.loads(job)
         torch.set_num_threads(1)
         torch.manual_seed(play_job.seed + play_job.episodes[0])
-        result = play_episodes(play_job, on_episode=lambda: progress.put(("episode", None)))
-        progress.put(("done", result))
+        result = play_episodes(play_job, on_episode=lambda: progress.put((index, "episode", None)))
+        progress.put((index, "done", result))
     except BaseException as error:  # report to the parent, which raises it
-        progress.put(("error", f"{type(error).__name__}: {error}\n{traceback.format_exc()}"))
+        progress.put((index, "error", f"{type(error).__name__}: {error}\n{traceback.format_exc()}"))
 
 
 def _play_in_workers(jobs: list[PlayJob], on_episode: Callable[[], None]) -> tuple[list, list]:
@@ -344,37 +347,38 @@ def _play_in_workers(jobs: list[PlayJob], on_episode: Callable[[], None]) -> tup
     method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
     context = multiprocessing.get_context(method)
     progress = context.Queue()
-    processes = [context.Process(target=_worker, args=(cloudpickle.dumps(job), progress), daemon=True) for job in jobs]
+    processes = [
+        context.Process(target=_worker, args=(index, cloudpickle.dumps(job), progress), daemon=True)
+        for index, job in enumerate(jobs)
+    ]
     for process in processes:
         process.start()
     rows: list[dict[str, Any]] = []
     recorded: list = []
-    pending, errors = len(processes), []
+    reported: set[int] = set()
     try:
-        while pending:
+        while len(reported) < len(processes):
             try:
-                kind, payload = progress.get(timeout=5)
-            except Exception:  # queue.Empty: check that the workers are still there
-                dead = [p for p in processes if not p.is_alive() and p.exitcode not in (0, None)]
-                if dead:
-                    raise RuntimeError(f"evaluation worker (pid {dead[0].pid}) died, exit code {dead[0].exitcode}") from None
+                worker, kind, payload = progress.get(timeout=5)
+            except Exception:  # queue.Empty: check that the workers that have not reported are still there
+                silent = [index for index, process in enumerate(processes) if index not in reported and not process.is_alive()]
+                if silent:
+                    process = processes[silent[0]]
+                    raise RuntimeError(f"evaluation worker (pid {process.pid}) died, exit code {process.exitcode}") from None
                 continue
             if kind == "episode":
                 on_episode()
             elif kind == "done":
                 rows.extend(payload[0])
                 recorded.extend(payload[1])
-                pending -= 1
-            else:
-                errors.append(payload)
-                pending -= 1
+                reported.add(worker)
+            else:  # the first error ends the evaluation
+                raise RuntimeError(f"an evaluation worker failed: {payload}")
     finally:
         for process in processes:
-            process.join(timeout=10)
-            if process.is_alive():
+            if len(reported) < len(processes):
                 process.terminate()
-    if errors:
-        raise RuntimeError(f"an evaluation worker failed: {errors[0]}")
+            process.join(timeout=10)
     return rows, recorded
 
 
@@ -432,6 +436,8 @@ class EvaluationResult:
         if self.trajectories is not None:
             files["trajectories"] = folder / TRAJECTORIES_FILE
             self.trajectories.save(files["trajectories"])
+        else:  # no trajectories from an earlier evaluation may stay beside this one's summary
+            (folder / TRAJECTORIES_FILE).unlink(missing_ok=True)
         return files
 
 
@@ -459,6 +465,16 @@ def check_model_fits(trained: TrainedModel, config: FormationConfig) -> None:
     ]
     if differences:
         raise ValueError("the model does not fit this env's observations: " + "; ".join(differences))
+    state = trained.normalizer_state
+    missing = [key for key in STATE_KEYS if key not in state]
+    if missing:
+        raise ValueError(f"the normaliser statistics lack {missing}")
+    mask = FormationEnv(config).binary_observation_mask
+    if int(np.asarray(state["agent_obs_dim"])) != mask.size or not np.array_equal(np.asarray(state["binary_mask"]), mask):
+        raise ValueError(
+            f"the normaliser statistics are for {int(np.asarray(state['agent_obs_dim']))} features with other flags; "
+            f"this env's observations have {mask.size}"
+        )
 
 
 def model_fingerprint(path: str | os.PathLike[str]) -> dict[str, str]:
@@ -515,6 +531,7 @@ def evaluate(
             seed=seed,
             episodes=list(range(worker, episodes, n_workers)),
             n_teams=len(teams[worker]),
+            first_team=int(teams[worker][0]) if len(teams[worker]) else 0,
             deterministic=deterministic,
             record=record,
         )

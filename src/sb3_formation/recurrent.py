@@ -455,6 +455,7 @@ class RecurrentFormationPPO(PPO):
         super()._setup_model()
         self.rollout_buffer.max_sequence_length = self.max_sequence_length
         self._last_states = self.policy.initial_state(self.n_envs)
+        self._last_episode_starts = np.ones(self.n_envs, dtype=bool)  # zero states: a loaded model starts afresh
 
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "_last_states"]

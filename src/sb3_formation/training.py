@@ -27,7 +27,7 @@ import yaml
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.logger import CSVOutputFormat, Logger, TensorBoardOutputFormat
-from stable_baselines3.common.save_util import load_from_zip_file
+from stable_baselines3.common.save_util import json_to_data
 
 from .callbacks import THESIS_STAGE_ITERATIONS, CurriculumCallback, FormationMetricsCallback, ProgressBarCallback
 from .config import PRESETS, FormationConfig
@@ -79,6 +79,18 @@ def thesis_ppo_kwargs(preset: str, n_agents: int | None = None, recurrent: bool 
     return {"policy": FormationPolicy, **THESIS_PPO, "policy_kwargs": policy_kwargs}
 
 
+def saved_algorithm(path: Path) -> type[PPO]:
+    """The PPO class of a saved model, from the policy class recorded in its zip file."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            data = json_to_data(archive.read("data").decode())
+    except (zipfile.BadZipFile, KeyError, ValueError) as error:
+        raise ValueError(f"{path} is not a model saved by Stable-Baselines3: {error}") from error
+    if not isinstance(data.get("policy_class"), type):
+        raise ValueError(f"{path} is not a model saved by Stable-Baselines3: it names no policy class")
+    return algorithm_for(data["policy_class"])
+
+
 def algorithm_for(policy: type) -> type[PPO]:
     """The PPO class that trains ``policy``: :class:`RecurrentFormationPPO` for a recurrent policy, else SB3's ``PPO``."""
     return RecurrentFormationPPO if issubclass(policy, RecurrentFormationPolicy) else PPO
@@ -102,7 +114,7 @@ class TrainSettings:
     :param evaluation: evaluate the final model with these :func:`~sb3_formation.evaluation.evaluate` settings
         (``episodes``, ``stage``, ``seed``, ``n_envs``, ``workers``, ``deterministic``, ``record``) into ``eval/``
     :param recurrent: recurrent actor and critic (default: as in the thesis, for chapter-5 presets only)
-    :param cell: recurrent cell, ``"gru"`` or ``"lstm"``
+    :param cell: recurrent cell, ``"gru"`` (the default) or ``"lstm"``; only for recurrent policies
     :param env: :class:`FormationConfig` fields overriding the preset's (e.g. ``n_agents``)
     :param ppo: ``PPO`` keyword arguments overriding the thesis's (e.g. ``learning_rate``)
     """
@@ -120,7 +132,7 @@ class TrainSettings:
     seeds: list[int] | None = None
     evaluation: dict[str, Any] | None = None
     recurrent: bool | None = None
-    cell: str = "gru"
+    cell: str | None = None
     env: dict[str, Any] = field(default_factory=dict)
     ppo: dict[str, Any] = field(default_factory=dict)
 
@@ -150,6 +162,8 @@ class TrainSettings:
         if self.recurrent not in (None, True, False):
             raise ValueError(f"recurrent must be true, false or null (the preset's default), got {self.recurrent!r}")
         self.ppo_kwargs()  # validates recurrent, cell and the policy
+        if self.cell is not None and not self.resolved_recurrent():
+            raise ValueError(f"cell {self.cell!r} applies to recurrent policies only; this run's policy is an MLP")
         if "max_sequence_length" in self.ppo and not self.resolved_recurrent():
             raise ValueError("ppo: max_sequence_length applies to recurrent policies only; this run's policy is an MLP")
 
@@ -172,8 +186,10 @@ class TrainSettings:
         values["iterations"] = list(self.resolved_iterations())
         values["n_envs"] = self.resolved_n_envs()
         values["recurrent"] = self.resolved_recurrent()
+        values["cell"] = (self.cell or "gru") if values["recurrent"] else None
         values["env"] = _plain(dataclasses.asdict(self.config()))
         values["ppo"] = _plain({name: value for name, value in self.ppo_kwargs().items() if name != "policy"})
+        values["ppo"]["policy_kwargs"].pop("cell", None)  # written once, as the top-level cell
         return values
 
     def config(self) -> FormationConfig:
@@ -194,7 +210,7 @@ class TrainSettings:
 
     def ppo_kwargs(self) -> dict[str, Any]:
         """``PPO`` keyword arguments: the thesis's for the preset, then the overrides."""
-        kwargs = thesis_ppo_kwargs(self.preset, self.config().n_agents, self.resolved_recurrent(), self.cell)
+        kwargs = thesis_ppo_kwargs(self.preset, self.config().n_agents, self.resolved_recurrent(), self.cell or "gru")
         overrides = dict(self.ppo)
         kwargs["policy_kwargs"] = {**kwargs["policy_kwargs"], **overrides.pop("policy_kwargs", {})}
         kwargs.update(overrides)
@@ -228,7 +244,7 @@ def reduce_to_overrides(values: dict[str, Any]) -> dict[str, Any]:
     if recurrent is None:
         recurrent = FormationConfig.preset(preset).layout == "ch5"
     try:
-        thesis_kwargs = thesis_ppo_kwargs(preset, n_agents, bool(recurrent), values.get("cell", "gru"))
+        thesis_kwargs = thesis_ppo_kwargs(preset, n_agents, bool(recurrent), values.get("cell") or "gru")
     except ValueError:
         return values  # reported by TrainSettings
     thesis = _plain({name: value for name, value in thesis_kwargs.items() if name != "policy"})
@@ -325,6 +341,7 @@ def save_model(model: PPO, normalizer: ScaleNormalizeVecEnv, folder: Path, model
     os.close(handle)
     try:
         model.save(temporary)
+        os.chmod(temporary, 0o666 & ~_UMASK)  # the permissions open() would give, not mkstemp's 0600
         os.replace(temporary, folder / model_file)
     finally:
         if os.path.exists(temporary):
@@ -472,7 +489,7 @@ def resume(run_dir: str | os.PathLike[str]) -> Path:
     curriculum = CurriculumCallback(settings.resolved_iterations(), settings.success_threshold)
     curriculum.load_state_dict(state["curriculum"])
     env = make_training_env(settings, curriculum.stage, checkpoint / NORMALIZER_FILE)
-    model = algorithm_for(settings.ppo_kwargs()["policy"]).load(checkpoint / MODEL_FILE, env=env, device=settings.device)
+    model = saved_algorithm(checkpoint / MODEL_FILE).load(checkpoint / MODEL_FILE, env=env, device=settings.device)
     model.set_random_seed(int(np.random.SeedSequence([settings.seed, curriculum.iteration]).generate_state(1)[0]))
     _learn(model, settings, run_dir, curriculum)
     return run_dir
@@ -552,15 +569,15 @@ def load_trained(path: str | os.PathLike[str], device: str = "auto") -> TrainedM
         raise FileNotFoundError(f"no model at {path}: give a run folder or a model .zip")
     if not normalizer_path.exists():
         raise FileNotFoundError(f"the normaliser statistics of {model_path} are missing: expected {normalizer_path}")
-    data = load_from_zip_file(model_path, load_data=True, device="cpu")[0] if zipfile.is_zipfile(model_path) else None
-    if data is None or "policy_class" not in data:
-        raise ValueError(f"{model_path} is not a model saved by Stable-Baselines3")
-    model = algorithm_for(data["policy_class"]).load(model_path, device=device)
+    model = saved_algorithm(model_path).load(model_path, device=device)
     stored = getattr(model, "formation_config", None)
     if stored is None:
         raise ValueError(f"{model_path} was not saved by sb3-formation: it carries no formation_config")
     config = FormationConfig(**{**stored, "stage_disabled_terms": tuple(tuple(t) for t in stored["stage_disabled_terms"])})
-    with np.load(normalizer_path, allow_pickle=False) as data:
-        normalizer_state = {key: data[key] for key in data.files}
+    try:
+        with np.load(normalizer_path, allow_pickle=False) as data:
+            normalizer_state = {key: data[key] for key in data.files}
+    except (zipfile.BadZipFile, ValueError, OSError) as error:
+        raise ValueError(f"{normalizer_path} is not a normaliser file: {error}") from error
     team_observations = getattr(model.policy, "team_size", None) is not None
     return TrainedModel(model, config, normalizer_state, team_observations, source=model_path)
