@@ -39,6 +39,7 @@ format: setup
 bench: setup
 	$(BIN)/python benchmarks/env_throughput.py
 	$(BIN)/python benchmarks/train_throughput.py
+	$(BIN)/python benchmarks/sequence_length.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .ruff_cache

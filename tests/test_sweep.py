@@ -17,7 +17,7 @@ import pytest
 import yaml
 
 from sb3_formation.cli import main
-from sb3_formation.evaluation import wilson_interval
+from sb3_formation.evaluation import EPISODE_METRICS, wilson_interval
 from sb3_formation.sweep import aggregate, load_experiment, sweep
 from sb3_formation.training import FINAL_MODEL, THESIS_PPO
 
@@ -60,22 +60,11 @@ def test_experiment_errors_name_the_file_and_the_setting(tmp_path: Path) -> None
 
 def test_aggregate_is_the_mean_and_std_over_seeds() -> None:
     def summary(successes: int, angle: float | None) -> dict:
-        statistics = {name: {"mean": angle, "std": 0.0} for name in ("angle_error_deg",)}
+        means = {name: None if angle is None else 1.0 for name in EPISODE_METRICS} | {"angle_error_deg": angle}
         return {
             "success_rate": successes / 10,
             "success_rate_ci95": list(wilson_interval(successes, 10)),
-            "successful_episodes": {
-                name: statistics.get(name, {"mean": None if angle is None else 1.0, "std": 0.0})
-                for name in (
-                    "angle_error_deg",
-                    "bearing_error",
-                    "neighbour_distance_error",
-                    "length",
-                    "collisions_obstacle",
-                    "collisions_agent",
-                    "comm_exceeded_fraction",
-                )
-            },
+            "successful_episodes": {name: {"mean": mean, "std": 0.0} for name, mean in means.items()},
         }
 
     table = aggregate([summary(1, 30.0), summary(3, 20.0), summary(0, None)])

@@ -20,7 +20,6 @@ from .evaluation import (
     TRAJECTORIES_FILE,
     Trajectories,
     comparison_table,
-    evaluate,
     evaluate_run,
     model_fingerprint,
 )
@@ -381,21 +380,18 @@ def _print_summary(summary: dict) -> None:
 
 def _evaluate_run(args: argparse.Namespace, target: Path, episodes: int | None, out: Path | None = None) -> dict:
     """Evaluate one run with the protocol options of ``args``, save its files, and return its summary."""
-    trained = load_trained(target, device=args.device)
-    result = evaluate(
-        trained,
-        episodes or THESIS_EVALUATION_EPISODES[trained.config.layout],
-        stage=args.stage,
-        seed=args.seed,
-        n_envs=args.n_envs,
-        deterministic=not args.stochastic,
-        env_overrides={} if getattr(args, "agents", None) is None else {"n_agents": args.agents},
-        n_workers=min(args.workers, args.n_envs),
-        record=getattr(args, "trajectories", 5),
-        progress_bar=not args.no_progress,
-    )
-    files = result.save(out or _run_folder(target) / "eval")
-    print(f"{target}: evaluation written to {files['summary'].parent}")
+    protocol = {
+        "episodes": episodes,
+        "stage": args.stage,
+        "seed": args.seed,
+        "n_envs": args.n_envs,
+        "workers": min(args.workers, args.n_envs),
+        "deterministic": not args.stochastic,
+        "record": getattr(args, "trajectories", 5),
+        "env_overrides": {} if getattr(args, "agents", None) is None else {"n_agents": args.agents},
+    }
+    result = evaluate_run(target, protocol, device=args.device, progress_bar=not args.no_progress, out=out)
+    print(f"{target}: evaluation written to {out or _run_folder(target) / 'eval'}")
     return result.summary
 
 

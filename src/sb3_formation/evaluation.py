@@ -600,21 +600,28 @@ def table_number(value: float) -> str:
 
 
 def evaluate_run(
-    run_dir: str | os.PathLike[str], protocol: dict[str, Any] | None = None, device: str = "auto", progress_bar: bool = False
+    target: str | os.PathLike[str],
+    protocol: dict[str, Any] | None = None,
+    device: str = "auto",
+    progress_bar: bool = False,
+    out: str | os.PathLike[str] | None = None,
 ) -> EvaluationResult:
-    """Evaluate a run folder's model and write ``eval/`` into it.
+    """Evaluate a run folder's (or a model file's) model and write ``eval/`` beside it.
 
-    :param run_dir: a run folder (its final model, else its latest checkpoint)
+    :param target: a run folder (its final model, else its latest checkpoint) or a model ``.zip``
     :param protocol: :func:`evaluate` arguments (``episodes``, ``stage``, ``seed``, ``n_envs``, ``workers``,
-        ``deterministic``, ``record``); by default the thesis's: stage 3, 500 episodes in chapter 4, 200 in chapter 5
+        ``deterministic``, ``record``, ``env_overrides``); by default the thesis's: stage 3, 500 episodes in chapter 4,
+        200 in chapter 5
     :param device: torch device
     :param progress_bar: show a progress bar
+    :param out: folder for the files (default: ``eval/`` in the run folder, or beside the model file)
     """
-    protocol = dict(protocol or {})
-    trained = load_trained(run_dir, device=device)
+    protocol = {key: value for key, value in (protocol or {}).items() if value is not None}
+    trained = load_trained(target, device=device)
     episodes = protocol.pop("episodes", THESIS_EVALUATION_EPISODES[trained.config.layout])
     if "workers" in protocol:
         protocol["n_workers"] = protocol.pop("workers")
     result = evaluate(trained, episodes, progress_bar=progress_bar, **protocol)
-    result.save(Path(run_dir) / "eval")
+    target = Path(target)
+    result.save(out or (target if target.is_dir() else target.parent) / "eval")
     return result
