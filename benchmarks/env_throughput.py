@@ -18,7 +18,7 @@ import time
 import numpy as np
 
 from sb3_formation import FormationConfig, FormationEnv
-from sb3_formation.world import World
+from sb3_formation.env.world import World
 
 CONFIG = FormationConfig.preset("ch5-bearing", stage=3)
 

@@ -19,8 +19,8 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_formation import make_formation_vec_env
-from sb3_formation.recurrent import RecurrentFormationPolicy
-from sb3_formation.training import algorithm_for, thesis_ppo_kwargs
+from sb3_formation.experiment.training import algorithm_for, thesis_ppo_kwargs
+from sb3_formation.sb3.recurrent.ppo import RecurrentFormationPolicy
 
 
 class PhaseTimer(BaseCallback):

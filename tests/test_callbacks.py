@@ -18,7 +18,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from tensorboard.plugins.custom_scalar import layout_pb2
 
 from sb3_formation import REWARD_TERMS, FormationPolicy, make_formation_vec_env
-from sb3_formation.callbacks import (
+from sb3_formation.sb3.callbacks import (
     CurriculumCallback,
     FormationMetricsCallback,
     ProgressBarCallback,

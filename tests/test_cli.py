@@ -13,8 +13,8 @@ from PIL import Image
 
 from sb3_formation import FormationConfig, FormationEnv
 from sb3_formation.cli import main
-from sb3_formation.evaluation import Trajectories
-from sb3_formation.rollout import random_policy, run_episode
+from sb3_formation.env.episodes import random_policy, run_episode
+from sb3_formation.experiment.evaluation import Trajectories
 
 
 def test_rollout_prints_episodes_and_saves_the_final_frame(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

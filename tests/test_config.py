@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from sb3_formation.config import FormationConfig
+from sb3_formation.env.config import FormationConfig
 
 PRESET_NAMES = ("ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing")
 

@@ -18,7 +18,7 @@ import pytest
 from stable_baselines3 import PPO
 
 from sb3_formation import FormationEnv, FormationPolicy, make_formation_vec_env
-from sb3_formation.evaluation import (
+from sb3_formation.experiment.evaluation import (
     EPISODE_COLUMNS,
     EPISODE_METRICS,
     Trajectories,
@@ -27,7 +27,7 @@ from sb3_formation.evaluation import (
     evaluate,
     wilson_interval,
 )
-from sb3_formation.training import FINAL_MODEL, FINAL_NORMALIZER, TrainedModel, load_trained, save_model
+from sb3_formation.experiment.training import FINAL_MODEL, FINAL_NORMALIZER, TrainedModel, load_trained, save_model
 
 Z95 = 1.959963984540054
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from sb3_formation.geometry import measure_formation, reference_bearings, reference_polygon, ring_neighbours
+from sb3_formation.env.geometry import measure_formation, reference_bearings, reference_polygon, ring_neighbours
 
 D_REF = 1.5
 OFFSET = np.array([5.0, 4.0])

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from stable_baselines3.common.vec_env import DummyVecEnv
 
-from sb3_formation.normalization import ScaleNormalizeVecEnv
+from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 
 #: Per-agent layout of the fake env: [continuous, continuous (mean far from 0), binary flag, constant zero, continuous]
 AGENT_OBS_DIM = 5

@@ -15,9 +15,10 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Polygon
 from PIL import Image
 
-from sb3_formation.config import FormationConfig
-from sb3_formation.evaluation import EvaluationResult, Trajectories
-from sb3_formation.plots import (
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.experiment.evaluation import EvaluationResult, Trajectories
+from sb3_formation.experiment.training import TrainSettings
+from sb3_formation.viz.plots import (
     formation_steps,
     load_training_curves,
     plot_error_curves,
@@ -28,7 +29,6 @@ from sb3_formation.plots import (
     save_figure,
     steps_per_iteration,
 )
-from sb3_formation.training import TrainSettings
 
 LENGTHS = (6, 3)  # two episodes of different lengths; the second is NaN-padded after row 3
 OBSTACLE_HIT = (0, 2, 1)  # (episode, step, agent) of the obstacle collision

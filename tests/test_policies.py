@@ -14,7 +14,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import DummyVecEnv
 from torch import nn
 
-from sb3_formation.policies import FormationPolicy, TeamCriticExtractor
+from sb3_formation.sb3.policies import FormationPolicy, TeamCriticExtractor
 
 D = 5  # length of one agent's observation in the dummy envs
 N = 3  # team size for the team critic

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sb3_formation import FormationConfig, FormationEnv
-from sb3_formation.rendering import AGENT_COLOURS, GOAL, OBSTACLE, PIXELS_PER_METRE, render_frame
+from sb3_formation.env.rendering import AGENT_COLOURS, GOAL, OBSTACLE, PIXELS_PER_METRE, render_frame
 
 
 def test_frame_shows_obstacles_goal_agents_and_lidar() -> None:

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from sb3_formation.config import REWARD_TERMS, FormationConfig
-from sb3_formation.geometry import measure_formation, reference_bearings, reference_polygon, ring_neighbours
-from sb3_formation.rewards import (
+from sb3_formation.env.config import REWARD_TERMS, FormationConfig
+from sb3_formation.env.geometry import measure_formation, reference_bearings, reference_polygon, ring_neighbours
+from sb3_formation.env.rewards import (
     TERM_ROW,
     angle_between,
     angle_term,

@@ -8,9 +8,9 @@ import re
 import numpy as np
 import pytest
 
-from sb3_formation import scenarios
-from sb3_formation.config import FormationConfig
-from sb3_formation.scenarios import PlacementError, Scenario, sample_scenario
+from sb3_formation.env import scenarios
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.scenarios import PlacementError, Scenario, sample_scenario
 
 SEEDS = range(200)
 TOL = 1e-9  # m; placements are computed, so allow float round-off only

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from sb3_formation.geometry import ring_neighbours
-from sb3_formation.sensors import Lidar
+from sb3_formation.env.geometry import ring_neighbours
+from sb3_formation.env.sensors import Lidar
 
 R = 0.2  # agent radius (m)
 RANGE = 1.5  # lidar range (m)

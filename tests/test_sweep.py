@@ -17,9 +17,9 @@ import pytest
 import yaml
 
 from sb3_formation.cli import main
-from sb3_formation.evaluation import EPISODE_METRICS, wilson_interval
-from sb3_formation.sweep import aggregate, load_experiment, sweep
-from sb3_formation.training import FINAL_MODEL, THESIS_PPO
+from sb3_formation.experiment.evaluation import EPISODE_METRICS, wilson_interval
+from sb3_formation.experiment.sweep import aggregate, load_experiment, sweep
+from sb3_formation.experiment.training import FINAL_MODEL, THESIS_PPO
 
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
 THESIS = {  # thesis 4.3-4.4 and 5.3-5.4: iterations per stage, parallel teams, seeds, evaluation episodes

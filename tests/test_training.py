@@ -19,9 +19,7 @@ from stable_baselines3.common.save_util import load_from_zip_file
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_formation.cli import build_parser, main, preset_for, train_settings
-from sb3_formation.policies import FormationPolicy
-from sb3_formation.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
-from sb3_formation.training import (
+from sb3_formation.experiment.training import (
     STATE_FILE,
     TrainSettings,
     latest_checkpoint,
@@ -30,6 +28,8 @@ from sb3_formation.training import (
     reduce_to_overrides,
     thesis_ppo_kwargs,
 )
+from sb3_formation.sb3.policies import FormationPolicy
+from sb3_formation.sb3.recurrent.ppo import RecurrentFormationPolicy, RecurrentFormationPPO
 
 #: Tiny runs: one team, episodes of 20 steps, so every iteration of 128 steps ends several team-episodes.
 QUICK = ["--n-envs", "1", "--env", "max_steps=20", "--no-progress"]

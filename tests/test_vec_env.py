@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sb3_formation import FormationConfig, FormationEnv, Scenario
-from sb3_formation.vec_env import FormationVecEnv
+from sb3_formation.sb3.vec_env import FormationVecEnv
 
 N_AGENTS = 6
 

@@ -13,9 +13,9 @@ import pytest
 from PIL import Image
 
 from sb3_formation import make_formation_vec_env
-from sb3_formation.env import FormationEnv
-from sb3_formation.training import TrainedModel
-from sb3_formation.video import (
+from sb3_formation.env.formation_env import FormationEnv
+from sb3_formation.experiment.training import TrainedModel
+from sb3_formation.viz.video import (
     VideoWriter,
     episode_caption,
     frames_per_episode,

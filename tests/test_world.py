@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from sb3_formation.config import FormationConfig
-from sb3_formation.scenarios import Scenario
-from sb3_formation.world import World, clamp_speed
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.scenarios import Scenario
+from sb3_formation.env.world import World, clamp_speed
 
 CONFIG = FormationConfig.preset("ch4-individual")  # n = 3, R_a = 0.2 m, m = 1 kg, v_max = 0.05 m/s, dt = 0.3 s
 V_MAX, DT, R_A = 0.05, 0.3, 0.2

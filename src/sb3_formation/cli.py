@@ -12,9 +12,10 @@ from pathlib import Path
 import yaml
 from PIL import Image
 
-from .config import PRESETS, FormationConfig
-from .env import FormationEnv
-from .evaluation import (
+from sb3_formation.env.config import PRESETS, FormationConfig
+from sb3_formation.env.episodes import random_policy, run_episode
+from sb3_formation.env.formation_env import FormationEnv
+from sb3_formation.experiment.evaluation import (
     SUMMARY_FILE,
     THESIS_EVALUATION_EPISODES,
     TRAJECTORIES_FILE,
@@ -23,9 +24,7 @@ from .evaluation import (
     evaluate_run,
     model_fingerprint,
 )
-from .plots import FIGURES, plot_error_curves, plot_evaluation_bars, plot_training_curves, plot_trajectory, save_figure
-from .rollout import random_policy, run_episode
-from .training import (
+from sb3_formation.experiment.training import (
     FINAL_MODEL,
     TrainSettings,
     atomic_write_text,
@@ -35,7 +34,15 @@ from .training import (
     resume,
     train,
 )
-from .video import render_episodes
+from sb3_formation.viz.plots import (
+    FIGURES,
+    plot_error_curves,
+    plot_evaluation_bars,
+    plot_training_curves,
+    plot_trajectory,
+    save_figure,
+)
+from sb3_formation.viz.video import render_episodes
 
 
 def _positive_int(text: str) -> int:
@@ -548,7 +555,7 @@ def compare_command(args: argparse.Namespace) -> int:
 def sweep_command(args: argparse.Namespace) -> int:
     """``sb3-formation sweep``: every (configuration x seed) trial on Ray; exit code 1 if a trial failed."""
     try:
-        from .sweep import sweep
+        from sb3_formation.experiment.sweep import sweep
     except ImportError as error:  # pragma: no cover - without the extra
         raise ValueError(f"sweep needs Ray: pip install 'sb3-formation[ray]' ({error})") from error
     options = {"seeds": args.seeds, "address": args.address, "max_concurrent": args.max_concurrent, "logdir": args.logdir}

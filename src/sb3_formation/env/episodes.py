@@ -7,8 +7,8 @@ from typing import Any
 
 import numpy as np
 
-from .config import REWARD_TERMS
-from .env import FormationEnv
+from sb3_formation.env.config import REWARD_TERMS
+from sb3_formation.env.formation_env import FormationEnv
 
 #: A team policy: observations of the live agents in, their actions out.
 TeamPolicy = Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]]

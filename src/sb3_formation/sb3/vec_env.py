@@ -18,9 +18,9 @@ import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
-from .config import FormationConfig
-from .env import FormationEnv
-from .rollout import EpisodeStatistics
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.episodes import EpisodeStatistics
+from sb3_formation.env.formation_env import FormationEnv
 
 
 def slot_observations(own: np.ndarray, team_observations: bool) -> np.ndarray:
@@ -390,7 +390,7 @@ def make_formation_vec_env(
     :param render_mode: ``None`` or ``"rgb_array"``
     :param config_overrides: further :class:`FormationConfig` fields
     """
-    from .normalization import ScaleNormalizeVecEnv
+    from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 
     overrides = dict(config_overrides)
     if n_agents is not None:

@@ -28,12 +28,12 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from .config import REWARD_TERMS, FormationConfig
-from .env import FormationEnv
-from .normalization import STATE_KEYS, observation_scale, scale_observations
-from .rollout import EpisodeStatistics
-from .training import TrainedModel, atomic_write_text, load_trained
-from .vec_env import slot_observations
+from sb3_formation.env.config import REWARD_TERMS, FormationConfig
+from sb3_formation.env.episodes import EpisodeStatistics
+from sb3_formation.env.formation_env import FormationEnv
+from sb3_formation.experiment.training import TrainedModel, atomic_write_text, load_trained
+from sb3_formation.sb3.normalization import STATE_KEYS, observation_scale, scale_observations
+from sb3_formation.sb3.vec_env import slot_observations
 
 #: Thesis evaluation sizes: 500 episodes in chapter 4 (thesis 4.4), 200 in chapter 5 (thesis 5.4), by layout.
 THESIS_EVALUATION_EPISODES = {"ch4": 500, "ch5": 200}

@@ -16,7 +16,7 @@ import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import TensorBoardOutputFormat
 
-from .config import REWARD_TERMS
+from sb3_formation.env.config import REWARD_TERMS
 
 #: PPO iterations per curriculum stage in the thesis, by layout: thesis 4.3 (chapter 4) and 5.3 (chapter 5).
 THESIS_STAGE_ITERATIONS: dict[str, tuple[int, int, int]] = {"ch4": (10000, 10000, 20000), "ch5": (5000, 5000, 15000)}

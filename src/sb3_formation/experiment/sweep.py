@@ -21,8 +21,16 @@ from typing import Any
 import numpy as np
 import yaml
 
-from .evaluation import EPISODE_METRICS, SUMMARY_FILE, TABLE_METRICS, evaluate_run, table_number
-from .training import FINAL_MODEL, TrainSettings, atomic_write_text, latest_checkpoint, reduce_to_overrides, resume, train
+from sb3_formation.experiment.evaluation import EPISODE_METRICS, SUMMARY_FILE, TABLE_METRICS, evaluate_run, table_number
+from sb3_formation.experiment.training import (
+    FINAL_MODEL,
+    TrainSettings,
+    atomic_write_text,
+    latest_checkpoint,
+    reduce_to_overrides,
+    resume,
+    train,
+)
 
 
 def load_experiment(path: str | os.PathLike[str]) -> TrainSettings:
@@ -194,7 +202,7 @@ def _root_error(error: BaseException) -> str:
 
 def _write_aggregate(result: SweepResult, settings: TrainSettings, name: str) -> None:
     """``aggregate.json``, ``aggregate.md`` and ``training_curves.png`` over the trials that have an evaluation."""
-    from .plots import plot_training_curves, save_figure
+    from sb3_formation.viz.plots import plot_training_curves, save_figure
 
     done = {seed: trial for seed, trial in sorted(result.trials.items()) if trial["status"] != "failed"}
     if not done:

@@ -14,7 +14,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from .geometry import interior_angle_deg
+from sb3_formation.env.geometry import interior_angle_deg
 
 #: Names of the reward terms, in the order of eq. (42); chapter 4's ``ref`` term (eq. 22) is ``dist``.
 REWARD_TERMS: tuple[str, ...] = ("time", "angle", "bearing", "dist", "centroid", "goal", "move", "velocity", "coll")

@@ -16,8 +16,8 @@ import math
 import numba
 import numpy as np
 
-from .config import REWARD_TERMS, FormationConfig
-from .geometry import FormationState
+from sb3_formation.env.config import REWARD_TERMS, FormationConfig
+from sb3_formation.env.geometry import FormationState
 
 #: A velocity slower than this (m/s) has no direction: the move and velocity terms are 0 for it (design.md).
 STILL_SPEED = 1e-6

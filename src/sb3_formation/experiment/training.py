@@ -29,12 +29,17 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.logger import CSVOutputFormat, Logger, TensorBoardOutputFormat
 from stable_baselines3.common.save_util import json_to_data
 
-from .callbacks import THESIS_STAGE_ITERATIONS, CurriculumCallback, FormationMetricsCallback, ProgressBarCallback
-from .config import PRESETS, FormationConfig
-from .normalization import ScaleNormalizeVecEnv
-from .policies import FormationPolicy
-from .recurrent import CELLS, RecurrentFormationPolicy, RecurrentFormationPPO
-from .vec_env import THESIS_TEAMS, FormationVecEnv
+from sb3_formation.env.config import PRESETS, FormationConfig
+from sb3_formation.sb3.callbacks import (
+    THESIS_STAGE_ITERATIONS,
+    CurriculumCallback,
+    FormationMetricsCallback,
+    ProgressBarCallback,
+)
+from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
+from sb3_formation.sb3.policies import FormationPolicy
+from sb3_formation.sb3.recurrent.ppo import CELLS, RecurrentFormationPolicy, RecurrentFormationPPO
+from sb3_formation.sb3.vec_env import THESIS_TEAMS, FormationVecEnv
 
 #: The thesis's PPO settings (thesis 4.3 and 5.3; design.md "Policy and PPO"). SB3 stops an epoch loop early when the
 #: approximate KL divergence exceeds 1.5 x target_kl (RLlib, the thesis's tool, stopped at target_kl itself).

@@ -16,8 +16,8 @@ import numpy as np
 import pymunk
 import pymunk.batch
 
-from .config import FormationConfig
-from .scenarios import Scenario
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.scenarios import Scenario
 
 AGENT_COLLISION_TYPE = 1
 OBSTACLE_COLLISION_TYPE = 2  #: obstacles and walls

@@ -22,9 +22,9 @@ import torch
 from PIL import Image, ImageDraw, ImageFont
 from tqdm.auto import tqdm
 
-from .env import FormationEnv
-from .evaluation import PlayJob, check_model_fits, play_episodes
-from .training import TrainedModel
+from sb3_formation.env.formation_env import FormationEnv
+from sb3_formation.experiment.evaluation import PlayJob, check_model_fits, play_episodes
+from sb3_formation.experiment.training import TrainedModel
 
 #: File suffixes :class:`VideoWriter` can write.
 VIDEO_SUFFIXES = (".mp4", ".gif")

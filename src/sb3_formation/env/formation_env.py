@@ -10,13 +10,13 @@ import numpy as np
 from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
-from .config import REWARD_TERMS, FormationConfig
-from .geometry import FormationState, measure_formation, reference_bearings, ring_neighbours
-from .observations import build_observations, observation_fields, observation_layout
-from .rewards import combine_rewards, nearest_gaps, reward_constants, reward_terms
-from .scenarios import Scenario, sample_scenario
-from .sensors import Lidar
-from .world import World
+from sb3_formation.env.config import REWARD_TERMS, FormationConfig
+from sb3_formation.env.geometry import FormationState, measure_formation, reference_bearings, ring_neighbours
+from sb3_formation.env.observations import build_observations, observation_fields, observation_layout
+from sb3_formation.env.rewards import combine_rewards, nearest_gaps, reward_constants, reward_terms
+from sb3_formation.env.scenarios import Scenario, sample_scenario
+from sb3_formation.env.sensors import Lidar
+from sb3_formation.env.world import World
 
 AgentID = str
 
@@ -357,7 +357,7 @@ class FormationEnv(ParallelEnv):
             return None
         if self.world is None:
             raise RuntimeError("render() called before reset()")
-        from .rendering import HumanWindow, render_frame
+        from sb3_formation.env.rendering import HumanWindow, render_frame
 
         frame = render_frame(self, draw_lidar=self.render_lidar)
         if self.render_mode == "rgb_array":

@@ -19,9 +19,9 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, Patch, Polygon
 
-from .evaluation import Trajectories
-from .rendering import AGENT_COLOURS
-from .training import atomic_write_text, load_settings
+from sb3_formation.env.rendering import AGENT_COLOURS
+from sb3_formation.experiment.evaluation import Trajectories
+from sb3_formation.experiment.training import atomic_write_text, load_settings
 
 #: Colours of agents (agent i: colour i mod 10) and of policies or set-ups in comparisons: matplotlib's tab10.
 COLOURS: tuple[tuple[float, float, float], ...] = tuple(tuple(channel / 255 for channel in rgb) for rgb in AGENT_COLOURS)

@@ -10,8 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import FormationConfig
-from .geometry import reference_polygon
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.geometry import reference_polygon
 
 CM = 0.01  #: one thesis pixel (m)
 

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from .config import FormationConfig
-from .geometry import FormationState
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.geometry import FormationState
 
 #: Relative slack on velocity bounds: a clamped speed may exceed v_max by a rounding error.
 ROUNDING_SLACK = 1e-9

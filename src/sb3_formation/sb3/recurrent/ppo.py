@@ -30,7 +30,7 @@ from stable_baselines3.common.utils import explained_variance, obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
 from torch import nn
 
-from .policies import DEFAULT_SIGMA
+from sb3_formation.sb3.policies import DEFAULT_SIGMA
 
 #: Recurrent cell types.
 CELLS = ("gru", "lstm")

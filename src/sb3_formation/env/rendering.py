@@ -8,7 +8,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 if TYPE_CHECKING:
-    from .env import FormationEnv
+    from sb3_formation.env.formation_env import FormationEnv
 
 PIXELS_PER_METRE = 60
 BACKGROUND = (250, 250, 247)

@@ -1,0 +1,1 @@
+"""Figures (matplotlib) and videos (ffmpeg, Pillow) of evaluations and training runs."""
