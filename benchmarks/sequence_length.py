@@ -17,7 +17,7 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 
-from sb3_formation.sb3.recurrent.ppo import RecurrentFormationPolicy
+from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
 
 LENGTHS = (128, 32, 20, 16, 8)
 

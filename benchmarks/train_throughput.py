@@ -20,7 +20,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_formation import make_formation_vec_env
 from sb3_formation.experiment.training import algorithm_for, thesis_ppo_kwargs
-from sb3_formation.sb3.recurrent.ppo import RecurrentFormationPolicy
+from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
 
 
 class PhaseTimer(BaseCallback):

@@ -16,7 +16,7 @@ from sb3_formation import FormationEnv, FormationPolicy, make_formation_vec_env
 from sb3_formation.env.episodes import random_policy, run_episode
 from sb3_formation.experiment.evaluation import evaluate
 from sb3_formation.experiment.training import TrainedModel, thesis_ppo_kwargs
-from sb3_formation.sb3.recurrent.ppo import RecurrentFormationPPO
+from sb3_formation.sb3.recurrent import RecurrentFormationPPO
 
 #: Stage 1 of chapter 5 (centroid term on, shape terms off) made easy: 3 agents, four times the thesis's v_max
 #: (6 cm per step, 3 cm per sub-step < R_a), a 1.5 m goal radius, 150-step episodes; centroid-goal start distance 3-6 m.

@@ -20,7 +20,7 @@ from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.vec_env import DummyVecEnv
 from torch import nn
 
-from sb3_formation.sb3.recurrent.ppo import (
+from sb3_formation.sb3.recurrent import (
     DEFAULT_MAX_SEQUENCE_LENGTH,
     RecurrentFormationPolicy,
     RecurrentFormationPPO,

@@ -29,7 +29,7 @@ from sb3_formation.experiment.training import (
     thesis_ppo_kwargs,
 )
 from sb3_formation.sb3.policies import FormationPolicy
-from sb3_formation.sb3.recurrent.ppo import RecurrentFormationPolicy, RecurrentFormationPPO
+from sb3_formation.sb3.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
 
 #: Tiny runs: one team, episodes of 20 steps, so every iteration of 128 steps ends several team-episodes.
 QUICK = ["--n-envs", "1", "--env", "max_steps=20", "--no-progress"]

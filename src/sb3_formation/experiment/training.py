@@ -38,7 +38,7 @@ from sb3_formation.sb3.callbacks import (
 )
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 from sb3_formation.sb3.policies import FormationPolicy
-from sb3_formation.sb3.recurrent.ppo import CELLS, RecurrentFormationPolicy, RecurrentFormationPPO
+from sb3_formation.sb3.recurrent import CELLS, RecurrentFormationPolicy, RecurrentFormationPPO
 from sb3_formation.sb3.vec_env import THESIS_TEAMS, FormationVecEnv
 
 #: The thesis's PPO settings (thesis 4.3 and 5.3; design.md "Policy and PPO"). SB3 stops an epoch loop early when the

@@ -1,0 +1,261 @@
+"""The recurrent actor-critic of thesis chapter 5 (figs 5.1 and 5.2): GRU or LSTM heads, fixed sigma."""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.distributions import DiagGaussianDistribution
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import Schedule
+from torch import nn
+
+from sb3_formation.sb3.networks import check_action_distribution, default_optimizer_kwargs, mlp
+from sb3_formation.sb3.policies import DEFAULT_SIGMA
+
+#: Recurrent cell types.
+CELLS = ("gru", "lstm")
+#: Thesis figs 5.1 and 5.2: actor 512 -> (256 recurrent) -> 2; critic 512 -> (512 recurrent) -> 256 -> 1.
+DEFAULT_RECURRENT_NET_ARCH: dict[str, Any] = {
+    "pi": [512],
+    "pi_recurrent": 256,
+    "pi_after": [],
+    "vf": [512],
+    "vf_recurrent": 512,
+    "vf_after": [256],
+}
+
+#: Longest sequence replayed in an update: 16 steps. benchmarks/sequence_length.py: a 512-step minibatch of the thesis's
+#: networks as 32 sequences of 16 steps takes 0.45x (GRU) / 0.68x (LSTM) the gradient time of 4 sequences of 128;
+#: shorter sequences gain little more. RLlib, the thesis's tool, cuts at 20 by default.
+DEFAULT_MAX_SEQUENCE_LENGTH = 16
+
+#: A recurrent head's state: ``(h,)`` for a GRU, ``(h, c)`` for an LSTM; each ``(1, n, hidden)``.
+CellState = tuple[th.Tensor, ...]
+
+
+class RecurrentStates(NamedTuple):
+    """Hidden states of the actor (``pi``) and of the critic (``vf``) for a batch of slots."""
+
+    pi: CellState
+    vf: CellState
+
+    def select(self, rows: th.Tensor | np.ndarray | slice) -> RecurrentStates:
+        """The states of some slots (rows of the batch dimension)."""
+        return RecurrentStates(*(tuple(tensor[:, rows] for tensor in state) for state in self))
+
+    def masked(self, keep: th.Tensor) -> RecurrentStates:
+        """Every state multiplied by ``keep`` (``(n,)``, 0 to reset a slot, 1 to keep it)."""
+        return RecurrentStates(_kept(self.pi, keep), _kept(self.vf, keep))
+
+
+def _kept(state: CellState, keep: th.Tensor) -> CellState:
+    """``state`` with slot i's rows multiplied by ``keep[i]`` (0 resets the slot, 1 keeps it)."""
+    factor = keep.float().view(1, -1, 1)
+    return tuple(tensor * factor for tensor in state)
+
+
+class RecurrentHead(nn.Module):
+    """Dense layers, one recurrent layer, dense layers: the body of the recurrent actor or critic.
+
+    :param input_dim: observation size
+    :param before: widths of the dense layers before the recurrent one
+    :param hidden: width of the recurrent layer
+    :param after: widths of the dense layers after it
+    :param cell: ``"gru"`` or ``"lstm"``
+    :param activation_fn: activation of the dense layers
+    """
+
+    def __init__(
+        self, input_dim: int, before: list[int], hidden: int, after: list[int], cell: str, activation_fn: type[nn.Module]
+    ) -> None:
+        super().__init__()
+        self.before, width = mlp(input_dim, before, activation_fn)
+        self.rnn = (nn.GRU if cell == "gru" else nn.LSTM)(width, hidden)
+        self.after, self.output_dim = mlp(hidden, after, activation_fn)
+        self.cell, self.hidden = cell, hidden
+
+    def initial_state(self, n: int, device: th.device) -> CellState:
+        """Zero states for ``n`` slots."""
+        count = 1 if self.cell == "gru" else 2
+        return tuple(th.zeros(1, n, self.hidden, device=device) for _ in range(count))
+
+    def forward(self, inputs: th.Tensor, state: CellState) -> tuple[th.Tensor, CellState]:
+        """Run over ``(L, B, input_dim)`` sequences from ``state``; return ``(L, B, output_dim)`` and the final state."""
+        outputs, final = self.rnn(self.before(inputs), state[0] if self.cell == "gru" else state)
+        return self.after(outputs), (final,) if self.cell == "gru" else tuple(final)
+
+
+class RecurrentFormationPolicy(BasePolicy):
+    """Recurrent actor-critic of thesis chapter 5 (figs 5.1 and 5.2) for :class:`RecurrentFormationPPO`.
+
+    The actor and the critic each have their own recurrent state. The action distribution is a diagonal Gaussian with
+    mean ``action_scale * tanh(action_net(actor output))`` and a fixed standard deviation ``sigma`` (not trained).
+    :meth:`predict` has SB3's signature with the actor's state: ``predict(observation, state, episode_start,
+    deterministic) -> (actions, state)``; a slot's state is reset where ``episode_start`` is true.
+
+    :param observation_space: a flat Box
+    :param action_space: a Box (Gaussian actions)
+    :param lr_schedule: learning-rate schedule
+    :param net_arch: any of the keys of :data:`DEFAULT_RECURRENT_NET_ARCH` (``pi``/``vf``: dense widths before the
+        recurrent layer; ``pi_recurrent``/``vf_recurrent``: its width; ``pi_after``/``vf_after``: dense widths after)
+    :param cell: ``"gru"`` (default) or ``"lstm"``
+    :param activation_fn: activation of the dense layers
+    :param sigma: fixed standard deviation of the Gaussian, > 0
+    :param action_scale: factor on the tanh of the actor's output, > 0
+    :param ortho_init: orthogonal initialisation (SB3's gains: sqrt(2) hidden, 0.01 action, 1 value)
+    :param use_sde: must be False
+    :param optimizer_class: optimiser (default Adam with SB3's eps 1e-5, fused)
+    :param optimizer_kwargs: its keyword arguments
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        lr_schedule: Schedule,
+        net_arch: dict[str, Any] | None = None,
+        cell: str = "gru",
+        activation_fn: type[nn.Module] = nn.Tanh,
+        sigma: float = DEFAULT_SIGMA,
+        action_scale: float = 1.0,
+        ortho_init: bool = True,
+        use_sde: bool = False,
+        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
+        optimizer_kwargs: dict[str, Any] | None = None,
+    ) -> None:
+        if cell not in CELLS:
+            raise ValueError(f"cell must be one of {CELLS}, got {cell!r}")
+        if not (isinstance(observation_space, spaces.Box) and len(observation_space.shape) == 1):
+            raise ValueError(f"RecurrentFormationPolicy needs a flat Box observation space, got {observation_space}")
+        check_action_distribution("RecurrentFormationPolicy", action_space, sigma, action_scale, use_sde)
+        unknown = set(net_arch or {}) - set(DEFAULT_RECURRENT_NET_ARCH)
+        if unknown:
+            raise ValueError(f"unknown net_arch keys {sorted(unknown)}; valid: {list(DEFAULT_RECURRENT_NET_ARCH)}")
+        optimizer_kwargs = default_optimizer_kwargs(optimizer_class, optimizer_kwargs)
+        super().__init__(observation_space, action_space, optimizer_class=optimizer_class, optimizer_kwargs=optimizer_kwargs)
+        self.features_extractor = self.make_features_extractor()  # flattens (and casts to float)
+        self.net_arch = {**DEFAULT_RECURRENT_NET_ARCH, **(net_arch or {})}
+        self.cell, self.activation_fn, self.ortho_init = cell, activation_fn, ortho_init
+        self.sigma, self.action_scale = float(sigma), float(action_scale)
+        arch, obs_dim, action_dim = self.net_arch, observation_space.shape[0], action_space.shape[0]
+        self.actor = RecurrentHead(obs_dim, arch["pi"], arch["pi_recurrent"], arch["pi_after"], cell, activation_fn)
+        self.critic = RecurrentHead(obs_dim, arch["vf"], arch["vf_recurrent"], arch["vf_after"], cell, activation_fn)
+        self.action_net = nn.Linear(self.actor.output_dim, action_dim)
+        self.value_net = nn.Linear(self.critic.output_dim, 1)
+        self.log_std = nn.Parameter(th.full((action_dim,), math.log(self.sigma)), requires_grad=False)
+        self.action_dist = DiagGaussianDistribution(action_dim)
+        if ortho_init:
+            for module, gain in ((self.actor, math.sqrt(2)), (self.critic, math.sqrt(2)), (self.action_net, 0.01)):
+                module.apply(lambda layer, gain=gain: self.init_weights(layer, gain))
+            self.value_net.apply(lambda layer: self.init_weights(layer, 1.0))
+            for rnn in (self.actor.rnn, self.critic.rnn):
+                for name, parameter in rnn.named_parameters():
+                    if name.startswith("weight"):
+                        nn.init.orthogonal_(parameter)
+                    else:
+                        nn.init.zeros_(parameter)
+        trainable = [parameter for parameter in self.parameters() if parameter.requires_grad]
+        self.optimizer = self.optimizer_class(trainable, lr=lr_schedule(1), **self.optimizer_kwargs)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.pop("normalize_images", None)  # observations are flat vectors
+        data.update(
+            lr_schedule=self._dummy_schedule,  # not needed to load the policy alone (as in SB3's ActorCriticPolicy)
+            net_arch=self.net_arch,
+            cell=self.cell,
+            activation_fn=self.activation_fn,
+            sigma=self.sigma,
+            action_scale=self.action_scale,
+            ortho_init=self.ortho_init,
+            optimizer_class=self.optimizer_class,
+            optimizer_kwargs=self.optimizer_kwargs,
+        )
+        return data
+
+    def initial_state(self, n: int) -> RecurrentStates:
+        """Zero actor and critic states for ``n`` slots."""
+        return RecurrentStates(self.actor.initial_state(n, self.device), self.critic.initial_state(n, self.device))
+
+    def _distribution(self, actor_output: th.Tensor) -> DiagGaussianDistribution:
+        mean = self.action_scale * th.tanh(self.action_net(actor_output))
+        return self.action_dist.proba_distribution(mean, self.log_std)
+
+    def forward(
+        self, obs: th.Tensor, states: RecurrentStates, episode_starts: th.Tensor, deterministic: bool = False
+    ) -> tuple[th.Tensor, th.Tensor, th.Tensor, RecurrentStates]:
+        """One step for a batch of slots: states are reset where ``episode_starts`` is 1 before the step.
+
+        :return: actions, values ``(n, 1)``, log-probabilities and the new states
+        """
+        states = states.masked(1.0 - episode_starts.float())
+        features = self.extract_features(obs, self.features_extractor).unsqueeze(0)
+        actor_output, pi_state = self.actor(features, states.pi)
+        critic_output, vf_state = self.critic(features, states.vf)
+        distribution = self._distribution(actor_output[0])
+        actions = distribution.get_actions(deterministic=deterministic)
+        return actions, self.value_net(critic_output[0]), distribution.log_prob(actions), RecurrentStates(pi_state, vf_state)
+
+    def predict_values(self, obs: th.Tensor, vf_state: CellState, episode_starts: th.Tensor) -> th.Tensor:
+        """Values ``(n, 1)`` of one step's observations from the critic's states (reset where ``episode_starts``)."""
+        features = self.extract_features(obs, self.features_extractor).unsqueeze(0)
+        critic_output, _ = self.critic(features, _kept(vf_state, 1.0 - episode_starts.float()))
+        return self.value_net(critic_output[0])
+
+    def evaluate_sequences(
+        self, obs: th.Tensor, actions: th.Tensor, states: RecurrentStates
+    ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        """Values, log-probabilities of ``actions`` and entropies over ``(L, B, ...)`` sequences from ``states``.
+
+        The sequences must not cross an episode start (no reset happens inside them); padding after a sequence's end
+        does not change its outputs (the cells are causal).
+        """
+        length, batch = obs.shape[:2]
+        features = self.extract_features(obs.flatten(0, 1), self.features_extractor).unflatten(0, (length, batch))
+        actor_output, _ = self.actor(features, states.pi)
+        critic_output, _ = self.critic(features, states.vf)
+        distribution = self._distribution(actor_output.flatten(0, 1))  # SB3 sums log-probabilities over dim 1
+        log_prob = distribution.log_prob(actions.flatten(0, 1)).unflatten(0, (length, batch))
+        entropy = distribution.entropy().unflatten(0, (length, batch))
+        return self.value_net(critic_output).squeeze(-1), log_prob, entropy
+
+    def _predict(self, observation: th.Tensor, deterministic: bool = False) -> th.Tensor:
+        raise NotImplementedError("a recurrent policy acts through predict(observation, state, episode_start)")
+
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: tuple[np.ndarray, ...] | None = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+        """Actions for a batch of observations, carrying the actor's recurrent state (SB3's signature).
+
+        :param observation: ``(n, obs_dim)`` observations (or one ``(obs_dim,)`` observation)
+        :param state: the actor state returned by the previous call (``None``: zeros)
+        :param episode_start: ``(n,)`` flags: reset these slots' states first (``None``: no reset)
+        :param deterministic: return the mean action instead of a sample
+        :return: actions clipped to the action space, and the new actor state (numpy arrays)
+        """
+        self.set_training_mode(False)
+        observation = np.asarray(observation, dtype=np.float32)
+        single = observation.ndim == 1
+        batch = observation.reshape(-1, self.observation_space.shape[0])
+        n = batch.shape[0]
+        with th.no_grad():
+            pi_state = (
+                self.actor.initial_state(n, self.device)
+                if state is None
+                else tuple(th.as_tensor(np.asarray(array), dtype=th.float32, device=self.device) for array in state)
+            )
+            if episode_start is not None:
+                pi_state = _kept(pi_state, 1.0 - th.as_tensor(episode_start, device=self.device).float().reshape(-1))
+            features = self.extract_features(th.as_tensor(batch, device=self.device), self.features_extractor)
+            actor_output, pi_state = self.actor(features.unsqueeze(0), pi_state)
+            actions = self._distribution(actor_output[0]).get_actions(deterministic=deterministic)
+        actions = np.clip(actions.cpu().numpy(), self.action_space.low, self.action_space.high)
+        return (actions[0] if single else actions), tuple(tensor.cpu().numpy() for tensor in pi_state)
