@@ -12,7 +12,7 @@ from sb3_formation.env.rendering import AGENT_COLOURS, GOAL, OBSTACLE, PIXELS_PE
 def test_frame_shows_obstacles_goal_agents_and_lidar() -> None:
     env = FormationEnv(FormationConfig.preset("ch4-individual", stage=3))
     env.reset(seed=2)
-    frame = render_frame(env)
+    frame = render_frame(env.team_state(), env.config)
     height = frame.shape[0]
 
     def pixel(point: np.ndarray) -> tuple[int, int]:
@@ -26,7 +26,7 @@ def test_frame_shows_obstacles_goal_agents_and_lidar() -> None:
         assert tuple(frame[pixel(position + 0.05)]) == AGENT_COLOURS[index]
     # the start formation (centroid at y = 2 or 8 m, radius 1.08 m) has an agent within 1.5 m of a wall
     assert (env.lidar.scan(env.world.positions)[0] < 1).any()
-    assert (render_frame(env, draw_lidar=True) != frame).any()
+    assert (render_frame(env.team_state(), env.config, draw_lidar=True) != frame).any()
 
 
 def test_human_mode_draws_into_a_window(monkeypatch: pytest.MonkeyPatch) -> None:

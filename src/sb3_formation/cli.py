@@ -27,13 +27,13 @@ from sb3_formation.experiment.evaluation import (
 from sb3_formation.experiment.training import (
     FINAL_MODEL,
     TrainSettings,
-    atomic_write_text,
     load_settings,
     load_trained,
     reduce_to_overrides,
     resume,
     train,
 )
+from sb3_formation.utils.files import atomic_write
 from sb3_formation.viz.plots import (
     FIGURES,
     plot_error_curves,
@@ -546,7 +546,7 @@ def compare_command(args: argparse.Namespace) -> int:
     table = comparison_table(summaries, over=args.over)
     print(table)
     if args.table is not None:
-        atomic_write_text(args.table, table + "\n")
+        atomic_write(args.table, table + "\n")
         print(f"table written to {args.table}")
     print(f"figure written to {save_figure(plot_evaluation_bars(summaries, over=args.over), args.out)}")
     return 0

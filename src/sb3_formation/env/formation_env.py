@@ -13,9 +13,11 @@ from pettingzoo import ParallelEnv
 from sb3_formation.env.config import REWARD_TERMS, FormationConfig
 from sb3_formation.env.geometry import FormationState, measure_formation, reference_bearings, ring_neighbours
 from sb3_formation.env.observations import build_observations, observation_fields, observation_layout
+from sb3_formation.env.rendering import HumanWindow, render_frame
 from sb3_formation.env.rewards import combine_rewards, nearest_gaps, reward_constants, reward_terms
 from sb3_formation.env.scenarios import Scenario, sample_scenario
 from sb3_formation.env.sensors import Lidar
+from sb3_formation.env.state import TeamState, state_fields, state_layout, state_vector
 from sb3_formation.env.world import World
 
 AgentID = str
@@ -145,9 +147,29 @@ class FormationEnv(ParallelEnv):
         )
         self._reward_constants = reward_constants(config)
         self.set_stage(self.config.stage)
+        fields = state_fields(config)
+        #: PettingZoo's global state space: the fields of :func:`~sb3_formation.env.state.state_fields`, in order
+        self.state_space = gymnasium.spaces.Box(
+            np.concatenate([low for _, _, low, _, _ in fields]).astype(np.float32),
+            np.concatenate([high for _, _, _, high, _ in fields]).astype(np.float32),
+            dtype=np.float32,
+        )
+        #: field name -> slice of ``state()``
+        self.state_layout: dict[str, slice] = state_layout(config)
         self.np_random, self.np_random_seed = seeding.np_random()
+        # The episode's state; every attribute exists from here on, and is set for the episode by reset()
         self.scenario: Scenario | None = None
         self.world: World | None = None
+        self.goal = np.zeros(2)
+        self.obstacles = np.zeros((0, 3))
+        self.step_count = 0
+        self.previous_actions = np.zeros((n_agents, 2))
+        self.previous_rewards = np.zeros(n_agents)
+        self.formation: FormationState | None = None
+        self.goal_distance = math.nan
+        self._previous_centroid_goal_offset = np.zeros(2)
+        self._contacts = (np.zeros(n_agents, dtype=np.int64), np.zeros(n_agents, dtype=np.int64))
+        self._lidar: tuple[np.ndarray, np.ndarray] | None = None
         self._renderer: Any = None
 
     def observation_space(self, agent: AgentID) -> gymnasium.spaces.Box:
@@ -190,6 +212,7 @@ class FormationEnv(ParallelEnv):
         self.goal_distance = self._goal_distance()
         self._previous_centroid_goal_offset = self.goal - self.formation.centroid
         zeros = [0] * n_agents
+        self._contacts = (np.zeros(n_agents, dtype=np.int64), np.zeros(n_agents, dtype=np.int64))
         terms = np.zeros((len(REWARD_TERMS), n_agents))
         infos = self._infos(zeros, zeros, terms, success=False)
         return dict(zip(self.agents, self._observations())), dict(zip(self.agents, infos))
@@ -257,6 +280,7 @@ class FormationEnv(ParallelEnv):
         self.previous_rewards = rewards
         observations = self._observations()
         infos = self._infos(agent_contacts, obstacle_contacts, terms, success)
+        self._contacts = (np.array(agent_contacts), np.array(obstacle_contacts))
         if success or truncated:
             self.agents = []
         return observations, rewards, success, truncated, infos
@@ -302,7 +326,7 @@ class FormationEnv(ParallelEnv):
         )
 
     def _observations(self) -> np.ndarray:
-        lidar_obstacles, lidar_agents = self.lidar.scan(self.world.positions)
+        self._lidar = lidar_obstacles, lidar_agents = self.lidar.scan(self.world.positions)
         return build_observations(
             self._observation_buffer,
             lidar_obstacles,
@@ -323,12 +347,9 @@ class FormationEnv(ParallelEnv):
         self, agent_contacts: list[int], obstacle_contacts: list[int], terms: np.ndarray, success: bool
     ) -> list[dict[str, Any]]:
         """Every agent's info, in agent order."""
-        formation = self.formation
         rows = zip(
-            np.abs(formation.angle_errors_deg).tolist(),
-            (0.5 * formation.bearing_errors.sum(axis=1)).tolist(),
-            (0.5 * np.maximum(formation.neighbour_distances - self.config.d_ref, 0.0).sum(axis=1)).tolist(),
-            formation.centroid_distances.tolist(),
+            *(errors.tolist() for errors in self._agent_errors()),
+            self.formation.centroid_distances.tolist(),
             obstacle_contacts,
             agent_contacts,
             terms.T.tolist(),
@@ -348,6 +369,45 @@ class FormationEnv(ParallelEnv):
             for angle, bearing, distance, centroid, obstacle_contact, agent_contact, agent_terms in rows
         ]
 
+    def _agent_errors(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per agent: abs angle error (deg), mean bearing error and mean positive neighbour-distance error (m)."""
+        formation = self.formation
+        return (
+            np.abs(formation.angle_errors_deg),
+            0.5 * formation.bearing_errors.sum(axis=1),
+            0.5 * np.maximum(formation.neighbour_distances - self.config.d_ref, 0.0).sum(axis=1),
+        )
+
+    # State --------------------------------------------------------------------------------------------------------
+
+    def team_state(self) -> TeamState:
+        """A frozen snapshot of the team now (after the last reset or step): positions, velocities, goal, obstacles,
+        neighbour graph, lidar readings, contacts of the last step, formation errors and the step count."""
+        if self.world is None:
+            raise RuntimeError("team_state() called before reset()")
+        angle, bearing, distance = self._agent_errors()
+        lidar_obstacles, lidar_agents = self._lidar
+        return TeamState(
+            step=self.step_count,
+            positions=self.world.positions,
+            velocities=self.world.velocities,
+            goal=self.goal,
+            obstacles=self.obstacles,
+            neighbours=self.neighbours,
+            contacts_agent=self._contacts[0],
+            contacts_obstacle=self._contacts[1],
+            angle_errors_deg=angle,
+            bearing_errors=bearing,
+            neighbour_distance_errors=distance,
+            lidar_obstacles=lidar_obstacles,
+            lidar_agents=lidar_agents,
+        )
+
+    def state(self) -> np.ndarray:
+        """PettingZoo's global state: a flat float32 vector laid out as ``self.state_layout`` (see
+        :func:`~sb3_formation.env.state.state_fields`: positions, velocities, goal, obstacles, step)."""
+        return state_vector(self.team_state(), self.config)
+
     # Rendering ----------------------------------------------------------------------------------------------------
 
     def render(self) -> np.ndarray | None:
@@ -357,9 +417,7 @@ class FormationEnv(ParallelEnv):
             return None
         if self.world is None:
             raise RuntimeError("render() called before reset()")
-        from sb3_formation.env.rendering import HumanWindow, render_frame
-
-        frame = render_frame(self, draw_lidar=self.render_lidar)
+        frame = render_frame(self.team_state(), self.config, draw_lidar=self.render_lidar)
         if self.render_mode == "rgb_array":
             return frame
         if self._renderer is None:

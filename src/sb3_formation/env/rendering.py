@@ -1,14 +1,13 @@
-"""Headless rendering of a :class:`FormationEnv` with Pillow, and an optional pygame window for ``human`` mode."""
+"""Headless rendering of a team's state with Pillow, and an optional pygame window for ``human`` mode."""
 
 from __future__ import annotations
-
-from typing import TYPE_CHECKING
 
 import numpy as np
 from PIL import Image, ImageDraw
 
-if TYPE_CHECKING:
-    from sb3_formation.env.formation_env import FormationEnv
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.sensors import ray_directions
+from sb3_formation.env.state import TeamState
 
 PIXELS_PER_METRE = 60
 BACKGROUND = (250, 250, 247)
@@ -34,15 +33,20 @@ AGENT_COLOURS = [
 ]
 
 
-def render_frame(env: FormationEnv, draw_lidar: bool = False, pixels_per_metre: int = PIXELS_PER_METRE) -> np.ndarray:
-    """Draw the env's current state: obstacles, the goal ring, neighbour links, agents by index, the centroid.
+def render_frame(
+    state: TeamState, config: FormationConfig, draw_lidar: bool = False, pixels_per_metre: int = PIXELS_PER_METRE
+) -> np.ndarray:
+    """Draw a team's state: obstacles, the goal ring, neighbour links, agents by index, the centroid.
 
-    :param env: a reset :class:`FormationEnv`
-    :param draw_lidar: also draw every lidar ray up to its reading (obstacle channel orange, agent channel blue)
+    A pure function of the state and the config, so a recorded trajectory can be drawn without the env.
+
+    :param state: the team's state (:meth:`FormationEnv.team_state`, or one rebuilt from a recording)
+    :param config: the task configuration (world size, agent radius, goal radius, lidar range)
+    :param draw_lidar: also draw every lidar ray up to its reading (obstacle channel orange, agent channel blue); needs
+        a state with lidar readings
     :param pixels_per_metre: scale
     :return: ``(H, W, 3)`` uint8 image, y up
     """
-    config = env.config
     width, height = round(config.world_width * pixels_per_metre), round(config.world_height * pixels_per_metre)
     image = Image.new("RGB", (width, height), BACKGROUND)
     draw = ImageDraw.Draw(image)
@@ -55,25 +59,26 @@ def render_frame(env: FormationEnv, draw_lidar: bool = False, pixels_per_metre: 
         r = radius * pixels_per_metre
         draw.ellipse((x - r, y - r, x + r, y + r), **style)
 
-    positions = env.world.positions
-    for x, y, radius in env.obstacles:
+    positions = state.positions
+    for x, y, radius in state.obstacles:
         circle(np.array([x, y]), radius, fill=OBSTACLE)
-    circle(env.goal, config.eta_g, outline=GOAL, width=max(2, pixels_per_metre // 15))
+    circle(state.goal, config.eta_g, outline=GOAL, width=max(2, pixels_per_metre // 15))
     if draw_lidar:
-        lidar_obstacles, lidar_agents = env.lidar.scan(positions)
-        directions = env.lidar.directions
-        for readings, colour in ((lidar_obstacles, LIDAR_OBSTACLE), (lidar_agents, LIDAR_AGENT)):
+        if state.lidar_obstacles is None or state.lidar_agents is None:
+            raise ValueError("draw_lidar needs a state with lidar readings (this one was rebuilt without them)")
+        directions = ray_directions(config.lidar_rays)
+        for readings, colour in ((state.lidar_obstacles, LIDAR_OBSTACLE), (state.lidar_agents, LIDAR_AGENT)):
             for position, agent_readings in zip(positions, readings):
                 starts = position + config.agent_radius * directions
                 ends = starts + (agent_readings * config.lidar_range)[:, None] * directions
                 for start, end, reading in zip(starts, ends, agent_readings):
                     if reading < 1.0:
                         draw.line([pixel(start), pixel(end)], fill=colour, width=1)
-    for index, (_, succeeding) in enumerate(env.neighbours):
+    for index, (_, succeeding) in enumerate(state.neighbours):
         draw.line([pixel(positions[index]), pixel(positions[succeeding])], fill=LINK, width=2)
     for index, position in enumerate(positions):
         circle(position, config.agent_radius, fill=AGENT_COLOURS[index % len(AGENT_COLOURS)], outline=(0, 0, 0))
-    cx, cy = pixel(env.formation.centroid)
+    cx, cy = pixel(state.centroid)
     arm = pixels_per_metre * 0.15
     draw.line([(cx - arm, cy), (cx + arm, cy)], fill=CENTROID, width=3)
     draw.line([(cx, cy - arm), (cx, cy + arm)], fill=CENTROID, width=3)

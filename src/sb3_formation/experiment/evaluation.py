@@ -31,9 +31,10 @@ from tqdm.auto import tqdm
 from sb3_formation.env.config import REWARD_TERMS, FormationConfig
 from sb3_formation.env.episodes import EpisodeStatistics
 from sb3_formation.env.formation_env import FormationEnv
-from sb3_formation.experiment.training import TrainedModel, atomic_write_text, load_trained
+from sb3_formation.experiment.training import TrainedModel, load_trained
 from sb3_formation.sb3.normalization import STATE_KEYS, observation_scale, scale_observations
 from sb3_formation.sb3.vec_env import slot_observations
+from sb3_formation.utils.files import atomic_write
 
 #: Thesis evaluation sizes: 500 episodes in chapter 4 (thesis 4.4), 200 in chapter 5 (thesis 5.4), by layout.
 THESIS_EVALUATION_EPISODES = {"ch4": 500, "ch5": 200}
@@ -143,7 +144,7 @@ class Trajectories:
         arrays["config_json"] = np.array(json.dumps(dataclasses.asdict(self.config)))
         buffer = io.BytesIO()
         np.savez_compressed(buffer, **arrays)
-        atomic_write_text(path, buffer.getvalue())
+        atomic_write(path, buffer.getvalue())
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> Trajectories:
@@ -427,12 +428,12 @@ class EvaluationResult:
         """
         folder = Path(folder)
         files = {"summary": folder / SUMMARY_FILE, "episodes": folder / EPISODES_FILE}
-        atomic_write_text(files["summary"], json.dumps(self.summary, indent=2))
+        atomic_write(files["summary"], json.dumps(self.summary, indent=2))
         table = io.StringIO()
         writer = csv.DictWriter(table, fieldnames=EPISODE_COLUMNS, lineterminator="\n")
         writer.writeheader()
         writer.writerows(self.episodes)
-        atomic_write_text(files["episodes"], table.getvalue())
+        atomic_write(files["episodes"], table.getvalue())
         if self.trajectories is not None:
             files["trajectories"] = folder / TRAJECTORIES_FILE
             self.trajectories.save(files["trajectories"])

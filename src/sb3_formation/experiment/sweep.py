@@ -25,12 +25,12 @@ from sb3_formation.experiment.evaluation import EPISODE_METRICS, SUMMARY_FILE, T
 from sb3_formation.experiment.training import (
     FINAL_MODEL,
     TrainSettings,
-    atomic_write_text,
     latest_checkpoint,
     reduce_to_overrides,
     resume,
     train,
 )
+from sb3_formation.utils.files import atomic_write
 
 
 def load_experiment(path: str | os.PathLike[str]) -> TrainSettings:
@@ -209,9 +209,9 @@ def _write_aggregate(result: SweepResult, settings: TrainSettings, name: str) ->
         return
     summaries = [trial["summary"] for trial in done.values()]
     tables = {over: aggregate(summaries, over) for over in ("successful", "all")}
-    atomic_write_text(result.folder / "aggregate.json", json.dumps({"seeds": list(done), **tables}, indent=2))
+    atomic_write(result.folder / "aggregate.json", json.dumps({"seeds": list(done), **tables}, indent=2))
     markdown = aggregate_markdown(name, tables)
-    atomic_write_text(result.folder / "aggregate.md", markdown)
+    atomic_write(result.folder / "aggregate.md", markdown)
     runs = [Path(trial["run_dir"]) for trial in done.values()]
     save_figure(plot_training_curves({f"{name} ({settings.preset})": runs}), result.folder / "training_curves.png")
     print(markdown)

@@ -13,7 +13,6 @@ import os
 import shutil
 import signal
 import sys
-import tempfile
 import time
 import zipfile
 from collections.abc import Iterator
@@ -40,6 +39,7 @@ from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import CELLS, RecurrentFormationPolicy, RecurrentFormationPPO
 from sb3_formation.sb3.vec_env import THESIS_TEAMS, FormationVecEnv
+from sb3_formation.utils.files import atomic_directory, atomic_path, atomic_write
 
 #: The thesis's PPO settings (thesis 4.3 and 5.3; design.md "Policy and PPO"). SB3 stops an epoch loop early when the
 #: approximate KL divergence exceeds 1.5 x target_kl (RLlib, the thesis's tool, stopped at target_kl itself).
@@ -276,81 +276,10 @@ PPO_OVERRIDABLE = frozenset(
 # Atomic files and checkpoints ----------------------------------------------------------------------------------------
 
 
-@contextmanager
-def atomic_directory(target: Path) -> Iterator[Path]:
-    """Write into a hidden temporary sibling folder, then rename it to ``target`` only if all went well.
-
-    An existing ``target`` is first renamed aside (hidden) and deleted after the swap, so a crash at any point leaves
-    either the old or the new folder under a hidden name or under ``target``, never a half-written ``target``.
-    """
-    target.parent.mkdir(parents=True, exist_ok=True)
-    temporary = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
-    try:
-        yield temporary
-        _fsync_directory(temporary)
-        aside = None
-        if target.exists():
-            aside = Path(tempfile.mkdtemp(prefix=f".{target.name}.old.", dir=target.parent))
-            os.replace(target, aside / target.name)
-        os.replace(temporary, target)
-        _fsync_directory(target.parent)
-        if aside is not None:
-            shutil.rmtree(aside, ignore_errors=True)
-    finally:
-        if temporary.exists():
-            shutil.rmtree(temporary, ignore_errors=True)
-
-
-def _fsync_directory(folder: Path) -> None:
-    """Flush a folder's files and the folder itself to disk."""
-    for path in folder.iterdir():
-        if path.is_file():
-            with open(path, "rb") as stream:
-                os.fsync(stream.fileno())
-    handle = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(handle)
-    finally:
-        os.close(handle)
-
-
-def _current_umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-_UMASK = _current_umask()
-
-
-def atomic_write_text(path: Path, text: str | bytes) -> None:
-    """Write ``text`` (or bytes) to ``path`` through a temporary file in the same folder and a rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        os.chmod(temporary, 0o666 & ~_UMASK)  # the permissions open() would give, not mkstemp's 0600
-        with os.fdopen(handle, "wb" if isinstance(text, bytes) else "w") as stream:
-            stream.write(text)
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.replace(temporary, path)
-    finally:
-        if os.path.exists(temporary):
-            os.unlink(temporary)
-
-
 def save_model(model: PPO, normalizer: ScaleNormalizeVecEnv, folder: Path, model_file: str, normalizer_file: str) -> None:
     """Save a model and its normaliser statistics into ``folder``, each through a temporary file and a rename."""
-    folder.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{model_file}.", suffix=".zip", dir=folder)
-    os.close(handle)
-    try:
+    with atomic_path(folder / model_file) as temporary:
         model.save(temporary)
-        os.chmod(temporary, 0o666 & ~_UMASK)  # the permissions open() would give, not mkstemp's 0600
-        os.replace(temporary, folder / model_file)
-    finally:
-        if os.path.exists(temporary):
-            os.unlink(temporary)
     normalizer.save(folder / normalizer_file)
 
 
@@ -466,8 +395,8 @@ def train(settings: TrainSettings, command: str | None = None, run_dir: str | os
     else:
         run_dir = Path(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(run_dir / "config.yaml", yaml.safe_dump(settings.to_dict(), sort_keys=False))
-    atomic_write_text(run_dir / "command.txt", (command or " ".join(sys.argv)) + "\n")
+    atomic_write(run_dir / "config.yaml", yaml.safe_dump(settings.to_dict(), sort_keys=False))
+    atomic_write(run_dir / "command.txt", (command or " ".join(sys.argv)) + "\n")
     curriculum = CurriculumCallback(settings.resolved_iterations(), settings.success_threshold)
     env = make_training_env(settings, curriculum.stage)
     kwargs = settings.ppo_kwargs()

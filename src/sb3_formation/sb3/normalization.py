@@ -14,7 +14,6 @@ not depend on k: statistics learnt with a team critic also apply to an environme
 from __future__ import annotations
 
 import os
-import tempfile
 from copy import deepcopy
 from pathlib import Path
 from typing import Any
@@ -23,6 +22,8 @@ import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvStepReturn, VecEnvWrapper
+
+from sb3_formation.utils.files import atomic_path
 
 #: Keys of ``ScaleNormalizeVecEnv.state_dict()``, which are also the arrays of the saved ``.npz`` file.
 STATE_KEYS = ("mean", "var", "count", "agent_obs_dim", "binary_mask", "epsilon", "clip_obs")
@@ -243,20 +244,8 @@ class ScaleNormalizeVecEnv(VecEnvWrapper):
 
         :param save_path: the path to save to; its folder must exist
         """
-        path = Path(save_path)
-        fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as file_handler:
-                np.savez(file_handler, **self.state_dict())
-                file_handler.flush()
-                os.fsync(file_handler.fileno())
-            os.replace(tmp_name, path)
-        except BaseException:
-            try:
-                os.remove(tmp_name)
-            except FileNotFoundError:
-                pass
-            raise
+        with atomic_path(save_path) as temporary, open(temporary, "wb") as stream:
+            np.savez(stream, **self.state_dict())
 
     @staticmethod
     def load(

@@ -6,11 +6,8 @@ agent of every team. All slots of a team end together and are reset in the same 
 
 from __future__ import annotations
 
-import multiprocessing
-import signal
 import time
 from collections.abc import Iterable, Sequence
-from multiprocessing.connection import Connection
 from typing import Any
 
 import gymnasium
@@ -21,6 +18,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvO
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.episodes import EpisodeStatistics
 from sb3_formation.env.formation_env import FormationEnv
+from sb3_formation.utils.processes import WorkerProcess, gather, worker_context
 
 
 def slot_observations(own: np.ndarray, team_observations: bool) -> np.ndarray:
@@ -125,68 +123,6 @@ class TeamBatch:
             env.close()
 
 
-def _worker(remote: Connection, parent_remote: Connection, batch_arguments: tuple) -> None:  # pragma: no cover - subprocess
-    # Ctrl-C in a terminal reaches the whole process group: the parent decides how to stop, workers carry on until closed
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    parent_remote.close()
-    batch = TeamBatch(*batch_arguments)
-    try:
-        while True:
-            command, data = remote.recv()
-            if command == "close":
-                batch.close()
-                break
-            try:
-                result = getattr(batch, command)(*data)
-            except Exception as error:  # report to the parent, which raises it
-                remote.send(("error", error))
-            else:
-                remote.send(("ok", result))
-    except (EOFError, KeyboardInterrupt):
-        pass
-    finally:
-        remote.close()
-
-
-class _WorkerBatch:
-    """A :class:`TeamBatch` in its own process, driven over a pipe (the same methods, called asynchronously)."""
-
-    def __init__(self, context: multiprocessing.context.BaseContext, batch_arguments: tuple) -> None:
-        self.remote, work_remote = context.Pipe()
-        self.process = context.Process(target=_worker, args=(work_remote, self.remote, batch_arguments), daemon=True)
-        self.process.start()
-        work_remote.close()
-
-    def send(self, command: str, *data: Any) -> None:
-        try:
-            self.remote.send((command, data))
-        except (BrokenPipeError, ConnectionResetError, OSError) as error:
-            raise self._died() from error
-
-    def receive(self) -> tuple[str, Any]:
-        """The worker's reply: ``("ok", result)`` or ``("error", exception)``."""
-        try:
-            return self.remote.recv()
-        except (EOFError, ConnectionResetError, OSError) as error:
-            raise self._died() from error
-
-    def _died(self) -> RuntimeError:
-        self.process.join(timeout=1)
-        return RuntimeError(f"FormationVecEnv worker (pid {self.process.pid}) died, exit code {self.process.exitcode}")
-
-    def close(self) -> None:
-        if self.remote.closed:
-            return
-        try:
-            self.remote.send(("close", ()))
-        except (BrokenPipeError, ConnectionResetError, OSError):
-            pass
-        self.process.join(timeout=10)
-        if self.process.is_alive():
-            self.process.terminate()
-        self.remote.close()
-
-
 class FormationVecEnv(VecEnv):
     """``n_envs`` teams of ``config.n_agents`` agents as an SB3 ``VecEnv`` of ``n_envs * n_agents`` slots.
 
@@ -240,12 +176,10 @@ class FormationVecEnv(VecEnv):
         self._team_blocks = [block.tolist() for block in np.array_split(np.arange(n_envs), n_workers)]
         arguments = [(config, len(block), team_observations, render_mode) for block in self._team_blocks]
         if n_workers == 1:
-            self._batches: list[TeamBatch | _WorkerBatch] = [TeamBatch(*arguments[0])]
+            self._batches: list[TeamBatch | WorkerProcess] = [TeamBatch(*arguments[0])]
         else:
-            if start_method is None:
-                start_method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
-            context = multiprocessing.get_context(start_method)
-            self._batches = [_WorkerBatch(context, batch_arguments) for batch_arguments in arguments]
+            context = worker_context(start_method)
+            self._batches = [WorkerProcess(TeamBatch, block, "FormationVecEnv worker", context) for block in arguments]
         self._actions: np.ndarray | None = None
         super().__init__(n_envs * self.n_agents, observation_space, probe.action_space(probe.possible_agents[0]))
 
@@ -265,30 +199,14 @@ class FormationVecEnv(VecEnv):
         return list(grouped.items())
 
     def _run(self, command: str, arguments: dict[int, tuple]) -> dict[int, Any]:
-        """Call ``command`` on the blocks in ``arguments`` (block -> arguments): workers first, all in parallel.
-
-        Every worker's reply is read before an error is raised, so no stale reply is left in a pipe.
-        """
+        """Call ``command`` on the blocks in ``arguments`` (block -> arguments), in the workers all in parallel."""
+        if self.n_workers == 1:
+            return {
+                block: getattr(self._batches[block], command)(*block_arguments) for block, block_arguments in arguments.items()
+            }
         for block, block_arguments in arguments.items():
-            batch = self._batches[block]
-            if isinstance(batch, _WorkerBatch):
-                batch.send(command, *block_arguments)
-        results: dict[int, Any] = {}
-        errors: list[BaseException] = []
-        for block, block_arguments in arguments.items():
-            batch = self._batches[block]
-            try:
-                if isinstance(batch, _WorkerBatch):
-                    status, results[block] = batch.receive()
-                    if status == "error":
-                        errors.append(results[block])
-                else:
-                    results[block] = getattr(batch, command)(*block_arguments)
-            except Exception as error:  # keep draining the other workers
-                errors.append(error)
-        if errors:
-            raise errors[0]
-        return results
+            self._batches[block].send(command, *block_arguments)
+        return dict(zip(arguments, gather([self._batches[block] for block in arguments])))
 
     def _call_teams(self, command: str, teams: list[int], *data: Any) -> dict[int, Any]:
         """Run ``command(data[0], local_teams, *data[1:])`` on the blocks holding ``teams``; return team -> result."""

@@ -21,7 +21,8 @@ from matplotlib.patches import Circle, Patch, Polygon
 
 from sb3_formation.env.rendering import AGENT_COLOURS
 from sb3_formation.experiment.evaluation import Trajectories
-from sb3_formation.experiment.training import atomic_write_text, load_settings
+from sb3_formation.experiment.training import load_settings
+from sb3_formation.utils.files import atomic_write
 
 #: Colours of agents (agent i: colour i mod 10) and of policies or set-ups in comparisons: matplotlib's tab10.
 COLOURS: tuple[tuple[float, float, float], ...] = tuple(tuple(channel / 255 for channel in rgb) for rgb in AGENT_COLOURS)
@@ -392,5 +393,5 @@ def save_figure(figure: Figure, path: Path) -> Path:
         raise ValueError(f"cannot save a figure as {file_format!r} ({path}): use one of {', '.join(FIGURE_FORMATS)}")
     buffer = io.BytesIO()
     figure.savefig(buffer, format=file_format, dpi=PNG_DPI if file_format == "png" else "figure")
-    atomic_write_text(path, buffer.getvalue())
+    atomic_write(path, buffer.getvalue())
     return path

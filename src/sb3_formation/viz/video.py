@@ -12,7 +12,6 @@ import contextlib
 import functools
 import math
 import os
-import secrets
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -25,6 +24,7 @@ from tqdm.auto import tqdm
 from sb3_formation.env.formation_env import FormationEnv
 from sb3_formation.experiment.evaluation import PlayJob, check_model_fits, play_episodes
 from sb3_formation.experiment.training import TrainedModel
+from sb3_formation.utils.files import replace_with, temporary_beside
 
 #: File suffixes :class:`VideoWriter` can write.
 VIDEO_SUFFIXES = (".mp4", ".gif")
@@ -169,19 +169,6 @@ class _GifStream:
         first.save(self.stream, format="GIF", save_all=True, append_images=others, duration=[10 * d for d in delays], loop=0)
 
 
-def _create_beside(path: Path) -> tuple[Path, int]:
-    """Create a new, empty hidden file in ``path``'s folder with the permissions ``open`` would give (unlike mkstemp).
-
-    :return: its path and an open descriptor for writing
-    """
-    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
-    for _ in range(100):
-        candidate = path.with_name(f".{path.stem}.{secrets.token_hex(4)}{path.suffix}")
-        with contextlib.suppress(FileExistsError):
-            return candidate, os.open(candidate, flags, 0o666)
-    raise FileExistsError(f"could not create a temporary file beside {path}")
-
-
 class VideoWriter:
     """Stream ``(H, W, 3)`` uint8 frames into an ``.mp4`` (H.264) or ``.gif`` file; use as a context manager.
 
@@ -207,9 +194,8 @@ class VideoWriter:
         self.frames = 0  #: frames written so far
         self.size: tuple[int, int] | None = None  #: (width, height) of the frames (px), known after the first
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        temporary, handle = _create_beside(self.path)
-        self._temporary: Path | None = temporary
-        self._file: BinaryIO | None = os.fdopen(handle, "wb")
+        self._temporary: Path | None = temporary_beside(self.path)
+        self._file: BinaryIO | None = open(self._temporary, "wb")
         self._stream: _Mp4Stream | _GifStream | None = None
 
     def append(self, frame: np.ndarray) -> None:
@@ -245,11 +231,9 @@ class VideoWriter:
             if self._file is not None:
                 self._file.close()
                 self._file = None
-            with open(self._temporary, "rb+") as written:
-                if os.fstat(written.fileno()).st_size == 0:
-                    raise RuntimeError(f"ffmpeg wrote nothing for {self.path}")
-                os.fsync(written.fileno())
-            os.replace(self._temporary, self.path)
+            if self._temporary.stat().st_size == 0:
+                raise RuntimeError(f"ffmpeg wrote nothing for {self.path}")
+            replace_with(self._temporary, self.path)
             self._temporary = None
         finally:
             self.abort()

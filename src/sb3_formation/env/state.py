@@ -1,0 +1,132 @@
+"""``TeamState``: a frozen snapshot of one team's episode, and the flat global state vector of PettingZoo's ``state()``.
+
+Rendering, evaluation recordings and video captions read states, never the env's internals; a state can also be
+rebuilt from a recorded trajectory (without lidar readings), so a saved episode can be drawn without replaying it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.scenarios import CURRICULUM_LAYOUTS
+
+
+@dataclass(frozen=True)
+class TeamState:
+    """One team at one instant (after a reset or a step). Arrays are read-only copies; n agents, m obstacles.
+
+    :param step: steps played since the reset
+    :param positions: ``(n, 2)`` agent centres (m)
+    :param velocities: ``(n, 2)`` agent velocities (m/s)
+    :param goal: ``(2,)`` goal centre (m)
+    :param obstacles: ``(m, 3)`` obstacle x, y, radius (m); walls are not listed (they are the world's border)
+    :param neighbours: ``(n, 2)`` neighbour graph: agent i's preceding and succeeding neighbour
+    :param contacts_agent: ``(n,)`` other agents each agent touched during the last step (0 after a reset)
+    :param contacts_obstacle: ``(n,)`` obstacles or walls each agent touched during the last step (0 after a reset)
+    :param angle_errors_deg: ``(n,)`` abs(beta^ref - beta^i) (deg)
+    :param bearing_errors: ``(n,)`` mean over the two neighbours of norm(g_ref - g)
+    :param neighbour_distance_errors: ``(n,)`` mean over the two neighbours of max(d_j^i - d^ref, 0) (m)
+    :param lidar_obstacles: ``(n, rays)`` obstacle-channel readings in [0, 1] (1: nothing in range), or ``None``
+        when not recorded
+    :param lidar_agents: ``(n, rays)`` agent-channel readings, or ``None``
+    """
+
+    step: int
+    positions: np.ndarray
+    velocities: np.ndarray
+    goal: np.ndarray
+    obstacles: np.ndarray
+    neighbours: np.ndarray
+    contacts_agent: np.ndarray
+    contacts_obstacle: np.ndarray
+    angle_errors_deg: np.ndarray
+    bearing_errors: np.ndarray
+    neighbour_distance_errors: np.ndarray
+    lidar_obstacles: np.ndarray | None = None
+    lidar_agents: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        for name, value in vars(self).items():
+            if isinstance(value, np.ndarray):
+                array = np.array(value)  # a copy: the snapshot never changes with the env
+                array.setflags(write=False)
+                object.__setattr__(self, name, array)
+
+    @property
+    def n_agents(self) -> int:
+        """Number of agents n."""
+        return len(self.positions)
+
+    @property
+    def centroid(self) -> np.ndarray:
+        """``(2,)`` centroid p^c of the agents (m), eq. 20."""
+        return self.positions.mean(axis=0)
+
+    @property
+    def goal_distance(self) -> float:
+        """Distance (m) from the centroid to the goal."""
+        centroid = self.centroid
+        return math.hypot(self.goal[0] - centroid[0], self.goal[1] - centroid[1])
+
+    @property
+    def neighbour_distances(self) -> np.ndarray:
+        """``(n, 2)`` distance (m) from each agent to its preceding and succeeding neighbour."""
+        offsets = self.positions[self.neighbours] - self.positions[:, None, :]
+        return np.hypot(offsets[..., 0], offsets[..., 1])
+
+
+def state_obstacle_slots(config: FormationConfig) -> int:
+    """Obstacles the global state vector has room for: the most any curriculum stage of ``config.layout`` places."""
+    layout = CURRICULUM_LAYOUTS[config.layout]
+    return max(layout.stage1_large_count + 1, len(layout.stage3_radii))
+
+
+def state_fields(config: FormationConfig) -> list[tuple[str, int, np.ndarray, np.ndarray, str]]:
+    """The fields of the global state vector, in order: (name, size, low, high, unit)."""
+    n, slots = config.n_agents, state_obstacle_slots(config)
+    width, height, v = config.world_width, config.world_height, config.v_max * (1 + 1e-9)
+    corner = np.array([width, height])
+    largest_radius = max(width, height)
+    return [
+        ("positions", 2 * n, np.zeros(2 * n), np.tile(corner, n), "m, agent 0 (x, y) first"),
+        ("velocities", 2 * n, np.full(2 * n, -v), np.full(2 * n, v), "m/s, agent 0 (x, y) first"),
+        ("goal", 2, np.zeros(2), corner, "m"),
+        (
+            "obstacles",
+            3 * slots,
+            np.tile([-largest_radius, -largest_radius, 0.0], slots),
+            np.tile([width + largest_radius, height + largest_radius, largest_radius], slots),
+            "m, (x, y, radius) per obstacle; unused slots are (0, 0, 0)",
+        ),
+        ("step", 1, np.zeros(1), np.array([float(config.max_steps)]), "steps since the reset"),
+    ]
+
+
+def state_layout(config: FormationConfig) -> dict[str, slice]:
+    """Field name -> slice of the global state vector."""
+    layout, start = {}, 0
+    for name, size, *_ in state_fields(config):
+        layout[name] = slice(start, start + size)
+        start += size
+    return layout
+
+
+def state_vector(state: TeamState, config: FormationConfig) -> np.ndarray:
+    """The flat float32 global state of :func:`state_fields` (PettingZoo's ``state()``).
+
+    :raises ValueError: the scenario has more obstacles than the vector has slots (a hand-made scenario)
+    """
+    slots = state_obstacle_slots(config)
+    if len(state.obstacles) > slots:
+        raise ValueError(
+            f"the global state has room for {slots} obstacles (the most a curriculum stage of layout {config.layout!r} "
+            f"places) but this scenario has {len(state.obstacles)}"
+        )
+    obstacles = np.zeros((slots, 3))
+    obstacles[: len(state.obstacles)] = state.obstacles
+    parts = [state.positions.ravel(), state.velocities.ravel(), state.goal, obstacles.ravel(), [float(state.step)]]
+    return np.concatenate(parts).astype(np.float32)

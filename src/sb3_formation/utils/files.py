@@ -1,0 +1,104 @@
+"""Atomic files and folders: every artefact of the package (configs, models, normaliser statistics, evaluations,
+figures, videos, checkpoints) is written to a hidden temporary sibling and renamed into place only once complete, so a
+crash or a kill leaves either the old file or the new one, never half of one. Files get mode :data:`FILE_MODE`."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import secrets
+import shutil
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+#: Mode of every file the package writes (rw-r--r--), whatever the process's umask.
+FILE_MODE = 0o644
+
+
+def temporary_beside(path: Path) -> Path:
+    """Create a new, empty hidden file in ``path``'s folder (created if needed) with :data:`FILE_MODE`.
+
+    The temporary name keeps ``path``'s suffix (some writers, e.g. SB3's ``save``, choose the format from it).
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
+    for _ in range(100):
+        candidate = path.with_name(f".{path.stem}.{secrets.token_hex(4)}.tmp{path.suffix}")
+        with contextlib.suppress(FileExistsError):
+            os.close(os.open(candidate, flags, FILE_MODE))
+            os.chmod(candidate, FILE_MODE)  # os.open applies the umask
+            return candidate
+    raise FileExistsError(f"could not create a temporary file beside {path}")
+
+
+def replace_with(temporary: Path, path: Path) -> None:
+    """Flush ``temporary`` to disk and rename it to ``path`` (replacing any file there), then flush the folder."""
+    with open(temporary, "rb") as stream:
+        os.fsync(stream.fileno())
+    os.chmod(temporary, FILE_MODE)
+    os.replace(temporary, path)
+    fsync_directory(path.parent, files=False)
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """Yield a temporary path beside ``path`` to write to; on success it replaces ``path``, on error it is deleted.
+
+    :param path: the file to (re)write; its folder is created if needed
+    """
+    path = Path(path)
+    temporary = temporary_beside(path)
+    try:
+        yield temporary
+        replace_with(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+
+
+def atomic_write(path: str | os.PathLike[str], data: str | bytes) -> None:
+    """Write ``data`` (text as UTF-8, or bytes) to ``path`` atomically, with :data:`FILE_MODE`."""
+    with atomic_path(path) as temporary:
+        temporary.write_bytes(data.encode() if isinstance(data, str) else data)
+
+
+@contextlib.contextmanager
+def atomic_directory(target: Path) -> Iterator[Path]:
+    """Write into a hidden temporary sibling folder, then rename it to ``target`` only if all went well.
+
+    An existing ``target`` is first renamed aside (hidden) and deleted after the swap, so a crash at any point leaves
+    either the old or the new folder under a hidden name or under ``target``, never a half-written ``target``.
+    """
+    target.parent.mkdir(parents=True, exist_ok=True)
+    temporary = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
+    try:
+        yield temporary
+        for file in temporary.iterdir():
+            if file.is_file():
+                os.chmod(file, FILE_MODE)
+        fsync_directory(temporary)
+        aside = None
+        if target.exists():
+            aside = Path(tempfile.mkdtemp(prefix=f".{target.name}.old.", dir=target.parent))
+            os.replace(target, aside / target.name)
+        os.replace(temporary, target)
+        fsync_directory(target.parent, files=False)
+        if aside is not None:
+            shutil.rmtree(aside, ignore_errors=True)
+    finally:
+        if temporary.exists():
+            shutil.rmtree(temporary, ignore_errors=True)
+
+
+def fsync_directory(folder: Path, files: bool = True) -> None:
+    """Flush a folder (and, with ``files``, the files directly in it) to disk."""
+    if files:
+        for path in folder.iterdir():
+            if path.is_file():
+                with open(path, "rb") as stream:
+                    os.fsync(stream.fileno())
+    handle = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(handle)
+    finally:
+        os.close(handle)

@@ -1,0 +1,164 @@
+"""Worker processes: an object built in its own process and driven by method calls over a pipe.
+
+Used by the VecEnv (a block of teams per worker) and by evaluation (a share of the episodes per worker). Workers start
+with ``forkserver`` where available (``spawn`` elsewhere), so scripts that start them need the usual
+``if __name__ == "__main__":`` guard. Workers ignore Ctrl-C: the parent decides how to stop and closes them. A worker
+that dies is named in the error with its process id and exit code.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import signal
+from collections.abc import Callable, Sequence
+from multiprocessing.connection import Connection, wait
+from typing import Any
+
+import cloudpickle
+
+#: Reply kinds sent by a worker.
+_OK, _ERROR, _PROGRESS = "ok", "error", "progress"
+
+
+def worker_context(start_method: str | None = None) -> multiprocessing.context.BaseContext:
+    """The multiprocessing context for workers: ``start_method``, else ``forkserver`` where available, else ``spawn``."""
+    if start_method is None:
+        start_method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+    return multiprocessing.get_context(start_method)
+
+
+def _serve(remote: Connection, parent_remote: Connection, payload: bytes) -> None:  # pragma: no cover - subprocess
+    """The worker's loop: build the object, then answer ``(method, args, progress)`` calls until ``close``."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    parent_remote.close()
+    try:
+        factory, arguments = cloudpickle.loads(payload)
+        target = factory(*arguments)
+        while True:
+            method, arguments, progress = remote.recv()
+            if method is None:
+                getattr(target, "close", lambda: None)()
+                break
+            try:
+                if progress:
+                    result = getattr(target, method)(*arguments, report=lambda item: remote.send((_PROGRESS, item)))
+                else:
+                    result = getattr(target, method)(*arguments)
+            except Exception as error:  # sent to the parent, which raises it
+                remote.send((_ERROR, error))
+            else:
+                remote.send((_OK, result))
+    except (EOFError, KeyboardInterrupt):
+        pass
+    finally:
+        remote.close()
+
+
+class WorkerProcess:
+    """``factory(*arguments)`` built in its own process; its methods are called with :meth:`send` and :meth:`receive`.
+
+    :param factory: a callable building the worker's object (pickled with cloudpickle, so lambdas and local classes work)
+    :param arguments: its positional arguments
+    :param name: what the worker is, for error messages
+    :param context: multiprocessing context (default: :func:`worker_context`)
+    """
+
+    def __init__(
+        self,
+        factory: Callable[..., Any],
+        arguments: Sequence[Any] = (),
+        name: str = "worker",
+        context: multiprocessing.context.BaseContext | None = None,
+    ) -> None:
+        context = context or worker_context()
+        self.name = name
+        self.remote, work_remote = context.Pipe()
+        payload = cloudpickle.dumps((factory, tuple(arguments)))
+        self.process = context.Process(target=_serve, args=(work_remote, self.remote, payload), daemon=True)
+        self.process.start()
+        work_remote.close()
+
+    def send(self, method: str, *arguments: Any, progress: bool = False) -> None:
+        """Start ``method(*arguments)`` in the worker; with ``progress`` the method gets a ``report`` keyword argument,
+        a function whose items reach :meth:`receive`'s ``on_progress``."""
+        try:
+            self.remote.send((method, arguments, progress))
+        except (BrokenPipeError, ConnectionResetError, OSError) as error:
+            raise self._died() from error
+
+    def receive(self, on_progress: Callable[[Any], None] | None = None) -> Any:
+        """The result of the call started by :meth:`send`; the worker's exception is raised here.
+
+        :param on_progress: called with each item the method reports
+        :raises RuntimeError: the worker died (its pid and exit code are named)
+        """
+        return gather([self], None if on_progress is None else lambda _, item: on_progress(item))[0]
+
+    def call(self, method: str, *arguments: Any) -> Any:
+        """:meth:`send` then :meth:`receive`."""
+        self.send(method, *arguments)
+        return self.receive()
+
+    def _died(self) -> RuntimeError:
+        self.process.join(timeout=1)
+        return RuntimeError(f"{self.name} (pid {self.process.pid}) died, exit code {self.process.exitcode}")
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Ask the worker to close its object and exit; terminate it if it does not within ``timeout`` seconds."""
+        if self.remote.closed:
+            return
+        try:
+            self.remote.send((None, (), False))
+        except (BrokenPipeError, ConnectionResetError, OSError):
+            pass
+        self.process.join(timeout=timeout)
+        if self.process.is_alive():
+            self.process.terminate()
+            self.process.join(timeout=timeout)
+        self.remote.close()
+
+    def terminate(self) -> None:
+        """Stop the worker at once (e.g. after another worker failed)."""
+        if self.process.is_alive():
+            self.process.terminate()
+        self.process.join(timeout=10)
+        self.remote.close()
+
+
+def gather(
+    workers: Sequence[WorkerProcess], on_progress: Callable[[int, Any], None] | None = None, fail_fast: bool = False
+) -> list[Any]:
+    """The results of every worker's current call (started with :meth:`WorkerProcess.send`), read as they arrive.
+
+    :param workers: the workers
+    :param on_progress: called with (worker index, item) for each item a method reports
+    :param fail_fast: on the first error terminate the workers still busy and raise it at once; otherwise every reply
+        is read before the first error is raised, so no stale reply is left in a pipe of a worker that is kept
+    :raises RuntimeError: a worker died (its pid and exit code are named)
+    """
+    pending = {worker.remote: index for index, worker in enumerate(workers)}
+    results: list[Any] = [None] * len(workers)
+    errors: list[BaseException] = []
+    while pending:
+        for remote in wait(list(pending)):
+            index = pending[remote]
+            try:
+                kind, value = remote.recv()
+            except (EOFError, ConnectionResetError, OSError):
+                kind, value = _ERROR, workers[index]._died()
+            if kind == _PROGRESS:
+                if on_progress is not None:
+                    on_progress(index, value)
+                continue
+            del pending[remote]
+            if kind == _OK:
+                results[index] = value
+                continue
+            errors.append(value)
+            if fail_fast:
+                for busy in pending.values():
+                    workers[busy].terminate()
+                raise value
+    if errors:
+        raise errors[0]
+    return results
