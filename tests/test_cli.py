@@ -13,8 +13,8 @@ from PIL import Image
 
 from sb3_formation import FormationConfig, FormationEnv
 from sb3_formation.cli import main
-from sb3_formation.env.episodes import random_policy, run_episode
-from sb3_formation.experiment.evaluation import Trajectories
+from sb3_formation.controllers import RandomController
+from sb3_formation.experiment.evaluation import PlayJob, Trajectories, play_episodes
 
 
 def test_rollout_prints_episodes_and_saves_the_final_frame(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -30,9 +30,10 @@ def test_rollout_prints_episodes_and_saves_the_final_frame(tmp_path: Path, capsy
 
 
 def test_rollout_summary_matches_a_manual_episode() -> None:
+    """The one episode loop (which ``sb3-formation rollout`` plays) against an episode played by hand."""
     config = FormationConfig.preset("ch5-angle", stage=2, max_steps=25)
-    env = FormationEnv(config)
-    summary = run_episode(env, random_policy(env, seed=1), seed=4)
+    job = PlayJob(RandomController(config, seed=1), config, seed=4, episodes=[0], n_teams=1, deterministic=False, record=0)
+    (summary,), _ = play_episodes(job)
     twin = FormationEnv(config)
     observations, _ = twin.reset(seed=4)
     rng = np.random.default_rng(1)
@@ -54,8 +55,8 @@ def test_bad_input_is_a_clear_error(capsys: pytest.CaptureFixture[str]) -> None:
         main(["rollout", "--bogus"])
     assert exit_info.value.code == 2
     assert "--bogus" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        main(["rollout", "--preset", "ch9"])
+    assert main(["rollout", "--preset", "ch9"]) == 2
+    assert "unknown preset 'ch9'" in capsys.readouterr().err
 
 
 # evaluate, plot, render and compare on real (tiny) training runs ------------------------------------------------------

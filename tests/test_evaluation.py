@@ -17,17 +17,18 @@ import numpy as np
 import pytest
 from stable_baselines3 import PPO
 
-from sb3_formation import FormationEnv, FormationPolicy, make_formation_vec_env
+from sb3_formation import FormationConfig, FormationEnv, FormationPolicy, make_formation_vec_env
+from sb3_formation.controllers import Controller
+from sb3_formation.env.episodes import EPISODE_METRICS
 from sb3_formation.experiment.evaluation import (
     EPISODE_COLUMNS,
-    EPISODE_METRICS,
     Trajectories,
-    check_model_fits,
     comparison_table,
     evaluate,
     wilson_interval,
 )
-from sb3_formation.experiment.training import FINAL_MODEL, FINAL_NORMALIZER, TrainedModel, load_trained, save_model
+from sb3_formation.experiment.training import FINAL_MODEL, FINAL_NORMALIZER, load_trained, save_model
+from sb3_formation.sb3.trained import TrainedPolicy
 
 Z95 = 1.959963984540054
 
@@ -101,11 +102,11 @@ SMALL_NETS = {"net_arch": {"pi": [16], "vf": [16]}}
 
 @pytest.fixture(scope="module")
 def tiny() -> Iterator[SimpleNamespace]:
-    """A PPO with small nets trained for one iteration, as a TrainedModel built by hand, and its normalised env."""
+    """A PPO with small nets trained for one iteration, as a TrainedPolicy built by hand, and its normalised env."""
     env = make_formation_vec_env("ch5-bearing", n_envs=1, seed=0, max_steps=MAX_STEPS)
     model = PPO(FormationPolicy, env, n_steps=8, batch_size=24, n_epochs=1, seed=0, device="cpu", policy_kwargs=SMALL_NETS)
     model.learn(8 * env.num_envs)
-    trained = TrainedModel(model, env.venv.config, env.state_dict(), team_observations=False)
+    trained = TrainedPolicy(model, env.venv.config, env.state_dict())
     yield SimpleNamespace(trained=trained, env=env)
     env.close()
 
@@ -175,16 +176,29 @@ def test_evaluate_rejects_no_episodes(tiny: SimpleNamespace) -> None:
 # A scripted policy that reaches the goal -----------------------------------------------------------------------------
 
 
-class TowardsGoal:
-    """A stand-in for ``PPO``: every agent pushes at full force along the centroid-to-goal offset it observes.
+class TowardsGoal(Controller):
+    """A plain scripted controller: every agent pushes at full force along the centroid-to-goal offset it observes.
+    The raw observations it saw and the actions it took are recorded."""
 
-    evaluate() uses only ``predict`` and ``observation_space``. With normaliser statistics of the same variance for
-    every feature the observed offset is the raw one scaled by a constant, so it points the right way. The
-    observations seen and the actions taken are recorded.
-    """
+    def __init__(self, config: FormationConfig) -> None:
+        super().__init__(config)
+        self.seen: list[np.ndarray] = []
+        self.actions: list[np.ndarray] = []
 
-    def __init__(self, observation_space: Any, offset: slice) -> None:
-        self.observation_space = observation_space
+    def act(self, observations: np.ndarray, agents: np.ndarray, deterministic: bool) -> np.ndarray:
+        assert deterministic
+        offset = observations[:, self.layout["centroid_goal_offset"]]
+        actions = offset / np.maximum(np.linalg.norm(offset, axis=1, keepdims=True), 1e-12)
+        self.seen.append(observations.copy())
+        self.actions.append(actions)
+        return actions
+
+
+class RecordingPredictor:
+    """A stand-in for an SB3 policy behind a :class:`TrainedPolicy`: it records the (normalised) observations it gets
+    and pushes along the centroid-to-goal offset it sees (the scale is the same for both components)."""
+
+    def __init__(self, offset: slice) -> None:
         self.offset = offset
         self.seen: list[np.ndarray] = []
         self.actions: list[np.ndarray] = []
@@ -192,7 +206,6 @@ class TowardsGoal:
     def predict(
         self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
     ) -> tuple[np.ndarray, None]:
-        assert deterministic and state is None
         offset = observation[:, self.offset].astype(np.float64)
         actions = (offset / np.maximum(np.linalg.norm(offset, axis=1, keepdims=True), 1e-12)).astype(np.float32)
         self.seen.append(observation.copy())
@@ -200,14 +213,9 @@ class TowardsGoal:
         return actions, None
 
 
-def scripted(tiny: SimpleNamespace, variance: float) -> TrainedModel:
-    """The tiny model's config with a scripted policy and normaliser statistics of the same variance everywhere."""
-    state = dict(tiny.env.state_dict())
-    state["var"] = np.full_like(state["var"], variance)
-    state["count"] = np.array(1.0)
-    state["clip_obs"] = np.array(np.nan)  # no clipping: offsets of several metres stay as they are
-    policy = TowardsGoal(tiny.env.observation_space, tiny.env.venv.observation_layout["centroid_goal_offset"])
-    return TrainedModel(policy, tiny.trained.config, state, team_observations=False)
+def scripted(tiny: SimpleNamespace) -> TowardsGoal:
+    """The scripted controller in the tiny model's task."""
+    return TowardsGoal(tiny.trained.config)
 
 
 # v_max 1 m/s: 30 cm per step, so the 6 m or more from a stage-3 start to the goal take about 25 steps
@@ -216,7 +224,7 @@ FAST = {"v_max": 1.0, "max_steps": 100}
 
 @pytest.mark.parametrize("stage", [1, 3])
 def test_evaluate_counts_successes_of_a_policy_that_reaches_the_goal(tiny: SimpleNamespace, stage: int) -> None:
-    trained = scripted(tiny, variance=1.0)  # observations are (up to sqrt(1 + 1e-8)) unscaled
+    trained = scripted(tiny)  # the controller sees raw observations
     result = evaluate(trained, episodes=6, stage=stage, seed=3, n_envs=3, env_overrides=FAST)
     assert all(episode["success"] for episode in result.episodes)
     assert all(episode["length"] < FAST["max_steps"] for episode in result.episodes)  # ended by the goal, not time
@@ -230,7 +238,7 @@ def test_evaluate_counts_successes_of_a_policy_that_reaches_the_goal(tiny: Simpl
 
 def test_evaluate_mixes_successes_and_time_outs(tiny: SimpleNamespace) -> None:
     """With too few steps for the farther starts some episodes fail; the means cover only the successful ones."""
-    trained = scripted(tiny, variance=1.0)
+    trained = scripted(tiny)
     lengths = [e["length"] for e in evaluate(trained, episodes=8, stage=1, seed=3, n_envs=4, env_overrides=FAST).episodes]
     cut = int(np.median(lengths))  # about half of these episodes need more steps than this
     result = evaluate(trained, episodes=8, stage=1, seed=3, n_envs=4, env_overrides={**FAST, "max_steps": cut})
@@ -244,10 +252,14 @@ def test_evaluate_mixes_successes_and_time_outs(tiny: SimpleNamespace) -> None:
 
 def test_evaluate_normalises_with_the_stored_statistics_frozen(tiny: SimpleNamespace) -> None:
     """The policy sees the raw observations divided by sqrt(var + epsilon) (flags untouched), for the whole evaluation."""
-    trained = scripted(tiny, variance=4.0)
+    state = dict(tiny.env.state_dict())
+    state["var"] = np.full_like(state["var"], 4.0)  # every feature divided by sqrt(4 + epsilon)
+    state["count"] = np.array(1.0)
+    state["clip_obs"] = np.array(np.nan)  # no clipping: offsets of several metres stay as they are
+    policy = RecordingPredictor(tiny.env.venv.observation_layout["centroid_goal_offset"])
+    trained = TrainedPolicy(policy, tiny.trained.config, state)
     result = evaluate(trained, episodes=2, stage=3, seed=9, n_envs=1, env_overrides=FAST)
     assert all(episode["success"] for episode in result.episodes)
-    policy = trained.model
     # replay the policy's actions on a raw env: episode k starts from reset(seed=9 + k)
     env = FormationEnv(trained.config.replace(**FAST, stage=3))
     observations, actions = [], iter(policy.actions)
@@ -273,12 +285,12 @@ def test_evaluate_rejects_a_team_size_the_model_was_not_trained_for(tiny: Simple
         evaluate(tiny.trained, episodes=2, env_overrides={"n_agents": 3})
 
 
-def test_check_model_fits_names_every_difference(tiny: SimpleNamespace) -> None:
+def test_a_trained_policy_fits_only_envs_of_its_observation_layout(tiny: SimpleNamespace) -> None:
     config = tiny.trained.config
-    check_model_fits(tiny.trained, config)  # fits
-    check_model_fits(tiny.trained, config.replace(max_steps=7, stage=3, v_max=0.5))  # observation size unchanged
+    assert tiny.trained.fit(config) is tiny.trained  # fits
+    assert tiny.trained.fit(config.replace(max_steps=7, stage=3, v_max=0.5)) is tiny.trained  # observation size unchanged
     with pytest.raises(ValueError) as raised:
-        check_model_fits(tiny.trained, config.replace(n_agents=3, lidar_rays=45))
+        tiny.trained.fit(config.replace(n_agents=3, lidar_rays=45))
     message = str(raised.value)
     assert "n_agents=6 in the model, 3 in the env" in message
     assert "lidar_rays=90 in the model, 45 in the env" in message
@@ -450,7 +462,7 @@ def test_episode_k_plays_the_scenario_of_seed_plus_k(tiny: SimpleNamespace, n_en
 
 def test_worker_processes_give_the_same_episodes_for_a_batch_independent_policy(tiny: SimpleNamespace) -> None:
     """A policy acting row by row (numpy) is unaffected by how teams are batched: 1 or 2 workers, 1 or 3 teams agree."""
-    trained = scripted(tiny, variance=1.0)
+    trained = scripted(tiny)
     runs = [
         evaluate(trained, episodes=5, stage=1, seed=3, n_envs=n_envs, n_workers=n_workers, env_overrides=FAST)
         for n_envs, n_workers in ((1, 1), (3, 1), (3, 2))
@@ -463,15 +475,13 @@ def test_worker_processes_give_the_same_episodes_for_a_batch_independent_policy(
 
 
 class Failing(TowardsGoal):
-    def predict(self, observation: np.ndarray, state: Any = None, episode_start: Any = None, deterministic: bool = True):
+    def act(self, observations: np.ndarray, agents: np.ndarray, deterministic: bool) -> np.ndarray:
         raise ArithmeticError("policy exploded")
 
 
 def test_a_failing_worker_is_reported(tiny: SimpleNamespace) -> None:
-    trained = scripted(tiny, variance=1.0)
-    trained = dataclasses.replace(trained, model=Failing(trained.model.observation_space, trained.model.offset))
-    with pytest.raises(RuntimeError, match="ArithmeticError: policy exploded"):
-        evaluate(trained, episodes=2, stage=1, seed=3, n_envs=2, n_workers=2, env_overrides=FAST)
+    with pytest.raises(ArithmeticError, match="policy exploded"):
+        evaluate(Failing(tiny.trained.config), episodes=2, stage=1, seed=3, n_envs=2, n_workers=2, env_overrides=FAST)
 
 
 def test_stochastic_evaluation_is_seeded(tiny: SimpleNamespace) -> None:
@@ -524,6 +534,7 @@ class StepCounter:
 
     def __init__(self, towards_goal: TowardsGoal) -> None:
         self.towards_goal = towards_goal
+        self.config = towards_goal.config
         self.calls: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (episode_start, state in, state out)
 
     def predict(
@@ -534,12 +545,14 @@ class StepCounter:
         self.calls.append((episode_start.copy(), counts.copy(), counts + 1))
         return self.towards_goal.predict(observation)[0], (counts + 1,)
 
+    def fit(self, config: FormationConfig) -> StepCounter:
+        return self
+
 
 def test_evaluate_carries_recurrent_states_and_flags_episode_starts(tiny: SimpleNamespace) -> None:
-    trained = scripted(tiny, variance=1.0)
-    counter = StepCounter(trained.model)
-    result = evaluate(dataclasses.replace(trained, model=counter), episodes=5, stage=1, seed=3, n_envs=2, env_overrides=FAST)
-    n_agents = trained.config.n_agents
+    counter = StepCounter(scripted(tiny))
+    result = evaluate(counter, episodes=5, stage=1, seed=3, n_envs=2, env_overrides=FAST)
+    n_agents = counter.config.n_agents
     assert counter.calls[0][0].all()  # every slot starts an episode at the first call
     for (_, _, returned), (starts, received, _) in zip(counter.calls, counter.calls[1:]):
         np.testing.assert_array_equal(received, np.where(starts, 0, returned))  # the state comes back, reset at starts

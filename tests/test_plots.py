@@ -17,7 +17,7 @@ from PIL import Image
 
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.experiment.evaluation import EvaluationResult, Trajectories
-from sb3_formation.experiment.training import TrainSettings
+from sb3_formation.experiment.settings import TrainSettings
 from sb3_formation.viz.plots import (
     formation_steps,
     load_training_curves,

@@ -17,9 +17,12 @@ import pytest
 import yaml
 
 from sb3_formation.cli import main
-from sb3_formation.experiment.evaluation import EPISODE_METRICS, wilson_interval
+from sb3_formation.env.episodes import EPISODE_METRICS
+from sb3_formation.experiment.evaluation import wilson_interval
+from sb3_formation.experiment.setups import load_setup
 from sb3_formation.experiment.sweep import aggregate, load_experiment, sweep
-from sb3_formation.experiment.training import FINAL_MODEL, THESIS_PPO
+from sb3_formation.experiment.training import FINAL_MODEL
+from sb3_formation.viz.plots import save_sweep_curves
 
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
 THESIS = {  # thesis 4.3-4.4 and 5.3-5.4: iterations per stage, parallel teams, seeds, evaluation episodes
@@ -41,7 +44,8 @@ def test_every_thesis_experiment_has_a_quick_twin_and_the_thesis_budget() -> Non
         assert settings.evaluation["stage"] == 3
         assert settings.resolved_recurrent() == name.startswith("thesis-ch5")  # thesis 5.1.2: recurrent networks
         kwargs = settings.ppo_kwargs()
-        assert {key: kwargs[key] for key in THESIS_PPO} == THESIS_PPO
+        thesis_ppo = load_setup(settings.preset).ppo  # the thesis's PPO settings (thesis 4.3, 5.3)
+        assert {key: kwargs[key] for key in thesis_ppo} == thesis_ppo and thesis_ppo["learning_rate"] == 5e-5
         quick = load_experiment(EXPERIMENTS / f"{name.replace('thesis-', 'quick-')}.yaml")
         assert quick.preset == settings.preset and sum(quick.resolved_iterations()) <= 3
 
@@ -121,6 +125,7 @@ def test_ray_sweep_skips_finished_trials_after_a_kill_and_aggregates(tmp_path: P
     assert not (logdir / "tiny" / "aggregate.json").exists()
 
     result = sweep(experiment, logdir=logdir)
+    save_sweep_curves(result)
     assert result.trials[0]["status"] == "skipped"  # finished before the kill: not trained again
     assert os.stat(first / FINAL_MODEL).st_mtime_ns == finished_at
     assert result.trials[1]["status"] == "trained" and not result.failed

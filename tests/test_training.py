@@ -18,16 +18,10 @@ from PIL import Image
 from stable_baselines3.common.save_util import load_from_zip_file
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from sb3_formation.cli import build_parser, main, preset_for, train_settings
-from sb3_formation.experiment.training import (
-    STATE_FILE,
-    TrainSettings,
-    latest_checkpoint,
-    load_trained,
-    make_training_env,
-    reduce_to_overrides,
-    thesis_ppo_kwargs,
-)
+from sb3_formation.cli import build_parser, main, train_settings
+from sb3_formation.experiment.settings import TrainSettings, reduce_to_overrides
+from sb3_formation.experiment.setups import load_setup, thesis_setup_for
+from sb3_formation.experiment.training import STATE_FILE, latest_checkpoint, load_trained, make_training_env
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
 
@@ -52,23 +46,24 @@ def only_run_dir(logdir: Path) -> Path:
     return runs[0]
 
 
-def test_thesis_ppo_kwargs() -> None:
-    kwargs = thesis_ppo_kwargs("ch5-bearing")
+def test_thesis_setups_give_the_thesis_ppo_settings() -> None:
+    kwargs = load_setup("ch5-bearing").ppo_kwargs(recurrent=False)
     assert kwargs["policy"] is FormationPolicy
     expected = {"n_steps": 128, "batch_size": 512, "n_epochs": 10, "learning_rate": 5e-5, "gamma": 0.995}
     expected.update({"gae_lambda": 0.95, "clip_range": 0.2, "clip_range_vf": 20.0, "target_kl": 0.03})
     assert {name: kwargs[name] for name in expected} == expected
     assert kwargs["policy_kwargs"] == {"sigma": 0.7, "action_scale": 1.0}
-    assert thesis_ppo_kwargs("ch4-individual")["policy_kwargs"]["action_scale"] == 0.01  # thesis 4.1.2
-    assert thesis_ppo_kwargs("ch4-team")["policy_kwargs"]["team_size"] == 3
-    assert thesis_ppo_kwargs("ch4-team", n_agents=5)["policy_kwargs"]["team_size"] == 5
+    assert load_setup("ch4-individual").ppo_kwargs()["policy_kwargs"]["action_scale"] == 0.01  # thesis 4.1.2
+    assert load_setup("ch4-team").ppo_kwargs()["policy_kwargs"]["team_size"] == 3
+    five = load_setup("ch4-team").config(n_agents=5)
+    assert load_setup("ch4-team").ppo_kwargs(five)["policy_kwargs"]["team_size"] == 5
 
 
 def test_reward_and_agents_flags_map_to_presets() -> None:
-    assert preset_for("bearing", 6, False) == "ch5-bearing"
-    assert preset_for("angle", None, False) == "ch4-individual"
-    assert preset_for("angle", 3, True) == "ch4-team"
-    assert preset_for("angle", 6, False) == "ch5-angle"
+    assert thesis_setup_for("bearing", 6, False) == "ch5-bearing"
+    assert thesis_setup_for("angle", None, False) == "ch4-individual"
+    assert thesis_setup_for("angle", 3, True) == "ch4-team"
+    assert thesis_setup_for("angle", 6, False) == "ch5-angle"
     settings = train_settings(build_parser().parse_args(["train", "--reward", "bearing", "--agents", "6"]))
     assert settings.preset == "ch5-bearing" and settings.config().n_agents == 6
     assert settings.resolved_iterations() == (5000, 5000, 15000) and settings.resolved_n_envs() == 14

@@ -14,7 +14,8 @@ from PIL import Image
 
 from sb3_formation import make_formation_vec_env
 from sb3_formation.env.formation_env import FormationEnv
-from sb3_formation.experiment.training import TrainedModel
+from sb3_formation.env.state import TeamState
+from sb3_formation.sb3.trained import TrainedPolicy
 from sb3_formation.viz.video import (
     VideoWriter,
     episode_caption,
@@ -51,8 +52,8 @@ def normalised() -> Iterator[SimpleNamespace]:
     env.close()
 
 
-def still_model(normalised: SimpleNamespace, fail_on_call: int | None = None) -> TrainedModel:
-    return TrainedModel(Still(fail_on_call), normalised.config, normalised.state, team_observations=False)
+def still_model(normalised: SimpleNamespace, fail_on_call: int | None = None) -> TrainedPolicy:
+    return TrainedPolicy(Still(fail_on_call), normalised.config, normalised.state)
 
 
 def expected_frames(config: Any, episodes: int, seed: int, frame_every: int = 1) -> list[np.ndarray]:
@@ -61,13 +62,13 @@ def expected_frames(config: Any, episodes: int, seed: int, frame_every: int = 1)
     frames = []
     for episode in range(episodes):
         env.reset(seed=seed + episode)
-        frames.append(overlay_text(env.render(), episode_caption(episode, env, None)))
+        frames.append(overlay_text(env.render(), episode_caption(episode, env.team_state(), config)))
         done = False
         while not done:
-            _, _, terminated, truncated, infos = env.step_array(np.zeros((config.n_agents, 2)))
+            _, _, terminated, truncated, _ = env.step_array(np.zeros((config.n_agents, 2)))
             done = terminated or truncated
             if env.step_count % frame_every == 0 or done:
-                frames.append(overlay_text(env.render(), episode_caption(episode, env, infos)))
+                frames.append(overlay_text(env.render(), episode_caption(episode, env.team_state(), config)))
     return frames
 
 
@@ -102,19 +103,29 @@ def test_frames_per_episode_matches_hand_counts() -> None:
 # Captions ------------------------------------------------------------------------------------------------------------
 
 
-def fake_env(step_count: int, max_steps: int = 100, goal_distance: float = 4.25) -> SimpleNamespace:
-    return SimpleNamespace(step_count=step_count, config=SimpleNamespace(max_steps=max_steps), goal_distance=goal_distance)
+def fake_state(step: int, goal_distance: float = 4.25) -> TeamState:
+    """Two agents whose centroid is ``goal_distance`` m left of the goal, with known errors."""
+    zeros = np.zeros(2)
+    return TeamState(
+        step=step,
+        positions=np.array([[1.0, 2.0], [3.0, 2.0]]),  # centroid (2, 2)
+        velocities=np.zeros((2, 2)),
+        goal=np.array([2.0 + goal_distance, 2.0]),
+        obstacles=np.zeros((0, 3)),
+        neighbours=np.array([[1, 1], [0, 0]]),
+        contacts_agent=zeros,
+        contacts_obstacle=zeros,
+        angle_errors_deg=np.array([10.0, 14.6]),
+        bearing_errors=np.array([0.1, 0.2]),
+        neighbour_distance_errors=np.array([0.5, 0.0]),
+    )
 
 
-def infos(success: bool) -> list[dict[str, Any]]:
-    return [
-        {"angle_error_deg": 10.0, "bearing_error": 0.1, "neighbour_distance_error": 0.5, "success": success},
-        {"angle_error_deg": 14.6, "bearing_error": 0.2, "neighbour_distance_error": 0.0, "success": success},
-    ]
+CONFIG = SimpleNamespace(max_steps=100, eta_g=0.4)
 
 
 def test_caption_after_a_step_shows_the_mean_errors() -> None:
-    assert episode_caption(3, fake_env(120, 2500), infos(success=False)) == [
+    assert episode_caption(3, fake_state(120), SimpleNamespace(max_steps=2500, eta_g=0.4)) == [
         "episode 3   step 120 / 2500",
         "running",
         "angle error 12.3 deg",  # (10 + 14.6) / 2
@@ -125,7 +136,7 @@ def test_caption_after_a_step_shows_the_mean_errors() -> None:
 
 
 def test_caption_at_reset_shows_no_errors() -> None:
-    caption = episode_caption(0, fake_env(0), None)
+    caption = episode_caption(0, fake_state(0), CONFIG)
     assert caption[:2] == ["episode 0   step 0 / 100", "running"]
     assert caption[2:5] == ["angle error -", "bearing error -", "neighbour distance error -"]
     assert caption[5] == "goal distance 4.25 m"
@@ -136,7 +147,8 @@ def test_caption_at_reset_shows_no_errors() -> None:
     [(99, False, "running"), (100, False, "time-out"), (57, True, "success"), (100, True, "success")],
 )
 def test_caption_status(step: int, success: bool, status: str) -> None:
-    assert episode_caption(1, fake_env(step), infos(success))[1] == status
+    """Success: the centroid within eta_g (0.4 m) of the goal; time-out: T_s steps without it."""
+    assert episode_caption(1, fake_state(step, 0.3 if success else 4.25), CONFIG)[1] == status
 
 
 def test_overlay_changes_the_top_left_box_only() -> None:

@@ -9,31 +9,33 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-import yaml
 from PIL import Image
 
-from sb3_formation.env.config import PRESETS, FormationConfig
-from sb3_formation.env.episodes import random_policy, run_episode
-from sb3_formation.env.formation_env import FormationEnv
+from sb3_formation.controllers import RandomController
+from sb3_formation.env.rendering import render_frame
 from sb3_formation.experiment.evaluation import (
     SUMMARY_FILE,
-    THESIS_EVALUATION_EPISODES,
     TRAJECTORIES_FILE,
+    PlayJob,
     Trajectories,
     comparison_table,
-    evaluate_run,
-    model_fingerprint,
+    evaluate_target,
+    play_episodes,
+    policy_identity,
 )
-from sb3_formation.experiment.training import (
-    FINAL_MODEL,
+from sb3_formation.experiment.settings import (
+    CLI_CONVERSIONS,
     TrainSettings,
+    cli_options,
+    layered_settings,
     load_settings,
-    load_trained,
-    reduce_to_overrides,
-    resume,
-    train,
+    positive_int,
+    seed_value,
 )
-from sb3_formation.utils.files import atomic_write
+from sb3_formation.experiment.setups import DEFAULT_SETUP, load_setup, setup_names, thesis_setup_for
+from sb3_formation.experiment.targets import default_protocol, evaluation_folder, load_policy, target_kind
+from sb3_formation.experiment.training import FINAL_MODEL, resume, train
+from sb3_formation.utils.files import atomic_path, atomic_write
 from sb3_formation.viz.plots import (
     FIGURES,
     plot_error_curves,
@@ -41,39 +43,12 @@ from sb3_formation.viz.plots import (
     plot_training_curves,
     plot_trajectory,
     save_figure,
+    save_sweep_curves,
 )
 from sb3_formation.viz.video import render_episodes
 
-
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
-
-
-def _iterations(text: str) -> list[int]:
-    try:
-        values = [int(part) for part in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) != 3 or min(values) < 0:
-        raise argparse.ArgumentTypeError(f"expected three iteration counts A,B,C (stages 1, 2, 3), got {text!r}")
-    return values
-
-
-def _assignment(text: str) -> tuple[str, object]:
-    name, separator, value = text.partition("=")
-    if not separator or not name:
-        raise argparse.ArgumentTypeError(f"expected FIELD=VALUE, got {text!r}")
-    return name.strip(), yaml.safe_load(value)
-
-
-def _seed(text: str) -> int:
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
-    return value
+#: Options of ``train`` that are not settings: the YAML file, the thesis's shorthand and the run folder.
+TRAIN_ONLY_OPTIONS = ("config", "reward", "agents", "team_reward", "run_dir")
 
 
 def _indices(text: str) -> list[int]:
@@ -86,32 +61,21 @@ def _indices(text: str) -> list[int]:
     return values
 
 
+TARGET_HELP = "a run folder, a model .zip (normaliser beside it) or controller:<name> (e.g. controller:random)"
+PRESET_HELP = f"set-up of a controller: target (default {DEFAULT_SETUP}); a run's model acts in the task it was trained in"
+
+
 def _add_protocol_arguments(parser: argparse.ArgumentParser) -> None:
     """The evaluation protocol's options, shared by ``evaluate`` and ``compare``."""
-    parser.add_argument("--episodes", type=_positive_int, help="episodes (thesis: 500 in ch. 4, 200 in ch. 5)")
-    parser.add_argument("--stage", type=int, choices=(1, 2, 3), default=3, help="curriculum stage (default 3)")
-    parser.add_argument("--seed", type=_seed, default=0, help="episode k plays the scenario of seed + k (default 0)")
-    parser.add_argument("--n-envs", type=_positive_int, default=8, help="teams played at once (default 8)")
-    parser.add_argument("--workers", type=_positive_int, default=1, help="worker processes (default 1)")
+    parser.add_argument("--episodes", type=positive_int, help="episodes (default: the set-up's; thesis: 500 ch. 4, 200 ch. 5)")
+    parser.add_argument("--stage", type=int, choices=(1, 2, 3), help="curriculum stage (default: the set-up's, 3)")
+    parser.add_argument("--seed", type=seed_value, default=0, help="episode k plays the scenario of seed + k (default 0)")
+    parser.add_argument("--n-envs", type=positive_int, default=8, help="teams played at once (default 8)")
+    parser.add_argument("--workers", type=positive_int, default=1, help="worker processes (default 1)")
     parser.add_argument("--stochastic", action="store_true", help="sample actions instead of using the mean")
     parser.add_argument("--device", default="auto", help="torch device (default auto)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-
-
-def preset_for(reward: str | None, n_agents: int | None, team_reward: bool) -> str:
-    """The thesis preset meant by ``--reward``, ``--agents`` and ``--team-reward``.
-
-    bearing -> ch5-bearing; angle with the team reward -> ch4-team; angle with 3 agents (the default) ->
-    ch4-individual; angle with more agents -> ch5-angle; no reward given -> ch5-bearing, or ch4-team with the team
-    reward.
-    """
-    if reward == "bearing":
-        return "ch5-bearing"
-    if reward == "angle" or team_reward:
-        if team_reward:
-            return "ch4-team"
-        return "ch4-individual" if n_agents in (None, 3) else "ch5-angle"
-    return "ch5-bearing"
+    parser.add_argument("--preset", help=PRESET_HELP)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -126,39 +90,19 @@ def build_parser() -> argparse.ArgumentParser:
         "Settings come from the preset, then --config FILE.yaml, then the flags given here.",
     )
     train.add_argument("--config", type=Path, help="YAML file with any of the settings below (env: and ppo: sections)")
-    train.add_argument("--preset", choices=sorted(PRESETS), help="thesis set-up (overrides --reward/--team-reward)")
     train.add_argument("--reward", choices=("angle", "bearing"), help="shape reward: angle (ch. 4/5) or bearing (ch. 5)")
     train.add_argument("--agents", type=int, help="team size n >= 3")
     train.add_argument("--team-reward", action="store_true", default=None, help="every agent gets the team reward")
-    train.add_argument(
-        "--iterations",
-        type=_iterations,
-        help="PPO iterations of stages 1,2,3 (thesis: 10000,10000,20000 in ch. 4, 5000,5000,15000 in ch. 5)",
-    )
-    train.add_argument(
-        "--recurrent",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="recurrent actor and critic (default: as in the thesis, on for chapter-5 presets, off for chapter 4)",
-    )
-    train.add_argument("--cell", choices=("gru", "lstm"), help="recurrent cell (default gru)")
-    train.add_argument("--n-envs", type=_positive_int, help="parallel teams (thesis: 12 in ch. 4, 14 in ch. 5)")
-    train.add_argument("--workers", type=_positive_int, help="worker processes stepping the teams (default 1)")
-    train.add_argument("--seed", type=_seed, help="seed of PPO and of the scenarios (default 0)")
-    train.add_argument("--device", help="torch device: auto, cpu, cuda (default auto)")
-    train.add_argument("--logdir", help="folder for run folders (default runs/)")
-    train.add_argument("--checkpoint-every", type=_positive_int, help="iterations between checkpoints (default 50)")
-    train.add_argument("--success-threshold", type=float, help="end stages 1-2 early at this rolling success rate")
-    train.add_argument(
-        "--env",
-        type=_assignment,
-        action="append",
-        metavar="FIELD=VALUE",
-        help="override a FormationConfig field, e.g. --env max_steps=1000 (repeatable)",
-    )
-    train.add_argument("--no-progress", action="store_true", help="no progress bar")
+    for name, options in cli_options():
+        options = dict(options)
+        train.add_argument(options.pop("flag"), dest=name, default=None, **options)
     train.add_argument("--resume", type=Path, metavar="RUN_DIR", help="continue a run from its latest checkpoint")
     train.add_argument("--run-dir", type=Path, help="write the run into this folder (default: a new one under --logdir)")
+    commands.add_parser(
+        "presets",
+        help="list the set-ups --preset can name",
+        description="List the set-ups shipped with the package (a set-up YAML file's path works as --preset too).",
+    )
     evaluate = commands.add_parser(
         "evaluate",
         help="evaluate a trained policy: success rate with a 95%% interval, errors, episodes.csv, trajectories",
@@ -166,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
         "summary.json (success rate with a 95%% Wilson interval; mean and std of errors, steps and collisions), "
         "episodes.csv (one row per episode) and trajectories.npz (every step of the first episodes).",
     )
-    evaluate.add_argument("target", type=Path, help="a run folder or a model .zip (normaliser beside it)")
+    evaluate.add_argument("target", help=TARGET_HELP)
     _add_protocol_arguments(evaluate)
     evaluate.add_argument("--agents", type=int, help="team size (default: the model's; must match it)")
     evaluate.add_argument(
@@ -181,27 +125,29 @@ def build_parser() -> argparse.ArgumentParser:
         "runs side by side; training: episode reward and success rate against the iteration, mean and std over runs.",
     )
     plot.add_argument("figure", help=f"one of {', '.join(FIGURES)}")
-    plot.add_argument("targets", type=Path, nargs="+", help="run folders (or eval folders / files for trajectories, errors)")
+    plot.add_argument("targets", nargs="+", help="run folders, controller:<name> targets, or eval folders / files")
     plot.add_argument("--out", type=Path, help="figure file; .png (default), .svg or .pdf")
     plot.add_argument("--episodes", type=_indices, help="recorded episodes to draw, e.g. 0,2 (default: all recorded)")
-    plot.add_argument("--every", type=_positive_int, default=25, help="steps between formation outlines (default 25)")
+    plot.add_argument("--every", type=positive_int, default=25, help="steps between formation outlines (default 25)")
     plot.add_argument("--labels", help="comma-separated label per run (runs with the same label are seeds of one curve)")
-    plot.add_argument("--window", type=_positive_int, default=100, help="rolling-mean window in iterations (default 100)")
+    plot.add_argument("--window", type=positive_int, default=100, help="rolling-mean window in iterations (default 100)")
     plot.add_argument("--over", choices=("successful", "all"), default="successful", help="episodes for the bar means")
+    plot.add_argument("--preset", help="set-up of controller: targets (default: " + DEFAULT_SETUP + ")")
     render = commands.add_parser(
         "render",
         help="write an MP4 or GIF of evaluation episodes",
         description="Play evaluation episodes with a trained policy and write them as a video, with the step, "
         "success and current errors drawn on each frame. The format follows --out: .mp4 or .gif.",
     )
-    render.add_argument("target", type=Path, help="a run folder or a model .zip (normaliser beside it)")
-    render.add_argument("--episodes", type=_positive_int, default=1, help="episodes (default 1)")
+    render.add_argument("target", help=TARGET_HELP)
+    render.add_argument("--preset", help=PRESET_HELP)
+    render.add_argument("--episodes", type=positive_int, default=1, help="episodes (default 1)")
     render.add_argument("--out", type=Path, help="video file, .mp4 or .gif (default: <run>/eval/episodes.mp4)")
     render.add_argument("--stage", type=int, choices=(1, 2, 3), default=3, help="curriculum stage (default 3)")
-    render.add_argument("--seed", type=_seed, default=0, help="episode k plays the scenario of seed + k (default 0)")
-    render.add_argument("--fps", type=_positive_int, default=20, help="frames per second (default 20)")
-    render.add_argument("--frame-every", type=_positive_int, default=1, help="keep every k-th step as a frame")
-    render.add_argument("--max-steps", type=_positive_int, help="cut episodes at this many steps (default: the model's)")
+    render.add_argument("--seed", type=seed_value, default=0, help="episode k plays the scenario of seed + k (default 0)")
+    render.add_argument("--fps", type=positive_int, default=20, help="frames per second (default 20)")
+    render.add_argument("--frame-every", type=positive_int, default=1, help="keep every k-th step as a frame")
+    render.add_argument("--max-steps", type=positive_int, help="cut episodes at this many steps (default: the model's)")
     render.add_argument("--stochastic", action="store_true", help="sample actions instead of using the mean")
     render.add_argument("--device", default="auto", help="torch device (default auto)")
     compare = commands.add_parser(
@@ -210,7 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Evaluate every run on the same fixed-seed episodes (reusing its eval/ when it holds the same "
         "protocol for the same model file), print a Markdown table and write the evaluation bar chart.",
     )
-    compare.add_argument("targets", type=Path, nargs="+", help="run folders or model .zip files")
+    compare.add_argument("targets", nargs="+", help="run folders, model .zip files or controller:<name> targets")
     _add_protocol_arguments(compare)
     compare.add_argument("--labels", help="comma-separated label per run (default: the run folder names)")
     compare.add_argument("--over", choices=("successful", "all"), default="successful", help="episodes for the means")
@@ -227,21 +173,19 @@ def build_parser() -> argparse.ArgumentParser:
     sweep.add_argument("experiment", type=Path, help="experiment YAML, e.g. experiments/quick-ch5-bearing.yaml")
     sweep.add_argument("--seeds", type=_indices, help="comma-separated seeds (default: the experiment's)")
     sweep.add_argument("--address", help="address of a running Ray cluster (default: start Ray on this machine)")
-    sweep.add_argument("--max-concurrent", type=_positive_int, help="trials at once (default: one per CPU)")
+    sweep.add_argument("--max-concurrent", type=positive_int, help="trials at once (default: one per CPU)")
     sweep.add_argument("--logdir", help="folder for the experiment's folder (default: the experiment's logdir)")
     rollout = commands.add_parser(
         "rollout",
         help="play episodes with a random policy, print per-episode metrics and save the final frame",
         description="Play episodes of the formation env with uniformly random actions (a baseline and a smoke test).",
     )
-    rollout.add_argument(
-        "--preset", choices=sorted(PRESETS), default="ch5-bearing", help="thesis set-up (default: %(default)s)"
-    )
+    rollout.add_argument("--preset", default=DEFAULT_SETUP, help="set-up (default: %(default)s)")
     rollout.add_argument("--agents", type=int, default=None, help="team size n >= 3 (default: the preset's)")
     rollout.add_argument("--stage", type=int, choices=(1, 2, 3), default=3, help="curriculum stage (default: %(default)s)")
-    rollout.add_argument("--episodes", type=_positive_int, default=2, help="number of episodes (default: %(default)s)")
+    rollout.add_argument("--episodes", type=positive_int, default=2, help="number of episodes (default: %(default)s)")
     rollout.add_argument(
-        "--max-steps", type=_positive_int, default=None, help="episode length T_s in steps (default: the preset's 2500)"
+        "--max-steps", type=positive_int, default=None, help="episode length T_s in steps (default: the preset's 2500)"
     )
     rollout.add_argument("--seed", type=int, default=0, help="seed of the first episode; episode k uses seed + k")
     rollout.add_argument("--out", type=Path, default=Path("runs/rollout_final_frame.png"), help="PNG of the final frame")
@@ -256,104 +200,57 @@ def rollout_command(args: argparse.Namespace) -> int:
         overrides["n_agents"] = args.agents
     if args.max_steps is not None:
         overrides["max_steps"] = args.max_steps
-    config = FormationConfig.preset(args.preset, **overrides)
-    env = FormationEnv(config, render_mode="rgb_array")
-    policy = random_policy(env, seed=args.seed)
+    config = load_setup(args.preset).config(**overrides)
+    job = PlayJob(RandomController(config, seed=args.seed), config, args.seed, list(range(args.episodes)), 1, False, 0)
+    states = []
+    rows, _ = play_episodes(job, on_step=lambda state, episode: states.append(state) if state.step else states.clear())
     print(f"{args.preset}: n={config.n_agents}, stage {config.stage}, T_s={config.max_steps}, random policy")
-    for episode in range(args.episodes):
-        summary = run_episode(env, policy, seed=args.seed + episode)
+    for summary in rows:
         if args.json:
-            print(json.dumps({"episode": episode, **summary}))
+            print(json.dumps({key: value for key, value in summary.items() if not key.startswith("reward_")}))
         else:
             print(
-                f"episode {episode}: steps={summary['length']} success={summary['success']} "
+                f"episode {summary['episode']}: steps={summary['length']} success={summary['success']} "
                 f"return={summary['return']:.2f} angle_error={summary['angle_error_deg']:.1f} deg "
                 f"bearing_error={summary['bearing_error']:.3f} distance_error={summary['neighbour_distance_error']:.3f} m "
                 f"goal_distance={summary['final_goal_distance']:.2f} m "
                 f"collisions obstacle/agent={summary['collisions_obstacle']}/{summary['collisions_agent']}"
             )
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(env.render()).save(args.out)
+    with atomic_path(args.out) as temporary:
+        Image.fromarray(render_frame(states[-1], config)).save(temporary, format="PNG")
     print(f"final frame saved to {args.out}")
     return 0
 
 
 def train_settings(args: argparse.Namespace) -> TrainSettings:
-    """The settings of ``sb3-formation train``: YAML file first, then the flags given on the command line."""
-    values: dict = {}
-    if args.config is not None:
-        if not args.config.exists():
-            raise FileNotFoundError(f"--config: no such file {args.config}")
-        try:
-            loaded = yaml.safe_load(args.config.read_text()) or {}
-        except yaml.YAMLError as error:
-            raise ValueError(f"{args.config} is not valid YAML: {error}") from error
-        if not isinstance(loaded, dict):
-            raise ValueError(f"{args.config} must hold a mapping of settings, not {type(loaded).__name__}")
-        values.update(reduce_to_overrides(loaded))
-    env = dict(values.get("env") or {})
-    if args.preset is not None:
-        values["preset"] = args.preset
-    elif args.reward is not None or args.team_reward:
-        values["preset"] = preset_for(args.reward, args.agents, bool(args.team_reward))
+    """The settings of ``sb3-formation train``: the set-up, then the YAML file, then the flags given."""
+    flags = {name: getattr(args, name) for name, _ in cli_options()}
+    flags = {name: CLI_CONVERSIONS.get(name, lambda value: value)(value) for name, value in flags.items() if value is not None}
+    env = flags.setdefault("env", {})
+    if flags.get("preset") is None and (args.reward is not None or args.team_reward):
+        flags["preset"] = thesis_setup_for(args.reward, args.agents, bool(args.team_reward))
     if args.agents is not None:
         env["n_agents"] = args.agents
     if args.team_reward:
         env["team_reward"] = True
-    for name, value in args.env or []:
-        env[name] = value
-    values["env"] = env
-    flags = {
-        "iterations": args.iterations,
-        "n_envs": args.n_envs,
-        "workers": args.workers,
-        "seed": args.seed,
-        "device": args.device,
-        "logdir": args.logdir,
-        "checkpoint_every": args.checkpoint_every,
-        "success_threshold": args.success_threshold,
-        "recurrent": args.recurrent,
-        "cell": args.cell,
-    }
-    values.update({name: value for name, value in flags.items() if value is not None})
-    if args.no_progress:
-        values["progress_bar"] = False
-    return TrainSettings.from_dict(values)
+    return layered_settings(args.config, **flags)
 
 
 def train_command(args: argparse.Namespace) -> int:
     """``sb3-formation train``: a new run, or ``--resume`` of an existing one."""
     if args.resume is not None:
         given = [
-            name
-            for name in (
-                "config",
-                "preset",
-                "reward",
-                "agents",
-                "team_reward",
-                "iterations",
-                "n_envs",
-                "workers",
-                "seed",
-                "device",
-                "logdir",
-                "checkpoint_every",
-                "success_threshold",
-                "recurrent",
-                "cell",
-                "env",
-                "run_dir",
-            )
-            if getattr(args, name) is not None
+            name for name in (*TRAIN_ONLY_OPTIONS, *(name for name, _ in cli_options())) if getattr(args, name) is not None
         ]
         if given:
-            raise ValueError(f"--resume continues a run with its own settings; drop {', '.join('--' + g for g in given)}")
+            flags = ", ".join("--" + name.replace("_", "-") for name in given)
+            raise ValueError(f"--resume continues a run with its own settings; drop {flags}")
         run_dir = resume(args.resume)
         settings = load_settings(run_dir)
     else:
         settings = train_settings(args)
-        policy = f"recurrent ({settings.cell})" if settings.resolved_recurrent() else "MLP"
+        cell = settings.ppo_kwargs()["policy_kwargs"].get("cell")
+        policy = f"recurrent ({cell})" if settings.resolved_recurrent() else "MLP"
         print(
             f"training {settings.preset}: n={settings.config().n_agents}, iterations per stage "
             f"{list(settings.resolved_iterations())}, {settings.resolved_n_envs()} teams, {policy} policy"
@@ -361,13 +258,23 @@ def train_command(args: argparse.Namespace) -> int:
         run_dir = train(settings, command=args.command_line, run_dir=args.run_dir)
     print(f"run folder: {run_dir}")
     if settings.evaluation is not None and (run_dir / FINAL_MODEL).exists():
-        _print_summary(evaluate_run(run_dir, settings.evaluation, progress_bar=settings.progress_bar).summary)
+        _print_summary(evaluate_target(run_dir, settings.evaluation, progress_bar=settings.progress_bar).summary)
     print(f"tensorboard --logdir {Path(run_dir).parent}")
     return 0
 
 
-def _run_folder(target: Path) -> Path:
+def presets_command(args: argparse.Namespace) -> int:
+    """``sb3-formation presets``: the shipped set-ups, one line each."""
+    names = setup_names()
+    width = max(len(name) for name in names)
+    for name in names:
+        print(f"{name:<{width}}  {load_setup(name).description}")
+    return 0
+
+
+def _run_folder(target: str | Path) -> Path:
     """The folder of a run (or of a model file)."""
+    target = Path(target)
     return target if target.is_dir() else target.parent
 
 
@@ -385,8 +292,8 @@ def _print_summary(summary: dict) -> None:
         print(f"  {name:<26}{cell:>24}{statistics['mean']:>15.3f} ± {statistics['std']:.3f}")
 
 
-def _evaluate_run(args: argparse.Namespace, target: Path, episodes: int | None, out: Path | None = None) -> dict:
-    """Evaluate one run with the protocol options of ``args``, save its files, and return its summary."""
+def _evaluate(args: argparse.Namespace, target: str, episodes: int | None, out: Path | None = None) -> dict:
+    """Evaluate one target with the protocol options of ``args``, save its files, and return its summary."""
     protocol = {
         "episodes": episodes,
         "stage": args.stage,
@@ -397,8 +304,9 @@ def _evaluate_run(args: argparse.Namespace, target: Path, episodes: int | None, 
         "record": getattr(args, "trajectories", 5),
         "env_overrides": {} if getattr(args, "agents", None) is None else {"n_agents": args.agents},
     }
-    result = evaluate_run(target, protocol, device=args.device, progress_bar=not args.no_progress, out=out)
-    print(f"{target}: evaluation written to {out or _run_folder(target) / 'eval'}")
+    out = out or evaluation_folder(target, args.preset)
+    result = evaluate_target(target, protocol, args.preset, device=args.device, progress_bar=not args.no_progress, out=out)
+    print(f"{target}: evaluation written to {out}")
     return result.summary
 
 
@@ -406,30 +314,33 @@ def evaluate_command(args: argparse.Namespace) -> int:
     """``sb3-formation evaluate``: success rate with a Wilson interval, errors, episode table and trajectories."""
     if args.trajectories < 0:
         raise ValueError(f"--trajectories must be >= 0, got {args.trajectories}")
-    _print_summary(_evaluate_run(args, args.target, args.episodes, args.out))
+    _print_summary(_evaluate(args, args.target, args.episodes, args.out))
     return 0
 
 
-def _labels(text: str | None, targets: Sequence[Path]) -> list[str]:
-    """One label per target: from ``--labels`` (comma-separated) or the folder names."""
+def _labels(text: str | None, targets: Sequence[str | Path]) -> list[str]:
+    """One label per target: from ``--labels`` (comma-separated), else the run folder's name or the target itself."""
     if text is None:
-        return [_run_folder(target).name for target in targets]
+        return [str(target) if target_kind(target) else _run_folder(target).name for target in targets]
     labels = [label.strip() for label in text.split(",")]
     if len(labels) != len(targets):
         raise ValueError(f"--labels gives {len(labels)} labels for {len(targets)} runs")
     return labels
 
 
-def _eval_file(target: Path, name: str) -> Path:
-    """``name`` of an evaluation given as the file itself, an eval folder or a run folder."""
+def _eval_file(target: str | Path, name: str, preset: str | None = None) -> Path:
+    """``name`` of an evaluation given as the file itself, an eval folder, a run folder or a ``controller:`` target."""
+    if target_kind(target) is not None:
+        target = evaluation_folder(target, preset)
+    target = Path(target)
     for candidate in (target, target / name, _run_folder(target) / "eval" / name):
         if candidate.is_file() and candidate.name == name:
             return candidate
     raise FileNotFoundError(f"no {name} in {target}: run `sb3-formation evaluate {target}` first")
 
 
-def _load_summary(target: Path) -> dict:
-    path = _eval_file(target, SUMMARY_FILE)
+def _load_summary(target: str | Path, preset: str | None = None) -> dict:
+    path = _eval_file(target, SUMMARY_FILE, preset)
     try:
         summary = json.loads(path.read_text())
     except json.JSONDecodeError as error:
@@ -446,7 +357,7 @@ def plot_command(args: argparse.Namespace) -> int:
     if args.figure in ("trajectories", "errors"):
         if len(args.targets) != 1:
             raise ValueError(f"{args.figure} draws one evaluation; got {len(args.targets)} targets")
-        path = _eval_file(args.targets[0], TRAJECTORIES_FILE)
+        path = _eval_file(args.targets[0], TRAJECTORIES_FILE, args.preset)
         trajectories = Trajectories.load(path)
         indices = _recorded_indices(trajectories, args.episodes)
         default = path.parent / "figures" / ("trajectory.png" if args.figure == "trajectories" else "errors.png")
@@ -463,7 +374,7 @@ def plot_command(args: argparse.Namespace) -> int:
             ]
     elif args.figure == "bars":
         labels = _labels(args.labels, args.targets)
-        summaries = dict(zip(labels, (_load_summary(target) for target in args.targets)))
+        summaries = dict(zip(labels, (_load_summary(target, args.preset) for target in args.targets)))
         written = [save_figure(plot_evaluation_bars(summaries, over=args.over), args.out or Path("evaluation_bars.png"))]
     else:
         labels = _labels(args.labels, args.targets) if args.labels else [_setup_label(t) for t in args.targets]
@@ -496,10 +407,10 @@ def _setup_label(run_dir: Path) -> str:
 
 def render_command(args: argparse.Namespace) -> int:
     """``sb3-formation render``: a video of evaluation episodes."""
-    trained = load_trained(args.target, device=args.device)
-    out = args.out or _run_folder(args.target) / "eval" / "episodes.mp4"
+    policy = load_policy(args.target, args.preset, device=args.device)
+    out = args.out or evaluation_folder(args.target, args.preset) / "episodes.mp4"
     frames = render_episodes(
-        trained,
+        policy,
         out,
         episodes=args.episodes,
         stage=args.stage,
@@ -514,35 +425,41 @@ def render_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def _matching_summary(target: Path, args: argparse.Namespace, episodes: int | None) -> dict | None:
-    """The run's stored evaluation summary if it is of the same model file under the same protocol, else ``None``."""
+def _matching_summary(target: str, args: argparse.Namespace, protocol: dict) -> dict | None:
+    """The target's stored evaluation summary if it is of the same policy (model file SHA-256, or controller and gains)
+    under the same protocol, else ``None``."""
     try:
-        summary = _load_summary(target)
-        model = load_trained(target, device="cpu").source
+        summary = _load_summary(target, args.preset)
+        identity = policy_identity(load_policy(target, args.preset, device="cpu"))
     except (FileNotFoundError, ValueError):
         return None
-    protocol = {"stage": args.stage, "seed": args.seed, "deterministic": not args.stochastic}
-    if episodes is not None:
-        protocol["episodes"] = episodes
-    same_model = (summary.get("model") or {}).get("sha256") == model_fingerprint(model)["sha256"]
-    return summary if same_model and all(summary.get(key) == value for key, value in protocol.items()) else None
+    wanted = {"seed": args.seed, "deterministic": not args.stochastic, **protocol}
+    same_policy = identity is not None and summary.get("model") == identity
+    return summary if same_policy and all(summary.get(key) == value for key, value in wanted.items()) else None
 
 
 def compare_command(args: argparse.Namespace) -> int:
-    """``sb3-formation compare RUN...``: every run on the same seeds, a Markdown table and the bar chart."""
+    """``sb3-formation compare TARGET...``: every policy on the same seeds, a Markdown table and the bar chart."""
     labels = _labels(args.labels, args.targets)
     if len(set(labels)) != len(labels):
         raise ValueError(f"labels must differ, got {labels}")
-    episodes = args.episodes
-    if episodes is None:  # the thesis's protocol of the runs' chapter (the larger one if they mix chapters)
-        layouts = {load_trained(target, device="cpu").config.layout for target in args.targets}
-        episodes = max(THESIS_EVALUATION_EPISODES[layout] for layout in layouts)
+    protocols = [default_protocol(target, args.preset) for target in args.targets]
+    protocol = {
+        # the set-ups' protocol (the larger one if they differ, e.g. chapter 4's 500 episodes and chapter 5's 200)
+        "episodes": args.episodes or max((p["episodes"] for p in protocols if "episodes" in p), default=None),
+        "stage": args.stage or max((p.get("stage", 3) for p in protocols), default=3),
+    }
+    if protocol["episodes"] is None:
+        raise ValueError(
+            "none of the targets belongs to a run folder whose set-up gives the number of episodes: give --episodes"
+        )
     summaries = {}
     for label, target in zip(labels, args.targets):
-        summary = None if args.force else _matching_summary(target, args, episodes)
+        summary = None if args.force else _matching_summary(target, args, protocol)
         if summary is not None:
-            print(f"{target}: reusing {_eval_file(target, SUMMARY_FILE)}")
-        summaries[label] = summary or _evaluate_run(args, target, episodes)
+            print(f"{target}: reusing {_eval_file(target, SUMMARY_FILE, args.preset)}")
+        args.stage = protocol["stage"]
+        summaries[label] = summary or _evaluate(args, target, protocol["episodes"])
     table = comparison_table(summaries, over=args.over)
     print(table)
     if args.table is not None:
@@ -566,6 +483,9 @@ def sweep_command(args: argparse.Namespace) -> int:
         return 130
     for seed, error in result.failed.items():
         print(f"sb3-formation: trial seed {seed} failed: {error}", file=sys.stderr)
+    curves = save_sweep_curves(result)
+    if curves is not None:
+        print(f"training curves: {curves}")
     print(f"sweep folder: {result.folder}")
     return 1 if result.failed else 0
 
@@ -583,6 +503,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "render": render_command,
         "compare": compare_command,
         "sweep": sweep_command,
+        "presets": presets_command,
     }
     try:
         return commands[args.command](args)

@@ -1,1 +1,12 @@
-"""The policy seam (anything that acts in the formation env) and hand-written controllers; numpy only."""
+"""The policy seam (anything that acts in the formation env) and hand-written controllers; numpy only, no torch.
+
+:data:`CONTROLLERS` names the controllers that ``controller:<name>`` targets of the CLI resolve to.
+"""
+
+from sb3_formation.controllers.base import Controller, TeamPolicy
+from sb3_formation.controllers.random import RandomController
+
+#: Controllers by name: ``controller:<name>`` on the command line, :func:`sb3_formation.load_policy` in Python.
+CONTROLLERS: dict[str, type[Controller]] = {"random": RandomController}
+
+__all__ = ["CONTROLLERS", "Controller", "RandomController", "TeamPolicy"]

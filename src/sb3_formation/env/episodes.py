@@ -1,17 +1,46 @@
-"""Episode statistics, and playing episodes of a :class:`FormationEnv` with any per-agent policy."""
+"""Episode metrics: their names (one list for TensorBoard, evaluation summaries, tables and figures) and the running
+statistics that turn a team's steps into its episode summary."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from sb3_formation.env.config import REWARD_TERMS
-from sb3_formation.env.formation_env import FormationEnv
 
-#: A team policy: observations of the live agents in, their actions out.
-TeamPolicy = Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]]
+
+@dataclass(frozen=True)
+class Metric:
+    """One per-episode metric.
+
+    :param label: table heading and axis label, with the unit
+    :param title: short title of its chart
+    :param tensorboard: its TensorBoard tag during training (``None``: evaluation only)
+    :param in_table: a column of comparison tables
+    """
+
+    label: str
+    title: str
+    tensorboard: str | None
+    in_table: bool = True
+
+
+#: Every per-episode metric, by its key in episode summaries (``formation_episode`` infos, ``episodes.csv``, the means
+#: of ``summary.json``). Errors are means over the episode's steps of the means over agents; collisions are totals.
+EPISODE_METRICS: dict[str, Metric] = {
+    "angle_error_deg": Metric("angle error (deg)", "angle error", "formation/angle_error_deg"),
+    "bearing_error": Metric("bearing error", "bearing error", "formation/bearing_error"),
+    "neighbour_distance_error": Metric("distance error (m)", "neighbour-distance error", "formation/neighbour_distance_error"),
+    "length": Metric("steps", "episode length", "episode/length"),
+    "collisions_obstacle": Metric("obstacle collisions", "obstacle collisions", "episode/collisions_obstacle"),
+    "collisions_agent": Metric("agent collisions", "agent collisions", "episode/collisions_agent"),
+    "comm_exceeded_fraction": Metric("fraction of steps", "beyond communication range", None, in_table=False),
+}
+#: TensorBoard tag of the rolling success rate during training.
+SUCCESS_RATE_TAG = "episode/success_rate"
 
 
 class EpisodeStatistics:
@@ -59,27 +88,3 @@ class EpisodeStatistics:
             "reward_terms": {name: value / steps for name, value in zip(REWARD_TERMS, self.terms)},
             "stage": stage,
         }
-
-
-def random_policy(env: FormationEnv, seed: int | None = None) -> TeamPolicy:
-    """A policy drawing every agent's action uniformly from [-1, 1]^2 with its own seeded generator."""
-    rng = np.random.default_rng(seed)
-    return lambda observations: {agent: rng.uniform(-1.0, 1.0, 2) for agent in observations}
-
-
-def run_episode(env: FormationEnv, policy: TeamPolicy, seed: int | None = None) -> dict[str, Any]:
-    """Play one episode from ``env.reset(seed=seed)`` to its end and summarise it.
-
-    :param env: the environment; left at the episode's last state (so it can be rendered)
-    :param policy: maps the live agents' observations to their actions
-    :param seed: reset seed (``None`` continues the env's generator)
-    :return: :meth:`EpisodeStatistics.summary` of the episode, plus ``final_goal_distance`` (m)
-    """
-    observations, _ = env.reset(seed=seed)
-    statistics = EpisodeStatistics()
-    success = False
-    while env.agents:
-        observations, rewards, terminations, _, infos = env.step(policy(observations))
-        statistics.add(np.fromiter(rewards.values(), dtype=np.float64), list(infos.values()))
-        success = any(terminations.values())
-    return {**statistics.summary(success, env.stage), "final_goal_distance": env.goal_distance}

@@ -2,8 +2,8 @@
 
 Episode k of an evaluation with seed s is played from ``FormationEnv.reset(seed=s + k)``, so every policy evaluated
 with the same seed meets the same scenarios (start, goal, obstacles) whatever the number of teams or workers. The
-policy is anything with Stable-Baselines3's ``predict(observation, state, episode_start, deterministic)``; its
-observations are scaled with frozen normaliser statistics, as in training.
+policy is any :class:`~sb3_formation.controllers.base.TeamPolicy` (a trained model with its normaliser, a controller):
+it gets the env's raw observations and decides itself what to do with them.
 """
 
 from __future__ import annotations
@@ -14,40 +14,27 @@ import hashlib
 import io
 import json
 import math
-import multiprocessing
 import os
-import traceback
 import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cloudpickle
 import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.env.config import REWARD_TERMS, FormationConfig
-from sb3_formation.env.episodes import EpisodeStatistics
+from sb3_formation.env.episodes import EPISODE_METRICS, EpisodeStatistics
 from sb3_formation.env.formation_env import FormationEnv
-from sb3_formation.experiment.training import TrainedModel, load_trained
-from sb3_formation.sb3.normalization import STATE_KEYS, observation_scale, scale_observations
-from sb3_formation.sb3.vec_env import slot_observations
+from sb3_formation.env.geometry import ring_neighbours
+from sb3_formation.env.state import TeamState
+from sb3_formation.experiment.targets import default_protocol, evaluation_folder, load_policy
 from sb3_formation.utils.files import atomic_write
+from sb3_formation.utils.processes import WorkerProcess, gather
 
-#: Thesis evaluation sizes: 500 episodes in chapter 4 (thesis 4.4), 200 in chapter 5 (thesis 5.4), by layout.
-THESIS_EVALUATION_EPISODES = {"ch4": 500, "ch5": 200}
-#: Per-episode metrics summarised with mean and std over successful episodes and over all episodes.
-EPISODE_METRICS = (
-    "angle_error_deg",
-    "bearing_error",
-    "neighbour_distance_error",
-    "length",
-    "collisions_obstacle",
-    "collisions_agent",
-    "comm_exceeded_fraction",
-)
 #: Columns of ``episodes.csv``, in order (``reward_<term>``: the term's mean per step and agent).
 EPISODE_COLUMNS = (
     "episode",
@@ -55,19 +42,19 @@ EPISODE_COLUMNS = (
     "team",
     "stage",
     "success",
-    "length",
     "return",
-    "angle_error_deg",
-    "bearing_error",
-    "neighbour_distance_error",
-    "collisions_obstacle",
-    "collisions_agent",
-    "comm_exceeded_fraction",
+    *EPISODE_METRICS,
     "final_goal_distance",
     *(f"reward_{term}" for term in REWARD_TERMS),
 )
-#: Per-step, per-agent arrays of :class:`Trajectories`, read from the agents' step infos.
-STEP_ERRORS = ("angle_error_deg", "bearing_error", "neighbour_distance_error", "collisions_obstacle", "collisions_agent")
+#: Per-step, per-agent arrays of :class:`Trajectories` -> the :class:`TeamState` field they record.
+STEP_RECORDS = {
+    "angle_error_deg": "angle_errors_deg",
+    "bearing_error": "bearing_errors",
+    "neighbour_distance_error": "neighbour_distance_errors",
+    "collisions_obstacle": "contacts_obstacle",
+    "collisions_agent": "contacts_agent",
+}
 SUMMARY_FILE, EPISODES_FILE, TRAJECTORIES_FILE = "summary.json", "episodes.csv", "trajectories.npz"
 
 
@@ -163,64 +150,96 @@ class Trajectories:
     def steps(self, index: int) -> dict[str, np.ndarray]:
         """The per-step arrays of the ``index``-th recorded episode without padding (``lengths[index] + 1`` rows)."""
         rows = int(self.lengths[index]) + 1
-        names = (*STEP_ERRORS, "positions", "velocities", "actions", "goal_distance")
+        names = (*STEP_RECORDS, "positions", "velocities", "actions", "goal_distance")
         return {name: getattr(self, name)[index, :rows] for name in names}
+
+    def team_state(self, index: int, step: int) -> TeamState:
+        """The recorded team's state after ``step`` of the ``index``-th recorded episode (no lidar readings), e.g. to
+        draw it with :func:`~sb3_formation.env.rendering.render_frame` without replaying the policy."""
+        if not 0 <= step <= int(self.lengths[index]):
+            raise IndexError(f"step {step} is outside episode {int(self.episodes[index])}'s 0 to {int(self.lengths[index])}")
+        obstacles = self.obstacles[index]
+        zeros = np.zeros(self.config.n_agents, dtype=np.int64)
+        counts = {
+            name: np.nan_to_num(getattr(self, name)[index, step]).astype(np.int64)
+            for name in ("collisions_agent", "collisions_obstacle")
+        }
+        return TeamState(
+            step=step,
+            positions=self.positions[index, step],
+            velocities=self.velocities[index, step],
+            goal=self.goals[index],
+            obstacles=obstacles[~np.isnan(obstacles).any(axis=1)],
+            neighbours=ring_neighbours(self.config.n_agents),
+            contacts_agent=counts["collisions_agent"] if step else zeros,
+            contacts_obstacle=counts["collisions_obstacle"] if step else zeros,
+            angle_errors_deg=self.angle_error_deg[index, step],
+            bearing_errors=self.bearing_error[index, step],
+            neighbour_distance_errors=self.neighbour_distance_error[index, step],
+        )
 
 
 class _Recorder:
-    """Collects one episode's per-step records for :class:`Trajectories`."""
+    """Collects one episode's per-step records for :class:`Trajectories` from the team's states."""
 
-    def __init__(self, env: FormationEnv) -> None:
-        n_agents = env.config.n_agents
+    def __init__(self, state: TeamState) -> None:
+        n_agents = state.n_agents
         nan = np.full(n_agents, np.nan)
-        self.goal, self.obstacles = env.goal.copy(), np.asarray(env.obstacles, dtype=np.float64).reshape(-1, 3)
-        self.rows: dict[str, list[np.ndarray]] = {name: [nan] for name in STEP_ERRORS}
-        self.rows["positions"] = [env.world.positions.copy()]
-        self.rows["velocities"] = [env.world.velocities.copy()]
+        self.goal, self.obstacles = state.goal, state.obstacles
+        self.rows: dict[str, list[np.ndarray]] = {name: [nan] for name in STEP_RECORDS}
+        self.rows["positions"] = [state.positions]
+        self.rows["velocities"] = [state.velocities]
         self.rows["actions"] = [np.full((n_agents, 2), np.nan)]
-        self.rows["goal_distance"] = [np.array(env.goal_distance)]
+        self.rows["goal_distance"] = [np.array(state.goal_distance)]
 
-    def add(self, env: FormationEnv, actions: np.ndarray, infos: list[dict[str, Any]]) -> None:
-        for name in STEP_ERRORS:
-            self.rows[name].append(np.array([info[name] for info in infos], dtype=np.float64))
-        self.rows["positions"].append(env.world.positions.copy())
-        self.rows["velocities"].append(env.world.velocities.copy())
+    def add(self, state: TeamState, actions: np.ndarray) -> None:
+        for name, state_field in STEP_RECORDS.items():
+            self.rows[name].append(getattr(state, state_field).astype(np.float64))
+        self.rows["positions"].append(state.positions)
+        self.rows["velocities"].append(state.velocities)
         self.rows["actions"].append(np.clip(actions, -1.0, 1.0).astype(np.float64))
-        self.rows["goal_distance"].append(np.array(env.goal_distance))
+        self.rows["goal_distance"].append(np.array(state.goal_distance))
 
 
 @dataclass
 class PlayJob:
-    """What one process plays: its episodes, and everything needed to act in them (picklable)."""
+    """What one process plays: its episodes, and the policy that acts in them (picklable with cloudpickle).
 
-    agent: Any
+    :param policy: the policy, already fitted to ``config``
+    :param config: task configuration of the episodes
+    :param seed: episode k is played from ``reset(seed=seed + k)``
+    :param episodes: the episode indices to play
+    :param n_teams: teams played at once
+    :param deterministic: ask the policy for its noise-free actions
+    :param record: record every step of the episodes with an index below this
+    :param first_team: global index of this job's first team (episode rows name global teams)
+    """
+
+    policy: TeamPolicy
     config: FormationConfig
-    normalizer_state: dict[str, np.ndarray]
-    team_observations: bool
     seed: int
     episodes: list[int]
     n_teams: int
     deterministic: bool
     record: int
-    first_team: int = 0  #: global index of this job's first team (episode rows name global teams)
+    first_team: int = 0
 
 
 def play_episodes(
     job: PlayJob,
     on_episode: Callable[[], None] | None = None,
-    on_step: Callable[[FormationEnv, int, list[dict[str, Any]] | None], None] | None = None,
+    on_step: Callable[[TeamState, int], None] | None = None,
 ) -> tuple[list[dict[str, Any]], list[tuple[int, _Recorder, bool]]]:
     """Play ``job.episodes`` on ``job.n_teams`` teams; a team that ends an episode starts the next one left.
 
+    This is the package's one episode loop: evaluation, videos and ``sb3-formation rollout`` all play through it.
+
     :param on_episode: called after each episode
-    :param on_step: called with (env, episode, infos) after each reset (infos ``None``) and each step
+    :param on_step: called with (team state, episode) after each reset and each step
     :return: one row per episode (in the order they ended), and (episode, recorder, success) of recorded episodes
     """
     config, n_agents = job.config, job.config.n_agents
-    scale = observation_scale(job.normalizer_state)
-    clip = float(job.normalizer_state["clip_obs"])
-    clip_obs = None if math.isnan(clip) else clip
-    envs = [FormationEnv(config, render_mode="rgb_array" if on_step else None) for _ in range(job.n_teams)]
+    envs = [FormationEnv(config) for _ in range(job.n_teams)]
     queue = list(reversed(job.episodes))
     current: list[int | None] = [None] * job.n_teams
     statistics = [EpisodeStatistics() for _ in envs]
@@ -239,10 +258,11 @@ def play_episodes(
         team_observation, _ = env.reset(seed=job.seed + episode)
         statistics[team].reset()
         comm_exceeded[team] = 0
-        recorders[team] = _Recorder(env) if episode < job.record else None
+        state = env.team_state()
+        recorders[team] = _Recorder(state) if episode < job.record else None
         if on_step is not None:
-            on_step(env, episode, None)
-        return slot_observations(np.stack(list(team_observation.values())), job.team_observations)
+            on_step(state, episode)
+        return np.stack(list(team_observation.values()))
 
     first = [start(team) for team in range(job.n_teams)]
     width = next(o for o in first if o is not None).shape[1]
@@ -250,11 +270,8 @@ def play_episodes(
     observations = np.concatenate([np.zeros((n_agents, width), np.float32) if o is None else o for o in first])
     states = None
     while any(episode is not None for episode in current):
-        actions, states = job.agent.predict(
-            scale_observations(observations, scale, clip_obs),
-            state=states,
-            episode_start=episode_starts,
-            deterministic=job.deterministic,
+        actions, states = job.policy.predict(
+            observations, state=states, episode_start=episode_starts, deterministic=job.deterministic
         )
         actions = np.asarray(actions).reshape(job.n_teams * n_agents, 2)
         episode_starts[:] = False
@@ -264,13 +281,14 @@ def play_episodes(
             env, block = envs[team], slice(team * n_agents, (team + 1) * n_agents)
             team_observations, rewards, terminated, truncated, infos = env.step_array(actions[block])
             statistics[team].add(rewards, infos)
-            comm_exceeded[team] += bool((env.formation.neighbour_distances > config.d_comm).any())
+            state = env.team_state()
+            comm_exceeded[team] += bool((state.neighbour_distances > config.d_comm).any())
             if recorders[team] is not None:
-                recorders[team].add(env, actions[block], infos)
+                recorders[team].add(state, actions[block])
             if on_step is not None:
-                on_step(env, episode, infos)
+                on_step(state, episode)
             if not (terminated or truncated):
-                observations[block] = slot_observations(team_observations, job.team_observations)
+                observations[block] = team_observations
                 continue
             summary = statistics[team].summary(success=terminated, stage=env.stage)
             terms = summary.pop("reward_terms")
@@ -281,7 +299,7 @@ def play_episodes(
                     "team": job.first_team + team,
                     **summary,
                     "comm_exceeded_fraction": comm_exceeded[team] / summary["length"],
-                    "final_goal_distance": env.goal_distance,
+                    "final_goal_distance": state.goal_distance,
                     **{f"reward_{name}": value for name, value in terms.items()},
                 }
             )
@@ -330,57 +348,29 @@ def _stack(config: FormationConfig, seed: int, recorded: list[tuple[int, _Record
     )
 
 
-def _worker(index: int, job: bytes, progress: Any) -> None:  # pragma: no cover - runs in a subprocess
-    """Play a pickled :class:`PlayJob`; put (index, "episode", None) per episode, then (index, "done", result) or
-    (index, "error", text)."""
-    try:
-        play_job: PlayJob = cloudpickle.loads(job)
+class _EpisodePlayer:
+    """Plays one :class:`PlayJob` in a worker process (see :func:`_play_in_workers`)."""
+
+    def __init__(self, job: PlayJob) -> None:
+        self.job = job
+
+    def play(self, report: Callable[[Any], None]) -> tuple[list, list]:
         torch.set_num_threads(1)
-        torch.manual_seed(play_job.seed + play_job.episodes[0])
-        result = play_episodes(play_job, on_episode=lambda: progress.put((index, "episode", None)))
-        progress.put((index, "done", result))
-    except BaseException as error:  # report to the parent, which raises it
-        progress.put((index, "error", f"{type(error).__name__}: {error}\n{traceback.format_exc()}"))
+        torch.manual_seed(self.job.seed + self.job.episodes[0])
+        return play_episodes(self.job, on_episode=lambda: report(None))
 
 
 def _play_in_workers(jobs: list[PlayJob], on_episode: Callable[[], None]) -> tuple[list, list]:
-    """Play each job in its own process (``forkserver`` where available); gather rows and recordings."""
-    method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
-    context = multiprocessing.get_context(method)
-    progress = context.Queue()
-    processes = [
-        context.Process(target=_worker, args=(index, cloudpickle.dumps(job), progress), daemon=True)
-        for index, job in enumerate(jobs)
-    ]
-    for process in processes:
-        process.start()
-    rows: list[dict[str, Any]] = []
-    recorded: list = []
-    reported: set[int] = set()
+    """Play each job in its own worker process; the first error ends the evaluation. Gather rows and recordings."""
+    workers = [WorkerProcess(_EpisodePlayer, (job,), "evaluation worker") for job in jobs]
     try:
-        while len(reported) < len(processes):
-            try:
-                worker, kind, payload = progress.get(timeout=5)
-            except Exception:  # queue.Empty: check that the workers that have not reported are still there
-                silent = [index for index, process in enumerate(processes) if index not in reported and not process.is_alive()]
-                if silent:
-                    process = processes[silent[0]]
-                    raise RuntimeError(f"evaluation worker (pid {process.pid}) died, exit code {process.exitcode}") from None
-                continue
-            if kind == "episode":
-                on_episode()
-            elif kind == "done":
-                rows.extend(payload[0])
-                recorded.extend(payload[1])
-                reported.add(worker)
-            else:  # the first error ends the evaluation
-                raise RuntimeError(f"an evaluation worker failed: {payload}")
+        for worker in workers:
+            worker.send("play", progress=True)
+        results = gather(workers, on_progress=lambda worker, item: on_episode(), fail_fast=True)
     finally:
-        for process in processes:
-            if len(reported) < len(processes):
-                process.terminate()
-            process.join(timeout=10)
-    return rows, recorded
+        for worker in workers:
+            worker.close()
+    return [row for rows, _ in results for row in rows], [episode for _, recorded in results for episode in recorded]
 
 
 @dataclass
@@ -453,39 +443,24 @@ def _mean_and_std(episodes: list[dict[str, Any]]) -> dict[str, dict[str, float |
     }
 
 
-#: Fields that shape the observation vector: a model only fits envs that agree on them.
-OBSERVATION_SHAPING_FIELDS = ("n_agents", "lidar_rays")
-
-
-def check_model_fits(trained: TrainedModel, config: FormationConfig) -> None:
-    """Raise ``ValueError`` naming every difference if ``trained`` cannot act in envs of ``config``."""
-    differences = [
-        f"{name}={getattr(trained.config, name)} in the model, {getattr(config, name)} in the env"
-        for name in OBSERVATION_SHAPING_FIELDS
-        if getattr(trained.config, name) != getattr(config, name)
-    ]
-    if differences:
-        raise ValueError("the model does not fit this env's observations: " + "; ".join(differences))
-    state = trained.normalizer_state
-    missing = [key for key in STATE_KEYS if key not in state]
-    if missing:
-        raise ValueError(f"the normaliser statistics lack {missing}")
-    mask = FormationEnv(config).binary_observation_mask
-    if int(np.asarray(state["agent_obs_dim"])) != mask.size or not np.array_equal(np.asarray(state["binary_mask"]), mask):
-        raise ValueError(
-            f"the normaliser statistics are for {int(np.asarray(state['agent_obs_dim']))} features with other flags; "
-            f"this env's observations have {mask.size}"
-        )
-
-
 def model_fingerprint(path: str | os.PathLike[str]) -> dict[str, str]:
     """The file and SHA-256 of a saved model, to tell whether a stored evaluation is of the same model."""
     digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
     return {"file": str(path), "sha256": digest}
 
 
+def policy_identity(policy: TeamPolicy) -> dict[str, Any] | None:
+    """What an evaluation summary records of its policy: a model file with its SHA-256, or a controller with its gains
+    (``None`` for anything else)."""
+    source = getattr(policy, "source", None)
+    if source is not None:
+        return model_fingerprint(source)
+    gains = getattr(policy, "gains", None)
+    return None if gains is None else {"controller": type(policy).__name__, "gains": gains}
+
+
 def evaluate(
-    trained: TrainedModel,
+    policy: TeamPolicy,
     episodes: int,
     stage: int = 3,
     seed: int = 0,
@@ -496,19 +471,19 @@ def evaluate(
     record: int = 5,
     progress_bar: bool = False,
 ) -> EvaluationResult:
-    """Play ``episodes`` episodes of ``stage`` with a trained policy; episode k starts from ``reset(seed=seed + k)``.
+    """Play ``episodes`` episodes of ``stage`` with a policy; episode k starts from ``reset(seed=seed + k)``.
 
     With one worker the episodes are spread over ``n_envs`` teams whose observations go through the policy in one
     batch; with ``n_workers`` > 1 worker processes, worker w plays episodes w, w + n_workers, ... on its share of the
     teams. The scenarios depend only on ``seed``; the same (seed, n_envs, n_workers) gives bit-identical results.
 
-    :param trained: the policy (anything with SB3's ``predict``) with its configuration and normaliser statistics
+    :param policy: the policy (a :class:`~sb3_formation.sb3.trained.TrainedPolicy`, a controller, ...)
     :param episodes: number of episodes
     :param stage: curriculum stage of the scenarios (3 in the thesis's evaluations)
     :param seed: seed of the scenarios
     :param n_envs: teams played at once (over all workers)
     :param deterministic: use the policy's mean action (else sample; the sampling is seeded from ``seed``)
-    :param env_overrides: :class:`FormationConfig` fields to change from the model's training configuration
+    :param env_overrides: :class:`FormationConfig` fields to change from the policy's configuration
     :param n_workers: processes playing the episodes
     :param record: record the step-by-step trajectories of the first ``record`` episodes
     :param progress_bar: show a tqdm progress bar of the episodes played
@@ -519,16 +494,14 @@ def evaluate(
         raise ValueError(f"n_workers must be in [1, n_envs={n_envs}], got {n_workers}")
     if record < 0:
         raise ValueError(f"record must be >= 0, got {record}")
-    config = trained.config.replace(**{**(env_overrides or {}), "stage": stage})
-    check_model_fits(trained, config)
+    config = policy.config.replace(**{**(env_overrides or {}), "stage": stage})
+    policy = policy.fit(config)
     n_workers = min(n_workers, episodes)
     teams = np.array_split(np.arange(min(n_envs, episodes)), n_workers)
     jobs = [
         PlayJob(
-            agent=trained.model.policy if hasattr(trained.model, "policy") else trained.model,
+            policy=policy,
             config=config,
-            normalizer_state=trained.normalizer_state,
-            team_observations=trained.team_observations,
             seed=seed,
             episodes=list(range(worker, episodes, n_workers)),
             n_teams=len(teams[worker]),
@@ -546,7 +519,6 @@ def evaluate(
         else:
             rows, recorded = _play_in_workers(jobs, on_episode=lambda: bar.update(1))
     trajectories = _stack(config, seed, recorded)
-    source = getattr(trained, "source", None)
     return EvaluationResult(
         episodes=sorted(rows, key=lambda row: row["episode"]),
         trajectories=trajectories,
@@ -554,19 +526,12 @@ def evaluate(
         seed=seed,
         deterministic=deterministic,
         n_agents=config.n_agents,
-        model=None if source is None else model_fingerprint(source),
+        model=policy_identity(policy),
     )
 
 
-#: Columns of :func:`comparison_table` after the success rate: metric and heading.
-TABLE_METRICS = (
-    ("angle_error_deg", "angle error (deg)"),
-    ("bearing_error", "bearing error"),
-    ("neighbour_distance_error", "distance error (m)"),
-    ("length", "steps"),
-    ("collisions_obstacle", "obstacle collisions"),
-    ("collisions_agent", "agent collisions"),
-)
+#: Columns of :func:`comparison_table` after the success rate.
+TABLE_METRICS = {name: metric for name, metric in EPISODE_METRICS.items() if metric.in_table}
 
 
 def comparison_table(summaries: dict[str, dict[str, Any]], over: str = "successful") -> str:
@@ -577,12 +542,12 @@ def comparison_table(summaries: dict[str, dict[str, Any]], over: str = "successf
     """
     if over not in ("successful", "all"):
         raise ValueError(f"over must be 'successful' or 'all', got {over!r}")
-    headings = ["policy", "episodes", "success rate (95 % CI)", *(heading for _, heading in TABLE_METRICS)]
+    headings = ["policy", "episodes", "success rate (95 % CI)", *(metric.label for metric in TABLE_METRICS.values())]
     lines = ["| " + " | ".join(headings) + " |", "|" + "|".join(["---"] + ["---:"] * (len(headings) - 1)) + "|"]
     for label, summary in summaries.items():
         low, high = summary["success_rate_ci95"]
         cells = [label, str(summary["episodes"]), f"{summary['success_rate']:.1%} ({low:.1%} - {high:.1%})"]
-        for name, _ in TABLE_METRICS:
+        for name in TABLE_METRICS:
             statistics = summary[f"{over}_episodes"][name]
             cells.append(
                 "-"
@@ -600,29 +565,32 @@ def table_number(value: float) -> str:
     return f"{value:.1f}" if abs(value) >= 10 else f"{value:.3g}"
 
 
-def evaluate_run(
+def evaluate_target(
     target: str | os.PathLike[str],
     protocol: dict[str, Any] | None = None,
+    preset: str | None = None,
     device: str = "auto",
     progress_bar: bool = False,
     out: str | os.PathLike[str] | None = None,
 ) -> EvaluationResult:
-    """Evaluate a run folder's (or a model file's) model and write ``eval/`` beside it.
+    """Evaluate the policy a target names (see :func:`~sb3_formation.experiment.targets.load_policy`) and write its files.
 
-    :param target: a run folder (its final model, else its latest checkpoint) or a model ``.zip``
+    :param target: a run folder, a model ``.zip`` or ``controller:<name>``
     :param protocol: :func:`evaluate` arguments (``episodes``, ``stage``, ``seed``, ``n_envs``, ``workers``,
-        ``deterministic``, ``record``, ``env_overrides``); by default the thesis's: stage 3, 500 episodes in chapter 4,
-        200 in chapter 5
+        ``deterministic``, ``record``, ``env_overrides``); ``episodes`` and ``stage`` default to the evaluation protocol
+        of the target's set-up (the thesis's: stage 3, 500 episodes in chapter 4, 200 in chapter 5)
+    :param preset: the set-up of a ``controller:`` target
     :param device: torch device
     :param progress_bar: show a progress bar
-    :param out: folder for the files (default: ``eval/`` in the run folder, or beside the model file)
+    :param out: folder for the files (default: :func:`~sb3_formation.experiment.targets.evaluation_folder`)
     """
     protocol = {key: value for key, value in (protocol or {}).items() if value is not None}
-    trained = load_trained(target, device=device)
-    episodes = protocol.pop("episodes", THESIS_EVALUATION_EPISODES[trained.config.layout])
+    policy = load_policy(target, preset=preset, device=device)
+    protocol = {**default_protocol(target, preset), **protocol}
+    if "episodes" not in protocol:
+        raise ValueError(f"{target} belongs to no run folder whose set-up gives the number of episodes: give --episodes")
     if "workers" in protocol:
         protocol["n_workers"] = protocol.pop("workers")
-    result = evaluate(trained, episodes, progress_bar=progress_bar, **protocol)
-    target = Path(target)
-    result.save(out or (target if target.is_dir() else target.parent) / "eval")
+    result = evaluate(policy, progress_bar=progress_bar, **protocol)
+    result.save(out or evaluation_folder(target, preset))
     return result

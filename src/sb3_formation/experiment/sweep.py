@@ -5,7 +5,8 @@ tasks (Ray core, ``pip install 'sb3-formation[ray]'``), on this machine or, with
 nodes share the log folder. Trial k writes ``<logdir>/<experiment>/seed_<s>/``; a trial whose run folder already holds
 its final model and evaluation is skipped, one with a checkpoint is resumed, so starting a sweep again finishes it.
 A failing trial is reported with its error and does not stop the others. At the end the sweep writes
-``aggregate.json``, ``aggregate.md`` (mean and std over seeds) and ``training_curves.png`` beside the run folders.
+``aggregate.json`` and ``aggregate.md`` (mean and std over seeds) beside the run folders (``sb3-formation sweep`` also
+draws ``training_curves.png`` there, with :func:`~sb3_formation.viz.plots.save_sweep_curves`).
 """
 
 from __future__ import annotations
@@ -19,33 +20,20 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
-from sb3_formation.experiment.evaluation import EPISODE_METRICS, SUMMARY_FILE, TABLE_METRICS, evaluate_run, table_number
-from sb3_formation.experiment.training import (
-    FINAL_MODEL,
-    TrainSettings,
-    latest_checkpoint,
-    reduce_to_overrides,
-    resume,
-    train,
-)
+from sb3_formation.env.episodes import EPISODE_METRICS
+from sb3_formation.experiment.evaluation import SUMMARY_FILE, TABLE_METRICS, evaluate_target, table_number
+from sb3_formation.experiment.settings import TrainSettings, read_settings_file
+from sb3_formation.experiment.training import FINAL_MODEL, latest_checkpoint, resume, train
 from sb3_formation.utils.files import atomic_write
 
 
 def load_experiment(path: str | os.PathLike[str]) -> TrainSettings:
     """An experiment's settings from its YAML file (the keys of :class:`TrainSettings`), validated."""
-    path = Path(path)
-    if not path.is_file():
+    if not Path(path).is_file():
         raise FileNotFoundError(f"no experiment file {path}")
     try:
-        values = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as error:
-        raise ValueError(f"{path} is not valid YAML: {error}") from error
-    if not isinstance(values, dict):
-        raise ValueError(f"{path} must hold a mapping of settings, not {type(values).__name__}")
-    try:
-        return TrainSettings.from_dict(reduce_to_overrides(values))
+        return TrainSettings.from_dict(read_settings_file(path))
     except (TypeError, ValueError) as error:
         raise ValueError(f"{path}: {error}") from error
 
@@ -66,7 +54,7 @@ def run_trial(settings: dict[str, Any], run_dir: str) -> dict[str, Any]:
             resume(folder)
         else:
             train(trial, command=f"sb3-formation sweep (trial {folder.name})", run_dir=folder)
-    summary = evaluate_run(folder, trial.evaluation).summary
+    summary = evaluate_target(folder, trial.evaluation).summary
     return {"status": "trained", "run_dir": run_dir, "summary": summary}
 
 
@@ -75,16 +63,23 @@ class SweepResult:
     """What :func:`sweep` did.
 
     :param folder: the experiment's folder (run folders and aggregate files)
+    :param label: the experiment's name and set-up, e.g. for a figure's legend
     :param trials: per seed: ``status`` ("skipped", "trained" or "failed"), ``run_dir``, ``summary`` or ``error``
     """
 
     folder: Path
+    label: str = ""
     trials: dict[int, dict[str, Any]] = field(default_factory=dict)
 
     @property
     def failed(self) -> dict[int, str]:
         """Seed -> error of the trials that failed."""
         return {seed: trial["error"] for seed, trial in self.trials.items() if trial["status"] == "failed"}
+
+    @property
+    def run_dirs(self) -> list[Path]:
+        """The run folders of the trials that did not fail, by seed."""
+        return [Path(trial["run_dir"]) for _, trial in sorted(self.trials.items()) if trial["status"] != "failed"]
 
 
 def aggregate(summaries: list[dict[str, Any]], over: str = "successful") -> dict[str, dict[str, float | None]]:
@@ -109,11 +104,11 @@ def aggregate(summaries: list[dict[str, Any]], over: str = "successful") -> dict
 
 def aggregate_markdown(name: str, tables: dict[str, dict[str, dict[str, float | None]]]) -> str:
     """A Markdown table of :func:`aggregate`'s results, one row per kind of episode mean (``successful``, ``all``)."""
-    headings = ["experiment", "means over", "seeds", "success rate", *(heading for _, heading in TABLE_METRICS)]
+    headings = ["experiment", "means over", "seeds", "success rate", *(metric.label for metric in TABLE_METRICS.values())]
     lines = ["| " + " | ".join(headings) + " |", "|" + "|".join(["---", "---"] + ["---:"] * (len(headings) - 2)) + "|"]
     for over, table in tables.items():
         cells = [name, f"{over} episodes", str(table["success_rate"]["seeds"])]
-        for metric in ("success_rate", *(metric for metric, _ in TABLE_METRICS)):
+        for metric in ("success_rate", *TABLE_METRICS):
             mean, std = table[metric]["mean"], table[metric]["std"]
             if mean is None:
                 cells.append("-")
@@ -165,7 +160,7 @@ def sweep(
     try:
         task = ray.remote(num_cpus=cpus_per_trial, max_retries=0)(run_trial)
         limit = max_concurrent or max(1, math.floor(ray.cluster_resources().get("CPU", 1) / cpus_per_trial))
-        result = SweepResult(folder)
+        result = SweepResult(folder, f"{Path(experiment).stem} ({settings.preset})")
         waiting = list(trials.items())
         while waiting or running:
             while waiting and len(running) < limit:
@@ -189,7 +184,7 @@ def sweep(
             ray.cancel(reference, force=True)
         if started_here:
             ray.shutdown()
-    _write_aggregate(result, settings, Path(experiment).stem)
+    _write_aggregate(result, Path(experiment).stem)
     return result
 
 
@@ -200,10 +195,8 @@ def _root_error(error: BaseException) -> str:
     return text[-1] if text else repr(cause)
 
 
-def _write_aggregate(result: SweepResult, settings: TrainSettings, name: str) -> None:
-    """``aggregate.json``, ``aggregate.md`` and ``training_curves.png`` over the trials that have an evaluation."""
-    from sb3_formation.viz.plots import plot_training_curves, save_figure
-
+def _write_aggregate(result: SweepResult, name: str) -> None:
+    """``aggregate.json`` and ``aggregate.md`` over the trials that have an evaluation."""
     done = {seed: trial for seed, trial in sorted(result.trials.items()) if trial["status"] != "failed"}
     if not done:
         return
@@ -212,6 +205,4 @@ def _write_aggregate(result: SweepResult, settings: TrainSettings, name: str) ->
     atomic_write(result.folder / "aggregate.json", json.dumps({"seeds": list(done), **tables}, indent=2))
     markdown = aggregate_markdown(name, tables)
     atomic_write(result.folder / "aggregate.md", markdown)
-    runs = [Path(trial["run_dir"]) for trial in done.values()]
-    save_figure(plot_training_curves({f"{name} ({settings.preset})": runs}), result.folder / "training_curves.png")
     print(markdown)

@@ -17,19 +17,12 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import TensorBoardOutputFormat
 
 from sb3_formation.env.config import REWARD_TERMS
+from sb3_formation.env.episodes import EPISODE_METRICS, SUCCESS_RATE_TAG
 
-#: PPO iterations per curriculum stage in the thesis, by layout: thesis 4.3 (chapter 4) and 5.3 (chapter 5).
-THESIS_STAGE_ITERATIONS: dict[str, tuple[int, int, int]] = {"ch4": (10000, 10000, 20000), "ch5": (5000, 5000, 15000)}
-
-#: Per team-episode metrics: TensorBoard key -> key of the VecEnv's ``formation_episode`` summary.
-EPISODE_METRICS: dict[str, str] = {
-    "formation/angle_error_deg": "angle_error_deg",
-    "formation/bearing_error": "bearing_error",
-    "formation/neighbour_distance_error": "neighbour_distance_error",
-    "episode/success_rate": "success",
-    "episode/length": "length",
-    "episode/collisions_obstacle": "collisions_obstacle",
-    "episode/collisions_agent": "collisions_agent",
+#: Per team-episode metrics logged during training: TensorBoard tag -> key of the VecEnv's ``formation_episode`` summary.
+TENSORBOARD_METRICS: dict[str, str] = {
+    SUCCESS_RATE_TAG: "success",
+    **{metric.tensorboard: name for name, metric in EPISODE_METRICS.items() if metric.tensorboard is not None},
 }
 
 
@@ -174,7 +167,7 @@ class FormationMetricsCallback(BaseCallback):
     def _on_rollout_end(self) -> None:
         if not self.episodes:
             return
-        for key, field in EPISODE_METRICS.items():
+        for key, field in TENSORBOARD_METRICS.items():
             self.logger.record(key, float(np.mean([episode[field] for episode in self.episodes])))
         for term in REWARD_TERMS:
             self.logger.record(f"reward/{term}", float(np.mean([episode["reward_terms"][term] for episode in self.episodes])))
@@ -183,9 +176,9 @@ class FormationMetricsCallback(BaseCallback):
 def custom_scalars_layout() -> dict[str, dict[str, list]]:
     """TensorBoard custom-scalars layout: one category per namespace, one chart per metric."""
     return {
-        "formation": {key.split("/")[1]: ["Multiline", [key]] for key in EPISODE_METRICS if key.startswith("formation/")},
+        "formation": {key.split("/")[1]: ["Multiline", [key]] for key in TENSORBOARD_METRICS if key.startswith("formation/")},
         "episode": {
-            **{key.split("/")[1]: ["Multiline", [key]] for key in EPISODE_METRICS if key.startswith("episode/")},
+            **{key.split("/")[1]: ["Multiline", [key]] for key in TENSORBOARD_METRICS if key.startswith("episode/")},
             "return": ["Multiline", ["rollout/ep_rew_mean"]],
         },
         "reward terms": {"terms": ["Multiline", [f"reward/{term}" for term in REWARD_TERMS]]},

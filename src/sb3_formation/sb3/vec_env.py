@@ -21,16 +21,19 @@ from sb3_formation.env.formation_env import FormationEnv
 from sb3_formation.utils.processes import WorkerProcess, gather, worker_context
 
 
-def slot_observations(own: np.ndarray, team_observations: bool) -> np.ndarray:
-    """The slots' observations from a team's ``(n, dim)`` observations.
+def slot_observations(own: np.ndarray, n_agents: int, team_observations: bool) -> np.ndarray:
+    """The slots' observations from the agents' own ``(teams * n, dim)`` observations (row k: agent ``k % n`` of team
+    ``k // n``).
 
-    :param own: row i is agent i's observation
+    :param own: the agents' own observations, whole teams one after the other
+    :param n_agents: team size n
     :param team_observations: append the whole team's observations (agent 0 first) to every row, for a team critic
-    :return: ``own``, or ``(n, (1 + n) * dim)``
+    :return: ``own``, or ``(teams * n, (1 + n) * dim)``
     """
     if not team_observations:
         return own
-    return np.hstack([own, np.broadcast_to(own.reshape(1, -1), (own.shape[0], own.size))])
+    teams = own.reshape(-1, n_agents * own.shape[-1])
+    return np.hstack([own, np.repeat(teams, n_agents, axis=0)])
 
 
 class TeamBatch:
@@ -50,7 +53,7 @@ class TeamBatch:
         self.start_time = time.time()
 
     def _slot_observations(self, own: np.ndarray) -> np.ndarray:
-        return slot_observations(own, self.team_observations)
+        return slot_observations(own, self.n_agents, self.team_observations)
 
     def reset(self, seeds: Sequence[int | None], options: Sequence[dict[str, Any]]) -> np.ndarray:
         """Reset every team; team j with ``seeds[j]`` and ``options[j]``. :return: ``(n_teams * n, obs_dim)``"""
@@ -279,13 +282,9 @@ class FormationVecEnv(VecEnv):
             batch.close()
 
 
-#: Parallel teams in the thesis: 6 workers x 2 envs (thesis 4.3), 7 x 2 (thesis 5.3), by curriculum layout.
-THESIS_TEAMS: dict[str, int] = {"ch4": 12, "ch5": 14}
-
-
 def make_formation_vec_env(
     preset: str = "ch5-bearing",
-    n_envs: int | None = None,
+    n_envs: int = 1,
     n_agents: int | None = None,
     stage: int | None = None,
     seed: int | None = None,
@@ -298,7 +297,7 @@ def make_formation_vec_env(
     """The one call a notebook needs: ``n_envs`` teams of a thesis preset as an SB3 ``VecEnv``, one slot per agent.
 
     :param preset: ``"ch4-individual"``, ``"ch4-team"``, ``"ch5-angle"`` or ``"ch5-bearing"``
-    :param n_envs: number of teams (default: the thesis's, 12 in chapter 4 and 14 in chapter 5)
+    :param n_envs: number of teams (the thesis trained 12 in chapter 4 and 14 in chapter 5: see the set-ups)
     :param n_agents: team size (default: the preset's)
     :param stage: curriculum stage (default: the preset's, 1)
     :param seed: seed of the teams' scenario generators (team j gets ``seed + j * n_agents``); ``None``: random
@@ -319,7 +318,7 @@ def make_formation_vec_env(
     team_observations = config.team_reward if team_critic is None else team_critic
     venv = FormationVecEnv(
         config,
-        n_envs=THESIS_TEAMS[config.layout] if n_envs is None else n_envs,
+        n_envs=n_envs,
         team_observations=team_observations,
         n_workers=n_workers,
         render_mode=render_mode,

@@ -21,7 +21,8 @@ from matplotlib.patches import Circle, Patch, Polygon
 
 from sb3_formation.env.rendering import AGENT_COLOURS
 from sb3_formation.experiment.evaluation import Trajectories
-from sb3_formation.experiment.training import load_settings
+from sb3_formation.experiment.settings import load_settings
+from sb3_formation.experiment.sweep import SweepResult
 from sb3_formation.utils.files import atomic_write
 
 #: Colours of agents (agent i: colour i mod 10) and of policies or set-ups in comparisons: matplotlib's tab10.
@@ -395,3 +396,11 @@ def save_figure(figure: Figure, path: Path) -> Path:
     figure.savefig(buffer, format=file_format, dpi=PNG_DPI if file_format == "png" else "figure")
     atomic_write(path, buffer.getvalue())
     return path
+
+
+def save_sweep_curves(result: SweepResult) -> Path | None:
+    """Draw a sweep's training curves (mean over its seeds with a +-1 std band) to ``training_curves.png`` in its
+    folder; ``None`` when no trial finished."""
+    if not result.run_dirs:
+        return None
+    return save_figure(plot_training_curves({result.label: result.run_dirs}), result.folder / "training_curves.png")

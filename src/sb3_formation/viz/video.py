@@ -1,4 +1,4 @@
-"""Videos of evaluation episodes: frames of :class:`FormationEnv` with a caption, streamed to an MP4 or a GIF.
+"""Videos of evaluation episodes: rendered team states with a caption, streamed to an MP4 or a GIF.
 
 MP4 files are H.264 (``yuv420p``) written through the ffmpeg binary of ``imageio-ffmpeg``, frame by frame (a
 2500-step episode is never held in memory); GIFs are written with Pillow, which needs every frame at once (as palette
@@ -21,9 +21,11 @@ import torch
 from PIL import Image, ImageDraw, ImageFont
 from tqdm.auto import tqdm
 
-from sb3_formation.env.formation_env import FormationEnv
-from sb3_formation.experiment.evaluation import PlayJob, check_model_fits, play_episodes
-from sb3_formation.experiment.training import TrainedModel
+from sb3_formation.controllers.base import TeamPolicy
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.rendering import render_frame
+from sb3_formation.env.state import TeamState
+from sb3_formation.experiment.evaluation import PlayJob, play_episodes
 from sb3_formation.utils.files import replace_with, temporary_beside
 
 #: File suffixes :class:`VideoWriter` can write.
@@ -77,34 +79,30 @@ def overlay_text(
     return output
 
 
-def _mean(infos: list[dict[str, Any]], key: str) -> float:
-    return float(np.mean([info[key] for info in infos]))
-
-
-def episode_caption(episode: int, env: FormationEnv, infos: list[dict[str, Any]] | None) -> list[str]:
+def episode_caption(episode: int, state: TeamState, config: FormationConfig) -> list[str]:
     """Caption lines of a frame: episode and step, outcome, the agents' mean formation errors, goal distance.
 
     :param episode: evaluation episode index
-    :param env: the env, after the reset or step that ``infos`` come from
-    :param infos: the agents' step infos, or ``None`` right after a reset (the errors are then shown as "-")
+    :param state: the team's state shown by the frame (errors are shown as "-" right after the reset)
+    :param config: the task configuration (goal radius, episode length)
     """
-    if infos is not None and infos[0]["success"]:
+    if state.step > 0 and state.goal_distance <= config.eta_g:
         status = "success"
-    elif infos is not None and env.step_count >= env.config.max_steps:
+    elif state.step >= config.max_steps:
         status = "time-out"
     else:
         status = "running"
 
-    def error(key: str, digits: int, unit: str = "") -> str:
-        return "-" if infos is None else f"{_mean(infos, key):.{digits}f}{unit}"
+    def error(values: np.ndarray, digits: int, unit: str = "") -> str:
+        return "-" if state.step == 0 else f"{float(np.mean(values)):.{digits}f}{unit}"
 
     return [
-        f"episode {episode}   step {env.step_count} / {env.config.max_steps}",
+        f"episode {episode}   step {state.step} / {config.max_steps}",
         status,
-        f"angle error {error('angle_error_deg', 1, ' deg')}",
-        f"bearing error {error('bearing_error', 3)}",
-        f"neighbour distance error {error('neighbour_distance_error', 2, ' m')}",
-        f"goal distance {env.goal_distance:.2f} m",
+        f"angle error {error(state.angle_errors_deg, 1, ' deg')}",
+        f"bearing error {error(state.bearing_errors, 3)}",
+        f"neighbour distance error {error(state.neighbour_distance_errors, 2, ' m')}",
+        f"goal distance {state.goal_distance:.2f} m",
     ]
 
 
@@ -288,7 +286,7 @@ def frames_per_episode(length: int, frame_every: int) -> int:
 
 
 def render_episodes(
-    trained: TrainedModel,
+    policy: TeamPolicy,
     path: str | os.PathLike[str],
     episodes: int = 1,
     stage: int = 3,
@@ -307,7 +305,7 @@ def render_episodes(
     after steps 0, ``frame_every``, 2 ``frame_every``, ... and after its last step are kept (see
     :func:`frames_per_episode`); step 0 is the state after the reset.
 
-    :param trained: the policy (anything with SB3's ``predict``) with its configuration and normaliser statistics
+    :param policy: the policy (a trained model with its normaliser, a controller, ...)
     :param path: ``.mp4`` or ``.gif`` file, replaced only once the video is complete
     :param episodes: number of episodes
     :param stage: curriculum stage of the scenarios
@@ -315,7 +313,7 @@ def render_episodes(
     :param deterministic: use the policy's mean action
     :param fps: frames per second of the video
     :param frame_every: keep every ``frame_every``-th step (the video plays ``frame_every`` times faster)
-    :param env_overrides: :class:`FormationConfig` fields to change from the model's training configuration
+    :param env_overrides: :class:`FormationConfig` fields to change from the policy's configuration
     :param progress_bar: show a tqdm progress bar of the episodes played
     :param draw_lidar: also draw the lidar rays
     :return: the number of frames written
@@ -325,13 +323,10 @@ def render_episodes(
             raise ValueError(f"{name} must be >= 1, got {value}")
     path = Path(path)
     _check_suffix(path)
-    config = trained.config.replace(**{**(env_overrides or {}), "stage": stage})
-    check_model_fits(trained, config)
+    config = policy.config.replace(**{**(env_overrides or {}), "stage": stage})
     job = PlayJob(
-        agent=trained.model.policy if hasattr(trained.model, "policy") else trained.model,
+        policy=policy.fit(config),
         config=config,
-        normalizer_state=trained.normalizer_state,
-        team_observations=trained.team_observations,
         seed=seed,
         episodes=list(range(episodes)),
         n_teams=1,
@@ -343,12 +338,11 @@ def render_episodes(
         tqdm(total=episodes, desc="rendering", unit="episode", disable=not progress_bar) as bar,
     ):
 
-        def on_step(env: FormationEnv, episode: int, infos: list[dict[str, Any]] | None) -> None:
-            if infos is None:
-                env.render_lidar = draw_lidar
-            ended = infos is not None and (infos[0]["success"] or env.step_count >= env.config.max_steps)
-            if env.step_count % frame_every == 0 or ended:
-                writer.append(overlay_text(env.render(), episode_caption(episode, env, infos)))
+        def on_step(state: TeamState, episode: int) -> None:
+            ended = state.step >= config.max_steps or (state.step > 0 and state.goal_distance <= config.eta_g)
+            if state.step % frame_every == 0 or ended:
+                frame = render_frame(state, config, draw_lidar=draw_lidar)
+                writer.append(overlay_text(frame, episode_caption(episode, state, config)))
 
         with torch.random.fork_rng():
             torch.manual_seed(seed)

@@ -1,0 +1,99 @@
+"""The policy seam: anything that acts in the formation env, learned or hand-written.
+
+A :class:`TeamPolicy` has Stable-Baselines3's ``predict(observation, state, episode_start, deterministic)`` over the
+*raw* observations of whole teams: row k is agent ``k % n`` of team ``k // n`` (the slot order of
+:class:`~sb3_formation.sb3.vec_env.FormationVecEnv`), each row the env's own observation (thesis Table 3.1, SI
+units). Whatever a policy needs beyond that (normalisation, team observations for a critic, an agent index) it does
+itself: evaluation, rendering and comparison never need to know what kind of policy they drive.
+"""
+
+from __future__ import annotations
+
+import copy
+from abc import ABC, abstractmethod
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.observations import observation_fields, observation_layout
+
+
+@runtime_checkable
+class TeamPolicy(Protocol):
+    """Anything that acts: SB3's ``predict`` over raw team observations, the config it acts in, and :meth:`fit`."""
+
+    #: The task the policy acts in by default (for a trained policy: the one it was trained in).
+    config: FormationConfig
+
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, Any]:
+        """Actions ``(k, 2)`` for ``(k, obs_dim)`` raw observations of whole teams, and the policy's next state.
+
+        :param observation: raw observations; row k is agent ``k % n`` of team ``k // n``
+        :param state: what the previous call returned (``None`` at the start)
+        :param episode_start: ``(k,)`` flags: these rows start a new episode (reset their memory)
+        :param deterministic: act without exploration noise
+        """
+        ...
+
+    def fit(self, config: FormationConfig) -> TeamPolicy:
+        """A policy acting in envs of ``config`` (``self`` if it already does).
+
+        :raises ValueError: the policy cannot act there (the message names every difference)
+        """
+        ...
+
+
+class Controller(ABC):
+    """Base class of hand-written controllers: each agent acts from its own raw observation and its index.
+
+    Controllers are decentralised and memoryless: :meth:`act` sees one row per agent (the fields of
+    :attr:`layout`) and the agents' indices in their teams, never the world. Subclasses take their gains as keyword
+    arguments of ``__init__`` and store them in :attr:`gains` (evaluation summaries record them).
+
+    :param config: the task configuration the controller acts in
+    """
+
+    def __init__(self, config: FormationConfig) -> None:
+        self.config = config
+        #: observation field name -> slice of a row
+        self.layout: dict[str, slice] = observation_layout(observation_fields(config))
+        self.gains: dict[str, Any] = {}
+
+    def fit(self, config: FormationConfig) -> Controller:
+        """The same controller (a shallow copy: same gains, same generator) acting in envs of ``config``."""
+        if config == self.config:
+            return self
+        fitted = copy.copy(self)
+        fitted.config = config
+        fitted.layout = observation_layout(observation_fields(config))
+        return fitted
+
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, None]:
+        """SB3's signature: :meth:`act` on every row, actions clipped to [-1, 1]; controllers keep no state."""
+        observation = np.asarray(observation, dtype=np.float64)
+        rows = observation.reshape(-1, observation.shape[-1])
+        agents = np.arange(len(rows)) % self.config.n_agents
+        actions = np.clip(self.act(rows, agents, deterministic), -1.0, 1.0)
+        return actions.reshape(*observation.shape[:-1], 2).astype(np.float32), None
+
+    @abstractmethod
+    def act(self, observations: np.ndarray, agents: np.ndarray, deterministic: bool) -> np.ndarray:
+        """Actions ``(k, 2)`` in [-1, 1] (fractions of F_max) for ``(k, obs_dim)`` raw observations.
+
+        :param observations: one row per agent, fields as in :attr:`layout`
+        :param agents: ``(k,)`` each row's agent index in its team (0 to n - 1)
+        :param deterministic: act without noise (for controllers that have any)
+        """

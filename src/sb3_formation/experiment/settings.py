@@ -1,0 +1,340 @@
+"""Run settings: the one place where the options of ``sb3-formation train`` (and the keys of its YAML files) are
+declared, and the layering set-up -> YAML file -> flags as a function a notebook can call.
+
+Each field of :class:`TrainSettings` carries its command-line flag in its metadata (see :func:`option`); the CLI builds
+its parser from them, so a new setting is one new field.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.experiment.setups import DEFAULT_SETUP, SetUp, load_setup
+
+#: Keys of a run's ``evaluation:`` settings (arguments of :func:`~sb3_formation.experiment.evaluation.evaluate`).
+EVALUATION_KEYS = frozenset({"episodes", "stage", "seed", "n_envs", "workers", "deterministic", "record"})
+#: PPO settings a run may override (``ppo:`` in YAML), beyond those its set-up gives.
+PPO_OVERRIDABLE = frozenset(
+    {
+        "n_steps",
+        "batch_size",
+        "n_epochs",
+        "learning_rate",
+        "gamma",
+        "gae_lambda",
+        "clip_range",
+        "clip_range_vf",
+        "target_kl",
+        "ent_coef",
+        "vf_coef",
+        "max_grad_norm",
+        "normalize_advantage",
+        "policy_kwargs",
+        "max_sequence_length",
+    }
+)
+
+
+# Command-line value types ---------------------------------------------------------------------------------------------
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def seed_value(text: str) -> int:
+    """A seed: an integer >= 0."""
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
+def stage_iterations(text: str) -> list[int]:
+    """Three iteration counts ``A,B,C`` (curriculum stages 1, 2, 3)."""
+    try:
+        values = [int(part) for part in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3 or min(values) < 0:
+        raise argparse.ArgumentTypeError(f"expected three iteration counts A,B,C (stages 1, 2, 3), got {text!r}")
+    return values
+
+
+def assignment(text: str) -> tuple[str, object]:
+    """``FIELD=VALUE``, the value read as YAML."""
+    name, separator, value = text.partition("=")
+    if not separator or not name:
+        raise argparse.ArgumentTypeError(f"expected FIELD=VALUE, got {text!r}")
+    return name.strip(), yaml.safe_load(value)
+
+
+def option(help: str, **argparse_options: Any) -> dict[str, Any]:
+    """Field metadata declaring a setting's command-line option: ``--<field-name>`` with these argparse options.
+
+    :param help: the option's help text
+    :param argparse_options: further ``add_argument`` options (``type``, ``choices``, ``action``, ``flag``, ...); a
+        ``flag`` option replaces the default flag name
+    """
+    return {"cli": {"help": help, **argparse_options}}
+
+
+@dataclass
+class TrainSettings:
+    """Everything a training run needs; the ``sb3-formation train`` options and the keys of its YAML file.
+
+    Every setting left ``None`` takes its set-up's value (``preset``: see :mod:`~sb3_formation.experiment.setups`).
+
+    :param preset: set-up name (``sb3-formation presets``) or the path of a set-up YAML file
+    :param iterations: PPO iterations of curriculum stages 1, 2, 3
+    :param n_envs: parallel teams
+    :param workers: worker processes stepping the teams
+    :param seed: seed of PPO and of the teams' scenario generators
+    :param device: torch device for PPO (``"auto"``, ``"cpu"``, ``"cuda"``)
+    :param logdir: folder in which run folders are made
+    :param checkpoint_every: write a checkpoint every this many iterations
+    :param success_threshold: end curriculum stages 1-2 early at this rolling success rate
+    :param progress_bar: show a progress bar
+    :param seeds: the seeds of an experiment (``sb3-formation sweep`` trains one run per seed; ``train`` uses ``seed``)
+    :param evaluation: evaluate the final model with these :func:`~sb3_formation.experiment.evaluation.evaluate`
+        settings (``episodes``, ``stage``, ``seed``, ``n_envs``, ``workers``, ``deterministic``, ``record``) into ``eval/``
+    :param recurrent: recurrent actor and critic
+    :param cell: recurrent cell, ``"gru"`` or ``"lstm"``; only for recurrent policies
+    :param env: :class:`FormationConfig` fields overriding the set-up's (e.g. ``n_agents``)
+    :param ppo: ``PPO`` keyword arguments overriding the set-up's (e.g. ``learning_rate``)
+    """
+
+    preset: str = field(
+        default=DEFAULT_SETUP,
+        metadata=option("set-up: a name listed by `sb3-formation presets` or a set-up YAML file (overrides --reward)"),
+    )
+    iterations: tuple[int, int, int] | None = field(
+        default=None,
+        metadata=option("PPO iterations of stages 1,2,3 (default: the set-up's)", type=stage_iterations, metavar="A,B,C"),
+    )
+    n_envs: int | None = field(default=None, metadata=option("parallel teams (default: the set-up's)", type=positive_int))
+    workers: int = field(default=1, metadata=option("worker processes stepping the teams (default 1)", type=positive_int))
+    seed: int = field(default=0, metadata=option("seed of PPO and of the scenarios (default 0)", type=seed_value))
+    device: str = field(default="auto", metadata=option("torch device: auto, cpu, cuda (default auto)"))
+    logdir: str = field(default="runs", metadata=option("folder for run folders (default runs/)"))
+    checkpoint_every: int = field(
+        default=50, metadata=option("iterations between checkpoints (default 50)", type=positive_int)
+    )
+    success_threshold: float | None = field(
+        default=None, metadata=option("end stages 1-2 early at this rolling success rate", type=float)
+    )
+    progress_bar: bool = field(
+        default=True, metadata=option("no progress bar", flag="--no-progress", action="store_const", const=False)
+    )
+    seeds: list[int] | None = None
+    evaluation: dict[str, Any] | None = None
+    recurrent: bool | None = field(
+        default=None,
+        metadata=option("recurrent actor and critic (default: the set-up's)", action=argparse.BooleanOptionalAction),
+    )
+    cell: str | None = field(default=None, metadata=option("recurrent cell (default: the set-up's)", choices=("gru", "lstm")))
+    env: dict[str, Any] = field(
+        default_factory=dict,
+        metadata=option(
+            "override a FormationConfig field, e.g. --env max_steps=1000 (repeatable)",
+            type=assignment,
+            action="append",
+            metavar="FIELD=VALUE",
+        ),
+    )
+    ppo: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        setup = self.setup()  # validates the preset
+        self.config()  # validates the env overrides
+        if self.iterations is not None:
+            self.iterations = tuple(int(value) for value in self.iterations)
+            if len(self.iterations) != 3 or min(self.iterations) < 0 or sum(self.iterations) < 1:
+                raise ValueError(f"iterations must be three integers >= 0 (stages 1, 2, 3), got {self.iterations!r}")
+        for name in ("workers", "checkpoint_every") + (("n_envs",) if self.n_envs is not None else ()):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        unknown = sorted(set(self.ppo) - PPO_OVERRIDABLE - set(setup.ppo))
+        if unknown:
+            raise ValueError(f"unknown ppo setting(s) {unknown}; valid: {sorted(PPO_OVERRIDABLE | set(setup.ppo))}")
+        if self.seeds is not None:
+            self.seeds = list(self.seeds)
+            if not self.seeds or not all(isinstance(seed, int) and not isinstance(seed, bool) for seed in self.seeds):
+                raise ValueError(f"seeds must be a non-empty list of integers, got {self.seeds!r}")
+        if self.evaluation is not None:
+            unknown = sorted(set(self.evaluation) - EVALUATION_KEYS) if isinstance(self.evaluation, dict) else None
+            if unknown is None or unknown:
+                raise ValueError(f"evaluation must map some of {sorted(EVALUATION_KEYS)} to values, got {self.evaluation!r}")
+        if self.recurrent not in (None, True, False):
+            raise ValueError(f"recurrent must be true, false or null (the set-up's), got {self.recurrent!r}")
+        self.ppo_kwargs()  # validates recurrent, cell and the policy
+        if self.cell is not None and not self.resolved_recurrent():
+            raise ValueError(f"cell {self.cell!r} applies to recurrent policies only; this run's policy is an MLP")
+        if "max_sequence_length" in self.ppo and not self.resolved_recurrent():
+            raise ValueError("ppo: max_sequence_length applies to recurrent policies only; this run's policy is an MLP")
+
+    @classmethod
+    def field_names(cls) -> tuple[str, ...]:
+        """Names of the settings (the valid top-level keys of a YAML file)."""
+        return tuple(f.name for f in dataclasses.fields(cls))
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> TrainSettings:
+        """Settings from a mapping (e.g. a YAML file); unknown keys are errors that list the valid ones."""
+        unknown = sorted(set(values) - set(cls.field_names()))
+        if unknown:
+            raise ValueError(f"unknown setting(s) {unknown}; valid: {list(cls.field_names())}")
+        return cls(**values)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Every setting resolved (set-up values filled in, every env field and PPO setting) as plain YAML data."""
+        values = dataclasses.asdict(self)
+        values["iterations"] = list(self.resolved_iterations())
+        values["n_envs"] = self.resolved_n_envs()
+        values["success_threshold"] = self.resolved_success_threshold()
+        values["recurrent"] = self.resolved_recurrent()
+        values["cell"] = self.ppo_kwargs()["policy_kwargs"].get("cell") if values["recurrent"] else None
+        values["env"] = _plain(dataclasses.asdict(self.config()))
+        values["ppo"] = _plain({name: value for name, value in self.ppo_kwargs().items() if name != "policy"})
+        values["ppo"]["policy_kwargs"].pop("cell", None)  # written once, as the top-level cell
+        return values
+
+    def setup(self) -> SetUp:
+        """The run's set-up."""
+        return load_setup(self.preset)
+
+    def config(self) -> FormationConfig:
+        """The task configuration of this run."""
+        return self.setup().config(**self.env)
+
+    def resolved_iterations(self) -> tuple[int, int, int]:
+        """Iterations per stage, the set-up's unless given."""
+        return self.iterations if self.iterations is not None else self.setup().iterations
+
+    def resolved_n_envs(self) -> int:
+        """Number of teams, the set-up's unless given."""
+        return self.n_envs if self.n_envs is not None else self.setup().teams
+
+    def resolved_success_threshold(self) -> float | None:
+        """Success rate ending stages 1-2 early, the set-up's unless given."""
+        return self.success_threshold if self.success_threshold is not None else self.setup().success_threshold
+
+    def resolved_recurrent(self) -> bool:
+        """Whether the policy is recurrent: as given, else the set-up's choice."""
+        return self.recurrent if self.recurrent is not None else self.setup().recurrent
+
+    def resolved_evaluation(self) -> dict[str, Any]:
+        """The evaluation protocol: the set-up's, then this run's ``evaluation`` settings."""
+        return {**self.setup().evaluation, **(self.evaluation or {})}
+
+    def ppo_kwargs(self) -> dict[str, Any]:
+        """``PPO`` keyword arguments: the set-up's, then the overrides."""
+        kwargs = self.setup().ppo_kwargs(self.config(), self.recurrent, self.cell)
+        overrides = dict(self.ppo)
+        kwargs["policy_kwargs"] = {**kwargs["policy_kwargs"], **overrides.pop("policy_kwargs", {})}
+        kwargs.update(overrides)
+        return kwargs
+
+
+def _plain(value: Any) -> Any:
+    """Tuples to lists, recursively, so that YAML writes plain lists."""
+    if isinstance(value, dict):
+        return {key: _plain(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(item) for item in value]
+    return value
+
+
+def reduce_to_overrides(values: dict[str, Any]) -> dict[str, Any]:
+    """A settings mapping whose ``env:`` and ``ppo:`` keep only what differs from its own set-up's values.
+
+    A run's ``config.yaml`` holds every resolved value; reduced, it can be reused with another set-up or team size
+    (``--config old/config.yaml --reward bearing``) without pinning the old set-up's coefficients.
+    """
+    try:
+        setup = load_setup(values.get("preset", DEFAULT_SETUP))
+        defaults = _plain(dataclasses.asdict(setup.config()))
+        env = {name: value for name, value in (values.get("env") or {}).items() if defaults.get(name) != _plain(value)}
+        config = setup.config(**env)
+        kwargs = setup.ppo_kwargs(config, values.get("recurrent"), values.get("cell"))
+    except (TypeError, ValueError):
+        return values  # reported by TrainSettings
+    given = _plain({name: value for name, value in kwargs.items() if name != "policy"})
+    ppo = dict(values.get("ppo") or {})
+    policy_kwargs = {
+        name: value
+        for name, value in (ppo.pop("policy_kwargs", None) or {}).items()
+        if given["policy_kwargs"].get(name) != _plain(value)
+    }
+    ppo = {name: value for name, value in ppo.items() if name not in given or given[name] != _plain(value)}
+    if policy_kwargs:
+        ppo["policy_kwargs"] = policy_kwargs
+    return {**values, "env": env, "ppo": ppo}
+
+
+def read_settings_file(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The settings mapping of a YAML file (a run's ``config.yaml`` or an experiment), reduced to overrides.
+
+    :raises FileNotFoundError: no such file
+    :raises ValueError: not YAML, or not a mapping
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such settings file {path}")
+    try:
+        values = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as error:
+        raise ValueError(f"{path} is not valid YAML: {error}") from error
+    if not isinstance(values, dict):
+        raise ValueError(f"{path} must hold a mapping of settings, not {type(values).__name__}")
+    return reduce_to_overrides(values)
+
+
+def layered_settings(config_file: str | os.PathLike[str] | None = None, **flags: Any) -> TrainSettings:
+    """Settings layered as ``sb3-formation train`` layers them: the set-up, then a YAML file, then ``flags``.
+
+    :param config_file: a YAML file of settings (a run's ``config.yaml`` or an experiment), or ``None``
+    :param flags: settings that override the file (``None`` values are ignored); ``env`` is merged field by field into
+        the file's ``env:``
+    """
+    values = read_settings_file(config_file) if config_file is not None else {}
+    flags = {name: value for name, value in flags.items() if value is not None}
+    env = {**(values.get("env") or {}), **flags.pop("env", {})}
+    return TrainSettings.from_dict({**values, **flags, "env": env})
+
+
+def load_settings(run_dir: str | os.PathLike[str]) -> TrainSettings:
+    """The settings a run folder was made with (its ``config.yaml``)."""
+    path = Path(run_dir) / "config.yaml"
+    if not path.exists():
+        raise FileNotFoundError(f"{run_dir} is not a run folder: {path} is missing")
+    return TrainSettings.from_dict(yaml.safe_load(path.read_text()))
+
+
+def cli_options() -> list[tuple[str, dict[str, Any]]]:
+    """(field name, argparse options with ``flag``) of every setting that has a command-line option, in field order."""
+    options = []
+    for item in dataclasses.fields(TrainSettings):
+        if "cli" in item.metadata:
+            arguments = dict(item.metadata["cli"])
+            arguments.setdefault("flag", "--" + item.name.replace("_", "-"))
+            options.append((item.name, arguments))
+    return options
+
+
+#: Convert an option's parsed value to the setting's value (``--env`` gives a list of (field, value) pairs).
+CLI_CONVERSIONS: dict[str, Callable[[Any], Any]] = {"env": dict}

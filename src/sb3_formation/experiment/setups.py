@@ -1,0 +1,185 @@
+"""Set-ups: a whole training recipe as one record of data.
+
+A set-up names the task (an environment preset of :data:`~sb3_formation.env.config.PRESETS` and field overrides), the
+policy (MLP or recurrent, its cell, a team critic, sigma, action scale, other policy keyword arguments), the PPO
+settings, the curriculum (iterations per stage, success threshold), the number of parallel teams and the evaluation
+protocol. The thesis's four set-ups are YAML files shipped in this package (``sb3_formation/experiment/setups/``), each
+line citing its table, equation or section; adding a set-up is adding one such file. A YAML file anywhere can be used
+as a set-up by giving its path instead of a name.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from sb3_formation.env.config import PRESETS, FormationConfig
+from sb3_formation.sb3.policies import FormationPolicy
+from sb3_formation.sb3.recurrent import CELLS, RecurrentFormationPolicy
+
+#: The folder of the shipped set-ups, one ``<name>.yaml`` each.
+SETUPS_FOLDER = Path(__file__).with_name("setups")
+#: The set-up used when none is named.
+DEFAULT_SETUP = "ch5-bearing"
+#: Keys of a set-up's ``policy:`` that choose the network rather than being passed to it.
+_POLICY_CHOICES = ("recurrent", "cell", "team_critic")
+
+
+@dataclass(frozen=True)
+class SetUp:
+    """One training recipe (see the module docstring); every field is plain YAML data.
+
+    :param name: the set-up's name (its file's stem)
+    :param description: one line for ``sb3-formation presets``
+    :param env: ``preset`` (an environment preset name) and any :class:`FormationConfig` fields overriding it
+    :param policy: ``recurrent`` (bool), ``cell`` (``gru``/``lstm``, recurrent only), ``team_critic`` (bool; unset:
+        with the team reward, fig. 4.3), and keyword arguments of the policy class (``sigma``, ``action_scale``, ...)
+    :param ppo: keyword arguments of ``PPO`` (``n_steps``, ``batch_size``, ``learning_rate``, ...)
+    :param curriculum: ``iterations`` (PPO iterations of stages 1, 2, 3) and ``success_threshold`` (or null)
+    :param teams: parallel teams during training
+    :param evaluation: ``episodes`` and ``stage`` of the evaluation protocol
+    :param source: the file it was read from
+    """
+
+    name: str
+    description: str
+    env: dict[str, Any]
+    policy: dict[str, Any]
+    ppo: dict[str, Any]
+    curriculum: dict[str, Any]
+    teams: int
+    evaluation: dict[str, Any]
+    source: Path | None = field(default=None, compare=False)
+
+    def __post_init__(self) -> None:
+        where = f"set-up {self.name!r}"
+        if self.env.get("preset") not in PRESETS:
+            raise ValueError(f"{where}: env: preset must be one of {sorted(PRESETS)}, got {self.env.get('preset')!r}")
+        self.config()  # validates the env overrides
+        iterations = self.curriculum.get("iterations")
+        if not (isinstance(iterations, (list, tuple)) and len(iterations) == 3 and all(_is_count(i) for i in iterations)):
+            raise ValueError(f"{where}: curriculum: iterations must be three integers >= 0, got {iterations!r}")
+        unknown = sorted(set(self.curriculum) - {"iterations", "success_threshold"})
+        if unknown:
+            raise ValueError(f"{where}: unknown curriculum keys {unknown}; valid: iterations, success_threshold")
+        if not (_is_count(self.teams) and self.teams >= 1):
+            raise ValueError(f"{where}: teams must be an integer >= 1, got {self.teams!r}")
+        unknown = sorted(set(self.evaluation) - {"episodes", "stage"})
+        if unknown or not (_is_count(self.evaluation.get("episodes")) and self.evaluation["episodes"] >= 1):
+            raise ValueError(f"{where}: evaluation needs episodes (>= 1) and may give stage, got {self.evaluation!r}")
+        if not isinstance(self.policy.get("recurrent", False), bool) or self.policy.get("team_critic") not in (
+            None,
+            True,
+            False,
+        ):
+            raise ValueError(f"{where}: policy: recurrent must be true or false, team_critic true, false or unset")
+        self.ppo_kwargs()  # validates the policy choices
+
+    @property
+    def recurrent(self) -> bool:
+        """Whether the set-up's policy is recurrent."""
+        return bool(self.policy.get("recurrent", False))
+
+    @property
+    def iterations(self) -> tuple[int, int, int]:
+        """PPO iterations of curriculum stages 1, 2 and 3."""
+        return tuple(int(value) for value in self.curriculum["iterations"])
+
+    @property
+    def success_threshold(self) -> float | None:
+        """Rolling success rate that ends stages 1-2 early, or ``None``."""
+        return self.curriculum.get("success_threshold")
+
+    def config(self, **overrides: Any) -> FormationConfig:
+        """The set-up's task configuration, with ``overrides`` (:class:`FormationConfig` fields) applied."""
+        env = {name: value for name, value in self.env.items() if name != "preset"}
+        if "stage_disabled_terms" in env:
+            env["stage_disabled_terms"] = tuple(tuple(terms) for terms in env["stage_disabled_terms"])
+        return FormationConfig.preset(self.env["preset"], **{**env, **overrides})
+
+    def ppo_kwargs(
+        self, config: FormationConfig | None = None, recurrent: bool | None = None, cell: str | None = None
+    ) -> dict:
+        """Keyword arguments of ``PPO`` (or, for a recurrent policy, :class:`RecurrentFormationPPO`).
+
+        :param config: the run's task (default: the set-up's); a team critic reads its team size, and without
+            ``team_critic`` in the set-up the critic is the team critic exactly when the task uses the team reward
+        :param recurrent: override the set-up's choice of a recurrent policy
+        :param cell: override the recurrent cell
+        """
+        config = self.config() if config is None else config
+        recurrent = self.recurrent if recurrent is None else recurrent
+        team_critic = self.policy.get("team_critic")
+        team_critic = config.team_reward if team_critic is None else team_critic
+        policy_kwargs = {name: value for name, value in self.policy.items() if name not in _POLICY_CHOICES}
+        if recurrent:
+            if team_critic:
+                raise ValueError(
+                    f"{self.name} uses the team critic, which has no recurrent version: train it without recurrent"
+                )
+            cell = cell or self.policy.get("cell") or "gru"
+            if cell not in CELLS:
+                raise ValueError(f"cell must be one of {CELLS}, got {cell!r}")
+            return {"policy": RecurrentFormationPolicy, **self.ppo, "policy_kwargs": {**policy_kwargs, "cell": cell}}
+        if team_critic:
+            policy_kwargs["team_size"] = config.n_agents
+        return {"policy": FormationPolicy, **self.ppo, "policy_kwargs": policy_kwargs}
+
+    @classmethod
+    def from_dict(cls, name: str, values: dict[str, Any], source: Path | None = None) -> SetUp:
+        """A set-up from its YAML mapping; unknown or missing keys are errors that name the valid ones."""
+        keys = [f.name for f in fields(cls) if f.name not in ("name", "source")]
+        if not isinstance(values, dict):
+            raise ValueError(f"set-up {name!r} must be a mapping of {keys}, not {type(values).__name__}")
+        unknown, missing = sorted(set(values) - set(keys)), [key for key in keys if key not in values]
+        if unknown or missing:
+            raise ValueError(f"set-up {name!r}: unknown keys {unknown}, missing keys {missing}; a set-up has {keys}")
+        return cls(name=name, source=source, **values)
+
+
+def _is_count(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def setup_names() -> list[str]:
+    """Names of the set-ups shipped with the package."""
+    return sorted(path.stem for path in SETUPS_FOLDER.glob("*.yaml"))
+
+
+def load_setup(name: str | os.PathLike[str]) -> SetUp:
+    """A shipped set-up by name, or any set-up YAML file by its path.
+
+    :raises ValueError: an unknown name (the valid ones are listed) or an invalid file
+    """
+    path = Path(name)
+    if path.suffix not in (".yaml", ".yml"):
+        if str(name) not in setup_names():
+            raise ValueError(f"unknown preset {str(name)!r}; presets: {', '.join(setup_names())}, or a set-up YAML file")
+        path = SETUPS_FOLDER / f"{name}.yaml"
+    if not path.is_file():
+        raise ValueError(f"no set-up file {path}")
+    try:
+        values = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as error:
+        raise ValueError(f"{path} is not valid YAML: {error}") from error
+    return SetUp.from_dict(path.stem, values, source=path)
+
+
+def thesis_setup_for(reward: str | None, n_agents: int | None, team_reward: bool) -> str:
+    """The thesis set-up meant by ``--reward``, ``--agents`` and ``--team-reward`` (design.md: the command line).
+
+    bearing -> ch5-bearing; angle with the team reward -> ch4-team; angle with 3 agents (the default) ->
+    ch4-individual; angle with more agents -> ch5-angle; no reward given -> ch5-bearing, or ch4-team with the team
+    reward.
+    """
+    if reward == "bearing":
+        return "ch5-bearing"
+    if reward == "angle" or team_reward:
+        if team_reward:
+            return "ch4-team"
+        return "ch4-individual" if n_agents in (None, 3) else "ch5-angle"
+    return DEFAULT_SETUP

@@ -1,0 +1,86 @@
+"""Policy targets: one registry that turns what a user names into a :class:`~sb3_formation.controllers.base.TeamPolicy`.
+
+- a run folder (its final model, else its latest checkpoint) or a model ``.zip`` (normaliser statistics beside it);
+- ``controller:<name>``: a hand-written controller of :data:`~sb3_formation.controllers.CONTROLLERS`, acting in the
+  task of the set-up given as ``preset`` (default ``ch5-bearing``).
+
+``evaluate``, ``render``, ``plot`` and ``compare`` of the command line and :func:`load_policy` in Python resolve targets
+here; a new kind of target is a new entry of :data:`TARGET_KINDS`.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+from sb3_formation.controllers import CONTROLLERS
+from sb3_formation.controllers.base import TeamPolicy
+from sb3_formation.experiment.settings import load_settings
+from sb3_formation.experiment.setups import DEFAULT_SETUP, load_setup
+from sb3_formation.experiment.training import load_trained
+
+
+def _controller(name: str, preset: str | None, device: str) -> TeamPolicy:
+    if name not in CONTROLLERS:
+        raise ValueError(f"unknown controller {name!r}; controllers: {', '.join(sorted(CONTROLLERS))}")
+    return CONTROLLERS[name](load_setup(preset or DEFAULT_SETUP).config())
+
+
+#: Target kinds written ``<kind>:<name>``: kind -> loader(name, preset, device).
+TARGET_KINDS: dict[str, Callable[[str, str | None, str], TeamPolicy]] = {"controller": _controller}
+
+
+def target_kind(target: str | os.PathLike[str]) -> str | None:
+    """The kind of a ``<kind>:<name>`` target, or ``None`` for a path."""
+    kind, separator, _ = str(target).partition(":")
+    return kind if separator and kind in TARGET_KINDS else None
+
+
+def load_policy(target: str | os.PathLike[str], preset: str | None = None, device: str = "auto") -> TeamPolicy:
+    """The policy a target names.
+
+    :param target: a run folder, a model ``.zip``, or ``<kind>:<name>`` (e.g. ``controller:random``)
+    :param preset: for ``controller:`` targets, the set-up whose task the controller acts in (default ``ch5-bearing``);
+        a trained model acts in the task it was trained in, so it takes none
+    :param device: torch device of a trained model
+    """
+    kind = target_kind(target)
+    if kind is not None:
+        return TARGET_KINDS[kind](str(target).partition(":")[2], preset, device)
+    if preset is not None:
+        raise ValueError(f"a preset applies to controller targets only; {target} acts in the task it was trained in")
+    return load_trained(Path(target), device=device)
+
+
+def run_folder(target: str | os.PathLike[str]) -> Path | None:
+    """The run folder a path target belongs to (the folder itself, a model file in it, or a checkpoint's), or ``None``."""
+    if target_kind(target) is not None:
+        return None
+    path = Path(target)
+    for folder in [path, *path.parents][:4]:  # run/, run/final_model.zip, run/checkpoints/iteration_k/model.zip
+        if (folder / "config.yaml").is_file():
+            return folder
+    return None
+
+
+def default_protocol(target: str | os.PathLike[str], preset: str | None = None) -> dict:
+    """``episodes`` and ``stage`` of the evaluation protocol of a target's set-up (the run's, with its ``evaluation``
+    settings; a controller's ``preset``); empty for a model file outside any run folder."""
+    if target_kind(target) is not None:
+        return dict(load_setup(preset or DEFAULT_SETUP).evaluation)
+    folder = run_folder(target)
+    if folder is None:
+        return {}
+    evaluation = load_settings(folder).resolved_evaluation()
+    return {key: evaluation[key] for key in ("episodes", "stage") if key in evaluation}
+
+
+def evaluation_folder(target: str | os.PathLike[str], preset: str | None = None) -> Path:
+    """Where the evaluation files of a target go by default: ``eval/`` in its run folder (or beside a model file), and
+    ``evaluations/<kind>-<name>_<preset>/`` in the working folder for a ``<kind>:<name>`` target."""
+    kind = target_kind(target)
+    if kind is not None:
+        return Path("evaluations") / f"{kind}-{str(target).partition(':')[2]}_{Path(preset or DEFAULT_SETUP).stem}"
+    path = Path(target)
+    return (path if path.is_dir() else path.parent) / "eval"

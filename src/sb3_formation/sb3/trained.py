@@ -1,0 +1,98 @@
+"""``TrainedPolicy``: a trained SB3 model paired with its normaliser statistics, acting on raw observations.
+
+It is the adapter between the policy seam (:class:`~sb3_formation.controllers.base.TeamPolicy`: raw observations of
+whole teams) and what the network was trained on: observations scaled by the frozen statistics and, for a team critic,
+each slot's own observation followed by its whole team's.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.observations import observation_fields
+from sb3_formation.sb3.normalization import STATE_KEYS, observation_scale, scale_observations
+from sb3_formation.sb3.vec_env import slot_observations
+
+#: Fields that shape the observation vector: a model only fits envs that agree on them.
+OBSERVATION_SHAPING_FIELDS = ("n_agents", "lidar_rays")
+
+
+@dataclass
+class TrainedPolicy:
+    """A trained model with what it needs to act: its task configuration and its normaliser statistics.
+
+    :param model: an SB3 algorithm (its ``policy`` acts) or anything with SB3's ``predict`` on normalised observations
+    :param config: the task configuration it was trained in
+    :param normalizer_state: :meth:`~sb3_formation.sb3.normalization.ScaleNormalizeVecEnv.state_dict` of its training env
+    :param source: the model file it was loaded from, if any
+    """
+
+    model: Any
+    config: FormationConfig
+    normalizer_state: dict[str, np.ndarray]
+    source: Path | None = None
+    _scale: np.ndarray = field(init=False, repr=False)
+    _clip: float | None = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        missing = [key for key in STATE_KEYS if key not in self.normalizer_state]
+        if missing:
+            raise ValueError(f"the normaliser statistics lack {missing}")
+        self._scale = observation_scale(self.normalizer_state)
+        clip = float(self.normalizer_state["clip_obs"])
+        self._clip = None if math.isnan(clip) else clip
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled (e.g. for evaluation workers) with the model's policy only: the algorithm holds its training env."""
+        return {**self.__dict__, "model": self.policy}
+
+    @property
+    def policy(self) -> Any:
+        """What acts on normalised observations: the model's SB3 policy, or the model itself."""
+        return getattr(self.model, "policy", self.model)
+
+    @property
+    def team_observations(self) -> bool:
+        """Whether the network reads each slot's whole team (a team critic, thesis fig. 4.3)."""
+        return getattr(self.policy, "team_size", None) is not None
+
+    def fit(self, config: FormationConfig) -> TrainedPolicy:
+        """``self``, if the model can act in envs of ``config``.
+
+        :raises ValueError: naming every observation-shaping difference, or normaliser statistics of another layout
+        """
+        differences = [
+            f"{name}={getattr(self.config, name)} in the model, {getattr(config, name)} in the env"
+            for name in OBSERVATION_SHAPING_FIELDS
+            if getattr(self.config, name) != getattr(config, name)
+        ]
+        if differences:
+            raise ValueError("the model does not fit this env's observations: " + "; ".join(differences))
+        mask = np.concatenate([np.full(field.size, field.binary) for field in observation_fields(config)])
+        state = self.normalizer_state
+        if int(np.asarray(state["agent_obs_dim"])) != mask.size or not np.array_equal(np.asarray(state["binary_mask"]), mask):
+            raise ValueError(
+                f"the normaliser statistics are for {int(np.asarray(state['agent_obs_dim']))} features with other flags; "
+                f"this env's observations have {mask.size}"
+            )
+        return self
+
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, Any]:
+        """The model's actions for raw observations of whole teams (row k: agent ``k % n`` of team ``k // n``)."""
+        rows = np.asarray(observation).reshape(-1, self._scale.size)
+        scaled = scale_observations(
+            slot_observations(rows, self.config.n_agents, self.team_observations), self._scale, self._clip
+        )
+        return self.policy.predict(scaled, state=state, episode_start=episode_start, deterministic=deterministic)
