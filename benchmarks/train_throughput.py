@@ -18,8 +18,8 @@ import torch as th
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 
-from sb3_formation import make_formation_vec_env
-from sb3_formation.experiment.training import algorithm_for, thesis_ppo_kwargs
+from sb3_formation import load_setup, make_formation_vec_env
+from sb3_formation.experiment.training import algorithm_for
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
 
 
@@ -55,8 +55,9 @@ def measure(workers: int, iterations: int, policy: str, preset: str = "ch5-beari
 
     :param policy: ``"mlp"``, ``"gru"`` or ``"lstm"``
     """
-    env = make_formation_vec_env(preset, seed=0, n_workers=workers)
-    kwargs = thesis_ppo_kwargs(preset, recurrent=policy != "mlp", cell="gru" if policy == "mlp" else policy)
+    setup = load_setup(preset)
+    env = make_formation_vec_env(preset, n_envs=setup.teams, seed=0, n_workers=workers)
+    kwargs = setup.ppo_kwargs(recurrent=policy != "mlp", cell=None if policy == "mlp" else policy)
     model = algorithm_for(kwargs["policy"])(env=env, seed=0, device="cpu", **kwargs)
     timer = PhaseTimer()
     steps = model.n_steps * env.num_envs
