@@ -11,8 +11,8 @@ from pathlib import Path
 
 from PIL import Image
 
-from sb3_formation.controllers import RandomController
 from sb3_formation.env.rendering import render_frame
+from sb3_formation.env.state import TeamState
 from sb3_formation.experiment.evaluation import (
     SUMMARY_FILE,
     TRAJECTORIES_FILE,
@@ -22,6 +22,7 @@ from sb3_formation.experiment.evaluation import (
     evaluate_target,
     play_episodes,
     policy_identity,
+    seed_policy,
 )
 from sb3_formation.experiment.settings import (
     CLI_CONVERSIONS,
@@ -177,10 +178,12 @@ def build_parser() -> argparse.ArgumentParser:
     sweep.add_argument("--logdir", help="folder for the experiment's folder (default: the experiment's logdir)")
     rollout = commands.add_parser(
         "rollout",
-        help="play episodes with a random policy, print per-episode metrics and save the final frame",
-        description="Play episodes of the formation env with uniformly random actions (a baseline and a smoke test).",
+        help="play episodes (random actions by default), print per-episode metrics and save the final frame",
+        description="Play episodes of the formation env with a policy (by default controller:random, uniformly random "
+        "actions: a baseline and a smoke test), print each episode's metrics and save the last frame as a PNG.",
     )
-    rollout.add_argument("--preset", default=DEFAULT_SETUP, help="set-up (default: %(default)s)")
+    rollout.add_argument("target", nargs="?", default="controller:random", help=TARGET_HELP + " (default: %(default)s)")
+    rollout.add_argument("--preset", help=f"set-up of a controller: target (default: {DEFAULT_SETUP})")
     rollout.add_argument("--agents", type=int, default=None, help="team size n >= 3 (default: the preset's)")
     rollout.add_argument("--stage", type=int, choices=(1, 2, 3), default=3, help="curriculum stage (default: %(default)s)")
     rollout.add_argument("--episodes", type=positive_int, default=2, help="number of episodes (default: %(default)s)")
@@ -190,21 +193,28 @@ def build_parser() -> argparse.ArgumentParser:
     rollout.add_argument("--seed", type=int, default=0, help="seed of the first episode; episode k uses seed + k")
     rollout.add_argument("--out", type=Path, default=Path("runs/rollout_final_frame.png"), help="PNG of the final frame")
     rollout.add_argument("--json", action="store_true", help="print the summaries as JSON lines")
+    rollout.add_argument("--stochastic", action="store_true", help="sample a trained policy's actions")
     return parser
 
 
 def rollout_command(args: argparse.Namespace) -> int:
-    """``sb3-formation rollout``: random-policy episodes with per-episode metrics and a PNG of the final frame."""
+    """``sb3-formation rollout``: episodes of any policy with per-episode metrics and a PNG of the final frame."""
+    policy = load_policy(args.target, args.preset, device="cpu")
     overrides = {"stage": args.stage}
     if args.agents is not None:
         overrides["n_agents"] = args.agents
     if args.max_steps is not None:
         overrides["max_steps"] = args.max_steps
-    config = load_setup(args.preset).config(**overrides)
-    job = PlayJob(RandomController(config, seed=args.seed), config, args.seed, list(range(args.episodes)), 1, False, 0)
-    states = []
-    rows, _ = play_episodes(job, on_step=lambda state, episode: states.append(state) if state.step else states.clear())
-    print(f"{args.preset}: n={config.n_agents}, stage {config.stage}, T_s={config.max_steps}, random policy")
+    config = policy.config.replace(**overrides)
+    job = PlayJob(policy.fit(config), config, args.seed, list(range(args.episodes)), 1, not args.stochastic, 0)
+    last: list[TeamState] = []
+
+    def keep(state: TeamState, episode: int) -> None:
+        last[:] = [state]
+
+    seed_policy(job.policy, args.seed)
+    rows, _ = play_episodes(job, on_step=keep)
+    print(f"{args.target}: n={config.n_agents}, stage {config.stage}, T_s={config.max_steps}")
     for summary in rows:
         if args.json:
             print(json.dumps({key: value for key, value in summary.items() if not key.startswith("reward_")}))
@@ -217,7 +227,7 @@ def rollout_command(args: argparse.Namespace) -> int:
                 f"collisions obstacle/agent={summary['collisions_obstacle']}/{summary['collisions_agent']}"
             )
     with atomic_path(args.out) as temporary:
-        Image.fromarray(render_frame(states[-1], config)).save(temporary, format="PNG")
+        Image.fromarray(render_frame(last[0], config)).save(temporary, format="PNG")
     print(f"final frame saved to {args.out}")
     return 0
 

@@ -4,7 +4,9 @@ A :class:`TeamPolicy` has Stable-Baselines3's ``predict(observation, state, epis
 *raw* observations of whole teams: row k is agent ``k % n`` of team ``k // n`` (the slot order of
 :class:`~sb3_formation.sb3.vec_env.FormationVecEnv`), each row the env's own observation (thesis Table 3.1, SI
 units). Whatever a policy needs beyond that (normalisation, team observations for a critic, an agent index) it does
-itself: evaluation, rendering and comparison never need to know what kind of policy they drive.
+itself: evaluation, rendering and comparison never need to know what kind of policy they drive. A policy that draws
+random numbers of its own (not torch's global generator) may also have ``seed(seed)``: evaluation calls it with its
+seed, so that the same seed gives the same episodes.
 """
 
 from __future__ import annotations

@@ -20,5 +20,9 @@ class RandomController(Controller):
         self.gains = {"seed": seed}
         self.rng = np.random.default_rng(seed)
 
+    def seed(self, seed: int | None) -> None:
+        """Restart the generator from ``seed`` (evaluation calls this with its seed, so its episodes repeat)."""
+        self.rng = np.random.default_rng(seed)
+
     def act(self, observations: np.ndarray, agents: np.ndarray, deterministic: bool) -> np.ndarray:
         return self.rng.uniform(-1.0, 1.0, (len(observations), 2))

@@ -16,14 +16,16 @@ from sb3_formation.env.config import REWARD_TERMS
 class Metric:
     """One per-episode metric.
 
-    :param label: table heading and axis label, with the unit
+    :param label: table heading, with the unit
     :param title: short title of its chart
+    :param axis: axis label of its chart, with the unit
     :param tensorboard: its TensorBoard tag during training (``None``: evaluation only)
     :param in_table: a column of comparison tables
     """
 
     label: str
     title: str
+    axis: str
     tensorboard: str | None
     in_table: bool = True
 
@@ -31,13 +33,19 @@ class Metric:
 #: Every per-episode metric, by its key in episode summaries (``formation_episode`` infos, ``episodes.csv``, the means
 #: of ``summary.json``). Errors are means over the episode's steps of the means over agents; collisions are totals.
 EPISODE_METRICS: dict[str, Metric] = {
-    "angle_error_deg": Metric("angle error (deg)", "angle error", "formation/angle_error_deg"),
-    "bearing_error": Metric("bearing error", "bearing error", "formation/bearing_error"),
-    "neighbour_distance_error": Metric("distance error (m)", "neighbour-distance error", "formation/neighbour_distance_error"),
-    "length": Metric("steps", "episode length", "episode/length"),
-    "collisions_obstacle": Metric("obstacle collisions", "obstacle collisions", "episode/collisions_obstacle"),
-    "collisions_agent": Metric("agent collisions", "agent collisions", "episode/collisions_agent"),
-    "comm_exceeded_fraction": Metric("fraction of steps", "beyond communication range", None, in_table=False),
+    "angle_error_deg": Metric("angle error (deg)", "angle error", "angle error (deg)", "formation/angle_error_deg"),
+    "bearing_error": Metric("bearing error", "bearing error", "bearing error", "formation/bearing_error"),
+    "neighbour_distance_error": Metric(
+        "distance error (m)", "neighbour-distance error", "distance error (m)", "formation/neighbour_distance_error"
+    ),
+    "length": Metric("steps", "episode length", "steps", "episode/length"),
+    "collisions_obstacle": Metric(
+        "obstacle collisions", "obstacle collisions", "collisions per episode", "episode/collisions_obstacle"
+    ),
+    "collisions_agent": Metric("agent collisions", "agent collisions", "collisions per episode", "episode/collisions_agent"),
+    "comm_exceeded_fraction": Metric(
+        "beyond communication range", "beyond communication range", "fraction of steps", None, in_table=False
+    ),
 }
 #: TensorBoard tag of the rolling success rate during training.
 SUCCESS_RATE_TAG = "episode/success_rate"

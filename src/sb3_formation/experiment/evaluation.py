@@ -348,6 +348,13 @@ def _stack(config: FormationConfig, seed: int, recorded: list[tuple[int, _Record
     )
 
 
+def seed_policy(policy: TeamPolicy, seed: int) -> None:
+    """Seed what a policy samples from: torch's generator (SB3 policies sample with it) and the policy's own ``seed``."""
+    torch.manual_seed(seed)
+    if hasattr(policy, "seed"):
+        policy.seed(seed)
+
+
 class _EpisodePlayer:
     """Plays one :class:`PlayJob` in a worker process (see :func:`_play_in_workers`)."""
 
@@ -356,7 +363,7 @@ class _EpisodePlayer:
 
     def play(self, report: Callable[[Any], None]) -> tuple[list, list]:
         torch.set_num_threads(1)
-        torch.manual_seed(self.job.seed + self.job.episodes[0])
+        seed_policy(self.job.policy, self.job.seed + self.job.episodes[0])
         return play_episodes(self.job, on_episode=lambda: report(None))
 
 
@@ -514,7 +521,7 @@ def evaluate(
     with tqdm(total=episodes, desc="evaluating", unit="episode", disable=not progress_bar) as bar:
         if n_workers == 1:
             with torch.random.fork_rng():
-                torch.manual_seed(seed)
+                seed_policy(policy, seed)
                 rows, recorded = play_episodes(jobs[0], on_episode=lambda: bar.update(1))
         else:
             rows, recorded = _play_in_workers(jobs, on_episode=lambda: bar.update(1))

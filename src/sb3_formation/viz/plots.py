@@ -19,6 +19,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, Patch, Polygon
 
+from sb3_formation.env.episodes import EPISODE_METRICS, SUCCESS_RATE_TAG
 from sb3_formation.env.rendering import AGENT_COLOURS
 from sb3_formation.experiment.evaluation import Trajectories
 from sb3_formation.experiment.settings import load_settings
@@ -27,18 +28,8 @@ from sb3_formation.utils.files import atomic_write
 
 #: Colours of agents (agent i: colour i mod 10) and of policies or set-ups in comparisons: matplotlib's tab10.
 COLOURS: tuple[tuple[float, float, float], ...] = tuple(tuple(channel / 255 for channel in rgb) for rgb in AGENT_COLOURS)
-#: Metrics of :func:`plot_evaluation_bars`: summary key -> (title, y-axis label).
-BAR_METRICS: dict[str, tuple[str, str]] = {
-    "angle_error_deg": ("angle error", "angle error (deg)"),
-    "bearing_error": ("bearing error", "bearing error"),
-    "neighbour_distance_error": ("neighbour-distance error", "distance error (m)"),
-    "length": ("episode length", "steps"),
-    "collisions_obstacle": ("obstacle collisions", "collisions per episode"),
-    "collisions_agent": ("agent collisions", "collisions per episode"),
-    "comm_exceeded_fraction": ("beyond communication range", "fraction of steps"),
-}
 #: TensorBoard scalar tag -> name of the curve returned by :func:`load_training_curves`.
-TRAINING_SCALARS: dict[str, str] = {"rollout/ep_rew_mean": "episode_reward", "episode/success_rate": "success_rate"}
+TRAINING_SCALARS: dict[str, str] = {"rollout/ep_rew_mean": "episode_reward", SUCCESS_RATE_TAG: "success_rate"}
 #: Curve name -> y-axis label in :func:`plot_training_curves`.
 TRAINING_LABELS: dict[str, str] = {"episode_reward": "mean episode reward", "success_rate": "success rate"}
 #: File formats :func:`save_figure` writes.
@@ -200,8 +191,9 @@ def _summary_value(summaries: Mapping[str, dict], policy: str, *keys: str) -> An
 def plot_evaluation_bars(summaries: Mapping[str, dict], over: str = "successful") -> Figure:
     """Compare evaluations: one axes per metric with a bar (mean +- std) per policy, plus the success rate.
 
-    The metrics are those of :data:`BAR_METRICS` found in the summaries; a policy without episodes to average (``None``
-    means) gets a note instead of a bar. The success rate (over all episodes) has its 95 % Wilson interval as error bar.
+    The metrics are those of :data:`~sb3_formation.env.episodes.EPISODE_METRICS` found in the summaries; a policy
+    without episodes to average (``None`` means) gets a note instead of a bar. The success rate (over all episodes) has
+    its 95 % Wilson interval as error bar.
 
     :param summaries: policy label -> evaluation summary (``EvaluationResult.summary`` or ``eval/summary.json``)
     :param over: ``"successful"`` (means over the successful episodes, as in the thesis) or ``"all"`` episodes
@@ -213,7 +205,7 @@ def plot_evaluation_bars(summaries: Mapping[str, dict], over: str = "successful"
         raise ValueError("no summaries to plot")
     policies = list(summaries)
     group = groups[over]
-    metrics = [name for name in BAR_METRICS if any(name in (summaries[p].get(group) or {}) for p in policies)]
+    metrics = [name for name in EPISODE_METRICS if any(name in (summaries[p].get(group) or {}) for p in policies)]
     n_axes = len(metrics) + 1
     n_columns = min(4, n_axes)
     n_rows = math.ceil(n_axes / n_columns)
@@ -230,7 +222,7 @@ def plot_evaluation_bars(summaries: Mapping[str, dict], over: str = "successful"
                 continue
             yerr = None if std is None else [[std], [std]]
             ax.bar(position, mean, yerr=yerr, color=_colour(position), capsize=3, width=0.7, label=policy)
-        title, ylabel = BAR_METRICS[name]
+        title, ylabel = EPISODE_METRICS[name].title, EPISODE_METRICS[name].axis
         ax.set_ylim(bottom=0.0)  # every metric is >= 0
         ax.set_title(title)
         ax.set_ylabel(ylabel)

@@ -25,7 +25,7 @@ from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.rendering import render_frame
 from sb3_formation.env.state import TeamState
-from sb3_formation.experiment.evaluation import PlayJob, play_episodes
+from sb3_formation.experiment.evaluation import PlayJob, play_episodes, seed_policy
 from sb3_formation.utils.files import replace_with, temporary_beside
 
 #: File suffixes :class:`VideoWriter` can write.
@@ -301,7 +301,7 @@ def render_episodes(
     """Play evaluation episodes on one team and write them, captioned, one after the other to a video file.
 
     Episode k is played from ``reset(seed=seed + k)`` as in :func:`~sb3_formation.evaluation.evaluate` (sampled
-    actions come from ``torch.manual_seed(seed)``, as with ``evaluate(..., n_envs=1)``). Of each episode the frames
+    actions are seeded with ``seed``, as with ``evaluate(..., n_envs=1)``). Of each episode the frames
     after steps 0, ``frame_every``, 2 ``frame_every``, ... and after its last step are kept (see
     :func:`frames_per_episode`); step 0 is the state after the reset.
 
@@ -345,6 +345,6 @@ def render_episodes(
                 writer.append(overlay_text(frame, episode_caption(episode, state, config)))
 
         with torch.random.fork_rng():
-            torch.manual_seed(seed)
+            seed_policy(job.policy, seed)
             play_episodes(job, on_episode=lambda: bar.update(1), on_step=on_step)
     return writer.frames

@@ -1,0 +1,81 @@
+"""Policy targets through one registry: controllers evaluated, rendered, plotted, compared and rolled out like trained
+models; a recorded episode drawn from its trajectories file alone."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sb3_formation import FormationEnv, load_policy
+from sb3_formation.cli import main
+from sb3_formation.controllers import RandomController, TeamPolicy
+from sb3_formation.env.rendering import render_frame
+from sb3_formation.experiment.evaluation import Trajectories, evaluate
+from sb3_formation.experiment.targets import evaluation_folder, target_kind
+
+QUICK = ["--episodes", "2", "--n-envs", "2", "--no-progress"]
+
+
+def test_targets_resolve_through_one_registry() -> None:
+    policy = load_policy("controller:random", preset="ch4-team")
+    assert isinstance(policy, RandomController) and isinstance(policy, TeamPolicy)
+    assert policy.config.n_agents == 3 and policy.config.team_reward  # the ch4-team set-up's task
+    assert load_policy("controller:random").config.n_agents == 6  # default set-up: ch5-bearing
+    assert target_kind("controller:random") == "controller" and target_kind("runs/a:b") is None
+    assert evaluation_folder("controller:random", "ch4-team") == Path("evaluations/controller-random_ch4-team")
+    with pytest.raises(ValueError, match="unknown controller 'pid'; controllers: random"):
+        load_policy("controller:pid")
+    with pytest.raises(ValueError, match="a preset applies to controller targets only"):
+        load_policy("runs/x", preset="ch5-bearing")
+    with pytest.raises(FileNotFoundError, match="no model at"):
+        load_policy("runs/none")
+
+
+def test_a_controller_is_evaluated_reproducibly_by_seed() -> None:
+    policy = load_policy("controller:random", preset="ch4-individual")
+    first = evaluate(policy, episodes=3, stage=1, seed=5, n_envs=2, env_overrides={"max_steps": 20})
+    again = evaluate(load_policy("controller:random", preset="ch4-individual"), 3, 1, 5, 2, env_overrides={"max_steps": 20})
+    other = evaluate(policy, episodes=3, stage=1, seed=6, n_envs=2, env_overrides={"max_steps": 20})
+    assert first.episodes == again.episodes and first.episodes != other.episodes
+    assert first.summary["model"] == {"controller": "RandomController", "gains": {"seed": None}}
+
+
+def test_controller_targets_work_with_every_command(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    short = ["--preset", "ch4-individual"]
+    assert main(["evaluate", "controller:random", *short, *QUICK, "--trajectories", "1"]) == 0
+    folder = tmp_path / "evaluations" / "controller-random_ch4-individual"
+    summary = json.loads((folder / "summary.json").read_text())
+    assert summary["episodes"] == 2 and summary["n_agents"] == 3 and summary["stage"] == 3
+    assert main(["plot", "trajectories", "controller:random", *short]) == 0
+    assert (folder / "figures" / "trajectory_000.png").stat().st_size > 10_000
+    assert main(["render", "controller:random", *short, "--max-steps", "5", "--out", "random.gif"]) == 0
+    assert (tmp_path / "random.gif").stat().st_size > 1_000
+    # compare reuses the stored evaluation of the same controller under the same protocol
+    assert main(["compare", "controller:random", *short, *QUICK, "--out", "bars.png", "--table", "table.md"]) == 0
+    assert "| controller:random | 2 |" in (tmp_path / "table.md").read_text()
+    assert main(["rollout", "controller:random", *short, "--episodes", "1", "--max-steps", "5", "--out", "f.png"]) == 0
+    assert (tmp_path / "f.png").is_file()
+
+
+def test_a_recorded_episode_is_drawn_from_its_file_without_the_policy(tmp_path: Path) -> None:
+    """render_frame of a state rebuilt from trajectories.npz equals the env's own frame at that step, replayed from the
+    recorded actions (a state is all rendering needs; recordings hold no lidar readings)."""
+    policy = RandomController(load_policy("controller:random", preset="ch4-individual").config)
+    result = evaluate(policy, episodes=1, stage=3, seed=2, n_envs=1, env_overrides={"max_steps": 12}, record=1)
+    result.save(tmp_path)
+    trajectories = Trajectories.load(tmp_path / "trajectories.npz")
+    env = FormationEnv(trajectories.config, render_mode="rgb_array")
+    env.reset(seed=int(trajectories.seeds[0]))
+    for step in range(int(trajectories.lengths[0]) + 1):
+        if step:
+            env.step_array(trajectories.actions[0, step])
+        drawn = render_frame(trajectories.team_state(0, step), trajectories.config)
+        np.testing.assert_array_equal(drawn, env.render())
+    with pytest.raises(ValueError, match="lidar"):
+        render_frame(trajectories.team_state(0, 0), trajectories.config, draw_lidar=True)
+    with pytest.raises(IndexError):
+        trajectories.team_state(0, int(trajectories.lengths[0]) + 1)
