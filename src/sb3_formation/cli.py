@@ -20,9 +20,10 @@ from sb3_formation.experiment.evaluation import (
     Trajectories,
     comparison_table,
     evaluate_target,
+    load_summary,
     play_episodes,
-    policy_identity,
     seed_policy,
+    stored_summary,
 )
 from sb3_formation.experiment.settings import (
     CLI_CONVERSIONS,
@@ -34,7 +35,7 @@ from sb3_formation.experiment.settings import (
     seed_value,
 )
 from sb3_formation.experiment.setups import DEFAULT_SETUP, load_setup, setup_names, thesis_setup_for
-from sb3_formation.experiment.targets import default_protocol, evaluation_folder, load_policy, target_kind
+from sb3_formation.experiment.targets import default_protocol, evaluation_file, evaluation_folder, load_policy, target_kind
 from sb3_formation.experiment.training import FINAL_MODEL, resume, train
 from sb3_formation.utils.files import atomic_path, atomic_write
 from sb3_formation.viz.plots import (
@@ -338,28 +339,6 @@ def _labels(text: str | None, targets: Sequence[str | Path]) -> list[str]:
     return labels
 
 
-def _eval_file(target: str | Path, name: str, preset: str | None = None) -> Path:
-    """``name`` of an evaluation given as the file itself, an eval folder, a run folder or a ``controller:`` target."""
-    if target_kind(target) is not None:
-        target = evaluation_folder(target, preset)
-    target = Path(target)
-    for candidate in (target, target / name, _run_folder(target) / "eval" / name):
-        if candidate.is_file() and candidate.name == name:
-            return candidate
-    raise FileNotFoundError(f"no {name} in {target}: run `sb3-formation evaluate {target}` first")
-
-
-def _load_summary(target: str | Path, preset: str | None = None) -> dict:
-    path = _eval_file(target, SUMMARY_FILE, preset)
-    try:
-        summary = json.loads(path.read_text())
-    except json.JSONDecodeError as error:
-        raise ValueError(f"{path} is not valid JSON: {error}") from error
-    if not isinstance(summary, dict) or "success_rate" not in summary:
-        raise ValueError(f"{path} is not an evaluation summary written by sb3-formation")
-    return summary
-
-
 def plot_command(args: argparse.Namespace) -> int:
     """``sb3-formation plot FIGURE TARGET...``: one of the thesis-style figures, as PNG, SVG or PDF."""
     if args.figure not in FIGURES:
@@ -367,7 +346,7 @@ def plot_command(args: argparse.Namespace) -> int:
     if args.figure in ("trajectories", "errors"):
         if len(args.targets) != 1:
             raise ValueError(f"{args.figure} draws one evaluation; got {len(args.targets)} targets")
-        path = _eval_file(args.targets[0], TRAJECTORIES_FILE, args.preset)
+        path = evaluation_file(args.targets[0], TRAJECTORIES_FILE, args.preset)
         trajectories = Trajectories.load(path)
         indices = _recorded_indices(trajectories, args.episodes)
         default = path.parent / "figures" / ("trajectory.png" if args.figure == "trajectories" else "errors.png")
@@ -384,7 +363,7 @@ def plot_command(args: argparse.Namespace) -> int:
             ]
     elif args.figure == "bars":
         labels = _labels(args.labels, args.targets)
-        summaries = dict(zip(labels, (_load_summary(target, args.preset) for target in args.targets)))
+        summaries = dict(zip(labels, (load_summary(target, args.preset) for target in args.targets)))
         written = [save_figure(plot_evaluation_bars(summaries, over=args.over), args.out or Path("evaluation_bars.png"))]
     else:
         labels = _labels(args.labels, args.targets) if args.labels else [_setup_label(t) for t in args.targets]
@@ -435,19 +414,6 @@ def render_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def _matching_summary(target: str, args: argparse.Namespace, protocol: dict) -> dict | None:
-    """The target's stored evaluation summary if it is of the same policy (model file SHA-256, or controller and gains)
-    under the same protocol, else ``None``."""
-    try:
-        summary = _load_summary(target, args.preset)
-        identity = policy_identity(load_policy(target, args.preset, device="cpu"))
-    except (FileNotFoundError, ValueError):
-        return None
-    wanted = {"seed": args.seed, "deterministic": not args.stochastic, **protocol}
-    same_policy = identity is not None and summary.get("model") == identity
-    return summary if same_policy and all(summary.get(key) == value for key, value in wanted.items()) else None
-
-
 def compare_command(args: argparse.Namespace) -> int:
     """``sb3-formation compare TARGET...``: every policy on the same seeds, a Markdown table and the bar chart."""
     labels = _labels(args.labels, args.targets)
@@ -465,9 +431,10 @@ def compare_command(args: argparse.Namespace) -> int:
         )
     summaries = {}
     for label, target in zip(labels, args.targets):
-        summary = None if args.force else _matching_summary(target, args, protocol)
+        wanted = {**protocol, "seed": args.seed, "deterministic": not args.stochastic}
+        summary = None if args.force else stored_summary(target, wanted, args.preset)
         if summary is not None:
-            print(f"{target}: reusing {_eval_file(target, SUMMARY_FILE, args.preset)}")
+            print(f"{target}: reusing {evaluation_file(target, SUMMARY_FILE, args.preset)}")
         args.stage = protocol["stage"]
         summaries[label] = summary or _evaluate(args, target, protocol["episodes"])
     table = comparison_table(summaries, over=args.over)

@@ -31,7 +31,7 @@ from sb3_formation.env.episodes import EPISODE_METRICS, EpisodeStatistics
 from sb3_formation.env.formation_env import FormationEnv
 from sb3_formation.env.geometry import ring_neighbours
 from sb3_formation.env.state import TeamState
-from sb3_formation.experiment.targets import default_protocol, evaluation_folder, load_policy
+from sb3_formation.experiment.targets import default_protocol, evaluation_file, evaluation_folder, load_policy
 from sb3_formation.utils.files import atomic_write
 from sb3_formation.utils.processes import WorkerProcess, gather
 
@@ -601,3 +601,31 @@ def evaluate_target(
     result = evaluate(policy, progress_bar=progress_bar, **protocol)
     result.save(out or evaluation_folder(target, preset))
     return result
+
+
+def load_summary(target: str | os.PathLike[str], preset: str | None = None) -> dict[str, Any]:
+    """The stored evaluation summary of a target (see :func:`~sb3_formation.experiment.targets.evaluation_file`).
+
+    :raises FileNotFoundError: none was written
+    :raises ValueError: the file is not an evaluation summary
+    """
+    path = evaluation_file(target, SUMMARY_FILE, preset)
+    try:
+        summary = json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{path} is not valid JSON: {error}") from error
+    if not isinstance(summary, dict) or "success_rate" not in summary:
+        raise ValueError(f"{path} is not an evaluation summary written by sb3-formation")
+    return summary
+
+
+def stored_summary(target: str | os.PathLike[str], protocol: dict[str, Any], preset: str | None = None) -> dict | None:
+    """The target's stored evaluation summary if it is of the same policy (the model file's SHA-256, or the controller
+    and its gains) under ``protocol`` (summary keys such as ``episodes``, ``stage``, ``seed``), else ``None``."""
+    try:
+        summary = load_summary(target, preset)
+        identity = policy_identity(load_policy(target, preset, device="cpu"))
+    except (FileNotFoundError, ValueError):
+        return None
+    same_policy = identity is not None and summary.get("model") == identity
+    return summary if same_policy and all(summary.get(key) == value for key, value in protocol.items()) else None

@@ -84,3 +84,16 @@ def evaluation_folder(target: str | os.PathLike[str], preset: str | None = None)
         return Path("evaluations") / f"{kind}-{str(target).partition(':')[2]}_{Path(preset or DEFAULT_SETUP).stem}"
     path = Path(target)
     return (path if path.is_dir() else path.parent) / "eval"
+
+
+def evaluation_file(target: str | os.PathLike[str], name: str, preset: str | None = None) -> Path:
+    """The evaluation file ``name`` (e.g. ``summary.json``) of a target: the file itself, in an eval folder, in a run
+    folder's ``eval/``, or in a ``<kind>:<name>`` target's :func:`evaluation_folder`.
+
+    :raises FileNotFoundError: there is none (the message says how to make it)
+    """
+    folder = evaluation_folder(target, preset) if target_kind(target) is not None else Path(target)
+    for candidate in (folder, folder / name, (folder if folder.is_dir() else folder.parent) / "eval" / name):
+        if candidate.is_file() and candidate.name == name:
+            return candidate
+    raise FileNotFoundError(f"no {name} in {target}: run `sb3-formation evaluate {target}` first")
