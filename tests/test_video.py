@@ -118,6 +118,8 @@ def fake_state(step: int, goal_distance: float = 4.25) -> TeamState:
         angle_errors_deg=np.array([10.0, 14.6]),
         bearing_errors=np.array([0.1, 0.2]),
         neighbour_distance_errors=np.array([0.5, 0.0]),
+        centroid=np.array([2.0, 2.0]),
+        goal_distance=goal_distance,
     )
 
 

@@ -399,6 +399,8 @@ class FormationEnv(ParallelEnv):
             angle_errors_deg=angle,
             bearing_errors=bearing,
             neighbour_distance_errors=distance,
+            centroid=self.formation.centroid,
+            goal_distance=self.goal_distance,
             lidar_obstacles=lidar_obstacles,
             lidar_agents=lidar_agents,
         )

@@ -6,7 +6,6 @@ rebuilt from a recorded trajectory (without lidar readings), so a saved episode 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,6 +29,8 @@ class TeamState:
     :param angle_errors_deg: ``(n,)`` abs(beta^ref - beta^i) (deg)
     :param bearing_errors: ``(n,)`` mean over the two neighbours of norm(g_ref - g)
     :param neighbour_distance_errors: ``(n,)`` mean over the two neighbours of max(d_j^i - d^ref, 0) (m)
+    :param centroid: ``(2,)`` centroid p^c of the agents (m), eq. 20
+    :param goal_distance: distance (m) from the centroid to the goal (the episode succeeds within eta_g)
     :param lidar_obstacles: ``(n, rays)`` obstacle-channel readings in [0, 1] (1: nothing in range), or ``None``
         when not recorded
     :param lidar_agents: ``(n, rays)`` agent-channel readings, or ``None``
@@ -46,6 +47,8 @@ class TeamState:
     angle_errors_deg: np.ndarray
     bearing_errors: np.ndarray
     neighbour_distance_errors: np.ndarray
+    centroid: np.ndarray
+    goal_distance: float
     lidar_obstacles: np.ndarray | None = None
     lidar_agents: np.ndarray | None = None
 
@@ -60,17 +63,6 @@ class TeamState:
     def n_agents(self) -> int:
         """Number of agents n."""
         return len(self.positions)
-
-    @property
-    def centroid(self) -> np.ndarray:
-        """``(2,)`` centroid p^c of the agents (m), eq. 20."""
-        return self.positions.mean(axis=0)
-
-    @property
-    def goal_distance(self) -> float:
-        """Distance (m) from the centroid to the goal."""
-        centroid = self.centroid
-        return math.hypot(self.goal[0] - centroid[0], self.goal[1] - centroid[1])
 
     @property
     def neighbour_distances(self) -> np.ndarray:

@@ -176,6 +176,8 @@ class Trajectories:
             angle_errors_deg=self.angle_error_deg[index, step],
             bearing_errors=self.bearing_error[index, step],
             neighbour_distance_errors=self.neighbour_distance_error[index, step],
+            centroid=self.positions[index, step].mean(axis=0),
+            goal_distance=float(self.goal_distance[index, step]),
         )
 
 
