@@ -29,11 +29,7 @@ class TeamPolicy(Protocol):
     config: FormationConfig
 
     def predict(
-        self,
-        observation: np.ndarray,
-        state: Any = None,
-        episode_start: np.ndarray | None = None,
-        deterministic: bool = True,
+        self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
     ) -> tuple[np.ndarray, Any]:
         """Actions ``(k, 2)`` for ``(k, obs_dim)`` raw observations of whole teams, and the policy's next state.
 
@@ -78,11 +74,7 @@ class Controller(ABC):
         return fitted
 
     def predict(
-        self,
-        observation: np.ndarray,
-        state: Any = None,
-        episode_start: np.ndarray | None = None,
-        deterministic: bool = True,
+        self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
     ) -> tuple[np.ndarray, None]:
         """SB3's signature: :meth:`act` on every row, actions clipped to [-1, 1]; controllers keep no state."""
         observation = np.asarray(observation, dtype=np.float64)

@@ -84,11 +84,7 @@ class TrainedPolicy:
         return self
 
     def predict(
-        self,
-        observation: np.ndarray,
-        state: Any = None,
-        episode_start: np.ndarray | None = None,
-        deterministic: bool = True,
+        self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
     ) -> tuple[np.ndarray, Any]:
         """The model's actions for raw observations of whole teams (row k: agent ``k % n`` of team ``k // n``)."""
         rows = np.asarray(observation).reshape(-1, self._scale.size)
