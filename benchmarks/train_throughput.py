@@ -19,7 +19,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_formation import load_setup, make_formation_vec_env
-from sb3_formation.experiment.training import algorithm_for
+from sb3_formation.experiment.runs import algorithm_for
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
 
 

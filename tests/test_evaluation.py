@@ -27,7 +27,7 @@ from sb3_formation.experiment.evaluation import (
     evaluate,
     wilson_interval,
 )
-from sb3_formation.experiment.training import FINAL_MODEL, FINAL_NORMALIZER, load_trained, save_model
+from sb3_formation.experiment.runs import FINAL_MODEL, FINAL_NORMALIZER, load_trained, save_model
 from sb3_formation.sb3.trained import TrainedPolicy
 
 Z95 = 1.959963984540054

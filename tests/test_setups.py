@@ -16,9 +16,9 @@ import yaml
 
 from sb3_formation.cli import main
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.experiment.runs import FINAL_MODEL
 from sb3_formation.experiment.settings import TrainSettings, layered_settings
 from sb3_formation.experiment.setups import SETUPS_FOLDER, load_setup, setup_names
-from sb3_formation.experiment.training import FINAL_MODEL
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
 

@@ -5,11 +5,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 
 import numpy as np
 import pytest
+from pettingzoo.test import state_test
+from pettingzoo.utils.conversions import parallel_to_aec
 
-from sb3_formation import FormationConfig, FormationEnv, Scenario
+from sb3_formation import FormationConfig, FormationEnv, Scenario, TeamState
 from sb3_formation.env.rendering import render_frame
 from sb3_formation.env.state import state_obstacle_slots
 
@@ -26,11 +29,25 @@ def square_env(**overrides: object) -> FormationEnv:
 
 
 def test_every_attribute_exists_from_init() -> None:
+    """reset(), step() and render() only set attributes __init__ already made."""
     env = square_env()
     before = set(vars(env))
     env.reset(seed=0, options={"scenario": SQUARE})
-    env.step({agent: np.zeros(2) for agent in env.agents})
     assert set(vars(env)) == before
+    env.step({agent: np.zeros(2) for agent in env.agents})
+    env.render()
+    assert set(vars(env)) == before
+    env.reset(seed=1)  # a drawn scenario
+    assert set(vars(env)) == before
+
+
+def test_state_before_reset_is_an_error() -> None:
+    env = square_env()
+    with pytest.raises(RuntimeError, match="before reset"):
+        env.team_state()
+    with pytest.raises(RuntimeError, match="before reset"):
+        env.state()
+    assert env.state_space.shape == (4 * 2 + 4 * 2 + 2 + 4 * 3 + 1,)  # the space is known before any reset
 
 
 def test_team_state_after_reset_is_the_scenario() -> None:
@@ -77,6 +94,32 @@ def test_team_state_is_a_frozen_copy() -> None:
     assert new.goal_distance == pytest.approx(3.0 - 3 * 0.05 * 0.3)  # three steps of v_max dt to the right
 
 
+def test_team_state_copies_the_arrays_it_is_given() -> None:
+    """A state built by hand does not alias the caller's arrays, and its neighbour distances are the ring's sides."""
+    positions = np.array([[0.0, 0.0], [3.0, 0.0], [3.0, 4.0]])  # a 3-4-5 right triangle
+    zeros = np.zeros(3)
+    state = TeamState(
+        step=7,
+        positions=positions,
+        velocities=np.zeros((3, 2)),
+        goal=np.array([9.0, 9.0]),
+        obstacles=np.zeros((0, 3)),
+        neighbours=np.array([[2, 1], [0, 2], [1, 0]]),
+        contacts_agent=zeros,
+        contacts_obstacle=zeros,
+        angle_errors_deg=zeros,
+        bearing_errors=zeros,
+        neighbour_distance_errors=zeros,
+        centroid=positions.mean(axis=0),
+        goal_distance=1.0,
+    )
+    positions[0] = [100.0, 100.0]
+    np.testing.assert_array_equal(state.positions[0], [0.0, 0.0])
+    assert state.lidar_obstacles is None and state.lidar_agents is None and state.n_agents == 3
+    # agent 0: to agent 2 (hypotenuse 5), to agent 1 (3); agent 1: 3 and 4; agent 2: 4 and 5
+    np.testing.assert_allclose(state.neighbour_distances, [[5.0, 3.0], [3.0, 4.0], [4.0, 5.0]])
+
+
 def test_neighbour_distances_of_a_triangle() -> None:
     env = FormationEnv(FormationConfig.preset("ch4-individual"))
     triangle = Scenario(agent_positions=[[2.0, 2.0], [5.0, 2.0], [2.0, 6.0]], goal=[8.0, 5.0])
@@ -120,6 +163,14 @@ def test_state_has_room_for_every_curriculum_stage() -> None:
         env.state()
 
 
+def test_pettingzoo_state_test() -> None:
+    """PettingZoo's own state checks, through its AEC conversion (a whole truncated episode) and the parallel API."""
+    config = FormationConfig.preset("ch5-bearing", n_agents=4, stage=3, max_steps=40)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # state_test only warns about most problems: make them failures
+        state_test(parallel_to_aec(FormationEnv(config)), FormationEnv(config), num_cycles=50)
+
+
 def test_rendering_is_a_pure_function_of_the_state() -> None:
     env = square_env()
     env.reset(seed=0, options={"scenario": SQUARE})
@@ -127,7 +178,10 @@ def test_rendering_is_a_pure_function_of_the_state() -> None:
     state = env.team_state()
     frame = env.render()
     np.testing.assert_array_equal(render_frame(state, env.config), frame)
-    without_lidar = dataclasses.replace(state, lidar_obstacles=None, lidar_agents=None)
+    # rebuilt by hand from the same arrays, as from a recording: no lidar readings
+    fields = [field.name for field in dataclasses.fields(TeamState) if not field.name.startswith("lidar")]
+    without_lidar = TeamState(**{name: getattr(state, name) for name in fields})
+    assert without_lidar.lidar_obstacles is None and without_lidar.lidar_agents is None
     np.testing.assert_array_equal(render_frame(without_lidar, env.config), frame)
     with pytest.raises(ValueError, match="lidar"):
         render_frame(without_lidar, env.config, draw_lidar=True)

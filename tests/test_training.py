@@ -19,9 +19,10 @@ from stable_baselines3.common.save_util import load_from_zip_file
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_formation.cli import build_parser, main, train_settings
+from sb3_formation.experiment.runs import STATE_FILE, latest_checkpoint, load_trained
 from sb3_formation.experiment.settings import TrainSettings, reduce_to_overrides
 from sb3_formation.experiment.setups import load_setup, thesis_setup_for
-from sb3_formation.experiment.training import STATE_FILE, latest_checkpoint, load_trained, make_training_env
+from sb3_formation.experiment.training import make_training_env
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
 

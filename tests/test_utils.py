@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 import stat
 import time
 from collections.abc import Callable, Iterator
@@ -30,7 +31,10 @@ def mode(path: Path) -> int:
 
 def test_atomic_write_replaces_the_file_with_mode_0644(tmp_path: Path, strict_umask: None) -> None:
     path = tmp_path / "deep" / "summary.json"
-    atomic_write(path, "first")
+    atomic_write(path, "first, ünïcode")
+    assert path.read_bytes() == "first, ünïcode".encode()  # text is written as UTF-8
+    assert mode(path) == 0o644
+    os.chmod(path, 0o600)  # an existing file's own mode is not kept: the new file has FILE_MODE
     atomic_write(path, b"second \x00 bytes")
     assert path.read_bytes() == b"second \x00 bytes"
     assert mode(path) == FILE_MODE == 0o644
@@ -46,6 +50,20 @@ def test_atomic_path_keeps_the_old_file_when_writing_fails(tmp_path: Path) -> No
         raise RuntimeError("disk full")
     assert path.read_text() == "old"
     assert [file.name for file in tmp_path.iterdir()] == ["model.zip"]
+
+
+def test_atomic_path_renames_the_written_file_into_place(tmp_path: Path, strict_umask: None) -> None:
+    path = tmp_path / "stats.pkl"
+    path.write_text("old")
+    with atomic_path(path) as temporary:
+        assert temporary.exists() and mode(temporary) == 0o644  # created empty, umask or not
+        assert temporary.name.startswith(".stats.") and temporary.suffix == ".pkl"
+        assert path.read_text() == "old"  # nothing replaced before the block ends
+        with open(temporary, "w") as stream:  # a writer that opens the path itself
+            stream.write("new")
+    assert path.read_text() == "new" and mode(path) == 0o644
+    assert not temporary.exists()
+    assert [file.name for file in tmp_path.iterdir()] == ["stats.pkl"]
 
 
 def test_atomic_directory_swaps_whole_folders(tmp_path: Path, strict_umask: None) -> None:
@@ -64,6 +82,16 @@ def test_atomic_directory_swaps_whole_folders(tmp_path: Path, strict_umask: None
     assert [path.name for path in target.parent.iterdir()] == ["iteration_000002"]
 
 
+def test_atomic_directory_folder_is_readable_like_its_files(tmp_path: Path, strict_umask: None) -> None:
+    """Files get 0644 so others can read them; the folders holding them get 0755, whatever the umask (077 here)."""
+    with atomic_directory(tmp_path / "swapped") as folder:
+        (folder / "state.json").write_text("{}")
+        (folder / "inner").mkdir()
+        (folder / "inner" / "deep.txt").write_text("deep")
+    assert mode(tmp_path / "swapped") == mode(tmp_path / "swapped" / "inner") == 0o755
+    assert mode(tmp_path / "swapped" / "state.json") == mode(tmp_path / "swapped" / "inner" / "deep.txt") == 0o644
+
+
 class Counter:
     """A worker object: adds, fails on request, reports progress."""
 
@@ -75,6 +103,10 @@ class Counter:
         return self.total
 
     def fail(self, message: str) -> None:
+        raise ValueError(message)
+
+    def fail_after(self, seconds: float, message: str) -> None:
+        time.sleep(seconds)
         raise ValueError(message)
 
     def sleep(self, seconds: float) -> None:
@@ -106,6 +138,63 @@ def test_a_worker_keeps_its_object_and_answers_calls() -> None:
     assert not worker.process.is_alive() and worker.process.exitcode == 0
 
 
+def test_a_worker_of_a_local_class() -> None:
+    """A class defined in a function (pickled by value by cloudpickle) with a closure over a local list."""
+    unit = [" m"]
+
+    class Ruler:
+        def __init__(self, scale: float) -> None:
+            self.scale = scale
+
+        def measure(self, length: float) -> str:
+            return f"{length * self.scale}{unit[0]}"
+
+        def check(self, length: float) -> float:
+            if length < 0:
+                raise ValueError(f"negative length {length}")
+            return length
+
+    worker = WorkerProcess(Ruler, (2.0,), "ruler")
+    try:
+        assert worker.call("measure", 1.5) == "3.0 m"
+        with pytest.raises(ValueError, match="negative length -1"):
+            worker.call("check", -1)
+        assert worker.call("check", 4.0) == 4.0
+        with pytest.raises(AttributeError, match="no_such_method"):
+            worker.call("no_such_method")  # also an exception of the worker's, sent back
+        assert worker.call("measure", 0.25) == "0.5 m"
+    finally:
+        worker.close()
+    assert worker.process.exitcode == 0
+
+
+class TwoPartError(Exception):
+    """An exception that pickles but cannot be rebuilt from its args (its __init__ takes two)."""
+
+    def __init__(self, first: str, second: str) -> None:
+        super().__init__(f"{first} and {second}")
+
+
+class Awkward:
+    def raise_two_part(self) -> None:
+        raise TwoPartError("left", "right")
+
+    def unpicklable(self) -> object:
+        return (x for x in ())  # a generator: no pickler takes it
+
+
+def test_errors_and_results_that_do_not_pickle_reach_the_parent_as_messages() -> None:
+    worker = WorkerProcess(Awkward, (), "awkward worker")
+    try:
+        with pytest.raises(RuntimeError, match="TwoPartError: left and right"):
+            worker.call("raise_two_part")
+        with pytest.raises(TypeError, match="cannot pickle 'generator' object"):
+            worker.call("unpicklable")
+        assert worker.process.is_alive()  # the worker survived both
+    finally:
+        worker.close()
+
+
 def test_a_dead_worker_is_named_with_its_exit_code() -> None:
     worker = WorkerProcess(Counter, (0,), "counter worker")
     try:
@@ -113,6 +202,18 @@ def test_a_dead_worker_is_named_with_its_exit_code() -> None:
         worker.process.join()
         with pytest.raises(RuntimeError, match=r"counter worker \(pid \d+\) died, exit code -9"):
             worker.call("add", 1)
+    finally:
+        worker.close()
+
+
+def test_a_worker_killed_during_a_call_is_named_by_receive() -> None:
+    worker = WorkerProcess(Counter, (0,), "sleeper")
+    try:
+        worker.send("sleep", 60)
+        worker.process.kill()
+        worker.process.join()
+        with pytest.raises(RuntimeError, match=rf"sleeper \(pid {worker.process.pid}\) died, exit code -9"):
+            worker.receive()
     finally:
         worker.close()
 
@@ -137,6 +238,32 @@ def test_gather_drains_every_worker_or_fails_fast() -> None:
             gather(workers, fail_fast=True)
         assert time.monotonic() - started < 30
         assert not workers[1].process.is_alive()  # terminated
+        assert workers[1].process.exitcode == -signal.SIGTERM
+    finally:
+        for worker in workers:
+            worker.close(timeout=1)
+
+
+def test_gather_waits_for_the_slow_workers_and_raises_the_first_error() -> None:
+    """Without fail_fast every reply is read: the slow worker's result is consumed, the earliest error raised."""
+    workers = [WorkerProcess(Counter, (start,), f"worker {start}") for start in (0, 10, 20)]
+    try:
+        workers[0].send("sleep", 0.5)
+        workers[1].send("fail", "early")
+        workers[2].send("count_to", 2, progress=True)
+        progress: list[tuple[int, int]] = []
+        started = time.monotonic()
+        with pytest.raises(ValueError, match="early"):
+            gather(workers, on_progress=lambda index, item: progress.append((index, item)))
+        assert time.monotonic() - started >= 0.5  # it waited for the sleeper
+        assert progress == [(2, 0), (2, 1)]
+        assert [worker.call("add", 1) for worker in workers] == [1, 11, 21]  # fresh replies, all workers alive
+        workers[0].send("sleep", 0.5)
+        workers[1].send("fail_after", 0.25, "late")
+        workers[2].send("fail", "soon")
+        with pytest.raises(ValueError, match="soon"):  # the first to arrive, not the first in the list
+            gather(workers)
+        assert [worker.call("add", 0) for worker in workers] == [1, 11, 21]
     finally:
         for worker in workers:
             worker.close(timeout=1)

@@ -25,6 +25,7 @@ from sb3_formation.experiment.evaluation import (
     seed_policy,
     stored_summary,
 )
+from sb3_formation.experiment.runs import FINAL_MODEL
 from sb3_formation.experiment.settings import (
     CLI_CONVERSIONS,
     TrainSettings,
@@ -36,7 +37,7 @@ from sb3_formation.experiment.settings import (
 )
 from sb3_formation.experiment.setups import DEFAULT_SETUP, load_setup, setup_names, thesis_setup_for
 from sb3_formation.experiment.targets import default_protocol, evaluation_file, evaluation_folder, load_policy, target_kind
-from sb3_formation.experiment.training import FINAL_MODEL, resume, train
+from sb3_formation.experiment.training import resume, train
 from sb3_formation.utils.files import atomic_path, atomic_write
 from sb3_formation.viz.plots import (
     FIGURES,

@@ -18,7 +18,7 @@ from typing import Any
 import yaml
 
 from sb3_formation.env.config import FormationConfig
-from sb3_formation.experiment.setups import DEFAULT_SETUP, SetUp, load_setup
+from sb3_formation.experiment.setups import DEFAULT_SETUP, SetUp, load_setup, with_schedules
 
 #: Keys of a run's ``evaluation:`` settings (arguments of :func:`~sb3_formation.experiment.evaluation.evaluate`).
 EVALUATION_KEYS = frozenset({"episodes", "stage", "seed", "n_envs", "workers", "deterministic", "record"})
@@ -113,6 +113,11 @@ class TrainSettings:
         settings (``episodes``, ``stage``, ``seed``, ``n_envs``, ``workers``, ``deterministic``, ``record``) into ``eval/``
     :param recurrent: recurrent actor and critic
     :param cell: recurrent cell, ``"gru"`` or ``"lstm"``; only for recurrent policies
+    :param steps: budget in agent-steps (rounded up to whole iterations); the last curriculum stage gets what the
+        stages before it leave, and schedules run over the budget
+    :param normalize_reward: divide rewards by a running std of the discounted return (SB3's ``VecNormalize``)
+    :param eval_every: evaluate the deterministic policy on fixed-seed stage-3 episodes every this many iterations,
+        log ``eval/*`` and keep ``best_model.zip``
     :param env: :class:`FormationConfig` fields overriding the set-up's (e.g. ``n_agents``)
     :param ppo: ``PPO`` keyword arguments overriding the set-up's (e.g. ``learning_rate``)
     """
@@ -146,6 +151,19 @@ class TrainSettings:
         metadata=option("recurrent actor and critic (default: the set-up's)", action=argparse.BooleanOptionalAction),
     )
     cell: str | None = field(default=None, metadata=option("recurrent cell (default: the set-up's)", choices=("gru", "lstm")))
+    steps: int | None = field(
+        default=None, metadata=option("budget in agent-steps (default: the set-up's, else its iterations)", type=positive_int)
+    )
+    normalize_reward: bool | None = field(
+        default=None,
+        metadata=option(
+            "normalise rewards by a running return std (default: the set-up's)", action=argparse.BooleanOptionalAction
+        ),
+    )
+    eval_every: int | None = field(
+        default=None,
+        metadata=option("evaluate every K iterations, keep best_model.zip (default: the set-up's)", type=positive_int),
+    )
     env: dict[str, Any] = field(
         default_factory=dict,
         metadata=option(
@@ -164,7 +182,8 @@ class TrainSettings:
             self.iterations = tuple(int(value) for value in self.iterations)
             if len(self.iterations) != 3 or min(self.iterations) < 0 or sum(self.iterations) < 1:
                 raise ValueError(f"iterations must be three integers >= 0 (stages 1, 2, 3), got {self.iterations!r}")
-        for name in ("workers", "checkpoint_every") + (("n_envs",) if self.n_envs is not None else ()):
+        optional = tuple(name for name in ("n_envs", "steps", "eval_every") if getattr(self, name) is not None)
+        for name in ("workers", "checkpoint_every", *optional):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
@@ -181,7 +200,10 @@ class TrainSettings:
                 raise ValueError(f"evaluation must map some of {sorted(EVALUATION_KEYS)} to values, got {self.evaluation!r}")
         if self.recurrent not in (None, True, False):
             raise ValueError(f"recurrent must be true, false or null (the set-up's), got {self.recurrent!r}")
-        self.ppo_kwargs()  # validates recurrent, cell and the policy
+        with_schedules(self.ppo_kwargs())  # validates recurrent, cell, the policy and the schedules
+        if self.normalize_reward not in (None, True, False):
+            raise ValueError(f"normalize_reward must be true, false or null (the set-up's), got {self.normalize_reward!r}")
+        self.resolved_iterations()  # validates the budget against the curriculum
         if self.cell is not None and not self.resolved_recurrent():
             raise ValueError(f"cell {self.cell!r} applies to recurrent policies only; this run's policy is an MLP")
         if "max_sequence_length" in self.ppo and not self.resolved_recurrent():
@@ -207,6 +229,8 @@ class TrainSettings:
         values["n_envs"] = self.resolved_n_envs()
         values["success_threshold"] = self.resolved_success_threshold()
         values["recurrent"] = self.resolved_recurrent()
+        for name in ("steps", "normalize_reward", "eval_every"):
+            values[name] = self.resolved_training(name)
         values["cell"] = self.ppo_kwargs()["policy_kwargs"].get("cell") if values["recurrent"] else None
         values["env"] = _plain(dataclasses.asdict(self.config()))
         values["ppo"] = _plain({name: value for name, value in self.ppo_kwargs().items() if name != "policy"})
@@ -222,8 +246,31 @@ class TrainSettings:
         return self.setup().config(**self.env)
 
     def resolved_iterations(self) -> tuple[int, int, int]:
-        """Iterations per stage, the set-up's unless given."""
-        return self.iterations if self.iterations is not None else self.setup().iterations
+        """Iterations per stage: the set-up's unless given; with a steps budget the last stage that has iterations gets
+        what the stages before it leave of the budget (in whole iterations, rounded up)."""
+        iterations = self.iterations if self.iterations is not None else self.setup().iterations
+        budget = self.resolved_training("steps")
+        if budget is None:
+            return iterations
+        total = -(-budget // self.steps_per_iteration())
+        last = max((stage for stage in range(3) if iterations[stage] > 0), default=2)
+        before = sum(iterations[:last])
+        if total <= before:
+            raise ValueError(
+                f"a budget of {budget} agent-steps ({total} iterations of {self.steps_per_iteration()}) does not reach the "
+                f"last curriculum stage, which starts after {before} iterations"
+            )
+        return tuple(total - before if stage == last else (iterations[stage] if stage < last else 0) for stage in range(3))
+
+    def steps_per_iteration(self) -> int:
+        """Agent-steps of one PPO iteration: n_steps in every slot (teams x agents)."""
+        return self.ppo_kwargs()["n_steps"] * self.resolved_n_envs() * self.config().n_agents
+
+    def resolved_training(self, name: str) -> Any:
+        """A training feature (see :data:`~sb3_formation.experiment.setups.TRAINING_DEFAULTS`): this run's, else the
+        set-up's."""
+        value = getattr(self, name, None)
+        return value if value is not None else self.setup().training_option(name)
 
     def resolved_n_envs(self) -> int:
         """Number of teams, the set-up's unless given."""

@@ -10,12 +10,15 @@ as a set-up by giving its path instead of a name.
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 import yaml
+from stable_baselines3.common.type_aliases import Schedule
+from stable_baselines3.common.utils import LinearSchedule
 
 from sb3_formation.env.config import PRESETS, FormationConfig
 from sb3_formation.sb3.policies import FormationPolicy
@@ -42,6 +45,9 @@ class SetUp:
     :param curriculum: ``iterations`` (PPO iterations of stages 1, 2, 3) and ``success_threshold`` (or null)
     :param teams: parallel teams during training
     :param evaluation: ``episodes`` and ``stage`` of the evaluation protocol
+    :param training: optional training features (:data:`TRAINING_DEFAULTS`): ``normalize_reward`` (divide rewards by
+        a running std of the discounted return, SB3's ``VecNormalize``), ``steps`` (a budget of agent-steps; the
+        last curriculum stage gets what the others leave), ``eval_every`` and ``eval_episodes`` (periodic evaluation)
     :param source: the file it was read from
     """
 
@@ -53,6 +59,7 @@ class SetUp:
     curriculum: dict[str, Any]
     teams: int
     evaluation: dict[str, Any]
+    training: dict[str, Any] = field(default_factory=dict)
     source: Path | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
@@ -66,6 +73,12 @@ class SetUp:
         unknown = sorted(set(self.curriculum) - {"iterations", "success_threshold"})
         if unknown:
             raise ValueError(f"{where}: unknown curriculum keys {unknown}; valid: iterations, success_threshold")
+        unknown = sorted(set(self.training) - set(TRAINING_DEFAULTS))
+        if unknown:
+            raise ValueError(f"{where}: unknown training keys {unknown}; valid: {list(TRAINING_DEFAULTS)}")
+        for name in ("learning_rate", "clip_range", "clip_range_vf"):
+            if self.ppo.get(name) is not None:
+                schedule(self.ppo[name], f"{where}: ppo: {name}")
         if not (_is_count(self.teams) and self.teams >= 1):
             raise ValueError(f"{where}: teams must be an integer >= 1, got {self.teams!r}")
         unknown = sorted(set(self.evaluation) - {"episodes", "stage"})
@@ -83,6 +96,10 @@ class SetUp:
     def recurrent(self) -> bool:
         """Whether the set-up's policy is recurrent."""
         return bool(self.policy.get("recurrent", False))
+
+    def training_option(self, name: str) -> Any:
+        """A training feature's value: the set-up's, else its default (:data:`TRAINING_DEFAULTS`)."""
+        return self.training.get(name, TRAINING_DEFAULTS[name])
 
     @property
     def iterations(self) -> tuple[int, int, int]:
@@ -135,10 +152,40 @@ class SetUp:
         keys = [f.name for f in fields(cls) if f.name not in ("name", "source")]
         if not isinstance(values, dict):
             raise ValueError(f"set-up {name!r} must be a mapping of {keys}, not {type(values).__name__}")
-        unknown, missing = sorted(set(values) - set(keys)), [key for key in keys if key not in values]
+        required = [key for key in keys if key != "training"]
+        unknown, missing = sorted(set(values) - set(keys)), [key for key in required if key not in values]
         if unknown or missing:
             raise ValueError(f"set-up {name!r}: unknown keys {unknown}, missing keys {missing}; a set-up has {keys}")
         return cls(name=name, source=source, **values)
+
+
+#: Training features a set-up may switch on, and their defaults (the thesis's: none of them).
+TRAINING_DEFAULTS: dict[str, Any] = {"normalize_reward": False, "steps": None, "eval_every": None, "eval_episodes": 20}
+
+
+def schedule(value: Any, where: str = "schedule") -> float | Schedule:
+    """A learning rate or clip range written as data: a number (constant), or ``{start: a, end: b}`` for a linear change
+    from a at the start of training to b at its end (over the run's budget).
+
+    :param value: the data
+    :param where: what it is, for the error message
+    :raises ValueError: neither form, or not finite and > 0
+    """
+    if isinstance(value, dict) and set(value) == {"start", "end"}:
+        start, end = (value[key] for key in ("start", "end"))
+        if all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0 for v in (start, end)):
+            return LinearSchedule(float(start), float(end), 1.0)
+    elif isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0:
+        return float(value)
+    raise ValueError(f"{where} must be a number > 0 or {{start: a, end: b}} with numbers > 0, got {value!r}")
+
+
+def with_schedules(kwargs: dict[str, Any]) -> dict[str, Any]:
+    """PPO keyword arguments with their schedules written as data (:func:`schedule`) turned into SB3 schedules."""
+    scheduled = ("learning_rate", "clip_range", "clip_range_vf")
+    return {
+        name: schedule(value, name) if name in scheduled and value is not None else value for name, value in kwargs.items()
+    }
 
 
 def _is_count(value: Any) -> bool:

@@ -16,9 +16,9 @@ from pathlib import Path
 
 from sb3_formation.controllers import CONTROLLERS
 from sb3_formation.controllers.base import TeamPolicy
+from sb3_formation.experiment.runs import load_trained
 from sb3_formation.experiment.settings import load_settings
 from sb3_formation.experiment.setups import DEFAULT_SETUP, load_setup
-from sb3_formation.experiment.training import load_trained
 
 
 def _controller(name: str, preset: str | None, device: str) -> TeamPolicy:

@@ -1,10 +1,6 @@
-"""Training runs: run folders, atomic checkpoints, resuming, and loading trained models (the settings of a run are in
-:mod:`~sb3_formation.experiment.settings`, its recipe in :mod:`~sb3_formation.experiment.setups`).
-
-A run folder ``runs/<preset>_<n>a_s<seed>_<timestamp>/`` holds ``config.yaml`` (the resolved settings),
-``command.txt``, ``tensorboard/`` (events), ``checkpoints/iteration_<k>/`` (``model.zip``, ``normalizer.npz``,
-``state.json``) and, at the end, ``final_model.zip`` with ``final_normalizer.npz``.
-"""
+"""Training runs: atomic checkpoints, periodic evaluation, stopping on signals, resuming (the settings of a run are in
+:mod:`~sb3_formation.experiment.settings`, its recipe in :mod:`~sb3_formation.experiment.setups`, its folder's files
+in :mod:`~sb3_formation.experiment.runs`)."""
 
 from __future__ import annotations
 
@@ -15,7 +11,6 @@ import shutil
 import signal
 import sys
 import time
-import zipfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -26,53 +21,33 @@ import yaml
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.logger import CSVOutputFormat, Logger, TensorBoardOutputFormat
-from stable_baselines3.common.save_util import json_to_data
+from stable_baselines3.common.vec_env import VecEnv, unwrap_vec_wrapper
 
-from sb3_formation.env.config import FormationConfig
+from sb3_formation.experiment.evaluation import evaluate
+from sb3_formation.experiment.runs import (
+    BEST_MODEL,
+    BEST_NORMALIZER,
+    FINAL_MODEL,
+    FINAL_NORMALIZER,
+    MODEL_FILE,
+    NORMALIZER_FILE,
+    STATE_FILE,
+    algorithm_for,
+    latest_checkpoint,
+    normalize_rewards,
+    reward_normalizer_file,
+    save_model,
+    saved_algorithm,
+)
 from sb3_formation.experiment.settings import TrainSettings, load_settings
+from sb3_formation.experiment.setups import with_schedules
 from sb3_formation.sb3.callbacks import CurriculumCallback, FormationMetricsCallback, ProgressBarCallback
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
-from sb3_formation.sb3.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
 from sb3_formation.sb3.trained import TrainedPolicy
 from sb3_formation.sb3.vec_env import FormationVecEnv
-from sb3_formation.utils.files import atomic_directory, atomic_path, atomic_write
-
-MODEL_FILE, NORMALIZER_FILE, STATE_FILE = "model.zip", "normalizer.npz", "state.json"
-FINAL_MODEL, FINAL_NORMALIZER = "final_model.zip", "final_normalizer.npz"
-
-
-def saved_algorithm(path: Path) -> type[PPO]:
-    """The PPO class of a saved model, from the policy class recorded in its zip file."""
-    try:
-        with zipfile.ZipFile(path) as archive:
-            data = json_to_data(archive.read("data").decode())
-    except (zipfile.BadZipFile, KeyError, ValueError) as error:
-        raise ValueError(f"{path} is not a model saved by Stable-Baselines3: {error}") from error
-    if not isinstance(data.get("policy_class"), type):
-        raise ValueError(f"{path} is not a model saved by Stable-Baselines3: it names no policy class")
-    return algorithm_for(data["policy_class"])
-
-
-def algorithm_for(policy: type) -> type[PPO]:
-    """The PPO class that trains ``policy``: :class:`RecurrentFormationPPO` for a recurrent policy, else SB3's ``PPO``."""
-    return RecurrentFormationPPO if issubclass(policy, RecurrentFormationPolicy) else PPO
-
+from sb3_formation.utils.files import atomic_directory, atomic_write
 
 # Models and checkpoints ----------------------------------------------------------------------------------------
-
-
-def save_model(model: PPO, normalizer: ScaleNormalizeVecEnv, folder: Path, model_file: str, normalizer_file: str) -> None:
-    """Save a model and its normaliser statistics into ``folder``, each through a temporary file and a rename."""
-    with atomic_path(folder / model_file) as temporary:
-        model.save(temporary)
-    normalizer.save(folder / normalizer_file)
-
-
-def latest_checkpoint(run_dir: Path) -> Path | None:
-    """The most advanced complete checkpoint of a run, or ``None``."""
-    folders = sorted((run_dir / "checkpoints").glob("iteration_*"), key=lambda path: int(path.name.split("_")[1]))
-    complete = [folder for folder in folders if (folder / STATE_FILE).exists()]
-    return complete[-1] if complete else None
 
 
 class CheckpointCallback(BaseCallback):
@@ -120,6 +95,70 @@ class CheckpointCallback(BaseCallback):
         return target
 
 
+#: Seed of the periodic evaluation's episodes: other scenarios than the final evaluation's (seed 0), so that picking
+#: the best model does not pick it on the episodes that then measure it.
+PERIODIC_EVALUATION_SEED = 1_000_000
+#: File beside ``best_model.zip`` holding the evaluation that made it the best.
+BEST_EVALUATION = "best_evaluation.json"
+
+
+class PeriodicEvaluation(BaseCallback):
+    """Evaluate the deterministic policy every ``every`` iterations, as SB3's ``EvalCallback`` does, and keep the best.
+
+    After the update of every ``every``-th iteration it plays ``episodes`` stage-3 episodes (from
+    ``reset(seed=PERIODIC_EVALUATION_SEED + k)``) with the normaliser's statistics frozen, logs ``eval/success_rate`` and
+    the mean over the episodes of every episode metric (``eval/angle_error_deg``, ``eval/collisions_agent``, ...), and
+    saves ``best_model.zip`` with ``best_normalizer.npz`` whenever the success rate is the best so far (a lower mean
+    angle error breaks ties). The best so far is kept in ``best_evaluation.json``, so a resumed run continues it.
+
+    :param run_dir: the run folder
+    :param settings: the run's settings (task configuration)
+    :param curriculum: the run's curriculum (its iteration count)
+    :param every: iterations between evaluations
+    :param episodes: episodes per evaluation
+    """
+
+    def __init__(
+        self, run_dir: Path, settings: TrainSettings, curriculum: CurriculumCallback, every: int, episodes: int
+    ) -> None:
+        super().__init__()
+        self.run_dir, self.config, self.curriculum = run_dir, settings.config(), curriculum
+        self.every, self.episodes = every, episodes
+        best = run_dir / BEST_EVALUATION
+        self.best: dict[str, Any] | None = json.loads(best.read_text()) if best.is_file() else None
+        self.evaluated = curriculum.iteration
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_start(self) -> None:
+        # a rollout starts after the previous iteration's update (as for checkpoints)
+        if self.curriculum.iteration % self.every == 0:
+            self.evaluate()
+
+    def evaluate(self) -> None:
+        """Evaluate now (once per iteration), log ``eval/*`` and keep the best model."""
+        iteration = self.curriculum.iteration
+        if iteration == self.evaluated:
+            return
+        self.evaluated = iteration
+        env = self.model.get_env()
+        policy = TrainedPolicy(self.model.policy, self.config, unwrap_vec_wrapper(env, ScaleNormalizeVecEnv).state_dict())
+        summary = evaluate(policy, self.episodes, stage=3, seed=PERIODIC_EVALUATION_SEED, n_envs=min(8, self.episodes)).summary
+        self.logger.record("eval/success_rate", summary["success_rate"])
+        for name, statistics in summary["all_episodes"].items():
+            self.logger.record(f"eval/{name}", statistics["mean"])
+        score = {"iteration": iteration, "success_rate": summary["success_rate"]}
+        score["angle_error_deg"] = summary["all_episodes"]["angle_error_deg"]["mean"]
+        if self.best is None or (score["success_rate"], -score["angle_error_deg"]) > (
+            self.best["success_rate"],
+            -self.best["angle_error_deg"],
+        ):
+            self.best = score
+            save_model(self.model, env, self.run_dir, BEST_MODEL, BEST_NORMALIZER)
+            atomic_write(self.run_dir / BEST_EVALUATION, json.dumps(score, indent=2))
+
+
 @contextmanager
 def stop_on_signals(checkpoint: CheckpointCallback) -> Iterator[None]:
     """While active, SIGINT (Ctrl-C) and SIGTERM ask training to stop after the current step (then it checkpoints)."""
@@ -138,8 +177,12 @@ def stop_on_signals(checkpoint: CheckpointCallback) -> Iterator[None]:
 # Runs ---------------------------------------------------------------------------------------------------------------
 
 
-def make_training_env(settings: TrainSettings, stage: int, normalizer_path: Path | None = None) -> ScaleNormalizeVecEnv:
-    """The normalised VecEnv of a run, its teams placed for ``stage`` (with saved normaliser statistics to resume)."""
+def make_training_env(settings: TrainSettings, stage: int, normalizer_path: Path | None = None) -> VecEnv:
+    """The normalised VecEnv of a run, its teams placed for ``stage`` (with saved normaliser statistics to resume).
+
+    Observations are scaled by :class:`ScaleNormalizeVecEnv`; with reward normalisation SB3's ``VecNormalize`` divides
+    the rewards by a running std of the discounted return on top of it.
+    """
     config = settings.config().replace(stage=stage)
     venv = FormationVecEnv(
         config,
@@ -147,10 +190,15 @@ def make_training_env(settings: TrainSettings, stage: int, normalizer_path: Path
         team_observations="team_size" in settings.ppo_kwargs()["policy_kwargs"],
         n_workers=settings.workers,
     )
-    if normalizer_path is None:
-        return ScaleNormalizeVecEnv(venv, venv.agent_observation_dim, venv.binary_observation_mask)
     dim, mask = venv.agent_observation_dim, venv.binary_observation_mask
-    return ScaleNormalizeVecEnv.load(normalizer_path, venv, training=True, agent_obs_dim=dim, binary_mask=mask)
+    if normalizer_path is None:
+        env: VecEnv = ScaleNormalizeVecEnv(venv, dim, mask)
+    else:
+        env = ScaleNormalizeVecEnv.load(normalizer_path, venv, training=True, agent_obs_dim=dim, binary_mask=mask)
+    if not settings.resolved_training("normalize_reward"):
+        return env
+    reward_path = None if normalizer_path is None else normalizer_path.with_name(reward_normalizer_file(normalizer_path.name))
+    return normalize_rewards(env, settings.ppo_kwargs()["gamma"], reward_path)
 
 
 def new_run_dir(settings: TrainSettings) -> Path:
@@ -185,7 +233,9 @@ def train(settings: TrainSettings, command: str | None = None, run_dir: str | os
     curriculum = CurriculumCallback(settings.resolved_iterations(), settings.resolved_success_threshold())
     env = make_training_env(settings, curriculum.stage)
     kwargs = settings.ppo_kwargs()
-    model = algorithm_for(kwargs["policy"])(env=env, seed=settings.seed, device=settings.device, verbose=0, **kwargs)
+    model = algorithm_for(kwargs["policy"])(
+        env=env, seed=settings.seed, device=settings.device, verbose=0, **with_schedules(kwargs)
+    )
     model.formation_config = dataclasses.asdict(settings.config())
     _learn(model, settings, run_dir, curriculum)
     return run_dir
@@ -222,6 +272,11 @@ def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: Curri
     model.set_logger(Logger(str(folder), [TensorBoardOutputFormat(str(folder)), CSVOutputFormat(str(folder / csv_name))]))
     checkpoint = CheckpointCallback(run_dir, curriculum, settings.checkpoint_every)
     callbacks: list[BaseCallback] = [curriculum, FormationMetricsCallback(settings.to_dict()), checkpoint]
+    every = settings.resolved_training("eval_every")
+    periodic = None
+    if every is not None:
+        periodic = PeriodicEvaluation(run_dir, settings, curriculum, every, settings.resolved_training("eval_episodes"))
+        callbacks.append(periodic)
     remaining = curriculum.total_iterations - curriculum.iteration
     if settings.progress_bar:
         callbacks.append(ProgressBarCallback(curriculum.total_iterations, curriculum, curriculum.iteration))
@@ -235,48 +290,12 @@ def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: Curri
                 progress_bar=False,
             )
         checkpoint.save()
+        if periodic is not None and not checkpoint.stop_requested:  # the last iteration's policy is a candidate too
+            periodic.init_callback(model)
+            periodic.evaluate()
+            model.logger.dump(model.num_timesteps)
     if checkpoint.stop_requested:
         print(f"stopped by a signal; checkpoint {latest_checkpoint(run_dir)}; continue with --resume {run_dir}")
     else:
         save_model(model, model.get_env(), run_dir, FINAL_MODEL, FINAL_NORMALIZER)
     model.get_env().close()
-
-
-# Loading trained models -----------------------------------------------------------------------------------------------
-
-
-def load_trained(path: str | os.PathLike[str], device: str = "auto") -> TrainedPolicy:
-    """Load a run folder (its final model, else its latest checkpoint) or a model ``.zip`` with its normaliser beside.
-
-    :param path: a run folder, or a model file whose normaliser is ``normalizer.npz`` / ``final_normalizer.npz``
-        in the same folder
-    :param device: torch device
-    """
-    path = Path(path)
-    if path.is_dir():
-        if (path / FINAL_MODEL).exists():
-            model_path, normalizer_path = path / FINAL_MODEL, path / FINAL_NORMALIZER
-        else:
-            checkpoint = latest_checkpoint(path)
-            if checkpoint is None:
-                raise FileNotFoundError(f"{path} holds no {FINAL_MODEL} and no checkpoint")
-            model_path, normalizer_path = checkpoint / MODEL_FILE, checkpoint / NORMALIZER_FILE
-    elif path.is_file():
-        model_path = path
-        candidates = [path.with_name(FINAL_NORMALIZER), path.with_name(NORMALIZER_FILE)]
-        normalizer_path = next((candidate for candidate in candidates if candidate.exists()), candidates[0])
-    else:
-        raise FileNotFoundError(f"no model at {path}: give a run folder or a model .zip")
-    if not normalizer_path.exists():
-        raise FileNotFoundError(f"the normaliser statistics of {model_path} are missing: expected {normalizer_path}")
-    model = saved_algorithm(model_path).load(model_path, device=device)
-    stored = getattr(model, "formation_config", None)
-    if stored is None:
-        raise ValueError(f"{model_path} was not saved by sb3-formation: it carries no formation_config")
-    config = FormationConfig(**{**stored, "stage_disabled_terms": tuple(tuple(t) for t in stored["stage_disabled_terms"])})
-    try:
-        with np.load(normalizer_path, allow_pickle=False) as data:
-            normalizer_state = {key: data[key] for key in data.files}
-    except (zipfile.BadZipFile, ValueError, OSError) as error:
-        raise ValueError(f"{normalizer_path} is not a normaliser file: {error}") from error
-    return TrainedPolicy(model, config, normalizer_state, source=model_path)

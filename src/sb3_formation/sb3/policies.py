@@ -4,7 +4,8 @@
 
 - Actor: 512 -> 256 -> 2, tanh on every layer including the output, whose mean is multiplied by
   ``action_scale`` (0.01 for the chapter-4 individual reward scheme, thesis 4.1.2).
-- Gaussian exploration with a fixed, not learned, standard deviation ``sigma`` (0.7, thesis 4.3).
+- Gaussian exploration with a fixed, not learned, standard deviation ``sigma`` (0.7, thesis 4.3), or, with
+  ``learn_sigma``, a learned state-independent log-std starting at log(sigma) (SB3's own default).
 - Critic: 512 -> 512 -> 512 -> 1 (tanh, linear output); or, with ``team_size=n``, the team critic
   of thesis fig. 4.3: two 512-wide layers applied to each of the team's n agents with shared
   weights, the mean over the agents, then 512 -> 512 -> 1 (centralised training, decentralised
@@ -116,8 +117,9 @@ class FormationPolicy(ActorCriticPolicy):
     The action distribution is a diagonal Gaussian with mean ``action_scale * tanh(action_net(latent_pi))`` and
     standard deviation ``sigma``. Sigma is fixed, not learned: ``log_std`` is set to ``log(sigma)``, has
     ``requires_grad=False`` and is left out of the optimizer, so it keeps its value through any amount of
-    training (PPO's entropy bonus is then a constant). Every other argument is SB3's
-    :class:`~stable_baselines3.common.policies.ActorCriticPolicy`'s; ``net_arch`` defaults to
+    training (PPO's entropy bonus is then a constant). With ``learn_sigma`` the log-std starts at ``log(sigma)`` and
+    is trained like the other parameters (one value per action dimension, independent of the state, as in SB3).
+    Every other argument is SB3's :class:`~stable_baselines3.common.policies.ActorCriticPolicy`'s; ``net_arch`` defaults to
     :data:`DEFAULT_NET_ARCH` (or :data:`DEFAULT_TEAM_NET_ARCH` with ``team_size``) and ``activation_fn`` to tanh.
 
     :param observation_space: observation space (a flat Box for the team critic)
@@ -127,7 +129,8 @@ class FormationPolicy(ActorCriticPolicy):
         ``team_size``, the first ``TEAM_EMBED_LAYERS`` (= 2) widths of ``vf`` are applied per agent and the
         rest after the mean over agents.
     :param activation_fn: activation of the hidden layers (the actor's output always goes through tanh)
-    :param sigma: fixed standard deviation of the Gaussian, > 0 (thesis 4.3: 0.7)
+    :param sigma: standard deviation of the Gaussian, > 0 (thesis 4.3: 0.7, fixed); the initial one with ``learn_sigma``
+    :param learn_sigma: train the log-std (state-independent) instead of keeping sigma fixed
     :param action_scale: factor on the tanh of the actor's output, > 0 (thesis 4.1.2: 0.01 for the chapter-4
         individual reward scheme, 1 otherwise)
     :param team_size: ``None`` for the per-agent critic; an int n for the team critic of thesis fig. 4.3, whose
@@ -146,6 +149,7 @@ class FormationPolicy(ActorCriticPolicy):
         net_arch: NetArch | None = None,
         activation_fn: type[nn.Module] = nn.Tanh,
         sigma: float = DEFAULT_SIGMA,
+        learn_sigma: bool = False,
         action_scale: float = 1.0,
         team_size: int | None = None,
         use_sde: bool = False,
@@ -169,6 +173,7 @@ class FormationPolicy(ActorCriticPolicy):
         )
         # Read by _build, which ActorCriticPolicy.__init__ calls.
         self.sigma = float(sigma)
+        self.learn_sigma = bool(learn_sigma)
         self.action_scale = float(action_scale)
         self.team_size = team_size
         super().__init__(
@@ -185,7 +190,7 @@ class FormationPolicy(ActorCriticPolicy):
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
         data.pop("log_std_init", None)  # derived from sigma
-        data.update(sigma=self.sigma, action_scale=self.action_scale, team_size=self.team_size)
+        data.update(sigma=self.sigma, learn_sigma=self.learn_sigma, action_scale=self.action_scale, team_size=self.team_size)
         return data
 
     def _build_mlp_extractor(self) -> None:
@@ -202,13 +207,14 @@ class FormationPolicy(ActorCriticPolicy):
         )
 
     def _build(self, lr_schedule: Schedule) -> None:
-        """SB3's networks and orthogonal init; then freeze ``log_std`` at log(sigma) and keep it out of the optimizer."""
+        """SB3's networks and orthogonal init; then, unless ``learn_sigma``, freeze ``log_std`` at log(sigma) and keep it
+        out of the optimizer."""
         super()._build(lr_schedule)  # log_std = log(sigma) through log_std_init
-        self.log_std.requires_grad_(False)
+        self.log_std.requires_grad_(self.learn_sigma)
         trainable = [param for param in self.parameters() if param.requires_grad]
         self.optimizer = self.optimizer_class(trainable, lr=lr_schedule(1), **self.optimizer_kwargs)  # type: ignore[call-arg]
 
     def _get_action_dist_from_latent(self, latent_pi: th.Tensor) -> Distribution:
-        """Gaussian with mean ``action_scale * tanh(action_net(latent_pi))`` and the fixed ``log_std``."""
+        """Gaussian with mean ``action_scale * tanh(action_net(latent_pi))`` and the (fixed or learned) ``log_std``."""
         mean_actions = self.action_scale * th.tanh(self.action_net(latent_pi))
         return self.action_dist.proba_distribution(mean_actions, self.log_std)

@@ -14,6 +14,8 @@ from pathlib import Path
 
 #: Mode of every file the package writes (rw-r--r--), whatever the process's umask.
 FILE_MODE = 0o644
+#: Mode of every folder written whole by :func:`atomic_directory` (rwxr-xr-x), like its files readable by all.
+DIRECTORY_MODE = 0o755
 
 
 def temporary_beside(path: Path) -> Path:
@@ -73,9 +75,9 @@ def atomic_directory(target: Path) -> Iterator[Path]:
     temporary = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
     try:
         yield temporary
-        for file in temporary.iterdir():
-            if file.is_file():
-                os.chmod(file, FILE_MODE)
+        for path in temporary.rglob("*"):
+            os.chmod(path, FILE_MODE if path.is_file() else DIRECTORY_MODE)
+        os.chmod(temporary, DIRECTORY_MODE)  # mkdtemp makes it 0700
         fsync_directory(temporary)
         aside = None
         if target.exists():

@@ -45,13 +45,25 @@ def _serve(remote: Connection, parent_remote: Connection, payload: bytes) -> Non
                 else:
                     result = getattr(target, method)(*arguments)
             except Exception as error:  # sent to the parent, which raises it
-                remote.send((_ERROR, error))
+                _send_error(remote, error)
             else:
-                remote.send((_OK, result))
+                try:
+                    remote.send((_OK, result))
+                except Exception as error:  # an unpicklable result
+                    _send_error(remote, error)
     except (EOFError, KeyboardInterrupt):
         pass
     finally:
         remote.close()
+
+
+def _send_error(remote: Connection, error: Exception) -> None:  # pragma: no cover - subprocess
+    """Send ``error`` to the parent; one that pickling would lose is sent as a ``RuntimeError`` naming it."""
+    try:
+        cloudpickle.loads(cloudpickle.dumps(error))
+        remote.send((_ERROR, error))
+    except Exception:
+        remote.send((_ERROR, RuntimeError(f"{type(error).__name__}: {error}")))
 
 
 class WorkerProcess:

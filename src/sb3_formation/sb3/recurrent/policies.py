@@ -93,7 +93,8 @@ class RecurrentFormationPolicy(BasePolicy):
     """Recurrent actor-critic of thesis chapter 5 (figs 5.1 and 5.2) for :class:`RecurrentFormationPPO`.
 
     The actor and the critic each have their own recurrent state. The action distribution is a diagonal Gaussian with
-    mean ``action_scale * tanh(action_net(actor output))`` and a fixed standard deviation ``sigma`` (not trained).
+    mean ``action_scale * tanh(action_net(actor output))`` and a fixed standard deviation ``sigma`` (not trained; with
+    ``learn_sigma`` a learned state-independent log-std starting at log(sigma)).
     :meth:`predict` has SB3's signature with the actor's state: ``predict(observation, state, episode_start,
     deterministic) -> (actions, state)``; a slot's state is reset where ``episode_start`` is true.
 
@@ -104,7 +105,8 @@ class RecurrentFormationPolicy(BasePolicy):
         recurrent layer; ``pi_recurrent``/``vf_recurrent``: its width; ``pi_after``/``vf_after``: dense widths after)
     :param cell: ``"gru"`` (default) or ``"lstm"``
     :param activation_fn: activation of the dense layers
-    :param sigma: fixed standard deviation of the Gaussian, > 0
+    :param sigma: standard deviation of the Gaussian, > 0 (the initial one with ``learn_sigma``)
+    :param learn_sigma: train the log-std instead of keeping sigma fixed
     :param action_scale: factor on the tanh of the actor's output, > 0
     :param ortho_init: orthogonal initialisation (SB3's gains: sqrt(2) hidden, 0.01 action, 1 value)
     :param use_sde: must be False
@@ -121,6 +123,7 @@ class RecurrentFormationPolicy(BasePolicy):
         cell: str = "gru",
         activation_fn: type[nn.Module] = nn.Tanh,
         sigma: float = DEFAULT_SIGMA,
+        learn_sigma: bool = False,
         action_scale: float = 1.0,
         ortho_init: bool = True,
         use_sde: bool = False,
@@ -140,13 +143,13 @@ class RecurrentFormationPolicy(BasePolicy):
         self.features_extractor = self.make_features_extractor()  # flattens (and casts to float)
         self.net_arch = {**DEFAULT_RECURRENT_NET_ARCH, **(net_arch or {})}
         self.cell, self.activation_fn, self.ortho_init = cell, activation_fn, ortho_init
-        self.sigma, self.action_scale = float(sigma), float(action_scale)
+        self.sigma, self.learn_sigma, self.action_scale = float(sigma), bool(learn_sigma), float(action_scale)
         arch, obs_dim, action_dim = self.net_arch, observation_space.shape[0], action_space.shape[0]
         self.actor = RecurrentHead(obs_dim, arch["pi"], arch["pi_recurrent"], arch["pi_after"], cell, activation_fn)
         self.critic = RecurrentHead(obs_dim, arch["vf"], arch["vf_recurrent"], arch["vf_after"], cell, activation_fn)
         self.action_net = nn.Linear(self.actor.output_dim, action_dim)
         self.value_net = nn.Linear(self.critic.output_dim, 1)
-        self.log_std = nn.Parameter(th.full((action_dim,), math.log(self.sigma)), requires_grad=False)
+        self.log_std = nn.Parameter(th.full((action_dim,), math.log(self.sigma)), requires_grad=self.learn_sigma)
         self.action_dist = DiagGaussianDistribution(action_dim)
         if ortho_init:
             for module, gain in ((self.actor, math.sqrt(2)), (self.critic, math.sqrt(2)), (self.action_net, 0.01)):
@@ -170,6 +173,7 @@ class RecurrentFormationPolicy(BasePolicy):
             cell=self.cell,
             activation_fn=self.activation_fn,
             sigma=self.sigma,
+            learn_sigma=self.learn_sigma,
             action_scale=self.action_scale,
             ortho_init=self.ortho_init,
             optimizer_class=self.optimizer_class,

@@ -1,0 +1,135 @@
+"""Run folders and their artefacts: file names, saving a model with its normalisers, finding checkpoints, and loading
+a trained model as a :class:`~sb3_formation.sb3.trained.TrainedPolicy`.
+
+A run folder ``runs/<preset>_<n>a_s<seed>_<timestamp>/`` holds ``config.yaml`` (the resolved settings),
+``command.txt``, ``tensorboard/`` (events), ``checkpoints/iteration_<k>/`` (``model.zip``, ``normalizer.npz``, with
+reward normalisation ``reward_normalizer.npz``, and ``state.json``), at the end ``final_model.zip`` with
+``final_normalizer.npz`` (and ``final_reward_normalizer.npz``), and with periodic evaluation ``best_model.zip`` with
+``best_normalizer.npz``.
+"""
+
+from __future__ import annotations
+
+import os
+import zipfile
+from pathlib import Path
+
+import numpy as np
+from stable_baselines3 import PPO
+from stable_baselines3.common.running_mean_std import RunningMeanStd
+from stable_baselines3.common.save_util import json_to_data
+from stable_baselines3.common.vec_env import VecEnv, VecNormalize, unwrap_vec_wrapper
+
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
+from sb3_formation.sb3.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
+from sb3_formation.sb3.trained import TrainedPolicy
+from sb3_formation.utils.files import atomic_path
+
+MODEL_FILE, NORMALIZER_FILE, STATE_FILE = "model.zip", "normalizer.npz", "state.json"
+FINAL_MODEL, FINAL_NORMALIZER = "final_model.zip", "final_normalizer.npz"
+
+
+BEST_MODEL, BEST_NORMALIZER = "best_model.zip", "best_normalizer.npz"
+#: Keys of a reward normaliser's file: the running statistics of the discounted return (SB3's ``VecNormalize.ret_rms``).
+REWARD_STATE_KEYS = ("mean", "var", "count")
+
+
+def reward_normalizer_file(normalizer_file: str) -> str:
+    """The reward normaliser's file beside an observation normaliser's (``normalizer.npz`` -> ``reward_normalizer.npz``)."""
+    return f"{normalizer_file.removesuffix('normalizer.npz')}reward_normalizer.npz"
+
+
+def saved_algorithm(path: Path) -> type[PPO]:
+    """The PPO class of a saved model, from the policy class recorded in its zip file."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            data = json_to_data(archive.read("data").decode())
+    except (zipfile.BadZipFile, KeyError, ValueError) as error:
+        raise ValueError(f"{path} is not a model saved by Stable-Baselines3: {error}") from error
+    if not isinstance(data.get("policy_class"), type):
+        raise ValueError(f"{path} is not a model saved by Stable-Baselines3: it names no policy class")
+    return algorithm_for(data["policy_class"])
+
+
+def algorithm_for(policy: type) -> type[PPO]:
+    """The PPO class that trains ``policy``: :class:`RecurrentFormationPPO` for a recurrent policy, else SB3's ``PPO``."""
+    return RecurrentFormationPPO if issubclass(policy, RecurrentFormationPolicy) else PPO
+
+
+def save_model(model: PPO, env: VecEnv, folder: Path, model_file: str, normalizer_file: str) -> None:
+    """Save a model and the normalisers of its env into ``folder``, each through a temporary file and a rename.
+
+    :param env: the training env: a :class:`ScaleNormalizeVecEnv`, possibly under SB3's ``VecNormalize`` (reward
+        normalisation), whose return statistics then go to :func:`reward_normalizer_file`
+    """
+    with atomic_path(folder / model_file) as temporary:
+        model.save(temporary)
+    unwrap_vec_wrapper(env, ScaleNormalizeVecEnv).save(folder / normalizer_file)
+    rewards = unwrap_vec_wrapper(env, VecNormalize)
+    if rewards is not None:
+        statistics = {key: np.asarray(getattr(rewards.ret_rms, key), dtype=np.float64) for key in REWARD_STATE_KEYS}
+        with atomic_path(folder / reward_normalizer_file(normalizer_file)) as temporary, open(temporary, "wb") as stream:
+            np.savez(stream, **statistics)
+
+
+def normalize_rewards(env: VecEnv, gamma: float, path: Path | None = None) -> VecNormalize:
+    """SB3's ``VecNormalize`` over ``env``, for rewards only (observations are already scaled), with the return
+    statistics saved at ``path`` if given.
+
+    :param gamma: discount of the returns whose running std divides the rewards (PPO's gamma)
+    """
+    wrapper = VecNormalize(env, norm_obs=False, norm_reward=True, gamma=gamma)
+    if path is not None:
+        if not path.is_file():
+            raise FileNotFoundError(f"the reward normaliser statistics are missing: expected {path}")
+        with np.load(path, allow_pickle=False) as data:
+            statistics = RunningMeanStd(shape=())
+            statistics.mean, statistics.var, statistics.count = (np.asarray(data[key]) for key in REWARD_STATE_KEYS)
+            statistics.count = float(statistics.count)
+        wrapper.ret_rms = statistics
+    return wrapper
+
+
+def latest_checkpoint(run_dir: Path) -> Path | None:
+    """The most advanced complete checkpoint of a run, or ``None``."""
+    folders = sorted((run_dir / "checkpoints").glob("iteration_*"), key=lambda path: int(path.name.split("_")[1]))
+    complete = [folder for folder in folders if (folder / STATE_FILE).exists()]
+    return complete[-1] if complete else None
+
+
+def load_trained(path: str | os.PathLike[str], device: str = "auto") -> TrainedPolicy:
+    """Load a run folder (its final model, else its latest checkpoint) or a model ``.zip`` with its normaliser beside.
+
+    :param path: a run folder, or a model file whose normaliser is ``normalizer.npz`` / ``final_normalizer.npz``
+        in the same folder
+    :param device: torch device
+    """
+    path = Path(path)
+    if path.is_dir():
+        if (path / FINAL_MODEL).exists():
+            model_path, normalizer_path = path / FINAL_MODEL, path / FINAL_NORMALIZER
+        else:
+            checkpoint = latest_checkpoint(path)
+            if checkpoint is None:
+                raise FileNotFoundError(f"{path} holds no {FINAL_MODEL} and no checkpoint")
+            model_path, normalizer_path = checkpoint / MODEL_FILE, checkpoint / NORMALIZER_FILE
+    elif path.is_file():
+        model_path = path
+        candidates = [path.with_name(FINAL_NORMALIZER), path.with_name(NORMALIZER_FILE)]
+        normalizer_path = next((candidate for candidate in candidates if candidate.exists()), candidates[0])
+    else:
+        raise FileNotFoundError(f"no model at {path}: give a run folder or a model .zip")
+    if not normalizer_path.exists():
+        raise FileNotFoundError(f"the normaliser statistics of {model_path} are missing: expected {normalizer_path}")
+    model = saved_algorithm(model_path).load(model_path, device=device)
+    stored = getattr(model, "formation_config", None)
+    if stored is None:
+        raise ValueError(f"{model_path} was not saved by sb3-formation: it carries no formation_config")
+    config = FormationConfig(**{**stored, "stage_disabled_terms": tuple(tuple(t) for t in stored["stage_disabled_terms"])})
+    try:
+        with np.load(normalizer_path, allow_pickle=False) as data:
+            normalizer_state = {key: data[key] for key in data.files}
+    except (zipfile.BadZipFile, ValueError, OSError) as error:
+        raise ValueError(f"{normalizer_path} is not a normaliser file: {error}") from error
+    return TrainedPolicy(model, config, normalizer_state, source=model_path)

@@ -1,0 +1,164 @@
+"""Training features any set-up can use: schedules as data, a learned log-std, reward normalisation, a steps budget,
+periodic evaluation with the best model kept; and the fast set-ups, each trained for an iteration."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from stable_baselines3 import PPO
+from stable_baselines3.common.vec_env import VecNormalize, unwrap_vec_wrapper
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from sb3_formation import FormationPolicy, make_formation_vec_env
+from sb3_formation.cli import main
+from sb3_formation.experiment.runs import (
+    BEST_MODEL,
+    FINAL_MODEL,
+    FINAL_NORMALIZER,
+    load_trained,
+    reward_normalizer_file,
+    save_model,
+)
+from sb3_formation.experiment.settings import TrainSettings
+from sb3_formation.experiment.setups import SETUPS_FOLDER, load_setup, schedule, setup_names
+from sb3_formation.experiment.training import make_training_env
+from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
+
+SMALL = {"net_arch": {"pi": [16], "vf": [16]}}
+#: A tiny run of a set-up: 2 teams, 30-step episodes, small networks, few steps per iteration.
+TINY = ["--n-envs", "2", "--env", "max_steps=30", "--no-progress"]
+
+
+def tiny_yaml(tmp_path: Path, **changes: object) -> Path:
+    """The fast-ch5-bearing set-up shrunk to seconds, with ``changes`` applied, as a set-up file."""
+    values = yaml.safe_load((SETUPS_FOLDER / "fast-ch5-bearing.yaml").read_text())
+    values["policy"]["net_arch"] = SMALL["net_arch"]
+    values["ppo"] |= {"n_steps": 16, "batch_size": 64, "n_epochs": 2}
+    values["env"] |= {"max_steps": 30}
+    values["teams"] = 2
+    values["training"] |= {"steps": 3 * 16 * 12, "eval_every": 1, "eval_episodes": 2}
+    values.update(changes)
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump(values))
+    return path
+
+
+def test_schedules_are_data() -> None:
+    assert schedule(3e-4) == 3e-4
+    linear = schedule({"start": 3e-4, "end": 1.5e-5})
+    # SB3 schedules take the progress remaining: 1 at the start, 0 at the end of the budget
+    assert linear(1.0) == pytest.approx(3e-4) and linear(0.0) == pytest.approx(1.5e-5)
+    assert linear(0.5) == pytest.approx((3e-4 + 1.5e-5) / 2) and linear(0.25) == pytest.approx(1.5e-5 + 0.25 * 2.85e-4)
+    for bad in (0, -1e-3, "fast", {"start": 1e-3}, {"start": 1e-3, "end": 0}, True, float("nan")):
+        with pytest.raises(ValueError, match="must be a number > 0 or"):
+            schedule(bad)
+
+
+def test_a_learned_log_std_trains_and_is_saved(tmp_path: Path) -> None:
+    env = make_formation_vec_env("ch5-bearing", n_envs=1, seed=0, max_steps=30)
+    model = PPO(FormationPolicy, env, n_steps=16, batch_size=48, n_epochs=3, learning_rate=1e-2, seed=0, device="cpu",
+                policy_kwargs={**SMALL, "sigma": 0.5, "learn_sigma": True})  # fmt: skip
+    assert model.policy.log_std.requires_grad
+    np.testing.assert_allclose(model.policy.log_std.detach().numpy(), np.log(0.5), rtol=1e-6)
+    assert any(
+        parameter is model.policy.log_std for group in model.policy.optimizer.param_groups for parameter in group["params"]
+    )
+    model.learn(2 * 16 * env.num_envs)
+    learned = model.policy.log_std.detach().clone()
+    assert not torch.allclose(learned, torch.full_like(learned, np.log(0.5)))  # it moved
+    model.save(tmp_path / "model.zip")
+    loaded = PPO.load(tmp_path / "model.zip", device="cpu")
+    assert loaded.policy.learn_sigma and torch.equal(loaded.policy.log_std.detach(), learned)
+    fixed = PPO(FormationPolicy, env, n_steps=16, batch_size=48, seed=0, device="cpu", policy_kwargs=SMALL)
+    fixed.learn(16 * env.num_envs)
+    assert not fixed.policy.log_std.requires_grad and torch.allclose(fixed.policy.log_std, torch.full((2,), np.log(0.7)))
+    recurrent = RecurrentFormationPolicy(env.observation_space, env.action_space, lambda _: 1e-3, learn_sigma=True)
+    assert recurrent.log_std.requires_grad
+    env.close()
+
+
+def test_reward_normalisation_divides_by_the_running_return_std(tmp_path: Path) -> None:
+    """The rewards PPO sees are the env's divided by sqrt(var + 1e-8) of the discounted returns seen so far (SB3's
+    VecNormalize, recomputed here with numpy), and the statistics survive a save and a resume."""
+    settings = TrainSettings(preset=str(tiny_yaml(tmp_path)), n_envs=1)
+    env = make_training_env(settings, stage=3)
+    rewards = unwrap_vec_wrapper(env, VecNormalize)
+    assert rewards is not None and not rewards.norm_obs and rewards.gamma == 0.99
+    env.seed(0)
+    env.reset()
+    returns, raw_returns = np.zeros(env.num_envs), []
+    for _ in range(20):
+        _, normalised, dones, _ = env.step(np.zeros((env.num_envs, 2), np.float32))
+        raw = rewards.get_original_reward()
+        returns = returns * 0.99 + raw
+        raw_returns.append(returns.copy())
+        expected = np.clip(raw / np.sqrt(np.var(np.concatenate(raw_returns)) + 1e-8), -10, 10)
+        np.testing.assert_allclose(normalised, expected, rtol=1e-4, atol=1e-6)
+        returns[dones] = 0.0
+    model = PPO(FormationPolicy, env, n_steps=8, batch_size=24, seed=0, device="cpu", policy_kwargs=SMALL)
+    save_model(model, env, tmp_path, FINAL_MODEL, FINAL_NORMALIZER)
+    saved = np.load(tmp_path / reward_normalizer_file(FINAL_NORMALIZER))
+    # SB3 starts the statistics with a prior of 1e-4 samples of variance 1: a relative difference of about 1e-6 here
+    assert float(saved["var"]) == pytest.approx(np.var(np.concatenate(raw_returns)), rel=1e-5)
+    assert float(saved["count"]) == pytest.approx(len(np.concatenate(raw_returns)) + 1e-4)  # SB3 starts at 1e-4
+    resumed = make_training_env(settings, stage=3, normalizer_path=tmp_path / FINAL_NORMALIZER)
+    assert unwrap_vec_wrapper(resumed, VecNormalize).ret_rms.var == pytest.approx(float(saved["var"]))
+    env.close()
+    resumed.close()
+
+
+def test_a_steps_budget_sets_the_last_stage_and_repeats_by_seed(tmp_path: Path) -> None:
+    budget = ["--steps", str(3 * 16 * 12 + 1)]  # three iterations of 16 steps x 12 slots, and one step more
+    setup = str(tiny_yaml(tmp_path, training={"normalize_reward": True}))
+    runs = []
+    for name in ("a", "b"):
+        assert main(["train", "--preset", setup, *budget, "--run-dir", str(tmp_path / name), *TINY]) == 0
+        runs.append(load_trained(tmp_path / name))
+    config = yaml.safe_load((tmp_path / "a" / "config.yaml").read_text())
+    assert config["iterations"] == [0, 0, 4] and config["steps"] == 3 * 16 * 12 + 1  # rounded up to whole iterations
+    assert runs[0].model.num_timesteps == 4 * 16 * 12
+    for first, second in zip(runs[0].model.policy.parameters(), runs[1].model.policy.parameters()):
+        assert torch.equal(first, second)  # the same seed gives the same model
+    with pytest.raises(ValueError, match="does not reach the last curriculum stage"):
+        TrainSettings(preset=setup, iterations=(5, 0, 1), steps=16 * 12, n_envs=2)
+
+
+def test_periodic_evaluation_logs_eval_scalars_and_keeps_the_best_model(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    assert main(["train", "--preset", str(tiny_yaml(tmp_path)), "--run-dir", str(run), *TINY]) == 0
+    accumulator = EventAccumulator(str(run / "tensorboard"))
+    accumulator.Reload()
+    tags = accumulator.Tags()["scalars"]
+    for tag in ("eval/success_rate", "eval/angle_error_deg", "eval/collisions_agent", "eval/length"):
+        assert tag in tags
+    rates = [event.value for event in accumulator.Scalars("eval/success_rate")]
+    angles = [event.value for event in accumulator.Scalars("eval/angle_error_deg")]
+    assert len(rates) == 3  # after each of the three iterations
+    best = json.loads((run / "best_evaluation.json").read_text())
+    scores = [(rate, -angle) for rate, angle in zip(rates, angles)]
+    assert (best["success_rate"], -best["angle_error_deg"]) == pytest.approx(max(scores), rel=1e-6)
+    assert (run / BEST_MODEL).is_file() and (run / "best_normalizer.npz").is_file()
+    assert main(["evaluate", str(run / BEST_MODEL), "--episodes", "2", "--n-envs", "2", "--no-progress"]) == 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", [name for name in setup_names() if name.startswith("fast-")])
+def test_each_fast_setup_trains_an_iteration_and_records_its_changes(name: str, tmp_path: Path) -> None:
+    setup, thesis = load_setup(name), load_setup(name.removeprefix("fast-"))
+    assert setup.config() == thesis.config()  # the task is the thesis's
+    assert setup.evaluation == thesis.evaluation  # and so is the evaluation protocol
+    run = tmp_path / "run"
+    arguments = ["train", "--preset", name, "--run-dir", str(run), "--steps", "1", "--n-envs", "1", "--no-progress"]
+    assert main([*arguments, "--env", "max_steps=40"]) == 0
+    config = yaml.safe_load((run / "config.yaml").read_text())
+    assert config["iterations"] == [0, 0, 1] and config["normalize_reward"] is True and config["eval_every"] == 25
+    ppo = config["ppo"]
+    assert ppo["learning_rate"] == {"start": 3e-4, "end": 1.5e-5} and (ppo["n_steps"], ppo["gamma"]) == (256, 0.99)
+    assert ppo["policy_kwargs"]["learn_sigma"] is True and ppo["policy_kwargs"]["net_arch"]["pi"] == [256, 256]
+    assert (run / FINAL_MODEL).is_file() and (run / "final_reward_normalizer.npz").is_file()
+    assert (run / BEST_MODEL).is_file()  # the last iteration is evaluated too
