@@ -26,7 +26,8 @@ REFERENCE = Path(__file__).with_name("data") / "thesis_training_reference.json"
 
 
 def test_the_four_thesis_setups_are_shipped_with_their_citations() -> None:
-    assert setup_names() == ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing"]
+    thesis = ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing"]
+    assert setup_names() == [*thesis, *(f"fast-{name}" for name in thesis)]
     thesis_ppo = {"n_steps": 128, "batch_size": 512, "n_epochs": 10, "learning_rate": 5e-5, "gamma": 0.995}
     thesis_ppo |= {"gae_lambda": 0.95, "clip_range": 0.2, "clip_range_vf": 20.0, "target_kl": 0.03}
     expected = {  # thesis 4.3/4.4 and 5.3/5.4: iterations, teams, evaluation episodes, recurrent, action scale
@@ -44,7 +45,7 @@ def test_the_four_thesis_setups_are_shipped_with_their_citations() -> None:
         kwargs = setup.ppo_kwargs()
         assert kwargs["policy"] is (RecurrentFormationPolicy if recurrent else FormationPolicy)
         assert ("team_size" in kwargs["policy_kwargs"]) == (name == "ch4-team")  # the team critic, fig. 4.3
-        # every setting line of the file cites the thesis (or says it is this package's choice)
+    for name in setup_names():  # every setting line cites the thesis or says what it changes and why
         lines = [line for line in (SETUPS_FOLDER / f"{name}.yaml").read_text().splitlines() if ":" in line]
         uncited = [line for line in lines if "#" not in line and not line.rstrip().endswith(":") and "description" not in line]
         assert uncited == [], f"{name}: lines without a citation: {uncited}"
