@@ -76,6 +76,12 @@ class SetUp:
         unknown = sorted(set(self.training) - set(TRAINING_DEFAULTS))
         if unknown:
             raise ValueError(f"{where}: unknown training keys {unknown}; valid: {list(TRAINING_DEFAULTS)}")
+        if not isinstance(self.training_option("normalize_reward"), bool):
+            raise ValueError(f"{where}: training: normalize_reward must be true or false")
+        for name in ("steps", "eval_every", "eval_episodes"):
+            value = self.training_option(name)
+            if value is not None and not (_is_count(value) and value >= 1):
+                raise ValueError(f"{where}: training: {name} must be an integer >= 1 or null, got {value!r}")
         for name in ("learning_rate", "clip_range", "clip_range_vf"):
             if self.ppo.get(name) is not None:
                 schedule(self.ppo[name], f"{where}: ppo: {name}")
@@ -84,11 +90,8 @@ class SetUp:
         unknown = sorted(set(self.evaluation) - {"episodes", "stage"})
         if unknown or not (_is_count(self.evaluation.get("episodes")) and self.evaluation["episodes"] >= 1):
             raise ValueError(f"{where}: evaluation needs episodes (>= 1) and may give stage, got {self.evaluation!r}")
-        if not isinstance(self.policy.get("recurrent", False), bool) or self.policy.get("team_critic") not in (
-            None,
-            True,
-            False,
-        ):
+        team_critic = self.policy.get("team_critic")
+        if not isinstance(self.policy.get("recurrent", False), bool) or team_critic not in (None, True, False):
             raise ValueError(f"{where}: policy: recurrent must be true or false, team_critic true, false or unset")
         self.ppo_kwargs()  # validates the policy choices
 

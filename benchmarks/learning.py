@@ -1,0 +1,137 @@
+"""Learning benchmark: train set-ups for a budget on several seeds, evaluate each on the thesis protocol, print tables.
+
+For every set-up and seed (one after the other, each on the whole machine) it trains ``--steps`` agent-steps with
+periodic evaluation every ``--eval-every`` iterations (20 stage-3 episodes from seed 1,000,000), then evaluates the
+final model on the thesis's protocol (``--episodes`` stage-3 episodes from seed 0, deterministic actions). It prints:
+
+- a Markdown table: the thesis's published results, then one row per set-up and seed (success with its 95 % Wilson
+  interval; over successful episodes the angle, bearing and distance errors, agent and obstacle contacts and steps to
+  the goal; wall time; agent-steps per second);
+- time to success: wall-clock and agent-steps until the periodic evaluation first reached 50 %, 80 % and 90 %;
+- a figure of the periodic success rate against wall-clock, per set-up and seed (``--out``).
+
+A thesis set-up trained on the same budget keeps its curriculum's proportions (stages 1, 2 and 3 get 20, 20 and 60 %
+of the budget's iterations, as 5000 : 5000 : 15000 in thesis 5.3).
+
+    python benchmarks/learning.py --setups fast-ch5-bearing,ch5-bearing --seeds 0,1,2 --steps 6000000
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from sb3_formation.experiment.evaluation import evaluate_target, table_number
+from sb3_formation.experiment.settings import TrainSettings
+from sb3_formation.experiment.training import train
+from sb3_formation.viz.plots import save_figure
+
+#: The thesis's published results (thesis 4.4 and 5.4): success rate; mean angle error around 30 deg.
+THESIS_RESULTS = {"ch4-individual": 0.05, "ch4-team": 0.07, "ch5-angle": 0.08, "ch5-bearing": 0.11}
+LEVELS = (0.5, 0.8, 0.9)
+
+
+def thesis_budget_iterations(settings: TrainSettings, steps: int) -> tuple[int, int, int]:
+    """The budget's iterations split as the set-up's curriculum splits its own (a set-up with stage 3 only keeps it)."""
+    total = -(-steps // settings.steps_per_iteration())
+    iterations = settings.setup().iterations
+    shares = [count / sum(iterations) for count in iterations]
+    first, second = (int(total * share) for share in shares[:2])
+    return first, second, total - first - second
+
+
+def run(setup: str, seed: int, steps: int, eval_every: int, logdir: Path) -> tuple[Path, float, int]:
+    """Train one set-up and seed for the budget; return the run folder, the training wall time (s) and agent-steps."""
+    settings = TrainSettings(preset=setup, seed=seed, steps=steps, eval_every=eval_every, progress_bar=False,
+                             logdir=str(logdir))  # fmt: skip
+    if settings.resolved_training("steps") != steps or sum(settings.setup().iterations[:2]) > 0:
+        settings = TrainSettings(preset=setup, seed=seed, iterations=thesis_budget_iterations(settings, steps),
+                                 eval_every=eval_every, progress_bar=False, logdir=str(logdir))  # fmt: skip
+    run_dir = logdir / f"{setup}_s{seed}"
+    started = time.perf_counter()
+    train(settings, command=f"benchmarks/learning.py {setup} seed {seed}", run_dir=run_dir)
+    return run_dir, time.perf_counter() - started, sum(settings.resolved_iterations()) * settings.steps_per_iteration()
+
+
+def success_over_time(run_dir: Path) -> list[tuple[float, int, float]]:
+    """(seconds since training started, agent-steps, success rate) of every periodic evaluation of a run."""
+    events = EventAccumulator(str(run_dir / "tensorboard"))
+    events.Reload()
+    start = min(event.wall_time for tag in events.Tags()["scalars"] for event in events.Scalars(tag))
+    return [(event.wall_time - start, event.step, event.value) for event in events.Scalars("eval/success_rate")]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--setups", default="fast-ch5-bearing", help="comma-separated set-ups")
+    parser.add_argument("--seeds", default="0,1,2", help="comma-separated seeds")
+    parser.add_argument("--steps", type=int, default=6_000_000, help="training budget in agent-steps per run")
+    parser.add_argument("--eval-every", type=int, default=25, help="iterations between periodic evaluations")
+    parser.add_argument("--episodes", type=int, default=200, help="final evaluation episodes (thesis 5.4: 200)")
+    parser.add_argument("--logdir", type=Path, default=Path("runs/benchmark-learning"), help="folder of the runs")
+    parser.add_argument("--out", type=Path, default=Path("learning.png"), help="success-against-time figure")
+    args = parser.parse_args()
+    rows, curves = [], {}
+    for setup in args.setups.split(","):
+        for seed in (int(seed) for seed in args.seeds.split(",")):
+            run_dir, seconds, steps = run(setup, seed, args.steps, args.eval_every, args.logdir)
+            protocol = {"episodes": args.episodes, "stage": 3, "seed": 0, "n_envs": 8}
+            summary = evaluate_target(run_dir / "final_model.zip", protocol, out=run_dir / "eval").summary
+            rows.append((setup, seed, summary, seconds, steps))
+            curves[(setup, seed)] = success_over_time(run_dir)
+            print(f"{setup} seed {seed}: {summary['success_rate']:.1%} after {seconds / 60:.1f} min", flush=True)
+    print_tables(rows, curves, args)
+    draw(curves, args.out)
+
+
+def print_tables(rows: list, curves: dict, args: argparse.Namespace) -> None:
+    """The results table and the time-to-success table, in Markdown."""
+    headings = ["set-up", "seed", "success (95 % CI)", "angle error (deg)", "bearing error", "distance error (m)",
+                "agent contacts", "obstacle contacts", "steps to goal", "wall time (min)", "agent-steps/s"]  # fmt: skip
+    print(f"\n{args.episodes} stage-3 episodes (seed 0 onwards); means over the successful ones")
+    print(f"budget {args.steps:,} agent-steps per run\n")
+    print("| " + " | ".join(headings) + " |")
+    print("|" + "|".join(["---", "---:"] + ["---:"] * (len(headings) - 2)) + "|")
+    for name, rate in THESIS_RESULTS.items():
+        print(f"| thesis {name} (published, 60-100 h) | - | {rate:.0%} | ~30 | - | - | - | - | - | 3600-6000 | - |")
+    for setup, seed, summary, seconds, steps in rows:
+        low, high = summary["success_rate_ci95"]
+        means = summary["successful_episodes"]
+        cells = [setup, str(seed), f"{summary['success_rate']:.1%} ({low:.1%} - {high:.1%})"]
+        for name in ("angle_error_deg", "bearing_error", "neighbour_distance_error", "collisions_agent",
+                     "collisions_obstacle", "length"):  # fmt: skip
+            cells.append("-" if means[name]["mean"] is None else table_number(means[name]["mean"]))
+        cells += [f"{seconds / 60:.1f}", f"{steps / seconds:,.0f}"]
+        print("| " + " | ".join(cells) + " |")
+    print("\nTime until the periodic evaluation (20 episodes) first reached a success rate\n")
+    print("| set-up | seed | " + " | ".join(f"{level:.0%}: min / M agent-steps" for level in LEVELS) + " |")
+    print("|---|---:|" + "---:|" * len(LEVELS))
+    for (setup, seed), curve in curves.items():
+        cells = []
+        for level in LEVELS:
+            reached = next(((seconds, steps) for seconds, steps, rate in curve if rate >= level), None)
+            cells.append("not reached" if reached is None else f"{reached[0] / 60:.1f} / {reached[1] / 1e6:.2f}")
+        print(f"| {setup} | {seed} | " + " | ".join(cells) + " |")
+
+
+def draw(curves: dict, out: Path) -> None:
+    """Periodic success rate against wall-clock minutes, one line per set-up and seed."""
+    figure = Figure(figsize=(8.0, 4.5), layout="constrained")
+    FigureCanvasAgg(figure)
+    axes = figure.add_subplot()
+    for (setup, seed), curve in curves.items():
+        axes.plot([seconds / 60 for seconds, _, _ in curve], [rate for _, _, rate in curve], label=f"{setup} seed {seed}")
+    axes.set_xlabel("wall-clock (min)")
+    axes.set_ylabel("success rate (20 stage-3 episodes)")
+    axes.set_ylim(-0.02, 1.02)
+    axes.legend(fontsize="small")
+    print(f"\nfigure written to {save_figure(figure, out)}")
+
+
+if __name__ == "__main__":
+    main()
