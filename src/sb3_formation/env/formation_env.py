@@ -168,7 +168,7 @@ class FormationEnv(ParallelEnv):
         self.formation: FormationState | None = None
         self.goal_distance = math.nan
         self._previous_centroid_goal_offset = np.zeros(2)
-        self._contacts = (np.zeros(n_agents, dtype=np.int64), np.zeros(n_agents, dtype=np.int64))
+        self._contacts: tuple[list[int], list[int]] = ([0] * n_agents, [0] * n_agents)  # agent, obstacle: last step
         self._lidar: tuple[np.ndarray, np.ndarray] | None = None
         self._renderer: Any = None
 
@@ -212,7 +212,7 @@ class FormationEnv(ParallelEnv):
         self.goal_distance = self._goal_distance()
         self._previous_centroid_goal_offset = self.goal - self.formation.centroid
         zeros = [0] * n_agents
-        self._contacts = (np.zeros(n_agents, dtype=np.int64), np.zeros(n_agents, dtype=np.int64))
+        self._contacts = (zeros, zeros)
         terms = np.zeros((len(REWARD_TERMS), n_agents))
         infos = self._infos(zeros, zeros, terms, success=False)
         return dict(zip(self.agents, self._observations())), dict(zip(self.agents, infos))
@@ -280,7 +280,7 @@ class FormationEnv(ParallelEnv):
         self.previous_rewards = rewards
         observations = self._observations()
         infos = self._infos(agent_contacts, obstacle_contacts, terms, success)
-        self._contacts = (np.array(agent_contacts), np.array(obstacle_contacts))
+        self._contacts = (agent_contacts, obstacle_contacts)  # lists: arrays only when a state is asked for
         if success or truncated:
             self.agents = []
         return observations, rewards, success, truncated, infos
@@ -394,8 +394,8 @@ class FormationEnv(ParallelEnv):
             goal=self.goal,
             obstacles=self.obstacles,
             neighbours=self.neighbours,
-            contacts_agent=self._contacts[0],
-            contacts_obstacle=self._contacts[1],
+            contacts_agent=np.array(self._contacts[0], dtype=np.int64),
+            contacts_obstacle=np.array(self._contacts[1], dtype=np.int64),
             angle_errors_deg=angle,
             bearing_errors=bearing,
             neighbour_distance_errors=distance,
