@@ -3,7 +3,9 @@ periodic evaluation with the best model kept; and the fast set-ups, each trained
 
 from __future__ import annotations
 
+import csv
 import json
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -24,9 +26,10 @@ from sb3_formation.experiment.runs import (
     reward_normalizer_file,
     save_model,
 )
-from sb3_formation.experiment.settings import TrainSettings
+from sb3_formation.experiment.settings import TrainSettings, load_settings
 from sb3_formation.experiment.setups import SETUPS_FOLDER, load_setup, schedule, setup_names
 from sb3_formation.experiment.training import make_training_env
+from sb3_formation.sb3.callbacks import ClockedSchedule, TrainingClock
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
 
 SMALL = {"net_arch": {"pi": [16], "vf": [16]}}
@@ -126,6 +129,55 @@ def test_a_steps_budget_sets_the_last_stage_and_repeats_by_seed(tmp_path: Path) 
         assert torch.equal(first, second)  # the same seed gives the same model
     with pytest.raises(ValueError, match="does not reach the last curriculum stage"):
         TrainSettings(preset=setup, iterations=(5, 0, 1), steps=16 * 12, n_envs=2)
+
+
+def test_a_clocked_schedule_follows_whichever_budget_is_further_along(monkeypatch: pytest.MonkeyPatch) -> None:
+    now = [100.0]
+    monkeypatch.setattr("sb3_formation.sb3.callbacks.time.monotonic", lambda: now[0])
+    clock = TrainingClock(budget=60.0, spent=15.0)  # 15 s spent in an earlier session
+    clock.start()
+    now[0] += 15.0  # 30 s of 60: half the time budget left
+    linear = ClockedSchedule(schedule({"start": 3e-4, "end": 1e-5}), clock)
+    assert linear(1.0) == pytest.approx(1e-5 + 0.5 * 2.9e-4)  # the clock is further along than the steps
+    assert linear(0.25) == pytest.approx(1e-5 + 0.25 * 2.9e-4)  # the steps are further along than the clock
+    assert not clock.exhausted
+    now[0] += 30.0
+    assert clock.exhausted and clock.seconds == pytest.approx(60.0) and linear(1.0) == pytest.approx(1e-5)
+    clock.stop()
+    now[0] += 100.0  # not counted after stop()
+    assert clock.seconds == pytest.approx(60.0)
+    plain = pickle.loads(pickle.dumps(linear))  # saved with a model, it is the schedule without the clock
+    assert not isinstance(plain, ClockedSchedule) and plain(1.0) == pytest.approx(3e-4)
+    with pytest.raises(ValueError, match="time budget must be > 0"):
+        TrainingClock(budget=0.0)
+
+
+def test_a_minutes_budget_replaces_the_setup_budget_and_ends_training(tmp_path: Path) -> None:
+    setup = str(tiny_yaml(tmp_path))
+    settings = TrainSettings(preset=setup, minutes=0.5)
+    assert settings.resolved_iterations() == (0, 0, None) and settings.resolved_training("steps") is None
+    capped = TrainSettings(preset=setup, minutes=0.5, steps=16 * 12)  # both: whichever runs out first
+    assert capped.resolved_iterations() == (0, 0, 1) and capped.resolved_training("steps") == 16 * 12
+    for bad in (0, -1.0, True, "5"):
+        with pytest.raises(ValueError, match="minutes must be a number > 0"):
+            TrainSettings(preset=setup, minutes=bad)
+    with pytest.raises(ValueError, match="iterations must be three integers"):
+        TrainSettings(preset=setup, iterations=(0, 0, None))  # open-ended only with a time budget
+    run = tmp_path / "run"
+    # 0.06 s: the budget is spent during the first iteration, so training ends after it
+    assert main(["train", "--preset", setup, "--minutes", "0.001", "--run-dir", str(run), *TINY]) == 0
+    config = yaml.safe_load((run / "config.yaml").read_text())
+    assert config["iterations"] == [0, 0, None] and config["minutes"] == 0.001 and config["steps"] is None
+    checkpoint = run / "checkpoints" / "iteration_000001"
+    state = json.loads((checkpoint / "state.json").read_text())
+    assert state["curriculum"]["iteration"] == 1 and state["training_seconds"] >= 0.06
+    with open(run / "tensorboard" / "progress.csv") as stream:
+        rates = [float(row["train/learning_rate"]) for row in csv.DictReader(stream) if row["train/learning_rate"]]
+    assert rates == [pytest.approx(1.5e-5)]  # the time was up at the update: the schedule's floor
+    assert load_trained(run).model.num_timesteps == 16 * 2 * 6
+    assert main(["train", "--resume", str(run)]) == 0  # the clock continues: no time left
+    assert sorted(path.name for path in (run / "checkpoints").iterdir()) == ["iteration_000001"]
+    assert load_settings(run).resolved_iterations() == (0, 0, None)
 
 
 def test_periodic_evaluation_logs_eval_scalars_and_keeps_the_best_model(tmp_path: Path) -> None:

@@ -18,7 +18,7 @@ from typing import Any
 import yaml
 
 from sb3_formation.env.config import FormationConfig
-from sb3_formation.experiment.setups import DEFAULT_SETUP, SetUp, load_setup, with_schedules
+from sb3_formation.experiment.setups import DEFAULT_SETUP, SetUp, is_count, load_setup, with_schedules
 
 #: Keys of a run's ``evaluation:`` settings (arguments of :func:`~sb3_formation.experiment.evaluation.evaluate`).
 EVALUATION_KEYS = frozenset({"episodes", "stage", "seed", "n_envs", "workers", "deterministic", "record"})
@@ -60,6 +60,14 @@ def seed_value(text: str) -> int:
     value = int(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """A number > 0."""
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
     return value
 
 
@@ -115,6 +123,10 @@ class TrainSettings:
     :param cell: recurrent cell, ``"gru"`` or ``"lstm"``; only for recurrent policies
     :param steps: budget in agent-steps (rounded up to whole iterations); the last curriculum stage gets what the
         stages before it leave, and schedules run over the budget
+    :param minutes: budget in minutes of training wall-clock (not deterministic). Without ``steps`` and ``iterations``
+        it replaces the set-up's budget: stage 3 runs until the time is up; with them, training ends at whichever
+        budget runs out first. Schedules run over whichever is further along (see
+        :class:`~sb3_formation.sb3.callbacks.ClockedSchedule`)
     :param normalize_reward: divide rewards by a running std of the discounted return (SB3's ``VecNormalize``)
     :param eval_every: evaluate the deterministic policy on fixed-seed stage-3 episodes every this many iterations,
         log ``eval/*`` and keep ``best_model.zip``
@@ -154,6 +166,10 @@ class TrainSettings:
     steps: int | None = field(
         default=None, metadata=option("budget in agent-steps (default: the set-up's, else its iterations)", type=positive_int)
     )
+    minutes: float | None = field(
+        default=None,
+        metadata=option("budget in minutes of training wall-clock (replaces the set-up's budget)", type=positive_float),
+    )
     normalize_reward: bool | None = field(
         default=None,
         metadata=option(
@@ -178,10 +194,17 @@ class TrainSettings:
     def __post_init__(self) -> None:
         setup = self.setup()  # validates the preset
         self.config()  # validates the env overrides
+        if self.minutes is not None and (isinstance(self.minutes, bool) or not isinstance(self.minutes, (int, float))
+                                         or not self.minutes > 0):  # fmt: skip
+            raise ValueError(f"minutes must be a number > 0, got {self.minutes!r}")
         if self.iterations is not None:
-            self.iterations = tuple(int(value) for value in self.iterations)
-            if len(self.iterations) != 3 or min(self.iterations) < 0 or sum(self.iterations) < 1:
+            # a run's config.yaml writes a stage 3 that runs until a time budget ends as null
+            open_ended = self.minutes is not None and len(self.iterations) == 3 and self.iterations[2] is None
+            counts = self.iterations[:2] if open_ended else self.iterations
+            valid = len(self.iterations) == 3 and all(is_count(value) for value in counts)
+            if not valid or not (open_ended or sum(counts) >= 1):
                 raise ValueError(f"iterations must be three integers >= 0 (stages 1, 2, 3), got {self.iterations!r}")
+            self.iterations = (*(int(value) for value in counts), *((None,) if open_ended else ()))
         optional = tuple(name for name in ("n_envs", "steps", "eval_every") if getattr(self, name) is not None)
         for name in ("workers", "checkpoint_every", *optional):
             value = getattr(self, name)
@@ -245,12 +268,15 @@ class TrainSettings:
         """The task configuration of this run."""
         return self.setup().config(**self.env)
 
-    def resolved_iterations(self) -> tuple[int, int, int]:
+    def resolved_iterations(self) -> tuple[int, int, int | None]:
         """Iterations per stage: the set-up's unless given; with a steps budget the last stage that has iterations gets
-        what the stages before it leave of the budget (in whole iterations, rounded up)."""
+        what the stages before it leave of the budget (in whole iterations, rounded up); with only a time budget stage 3
+        is open-ended (``None``)."""
         iterations = self.iterations if self.iterations is not None else self.setup().iterations
         budget = self.resolved_training("steps")
         if budget is None:
+            if self.minutes is not None and self.iterations is None:
+                return (iterations[0], iterations[1], None)
             return iterations
         total = -(-budget // self.steps_per_iteration())
         last = max((stage for stage in range(3) if iterations[stage] > 0), default=2)
@@ -270,7 +296,11 @@ class TrainSettings:
         """A training feature (see :data:`~sb3_formation.experiment.setups.TRAINING_DEFAULTS`): this run's, else the
         set-up's."""
         value = getattr(self, name, None)
-        return value if value is not None else self.setup().training_option(name)
+        if value is not None:
+            return value
+        if name == "steps" and self.minutes is not None:
+            return None  # a time budget replaces the set-up's step budget
+        return self.setup().training_option(name)
 
     def resolved_n_envs(self) -> int:
         """Number of teams, the set-up's unless given."""

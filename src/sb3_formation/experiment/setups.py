@@ -68,7 +68,7 @@ class SetUp:
             raise ValueError(f"{where}: env: preset must be one of {sorted(PRESETS)}, got {self.env.get('preset')!r}")
         self.config()  # validates the env overrides
         iterations = self.curriculum.get("iterations")
-        if not (isinstance(iterations, (list, tuple)) and len(iterations) == 3 and all(_is_count(i) for i in iterations)):
+        if not (isinstance(iterations, (list, tuple)) and len(iterations) == 3 and all(is_count(i) for i in iterations)):
             raise ValueError(f"{where}: curriculum: iterations must be three integers >= 0, got {iterations!r}")
         unknown = sorted(set(self.curriculum) - {"iterations", "success_threshold"})
         if unknown:
@@ -80,15 +80,15 @@ class SetUp:
             raise ValueError(f"{where}: training: normalize_reward must be true or false")
         for name in ("steps", "eval_every", "eval_episodes"):
             value = self.training_option(name)
-            if value is not None and not (_is_count(value) and value >= 1):
+            if value is not None and not (is_count(value) and value >= 1):
                 raise ValueError(f"{where}: training: {name} must be an integer >= 1 or null, got {value!r}")
         for name in ("learning_rate", "clip_range", "clip_range_vf"):
             if self.ppo.get(name) is not None:
                 schedule(self.ppo[name], f"{where}: ppo: {name}")
-        if not (_is_count(self.teams) and self.teams >= 1):
+        if not (is_count(self.teams) and self.teams >= 1):
             raise ValueError(f"{where}: teams must be an integer >= 1, got {self.teams!r}")
         unknown = sorted(set(self.evaluation) - {"episodes", "stage"})
-        if unknown or not (_is_count(self.evaluation.get("episodes")) and self.evaluation["episodes"] >= 1):
+        if unknown or not (is_count(self.evaluation.get("episodes")) and self.evaluation["episodes"] >= 1):
             raise ValueError(f"{where}: evaluation needs episodes (>= 1) and may give stage, got {self.evaluation!r}")
         team_critic = self.policy.get("team_critic")
         if not isinstance(self.policy.get("recurrent", False), bool) or team_critic not in (None, True, False):
@@ -191,7 +191,8 @@ def with_schedules(kwargs: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def _is_count(value: Any) -> bool:
+def is_count(value: Any) -> bool:
+    """Whether ``value`` is an integer >= 0 (not a bool)."""
     return isinstance(value, int) and not isinstance(value, bool) and value >= 0
 
 

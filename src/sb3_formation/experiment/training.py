@@ -41,7 +41,13 @@ from sb3_formation.experiment.runs import (
 )
 from sb3_formation.experiment.settings import TrainSettings, load_settings
 from sb3_formation.experiment.setups import with_schedules
-from sb3_formation.sb3.callbacks import CurriculumCallback, FormationMetricsCallback, ProgressBarCallback
+from sb3_formation.sb3.callbacks import (
+    CurriculumCallback,
+    FormationMetricsCallback,
+    ProgressBarCallback,
+    TimeBudgetCallback,
+    TrainingClock,
+)
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 from sb3_formation.sb3.trained import TrainedPolicy
 from sb3_formation.sb3.vec_env import FormationVecEnv
@@ -55,19 +61,23 @@ class CheckpointCallback(BaseCallback):
 
     A checkpoint is a folder ``checkpoints/iteration_<k>`` written atomically (see :func:`atomic_directory`) after the
     k-th PPO update, holding the model (with its optimiser state), the normaliser statistics and ``state.json``
-    (curriculum state and timestep count). Only the ``keep`` most recent are kept. When a stop is requested the
+    (curriculum state, timestep count and training seconds so far). Only the ``keep`` most recent are kept. When a stop is requested the
     rollout under way is dropped: the checkpoint holds the state after the last completed iteration.
 
     :param run_dir: the run folder
     :param curriculum: the run's curriculum callback (its state goes into each checkpoint)
+    :param clock: the run's training clock
     :param every: iterations between checkpoints
     :param keep: checkpoints kept on disk
     """
 
-    def __init__(self, run_dir: Path, curriculum: CurriculumCallback, every: int, keep: int = 3) -> None:
+    def __init__(
+        self, run_dir: Path, curriculum: CurriculumCallback, clock: TrainingClock, every: int, keep: int = 3
+    ) -> None:
         super().__init__()
         self.run_dir = run_dir
         self.curriculum = curriculum
+        self.clock = clock
         self.every = every
         self.keep = keep
         self.stop_requested = False
@@ -88,7 +98,11 @@ class CheckpointCallback(BaseCallback):
         target = self.run_dir / "checkpoints" / f"iteration_{iteration:06d}"
         with atomic_directory(target) as folder:
             save_model(self.model, self.model.get_env(), folder, MODEL_FILE, NORMALIZER_FILE)
-            state = {"num_timesteps": self.model.num_timesteps, "curriculum": self.curriculum.state_dict()}
+            state = {
+                "num_timesteps": self.model.num_timesteps,
+                "curriculum": self.curriculum.state_dict(),
+                "training_seconds": self.clock.seconds,
+            }
             (folder / STATE_FILE).write_text(json.dumps(state, indent=2))
         for old in sorted((self.run_dir / "checkpoints").glob("iteration_*"))[: -self.keep]:
             shutil.rmtree(old, ignore_errors=True)
@@ -237,7 +251,7 @@ def train(settings: TrainSettings, command: str | None = None, run_dir: str | os
         env=env, seed=settings.seed, device=settings.device, verbose=0, **with_schedules(kwargs)
     )
     model.formation_config = dataclasses.asdict(settings.config())
-    _learn(model, settings, run_dir, curriculum)
+    _learn(model, settings, run_dir, curriculum, spent_seconds=0.0)
     return run_dir
 
 
@@ -260,40 +274,49 @@ def resume(run_dir: str | os.PathLike[str]) -> Path:
     env = make_training_env(settings, curriculum.stage, checkpoint / NORMALIZER_FILE)
     model = saved_algorithm(checkpoint / MODEL_FILE).load(checkpoint / MODEL_FILE, env=env, device=settings.device)
     model.set_random_seed(int(np.random.SeedSequence([settings.seed, curriculum.iteration]).generate_state(1)[0]))
-    _learn(model, settings, run_dir, curriculum)
+    _learn(model, settings, run_dir, curriculum, spent_seconds=state.get("training_seconds", 0.0))
     return run_dir
 
 
-def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: CurriculumCallback) -> None:
+def _learn(
+    model: PPO, settings: TrainSettings, run_dir: Path, curriculum: CurriculumCallback, spent_seconds: float
+) -> None:
     folder = run_dir / "tensorboard"
     folder.mkdir(exist_ok=True)
     # one CSV per session (SB3's CSV writer truncates its file); TensorBoard appends events to the same folder
     csv_name = "progress.csv" if curriculum.iteration == 0 else f"progress_from_iteration_{curriculum.iteration}.csv"
     model.set_logger(Logger(str(folder), [TensorBoardOutputFormat(str(folder)), CSVOutputFormat(str(folder / csv_name))]))
-    checkpoint = CheckpointCallback(run_dir, curriculum, settings.checkpoint_every)
-    callbacks: list[BaseCallback] = [curriculum, FormationMetricsCallback(settings.to_dict()), checkpoint]
+    clock = TrainingClock(None if settings.minutes is None else 60.0 * settings.minutes, spent_seconds)
+    budget = TimeBudgetCallback(clock)
+    checkpoint = CheckpointCallback(run_dir, curriculum, clock, settings.checkpoint_every)
+    callbacks: list[BaseCallback] = [curriculum, FormationMetricsCallback(settings.to_dict()), budget, checkpoint]
     every = settings.resolved_training("eval_every")
     periodic = None
     if every is not None:
         periodic = PeriodicEvaluation(run_dir, settings, curriculum, every, settings.resolved_training("eval_episodes"))
         callbacks.append(periodic)
-    remaining = curriculum.total_iterations - curriculum.iteration
+    total = curriculum.total_iterations
     if settings.progress_bar:
-        callbacks.append(ProgressBarCallback(curriculum.total_iterations, curriculum, curriculum.iteration))
+        callbacks.append(ProgressBarCallback(total, curriculum, curriculum.iteration))
     steps_per_iteration = model.n_steps * model.get_env().num_envs
+    # an open-ended curriculum (total None) trains until the time budget ends it
+    remaining = sys.maxsize // 2 if total is None else (total - curriculum.iteration) * steps_per_iteration
     with stop_on_signals(checkpoint):
-        if remaining > 0:
+        if remaining > 0 and not clock.exhausted:
             model.learn(
-                total_timesteps=remaining * steps_per_iteration,
+                total_timesteps=remaining,
                 callback=CallbackList(callbacks),
                 reset_num_timesteps=False,
                 progress_bar=False,
             )
+        checkpoint.init_callback(model)  # (again) for when nothing was left to learn
         checkpoint.save()
         if periodic is not None and not checkpoint.stop_requested:  # the last iteration's policy is a candidate too
             periodic.init_callback(model)
             periodic.evaluate()
             model.logger.dump(model.num_timesteps)
+    if clock.exhausted:
+        print(f"time budget of {settings.minutes:g} min reached after {curriculum.iteration} iterations")
     if checkpoint.stop_requested:
         print(f"stopped by a signal; checkpoint {latest_checkpoint(run_dir)}; continue with --resume {run_dir}")
     else:

@@ -1,4 +1,4 @@
-"""SB3 callbacks: the thesis's curriculum, formation metrics for TensorBoard, and a progress bar.
+"""SB3 callbacks: the thesis's curriculum, formation metrics for TensorBoard, a wall-clock budget and a progress bar.
 
 A PPO *iteration* is one rollout of ``n_steps`` steps in every slot followed by one training phase; the callbacks
 count iterations with ``_on_rollout_end``.
@@ -9,12 +9,13 @@ from __future__ import annotations
 import json
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import TensorBoardOutputFormat
+from stable_baselines3.common.utils import FloatSchedule
 
 from sb3_formation.env.config import REWARD_TERMS
 from sb3_formation.env.episodes import EPISODE_METRICS, SUCCESS_RATE_TAG
@@ -38,7 +39,8 @@ class CurriculumCallback(BaseCallback):
     of that stage reaches it. Stage changes reach every team through ``env_method("set_stage", ...)``: rewards
     change at once, placements at each team's next reset. The state (stage, iterations) is saved with checkpoints.
 
-    :param iterations_per_stage: PPO iterations of stages 1, 2 and 3
+    :param iterations_per_stage: PPO iterations of stages 1, 2 and 3; the last may be ``None`` (open-ended: training
+        is ended by something else, e.g. a :class:`TimeBudgetCallback`)
     :param success_threshold: success rate in [0, 1] that ends stages 1 and 2 early, or ``None``
     :param window: team-episodes in the rolling success rate
     :param verbose: 1 prints each stage change
@@ -46,15 +48,17 @@ class CurriculumCallback(BaseCallback):
 
     def __init__(
         self,
-        iterations_per_stage: Sequence[int],
+        iterations_per_stage: Sequence[int | None],
         success_threshold: float | None = None,
         window: int = 100,
         verbose: int = 0,
     ) -> None:
         super().__init__(verbose)
-        iterations = tuple(int(value) for value in iterations_per_stage)
-        if len(iterations) != 3 or any(value < 0 for value in iterations):
-            raise ValueError(f"iterations_per_stage must be three integers >= 0, got {iterations_per_stage!r}")
+        iterations = tuple(None if value is None else int(value) for value in iterations_per_stage)
+        if len(iterations) != 3 or None in iterations[:2] or any(value < 0 for value in iterations if value is not None):
+            raise ValueError(
+                f"iterations_per_stage must be three integers >= 0 (the last may be None), got {iterations_per_stage!r}"
+            )
         if success_threshold is not None and not 0.0 <= success_threshold <= 1.0:
             raise ValueError(f"success_threshold must be in [0, 1] or None, got {success_threshold!r}")
         if not isinstance(window, int) or window < 1:
@@ -68,9 +72,9 @@ class CurriculumCallback(BaseCallback):
         self.successes: deque[bool] = deque(maxlen=window)
 
     @property
-    def total_iterations(self) -> int:
-        """Iterations of the whole curriculum."""
-        return sum(self.iterations_per_stage)
+    def total_iterations(self) -> int | None:
+        """Iterations of the whole curriculum (``None`` if its last stage is open-ended)."""
+        return None if self.iterations_per_stage[2] is None else sum(self.iterations_per_stage)
 
     def state_dict(self) -> dict[str, Any]:
         """What a checkpoint must keep to resume the curriculum where it was."""
@@ -191,15 +195,107 @@ def custom_scalars_layout() -> dict[str, dict[str, list]]:
     }
 
 
+class TrainingClock:
+    """Wall-clock seconds spent training a run, over all its sessions, and an optional budget of them.
+
+    :param budget: seconds of training allowed, or ``None``
+    :param spent: seconds spent in earlier sessions of the run (a resumed run continues its clock)
+    """
+
+    def __init__(self, budget: float | None = None, spent: float = 0.0) -> None:
+        if budget is not None and not budget > 0:
+            raise ValueError(f"the time budget must be > 0 seconds, got {budget!r}")
+        self.budget = budget
+        self._spent = float(spent)
+        self._started: float | None = None
+
+    def start(self) -> None:
+        """Start (or continue) counting."""
+        if self._started is None:
+            self._started = time.monotonic()
+
+    def stop(self) -> None:
+        """Stop counting (the time until now is kept)."""
+        self._spent, self._started = self.seconds, None
+
+    @property
+    def seconds(self) -> float:
+        """Seconds spent so far."""
+        return self._spent + (0.0 if self._started is None else time.monotonic() - self._started)
+
+    def progress_remaining(self) -> float:
+        """The fraction of the budget left, in [0, 1] (1 without a budget), as SB3's ``progress_remaining``."""
+        return 1.0 if self.budget is None else max(0.0, 1.0 - self.seconds / self.budget)
+
+    @property
+    def exhausted(self) -> bool:
+        """Whether the budget is spent."""
+        return self.budget is not None and self.seconds >= self.budget
+
+
+class ClockedSchedule:
+    """An SB3 schedule driven by whichever budget is further along: SB3's progress in timesteps, or a wall clock.
+
+    It is called with SB3's ``progress_remaining`` and evaluates ``schedule`` at the smaller of that and the clock's
+    remaining fraction. Pickled (in a saved model) it is the plain ``schedule``: the clock belongs to one session.
+
+    :param schedule: a function of ``progress_remaining`` (1 -> 0)
+    :param clock: the run's clock with its budget
+    """
+
+    def __init__(self, schedule: Callable[[float], float], clock: TrainingClock) -> None:
+        self.schedule, self.clock = schedule, clock
+
+    def __call__(self, progress_remaining: float) -> float:
+        return float(self.schedule(min(progress_remaining, self.clock.progress_remaining())))
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return FloatSchedule, (self.schedule,)
+
+
+class TimeBudgetCallback(BaseCallback):
+    """Count the run's training time and, with a budget, end training at the first iteration boundary past it.
+
+    With a budget the PPO schedules (learning rate, clip ranges) run over the budget too (see :class:`ClockedSchedule`):
+    a linear decay reaches its floor when the time is up, or when the timestep budget is, whichever comes first. The
+    iteration under way when the time runs out is completed; the rollout that would start after it is not collected.
+
+    :param clock: the run's clock (its ``seconds`` go into checkpoints; a resumed run passes them back)
+    """
+
+    def __init__(self, clock: TrainingClock) -> None:
+        super().__init__()
+        self.clock = clock
+        self.out_of_time = False
+
+    def _on_training_start(self) -> None:
+        self.clock.start()
+        if self.clock.budget is None:
+            return
+        self.model.lr_schedule = ClockedSchedule(self.model.lr_schedule, self.clock)
+        for name in ("clip_range", "clip_range_vf"):
+            if getattr(self.model, name, None) is not None:
+                setattr(self.model, name, ClockedSchedule(getattr(self.model, name), self.clock))
+
+    def _on_rollout_start(self) -> None:
+        self.out_of_time = self.clock.exhausted
+
+    def _on_step(self) -> bool:
+        return not self.out_of_time
+
+    def _on_training_end(self) -> None:
+        self.clock.stop()
+
+
 class ProgressBarCallback(BaseCallback):
     """A tqdm progress bar over PPO iterations showing stage, steps per second and the rolling success rate.
 
-    :param total_iterations: iterations of the whole run
+    :param total_iterations: iterations of the whole run (``None``: unknown, e.g. under a time budget)
     :param curriculum: the run's curriculum callback (for the stage and the success rate)
     :param initial_iteration: iterations already done (when resuming)
     """
 
-    def __init__(self, total_iterations: int, curriculum: CurriculumCallback, initial_iteration: int = 0) -> None:
+    def __init__(self, total_iterations: int | None, curriculum: CurriculumCallback, initial_iteration: int = 0) -> None:
         super().__init__()
         self.total_iterations = total_iterations
         self.curriculum = curriculum
