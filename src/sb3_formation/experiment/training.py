@@ -61,8 +61,9 @@ class CheckpointCallback(BaseCallback):
 
     A checkpoint is a folder ``checkpoints/iteration_<k>`` written atomically (see :func:`atomic_directory`) after the
     k-th PPO update, holding the model (with its optimiser state), the normaliser statistics and ``state.json``
-    (curriculum state, timestep count and training seconds so far). Only the ``keep`` most recent are kept. When a stop is requested the
-    rollout under way is dropped: the checkpoint holds the state after the last completed iteration.
+    (curriculum state, timestep count and training seconds so far). Only the ``keep`` most recent are kept. When a
+    stop is requested the rollout under way is dropped: the checkpoint holds the state after the last completed
+    iteration.
 
     :param run_dir: the run folder
     :param curriculum: the run's curriculum callback (its state goes into each checkpoint)
@@ -71,9 +72,7 @@ class CheckpointCallback(BaseCallback):
     :param keep: checkpoints kept on disk
     """
 
-    def __init__(
-        self, run_dir: Path, curriculum: CurriculumCallback, clock: TrainingClock, every: int, keep: int = 3
-    ) -> None:
+    def __init__(self, run_dir: Path, curriculum: CurriculumCallback, clock: TrainingClock, every: int, keep: int = 3) -> None:
         super().__init__()
         self.run_dir = run_dir
         self.curriculum = curriculum
@@ -278,9 +277,7 @@ def resume(run_dir: str | os.PathLike[str]) -> Path:
     return run_dir
 
 
-def _learn(
-    model: PPO, settings: TrainSettings, run_dir: Path, curriculum: CurriculumCallback, spent_seconds: float
-) -> None:
+def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: CurriculumCallback, spent_seconds: float) -> None:
     folder = run_dir / "tensorboard"
     folder.mkdir(exist_ok=True)
     # one CSV per session (SB3's CSV writer truncates its file); TensorBoard appends events to the same folder
