@@ -147,6 +147,11 @@ def test_train_cli_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureF
     assert "broken.yaml is not valid YAML" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["train", "--iterations", "1,2"])
+    for minutes in ("0", "inf", "soon"):
+        with pytest.raises(SystemExit):
+            main(["train", "--minutes", minutes, "--logdir", str(tmp_path / "runs")])
+        assert "--minutes" in capsys.readouterr().err
+    assert not (tmp_path / "runs").exists()  # nothing written
 
 
 @pytest.mark.slow

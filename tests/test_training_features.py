@@ -158,8 +158,8 @@ def test_a_minutes_budget_replaces_the_setup_budget_and_ends_training(tmp_path: 
     assert settings.resolved_iterations() == (0, 0, None) and settings.resolved_training("steps") is None
     capped = TrainSettings(preset=setup, minutes=0.5, steps=16 * 12)  # both: whichever runs out first
     assert capped.resolved_iterations() == (0, 0, 1) and capped.resolved_training("steps") == 16 * 12
-    for bad in (0, -1.0, True, "5"):
-        with pytest.raises(ValueError, match="minutes must be a number > 0"):
+    for bad in (0, -1.0, True, "5", float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="minutes must be a finite number > 0"):
             TrainSettings(preset=setup, minutes=bad)
     with pytest.raises(ValueError, match="iterations must be three integers"):
         TrainSettings(preset=setup, iterations=(0, 0, None))  # open-ended only with a time budget
@@ -178,6 +178,8 @@ def test_a_minutes_budget_replaces_the_setup_budget_and_ends_training(tmp_path: 
     assert main(["train", "--resume", str(run)]) == 0  # the clock continues: no time left
     assert sorted(path.name for path in (run / "checkpoints").iterdir()) == ["iteration_000001"]
     assert load_settings(run).resolved_iterations() == (0, 0, None)
+    # the run's settings with a steps budget added: the budget sets the open-ended stage 3
+    assert TrainSettings(preset=setup, iterations=(0, 0, None), minutes=1, steps=16 * 12).resolved_iterations() == (0, 0, 1)
 
 
 def test_periodic_evaluation_logs_eval_scalars_and_keeps_the_best_model(tmp_path: Path) -> None:

@@ -263,10 +263,11 @@ def train_command(args: argparse.Namespace) -> int:
         settings = train_settings(args)
         cell = settings.ppo_kwargs()["policy_kwargs"].get("cell")
         policy = f"recurrent ({cell})" if settings.resolved_recurrent() else "MLP"
-        iterations = ["until the time is up" if count is None else count for count in settings.resolved_iterations()]
+        counts = ["until the time is up" if count is None else str(count) for count in settings.resolved_iterations()]
         budget = "" if settings.minutes is None else f", at most {settings.minutes:g} min"
         print(
-            f"training {settings.preset}: n={settings.config().n_agents}, iterations per stage {iterations}{budget}, "
+            f"training {settings.preset}: n={settings.config().n_agents}, iterations per stage "
+            f"[{', '.join(counts)}]{budget}, "
             f"{settings.resolved_n_envs()} teams, {policy} policy"
         )
         run_dir = train(settings, command=args.command_line, run_dir=args.run_dir)

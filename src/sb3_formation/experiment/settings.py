@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -66,8 +67,8 @@ def seed_value(text: str) -> int:
 def positive_float(text: str) -> float:
     """A number > 0."""
     value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
     return value
 
 
@@ -195,8 +196,8 @@ class TrainSettings:
         setup = self.setup()  # validates the preset
         self.config()  # validates the env overrides
         if self.minutes is not None and (isinstance(self.minutes, bool) or not isinstance(self.minutes, (int, float))
-                                         or not self.minutes > 0):  # fmt: skip
-            raise ValueError(f"minutes must be a number > 0, got {self.minutes!r}")
+                                         or not (math.isfinite(self.minutes) and self.minutes > 0)):  # fmt: skip
+            raise ValueError(f"minutes must be a finite number > 0, got {self.minutes!r}")
         if self.iterations is not None:
             # a run's config.yaml writes a stage 3 that runs until a time budget ends as null
             open_ended = self.minutes is not None and len(self.iterations) == 3 and self.iterations[2] is None
@@ -279,7 +280,7 @@ class TrainSettings:
                 return (iterations[0], iterations[1], None)
             return iterations
         total = -(-budget // self.steps_per_iteration())
-        last = max((stage for stage in range(3) if iterations[stage] > 0), default=2)
+        last = max((stage for stage in range(3) if (iterations[stage] or 0) > 0), default=2)  # None: open-ended
         before = sum(iterations[:last])
         if total <= before:
             raise ValueError(
