@@ -22,6 +22,7 @@ from sb3_formation.experiment.runs import (
     BEST_MODEL,
     FINAL_MODEL,
     FINAL_NORMALIZER,
+    latest_checkpoint,
     load_trained,
     reward_normalizer_file,
     save_model,
@@ -164,19 +165,22 @@ def test_a_minutes_budget_replaces_the_setup_budget_and_ends_training(tmp_path: 
     with pytest.raises(ValueError, match="iterations must be three integers"):
         TrainSettings(preset=setup, iterations=(0, 0, None))  # open-ended only with a time budget
     run = tmp_path / "run"
-    # 0.06 s: the budget is spent during the first iteration, so training ends after it
+    # 0.06 s: spent within the first iterations (or, on a loaded machine, before the first), so training ends there
     assert main(["train", "--preset", setup, "--minutes", "0.001", "--run-dir", str(run), *TINY]) == 0
     config = yaml.safe_load((run / "config.yaml").read_text())
     assert config["iterations"] == [0, 0, None] and config["minutes"] == 0.001 and config["steps"] is None
-    checkpoint = run / "checkpoints" / "iteration_000001"
+    checkpoint = latest_checkpoint(run)
     state = json.loads((checkpoint / "state.json").read_text())
-    assert state["curriculum"]["iteration"] == 1 and state["training_seconds"] >= 0.06
-    with open(run / "tensorboard" / "progress.csv") as stream:
-        rates = [float(row["train/learning_rate"]) for row in csv.DictReader(stream) if row["train/learning_rate"]]
-    assert rates == [pytest.approx(1.5e-5)]  # the time was up at the update: the schedule's floor
-    assert load_trained(run).model.num_timesteps == 16 * 2 * 6
+    iterations = state["curriculum"]["iteration"]
+    assert state["training_seconds"] >= 0.06  # the open-ended stage 3 ended because the time was up
+    assert load_trained(run).model.num_timesteps == iterations * 16 * 2 * 6
+    if iterations >= 1:
+        with open(run / "tensorboard" / "progress.csv") as stream:
+            rates = [float(row["train/learning_rate"]) for row in csv.DictReader(stream) if row["train/learning_rate"]]
+        # the steps give no progress (stage 3 is open-ended): only the clock moved the rate down from its start
+        assert len(rates) == iterations and all(1.5e-5 <= rate < 2.9e-4 for rate in rates)
     assert main(["train", "--resume", str(run)]) == 0  # the clock continues: no time left
-    assert sorted(path.name for path in (run / "checkpoints").iterdir()) == ["iteration_000001"]
+    assert [path.name for path in (run / "checkpoints").iterdir()] == [checkpoint.name]
     assert load_settings(run).resolved_iterations() == (0, 0, None)
     # the run's settings with a steps budget added: the budget sets the open-ended stage 3
     assert TrainSettings(preset=setup, iterations=(0, 0, None), minutes=1, steps=16 * 12).resolved_iterations() == (0, 0, 1)
