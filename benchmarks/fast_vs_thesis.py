@@ -17,7 +17,7 @@ from pathlib import Path
 
 from sb3_formation.experiment.evaluation import evaluate
 from sb3_formation.experiment.runs import load_trained
-from sb3_formation.experiment.settings import TrainSettings
+from sb3_formation.experiment.settings import TrainSettings, assignment
 from sb3_formation.experiment.training import train
 
 
@@ -29,10 +29,12 @@ def main() -> None:
     parser.add_argument("--teams", type=int, default=8, help="teams of both set-ups")
     parser.add_argument("--seed", type=int, default=0, help="training seed of both set-ups")
     parser.add_argument("--episodes", type=int, default=40, help="stage-3 evaluation episodes (seed 0 onwards)")
+    parser.add_argument("--env", type=assignment, action="append", default=[], metavar="FIELD=VALUE",
+                        help="a FormationConfig override for both set-ups, e.g. n_agents=3 (repeatable)")  # fmt: skip
     parser.add_argument("--thesis-mlp", action="store_true", help="the thesis set-up with the MLP policy")
     parser.add_argument("--logdir", type=Path, default=Path("runs/benchmark-fast-vs-thesis"), help="folder of the runs")
     args = parser.parse_args()
-    budget = {"steps": args.steps, "n_envs": args.teams, "seed": args.seed, "progress_bar": False}
+    budget = {"steps": args.steps, "n_envs": args.teams, "seed": args.seed, "progress_bar": False, "env": dict(args.env)}
     fast = TrainSettings(preset=args.fast, logdir=str(args.logdir), **budget)
     thesis = TrainSettings(preset=args.thesis, recurrent=False if args.thesis_mlp else None, iterations=(1, 1, 1),
                            logdir=str(args.logdir), **budget)  # fmt: skip

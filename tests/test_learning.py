@@ -1,8 +1,10 @@
-"""Learning checks: PPO with our VecEnv, normaliser and policy learns an easy stage-1 task that random actions fail;
-the recurrent PPO learns a memory task that the MLP policy cannot."""
+"""Learning checks: a fast set-up learns the stage-3 task far sooner than the thesis set-up; the recurrent PPO learns a
+memory task that the MLP policy cannot."""
 
 from __future__ import annotations
 
+import dataclasses
+from pathlib import Path
 from typing import Any
 
 import gymnasium
@@ -12,33 +14,38 @@ from gymnasium import spaces
 from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import DummyVecEnv
 
-from sb3_formation import FormationPolicy, make_formation_vec_env
-from sb3_formation.controllers import RandomController
+from sb3_formation import FormationPolicy
 from sb3_formation.experiment.evaluation import evaluate
-from sb3_formation.experiment.setups import load_setup
+from sb3_formation.experiment.runs import load_trained
+from sb3_formation.experiment.settings import TrainSettings
+from sb3_formation.experiment.training import train
 from sb3_formation.sb3.recurrent import RecurrentFormationPPO
-from sb3_formation.sb3.trained import TrainedPolicy
 
-#: Stage 1 of chapter 5 (centroid term on, shape terms off) made easy: 3 agents, four times the thesis's v_max
-#: (6 cm per step, 3 cm per sub-step < R_a), a 1.5 m goal radius, 150-step episodes; centroid-goal start distance 3-6 m.
-EASY = {"n_agents": 3, "stage": 1, "v_max": 0.2, "eta_g": 1.5, "max_steps": 150}
-ITERATIONS = 130
+#: The chapter-5 bearing task (Table 5.1, thesis 5.3) in a world that learns in minutes: 3 agents, four times the
+#: thesis's v_max (6 cm per step, 3 cm per sub-step < R_a) and 400-step episodes. Both set-ups train on it.
+SMALL_WORLD = {"n_agents": 3, "v_max": 0.2, "max_steps": 400}
+BUDGET = 600_000  # agent-steps of each set-up: 98 fast iterations, 196 thesis iterations (8 teams)
 
 
 @pytest.mark.slow
-def test_ppo_beats_random_actions_on_an_easy_stage_one() -> None:
-    env = make_formation_vec_env("ch5-bearing", n_envs=8, seed=0, **EASY)
-    config = env.get_attr("config", indices=[0])[0]
-    kwargs = load_setup("ch5-bearing").ppo_kwargs(config, recurrent=False)
-    kwargs["learning_rate"] = 3e-4  # the thesis's 5e-5 needs far more than a test's budget
-    kwargs["policy_kwargs"]["net_arch"] = dict(pi=[64, 64], vf=[64, 64])  # smaller networks: minutes, not hours
-    model = PPO(env=env, seed=0, device="cpu", **kwargs)
-    model.learn(ITERATIONS * model.n_steps * env.num_envs)
-    trained = TrainedPolicy(model, config, env.state_dict())
-    learned = evaluate(trained, episodes=40, stage=1, seed=1000).summary["success_rate"]
-    random_rate = evaluate(RandomController(config, seed=0), episodes=40, stage=1, seed=1000).summary["success_rate"]
-    assert random_rate <= 0.05  # here: 0 %; the trained policy reached 67.5 % on this machine
-    assert learned >= 0.3, f"learned success rate {learned:.0%} vs random {random_rate:.0%}"
+def test_the_fast_setup_beats_the_thesis_setup_on_the_same_steps_budget(tmp_path: Path, one_torch_thread: None) -> None:
+    """fast-ch5-bearing against the thesis's ch5-bearing set-up (its 20 / 20 / 60 % curriculum over the budget; the MLP
+    policy, since the recurrent one costs 4x per step), same seed, budget and 40 deterministic stage-3 episodes. Measured
+    with one torch thread: fast 87.5 %, thesis 0 %, 12 minutes in all."""
+    common = {"steps": BUDGET, "n_envs": 8, "seed": 0, "progress_bar": False, "env": SMALL_WORLD, "logdir": str(tmp_path)}
+    fast = TrainSettings(preset="fast-ch5-bearing", **common)
+    thesis = TrainSettings(preset="ch5-bearing", recurrent=False, iterations=(1, 1, 1), **common)
+    total = -(-BUDGET // thesis.steps_per_iteration())
+    thesis = dataclasses.replace(thesis, iterations=(total // 5, total // 5, 1))  # stage 3 gets the rest of the budget
+    assert thesis.resolved_iterations() == (39, 39, 118) and fast.resolved_iterations() == (0, 0, 98)
+    rates = {}
+    for settings in (fast, thesis):
+        trained = load_trained(train(settings, command="test"))
+        assert trained.model.num_timesteps >= BUDGET
+        rates[settings.preset] = evaluate(trained, episodes=40, stage=3, seed=0).summary["success_rate"]
+    # measured 87.5 points apart; 20 points leave room for another CPU's rounding, which moves one seed's result as much
+    # as another seed does (the fast set-up's seeds 1 and 2 reached 25 % and 42.5 %)
+    assert rates["fast-ch5-bearing"] >= rates["ch5-bearing"] + 0.2, rates
 
 
 class CueEnv(gymnasium.Env):

@@ -126,12 +126,12 @@ def parameter_fingerprint(model_zip: Path) -> tuple[str, dict[str, list[float]]]
 
 @pytest.mark.slow
 @pytest.mark.parametrize("case", ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing", "ch5-bearing-mlp"])
-def test_thesis_setups_train_as_before_the_redesign(case: str, tmp_path: Path) -> None:
+def test_thesis_setups_train_as_before_the_redesign(case: str, tmp_path: Path, one_torch_thread: None) -> None:
     """Three iterations (one per curriculum stage, two teams, seed 0) of every thesis set-up against parameters recorded
     before the package was split into layers (``tests/data/thesis_training_reference.json``, written by the same
-    command on the code of commit b5de348). On the machine that recorded them the SHA-256 of the parameters matched; the
-    test compares each tensor's sum and sum of squares to 1e-6, so that another CPU's rounding does not fail it while
-    any change of settings, networks, seeding or data flow does."""
+    command on the code of commit b5de348, with one torch thread). On the machine that recorded them the SHA-256 of the
+    parameters matched; the test compares each tensor's sum and sum of squares to 1e-6, so that another CPU's rounding
+    does not fail it while any change of settings, networks, seeding or data flow does."""
     reference = json.loads(REFERENCE.read_text())[case]
     run_dir = tmp_path / "run"
     extra = ["--no-recurrent"] if case.endswith("-mlp") else []

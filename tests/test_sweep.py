@@ -118,11 +118,12 @@ def test_ray_sweep_skips_finished_trials_after_a_kill_and_aggregates(tmp_path: P
     command = [sys.executable, "-m", "sb3_formation.cli", "sweep", str(experiment), "--logdir", str(logdir)]
     process = subprocess.Popen([*command, "--max-concurrent", "1"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     first = logdir / "tiny" / "seed_0"
-    wait_for(lambda: (first / "eval" / "summary.json").exists())
-    process.send_signal(signal.SIGINT)  # the sweep is killed while the second trial runs (or waits)
+    # the second trial has started (its config.yaml is its first file): the sweep is killed while it runs
+    wait_for(lambda: (logdir / "tiny" / "seed_1" / "config.yaml").exists())
+    process.send_signal(signal.SIGINT)
     process.communicate(timeout=120)
     finished_at = os.stat(first / FINAL_MODEL).st_mtime_ns
-    assert not (logdir / "tiny" / "aggregate.json").exists()
+    assert (first / "eval" / "summary.json").exists() and not (logdir / "tiny" / "aggregate.json").exists()
 
     result = sweep(experiment, logdir=logdir)
     save_sweep_curves(result)
