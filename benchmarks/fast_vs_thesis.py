@@ -38,8 +38,7 @@ def main() -> None:
     fast = TrainSettings(preset=args.fast, logdir=str(args.logdir), **budget)
     thesis = TrainSettings(preset=args.thesis, recurrent=False if args.thesis_mlp else None, iterations=(1, 1, 1),
                            logdir=str(args.logdir), **budget)  # fmt: skip
-    total = -(-args.steps // thesis.steps_per_iteration())
-    thesis = dataclasses.replace(thesis, iterations=(total // 5, total // 5, 1))  # stage 3 gets the rest of the budget
+    thesis = dataclasses.replace(thesis, iterations=thesis.curriculum_over(args.steps))
     for settings in (fast, thesis):
         started = time.perf_counter()
         run = train(settings, command=f"benchmarks/fast_vs_thesis.py {settings.preset}")

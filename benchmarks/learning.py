@@ -19,6 +19,7 @@ of the budget's iterations, as 5000 : 5000 : 15000 in thesis 5.3).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from pathlib import Path
 
@@ -36,22 +37,13 @@ THESIS_RESULTS = {"ch4-individual": 0.05, "ch4-team": 0.07, "ch5-angle": 0.08, "
 LEVELS = (0.5, 0.8, 0.9)
 
 
-def thesis_budget_iterations(settings: TrainSettings, steps: int) -> tuple[int, int, int]:
-    """The budget's iterations split as the set-up's curriculum splits its own (a set-up with stage 3 only keeps it)."""
-    total = -(-steps // settings.steps_per_iteration())
-    iterations = settings.setup().iterations
-    shares = [count / sum(iterations) for count in iterations]
-    first, second = (int(total * share) for share in shares[:2])
-    return first, second, total - first - second
-
-
 def run(setup: str, seed: int, steps: int, eval_every: int, logdir: Path) -> tuple[Path, float, int]:
     """Train one set-up and seed for the budget; return the run folder, the training wall time (s) and agent-steps."""
-    settings = TrainSettings(preset=setup, seed=seed, steps=steps, eval_every=eval_every, progress_bar=False,
-                             logdir=str(logdir))  # fmt: skip
-    if settings.resolved_training("steps") != steps or sum(settings.setup().iterations[:2]) > 0:
-        settings = TrainSettings(preset=setup, seed=seed, iterations=thesis_budget_iterations(settings, steps),
-                                 eval_every=eval_every, progress_bar=False, logdir=str(logdir))  # fmt: skip
+    settings = TrainSettings(preset=setup, seed=seed, eval_every=eval_every, progress_bar=False, logdir=str(logdir))
+    if sum(settings.setup().iterations[:2]) > 0:  # a curriculum: the budget is split in its proportions
+        settings = dataclasses.replace(settings, iterations=settings.curriculum_over(steps))
+    else:
+        settings = dataclasses.replace(settings, steps=steps)
     run_dir = logdir / f"{setup}_s{seed}"
     started = time.perf_counter()
     train(settings, command=f"benchmarks/learning.py {setup} seed {seed}", run_dir=run_dir)

@@ -35,8 +35,7 @@ def test_the_fast_setup_beats_the_thesis_setup_on_the_same_steps_budget(tmp_path
     common = {"steps": BUDGET, "n_envs": 8, "seed": 0, "progress_bar": False, "env": SMALL_WORLD, "logdir": str(tmp_path)}
     fast = TrainSettings(preset="fast-ch5-bearing", **common)
     thesis = TrainSettings(preset="ch5-bearing", recurrent=False, iterations=(1, 1, 1), **common)
-    total = -(-BUDGET // thesis.steps_per_iteration())
-    thesis = dataclasses.replace(thesis, iterations=(total // 5, total // 5, 1))  # stage 3 gets the rest of the budget
+    thesis = dataclasses.replace(thesis, iterations=thesis.curriculum_over(BUDGET))
     assert thesis.resolved_iterations() == (39, 39, 118) and fast.resolved_iterations() == (0, 0, 98)
     rates = {}
     for settings in (fast, thesis):

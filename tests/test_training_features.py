@@ -132,6 +132,15 @@ def test_a_steps_budget_sets_the_last_stage_and_repeats_by_seed(tmp_path: Path) 
         TrainSettings(preset=setup, iterations=(5, 0, 1), steps=16 * 12, n_envs=2)
 
 
+def test_a_curriculum_spread_over_a_budget_keeps_its_proportions() -> None:
+    # thesis 5.3: 5000 : 5000 : 15000 iterations; 128 steps x 8 teams x 3 agents = 3072 agent-steps per iteration
+    thesis = TrainSettings(preset="ch5-bearing", n_envs=8, env={"n_agents": 3})
+    assert thesis.curriculum_over(600_000) == (39, 39, 118)  # 600,000 / 3072 = 195.3 -> 196 iterations: 20/20/60 %
+    assert thesis.curriculum_over(3072) == (0, 0, 1)
+    fast = TrainSettings(preset="fast-ch5-bearing", n_envs=8, env={"n_agents": 3})  # stage 3 only: 6144 per iteration
+    assert fast.curriculum_over(600_000) == (0, 0, 98)
+
+
 def test_a_clocked_schedule_follows_whichever_budget_is_further_along(monkeypatch: pytest.MonkeyPatch) -> None:
     now = [100.0]
     monkeypatch.setattr("sb3_formation.sb3.callbacks.time.monotonic", lambda: now[0])

@@ -289,6 +289,18 @@ class TrainSettings:
             )
         return tuple(total - before if stage == last else (iterations[stage] if stage < last else 0) for stage in range(3))
 
+    def curriculum_over(self, steps: int) -> tuple[int, int, int]:
+        """Iterations per stage that spend ``steps`` agent-steps (rounded up to whole iterations) in the proportions of
+        the set-up's curriculum, e.g. 20 / 20 / 60 % for the thesis's 5000 : 5000 : 15000 (thesis 5.3); stage 3 gets
+        what stages 1-2 leave.
+
+        :param steps: budget in agent-steps
+        """
+        total = -(-steps // self.steps_per_iteration())
+        iterations = [count or 0 for count in self.setup().iterations]
+        first, second = (total * count // sum(iterations) for count in iterations[:2])
+        return first, second, total - first - second
+
     def steps_per_iteration(self) -> int:
         """Agent-steps of one PPO iteration: n_steps in every slot (teams x agents)."""
         return self.ppo_kwargs()["n_steps"] * self.resolved_n_envs() * self.config().n_agents
