@@ -44,7 +44,7 @@ def run(setup: str, seed: int, steps: int, eval_every: int, logdir: Path) -> tup
         settings = dataclasses.replace(settings, iterations=settings.curriculum_over(steps))
     else:
         settings = dataclasses.replace(settings, steps=steps)
-    run_dir = logdir / f"{setup}_s{seed}"
+    run_dir = logdir / f"{Path(setup).stem}_s{seed}"  # a set-up file: its name without folder and suffix
     started = time.perf_counter()
     train(settings, command=f"benchmarks/learning.py {setup} seed {seed}", run_dir=run_dir)
     return run_dir, time.perf_counter() - started, sum(settings.resolved_iterations()) * settings.steps_per_iteration()
