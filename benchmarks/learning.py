@@ -1,8 +1,9 @@
 """Learning benchmark: train set-ups for a budget on several seeds, evaluate each on the thesis protocol, print tables.
 
-For every set-up and seed (one after the other, each on the whole machine) it trains ``--steps`` agent-steps with
-periodic evaluation every ``--eval-every`` iterations (20 stage-3 episodes from seed 1,000,000), then evaluates the
-final model on the thesis's protocol (``--episodes`` stage-3 episodes from seed 0, deterministic actions). It prints:
+For every set-up and seed (one after the other, each on the whole machine) it trains ``--steps`` agent-steps (or
+``--minutes`` of wall-clock) with periodic evaluation every ``--eval-every`` iterations (20 stage-3 episodes from seed
+1,000,000), then evaluates the final model on the thesis's protocol (``--episodes`` stage-3 episodes from seed 0,
+deterministic actions). It prints:
 
 - a Markdown table: the thesis's published results, then one row per set-up and seed (success with its 95 % Wilson
   interval; over successful episodes the angle, bearing and distance errors, agent and obstacle contacts and steps to
@@ -11,9 +12,10 @@ final model on the thesis's protocol (``--episodes`` stage-3 episodes from seed 
 - a figure of the periodic success rate against wall-clock, per set-up and seed (``--out``).
 
 A thesis set-up trained on the same budget keeps its curriculum's proportions (stages 1, 2 and 3 get 20, 20 and 60 %
-of the budget's iterations, as 5000 : 5000 : 15000 in thesis 5.3).
+of the budget's iterations, or of its minutes, as 5000 : 5000 : 15000 in thesis 5.3).
 
     python benchmarks/learning.py --setups fast-ch5-bearing,ch5-bearing --seeds 0,1,2 --steps 6000000
+    python benchmarks/learning.py --setups fast-ch5-bearing,ch5-bearing --seeds 0,1,2 --minutes 15
 """
 
 from __future__ import annotations
@@ -35,58 +37,72 @@ from sb3_formation.viz.plots import save_figure
 #: The thesis's published results (thesis 4.4 and 5.4): success rate; mean angle error around 30 deg.
 THESIS_RESULTS = {"ch4-individual": 0.05, "ch4-team": 0.07, "ch5-angle": 0.08, "ch5-bearing": 0.11}
 LEVELS = (0.5, 0.8, 0.9)
+Budget = tuple[str, float]
 
 
-def run(setup: str, seed: int, steps: int, eval_every: int, logdir: Path) -> tuple[Path, float, int]:
-    """Train one set-up and seed for the budget; return the run folder, the training wall time (s) and agent-steps."""
+def run(setup: str, seed: int, budget: Budget, eval_every: int, logdir: Path) -> tuple[Path, float]:
+    """Train one set-up and seed for the budget; return the run folder and the training wall time (s).
+
+    :param budget: ``("steps", agent-steps)`` or ``("minutes", minutes)``
+    """
     settings = TrainSettings(preset=setup, seed=seed, eval_every=eval_every, progress_bar=False, logdir=str(logdir))
-    if sum(settings.setup().iterations[:2]) > 0:  # a curriculum: the budget is split in its proportions
-        settings = dataclasses.replace(settings, iterations=settings.curriculum_over(steps))
+    kind, amount = budget
+    if kind == "minutes":  # the training spreads a curriculum over the minutes itself
+        settings = dataclasses.replace(settings, minutes=amount)
+    elif sum(settings.setup().iterations[:2]) > 0:  # a curriculum: the budget is split in its proportions
+        settings = dataclasses.replace(settings, iterations=settings.curriculum_over(amount))
     else:
-        settings = dataclasses.replace(settings, steps=steps)
+        settings = dataclasses.replace(settings, steps=amount)
     run_dir = logdir / f"{Path(setup).stem}_s{seed}"  # a set-up file: its name without folder and suffix
     started = time.perf_counter()
     train(settings, command=f"benchmarks/learning.py {setup} seed {seed}", run_dir=run_dir)
-    return run_dir, time.perf_counter() - started, sum(settings.resolved_iterations()) * settings.steps_per_iteration()
+    return run_dir, time.perf_counter() - started
 
 
-def success_over_time(run_dir: Path) -> list[tuple[float, int, float]]:
-    """(seconds since training started, agent-steps, success rate) of every periodic evaluation of a run."""
+def success_over_time(run_dir: Path) -> tuple[list[tuple[float, int, float]], int]:
+    """(seconds since training started, agent-steps, success rate) of every periodic evaluation of a run, and the
+    agent-steps the run trained."""
     events = EventAccumulator(str(run_dir / "tensorboard"))
     events.Reload()
-    start = min(event.wall_time for tag in events.Tags()["scalars"] for event in events.Scalars(tag))
-    return [(event.wall_time - start, event.step, event.value) for event in events.Scalars("eval/success_rate")]
+    scalars = [event for tag in events.Tags()["scalars"] for event in events.Scalars(tag)]
+    start = min(event.wall_time for event in scalars)
+    curve = [(event.wall_time - start, event.step, event.value) for event in events.Scalars("eval/success_rate")]
+    return curve, max(event.step for event in scalars)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--setups", default="fast-ch5-bearing", help="comma-separated set-ups")
     parser.add_argument("--seeds", default="0,1,2", help="comma-separated seeds")
-    parser.add_argument("--steps", type=int, default=6_000_000, help="training budget in agent-steps per run")
+    budgets = parser.add_mutually_exclusive_group()
+    budgets.add_argument("--steps", type=int, default=6_000_000, help="training budget in agent-steps per run")
+    budgets.add_argument("--minutes", type=float, help="training budget in minutes of wall-clock per run (not --steps)")
     parser.add_argument("--eval-every", type=int, default=25, help="iterations between periodic evaluations")
     parser.add_argument("--episodes", type=int, default=200, help="final evaluation episodes (thesis 5.4: 200)")
     parser.add_argument("--logdir", type=Path, default=Path("runs/benchmark-learning"), help="folder of the runs")
     parser.add_argument("--out", type=Path, default=Path("learning.png"), help="success-against-time figure")
     args = parser.parse_args()
+    budget = ("steps", args.steps) if args.minutes is None else ("minutes", args.minutes)
     rows, curves = [], {}
     for setup in args.setups.split(","):
         for seed in (int(seed) for seed in args.seeds.split(",")):
-            run_dir, seconds, steps = run(setup, seed, args.steps, args.eval_every, args.logdir)
+            run_dir, seconds = run(setup, seed, budget, args.eval_every, args.logdir)
             protocol = {"episodes": args.episodes, "stage": 3, "seed": 0, "n_envs": 8}
             summary = evaluate_target(run_dir / "final_model.zip", protocol, out=run_dir / "eval").summary
+            curves[(setup, seed)], steps = success_over_time(run_dir)
             rows.append((setup, seed, summary, seconds, steps))
-            curves[(setup, seed)] = success_over_time(run_dir)
             print(f"{setup} seed {seed}: {summary['success_rate']:.1%} after {seconds / 60:.1f} min", flush=True)
-    print_tables(rows, curves, args)
+    print_tables(rows, curves, budget, args.episodes)
     draw(curves, args.out)
 
 
-def print_tables(rows: list, curves: dict, args: argparse.Namespace) -> None:
+def print_tables(rows: list, curves: dict, budget: Budget, episodes: int) -> None:
     """The results table and the time-to-success table, in Markdown."""
     headings = ["set-up", "seed", "success (95 % CI)", "angle error (deg)", "bearing error", "distance error (m)",
                 "agent contacts", "obstacle contacts", "steps to goal", "wall time (min)", "agent-steps/s"]  # fmt: skip
-    print(f"\n{args.episodes} stage-3 episodes (seed 0 onwards); means over the successful ones")
-    print(f"budget {args.steps:,} agent-steps per run\n")
+    print(f"\n{episodes} stage-3 episodes (seed 0 onwards); means over the successful ones")
+    kind, amount = budget
+    print(f"budget {amount:,} {'agent-steps' if kind == 'steps' else 'minutes'} per run\n")
     print("| " + " | ".join(headings) + " |")
     print("|" + "|".join(["---", "---:"] + ["---:"] * (len(headings) - 2)) + "|")
     for name, rate in THESIS_RESULTS.items():
