@@ -308,6 +308,49 @@ def test_curriculum_skips_stages_of_zero_iterations() -> None:
     assert stages == [3, 3, 3]
 
 
+def test_curriculum_with_time_shares_ends_stages_at_their_share_of_the_budget(capsys: pytest.CaptureFixture[str]) -> None:
+    clock = SimpleNamespace(budget=100.0, seconds=0.0)  # a clock whose time the test sets (seconds of a 100 s budget)
+    callback, teams, _ = driven(CurriculumCallback((5000, 5000, None), time_shares=(0.2, 0.4), clock=clock, verbose=1))
+    stages = []
+    for seconds in (10.0, 19.9, 20.0, 39.9, 40.0, 99.0, 150.0):  # the clock at the end of successive iterations
+        clock.seconds = seconds
+        callback.on_rollout_end()
+        stages.append(teams.team_stages[0])
+    # stage 1 ends at the first iteration end at or past 20 s, stage 2 at the first past 40 s; the iterations
+    # (5000 per stage) no longer count
+    assert stages == [1, 1, 2, 2, 3, 3, 3] and callback.iteration == 7
+    assert "its share of the time budget done" in capsys.readouterr().out
+    # an iteration that ends past both shares skips stage 2; a resumed run whose clock is past them starts in stage 3
+    clock.seconds = 0.0
+    callback, teams, _ = driven(CurriculumCallback((1, 1, None), time_shares=(0.2, 0.4), clock=clock))
+    clock.seconds = 41.0
+    callback.on_rollout_end()
+    assert teams.calls == [("set_stage", (1,)), ("set_stage", (2,)), ("set_stage", (3,))]
+    resumed = CurriculumCallback((1, 1, None), time_shares=(0.2, 0.4), clock=clock)
+    resumed.load_state_dict({"stage": 1, "iteration": 3, "stage_iteration": 3, "successes": []})
+    _, teams, _ = driven(resumed)
+    assert teams.team_stages == [3, 3]
+    # shares of 0 skip stages 1 and 2 at once (a stage-3-only curriculum)
+    clock.seconds = 0.0
+    _, teams, _ = driven(CurriculumCallback((0, 0, None), time_shares=(0.0, 0.0), clock=clock))
+    assert teams.team_stages == [3, 3]
+
+
+@pytest.mark.parametrize(
+    ("shares", "clock"),
+    [
+        ((0.2, 0.4), None),
+        ((0.2, 0.4), SimpleNamespace(budget=None, seconds=0.0)),
+        ((0.4, 0.2), SimpleNamespace(budget=10.0, seconds=0.0)),
+        ((0.2, 1.5), SimpleNamespace(budget=10.0, seconds=0.0)),
+        ((0.2,), SimpleNamespace(budget=10.0, seconds=0.0)),
+    ],
+)
+def test_curriculum_rejects_time_shares_without_a_budget_or_out_of_order(shares: tuple, clock: Any) -> None:
+    with pytest.raises(ValueError, match="time_shares must be two increasing fractions"):
+        CurriculumCallback((1, 1, None), time_shares=shares, clock=clock)
+
+
 # FormationMetricsCallback ---------------------------------------------------------------------------------------------
 
 

@@ -197,6 +197,28 @@ def test_a_minutes_budget_replaces_the_setup_budget_and_ends_training(tmp_path: 
     assert TrainSettings(preset=setup, iterations=(0, 0, None), minutes=1, steps=16 * 12).resolved_iterations() == (0, 0, 1)
 
 
+def test_a_minutes_budget_spreads_a_curriculum_over_the_time(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Stages 1 and 2 end at their shares of the time (as 500 : 500 : 1500 iterations: 20 % and 40 %), not after 500
+    iterations each, which the 3 s budget could never reach."""
+    assert TrainSettings(preset=str(tiny_yaml(tmp_path)), minutes=1).stage_time_shares() == (0.0, 0.0)  # stage 3 only
+    setup = str(tiny_yaml(tmp_path, curriculum={"iterations": [500, 500, 1500], "success_threshold": None}))
+    assert TrainSettings(preset=setup, minutes=1).stage_time_shares() == (0.2, 0.4)
+    assert TrainSettings(preset=setup, minutes=1, steps=16 * 12 * 1200).stage_time_shares() is None  # iterations count
+    assert TrainSettings(preset=setup, minutes=1, iterations=(1, 1, 1)).stage_time_shares() is None
+    assert TrainSettings(preset="ch5-bearing").stage_time_shares() is None
+    run = tmp_path / "run"
+    assert main(["train", "--preset", setup, "--minutes", "0.05", "--run-dir", str(run), *TINY]) == 0
+    assert "stages 1, 2 end at 20%, 40% of the time, stage 3 until the time is up" in capsys.readouterr().out
+    config = yaml.safe_load((run / "config.yaml").read_text())
+    assert config["iterations"] == [500, 500, None] and load_settings(run).stage_time_shares() == (0.2, 0.4)
+    state = json.loads((latest_checkpoint(run) / "state.json").read_text())
+    assert state["curriculum"]["stage"] == 3 and state["curriculum"]["iteration"] < 500
+    accumulator = EventAccumulator(str(run / "tensorboard"))
+    accumulator.Reload()
+    stages = [event.value for event in accumulator.Scalars("curriculum/stage")]
+    assert stages == sorted(stages) and stages[-1] == 3
+
+
 def test_periodic_evaluation_logs_eval_scalars_and_keeps_the_best_model(tmp_path: Path) -> None:
     run = tmp_path / "run"
     assert main(["train", "--preset", str(tiny_yaml(tmp_path)), "--run-dir", str(run), *TINY]) == 0

@@ -263,11 +263,15 @@ def train_command(args: argparse.Namespace) -> int:
         settings = train_settings(args)
         cell = settings.ppo_kwargs()["policy_kwargs"].get("cell")
         policy = f"recurrent ({cell})" if settings.resolved_recurrent() else "MLP"
-        counts = ["until the time is up" if count is None else str(count) for count in settings.resolved_iterations()]
+        shares = settings.stage_time_shares()
+        if shares is None:
+            counts = ["until the time is up" if count is None else str(count) for count in settings.resolved_iterations()]
+            stages = f"iterations per stage [{', '.join(counts)}]"
+        else:
+            stages = f"stages 1, 2 end at {shares[0]:.0%}, {shares[1]:.0%} of the time, stage 3 until the time is up"
         budget = "" if settings.minutes is None else f", at most {settings.minutes:g} min"
         print(
-            f"training {settings.preset}: n={settings.config().n_agents}, iterations per stage "
-            f"[{', '.join(counts)}]{budget}, "
+            f"training {settings.preset}: n={settings.config().n_agents}, {stages}{budget}, "
             f"{settings.resolved_n_envs()} teams, {policy} policy"
         )
         run_dir = train(settings, command=args.command_line, run_dir=args.run_dir)

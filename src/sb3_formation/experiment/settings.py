@@ -125,8 +125,9 @@ class TrainSettings:
     :param steps: budget in agent-steps (rounded up to whole iterations); the last curriculum stage gets what the
         stages before it leave, and schedules run over the budget
     :param minutes: budget in minutes of training wall-clock (not deterministic). Without ``steps`` and ``iterations``
-        it replaces the set-up's budget: stage 3 runs until the time is up; with them, training ends at whichever
-        budget runs out first. Schedules run over whichever is further along (see
+        it replaces the set-up's budget: stages 1 and 2 end at their shares of the time in the curriculum's
+        proportions (:meth:`stage_time_shares`) and stage 3 runs until the time is up; with them, training ends at
+        whichever budget runs out first. Schedules run over whichever is further along (see
         :class:`~sb3_formation.sb3.callbacks.ClockedSchedule`)
     :param normalize_reward: divide rewards by a running std of the discounted return (SB3's ``VecNormalize``)
     :param eval_every: evaluate the deterministic policy on fixed-seed stage-3 episodes every this many iterations,
@@ -272,7 +273,7 @@ class TrainSettings:
     def resolved_iterations(self) -> tuple[int, int, int | None]:
         """Iterations per stage: the set-up's unless given; with a steps budget the last stage that has iterations gets
         what the stages before it leave of the budget (in whole iterations, rounded up); with only a time budget stage 3
-        is open-ended (``None``)."""
+        is open-ended (``None``) and stages 1-2 end at shares of the time (:meth:`stage_time_shares`)."""
         iterations = self.iterations if self.iterations is not None else self.setup().iterations
         budget = self.resolved_training("steps")
         if budget is None:
@@ -300,6 +301,20 @@ class TrainSettings:
         iterations = [count or 0 for count in self.setup().iterations]
         first, second = (total * count // sum(iterations) for count in iterations[:2])
         return first, second, total - first - second
+
+    def stage_time_shares(self) -> tuple[float, float] | None:
+        """With a time budget alone (stage 3 open-ended): the fractions of it after which stages 1 and 2 end, in the
+        proportions of the set-up's curriculum, e.g. 0.2 and 0.4 for the thesis's 5000 : 5000 : 15000 (thesis 5.3);
+        otherwise ``None`` (stages end after their iterations)."""
+        first, second, third = self.resolved_iterations()
+        if third is not None:
+            return None
+        total = first + second + (self.setup().iterations[2] or 0)
+        return (first / total, (first + second) / total) if total else (0.0, 0.0)
+
+    def budget_seconds(self) -> float | None:
+        """The time budget in seconds, or ``None``."""
+        return None if self.minutes is None else 60.0 * self.minutes
 
     def steps_per_iteration(self) -> int:
         """Agent-steps of one PPO iteration: n_steps in every slot (teams x agents)."""

@@ -243,14 +243,15 @@ def train(settings: TrainSettings, command: str | None = None, run_dir: str | os
         run_dir.mkdir(parents=True, exist_ok=True)
     atomic_write(run_dir / "config.yaml", yaml.safe_dump(settings.to_dict(), sort_keys=False))
     atomic_write(run_dir / "command.txt", (command or " ".join(sys.argv)) + "\n")
-    curriculum = CurriculumCallback(settings.resolved_iterations(), settings.resolved_success_threshold())
+    clock = TrainingClock(settings.budget_seconds())
+    curriculum = make_curriculum(settings, clock)
     env = make_training_env(settings, curriculum.stage)
     kwargs = settings.ppo_kwargs()
     model = algorithm_for(kwargs["policy"])(
         env=env, seed=settings.seed, device=settings.device, verbose=0, **with_schedules(kwargs)
     )
     model.formation_config = dataclasses.asdict(settings.config())
-    _learn(model, settings, run_dir, curriculum, spent_seconds=0.0)
+    _learn(model, settings, run_dir, curriculum, clock)
     return run_dir
 
 
@@ -268,22 +269,37 @@ def resume(run_dir: str | os.PathLike[str]) -> Path:
     for leftover in (run_dir / "checkpoints").glob(".iteration_*"):  # folders of a write that was killed
         shutil.rmtree(leftover, ignore_errors=True)
     state = json.loads((checkpoint / STATE_FILE).read_text())
-    curriculum = CurriculumCallback(settings.resolved_iterations(), settings.resolved_success_threshold())
+    clock = TrainingClock(settings.budget_seconds(), spent=state.get("training_seconds", 0.0))
+    curriculum = make_curriculum(settings, clock)
     curriculum.load_state_dict(state["curriculum"])
     env = make_training_env(settings, curriculum.stage, checkpoint / NORMALIZER_FILE)
     model = saved_algorithm(checkpoint / MODEL_FILE).load(checkpoint / MODEL_FILE, env=env, device=settings.device)
     model.set_random_seed(int(np.random.SeedSequence([settings.seed, curriculum.iteration]).generate_state(1)[0]))
-    _learn(model, settings, run_dir, curriculum, spent_seconds=state.get("training_seconds", 0.0))
+    _learn(model, settings, run_dir, curriculum, clock)
     return run_dir
 
 
-def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: CurriculumCallback, spent_seconds: float) -> None:
+def make_curriculum(settings: TrainSettings, clock: TrainingClock) -> CurriculumCallback:
+    """The run's curriculum: iterations per stage, the success gate and, under a time budget alone, the stages' shares
+    of the time (:meth:`TrainSettings.stage_time_shares`).
+
+    :param settings: the run's settings
+    :param clock: the run's clock
+    """
+    return CurriculumCallback(
+        settings.resolved_iterations(),
+        settings.resolved_success_threshold(),
+        time_shares=settings.stage_time_shares(),
+        clock=clock,
+    )
+
+
+def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: CurriculumCallback, clock: TrainingClock) -> None:
     folder = run_dir / "tensorboard"
     folder.mkdir(exist_ok=True)
     # one CSV per session (SB3's CSV writer truncates its file); TensorBoard appends events to the same folder
     csv_name = "progress.csv" if curriculum.iteration == 0 else f"progress_from_iteration_{curriculum.iteration}.csv"
     model.set_logger(Logger(str(folder), [TensorBoardOutputFormat(str(folder)), CSVOutputFormat(str(folder / csv_name))]))
-    clock = TrainingClock(None if settings.minutes is None else 60.0 * settings.minutes, spent_seconds)
     budget = TimeBudgetCallback(clock)
     checkpoint = CheckpointCallback(run_dir, curriculum, clock, settings.checkpoint_every)
     callbacks: list[BaseCallback] = [curriculum, FormationMetricsCallback(settings.to_dict()), budget, checkpoint]

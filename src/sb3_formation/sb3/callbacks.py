@@ -36,14 +36,19 @@ class CurriculumCallback(BaseCallback):
     """Advance the curriculum stage 1 -> 2 -> 3 after a number of PPO iterations per stage (thesis 4.3, 5.3).
 
     With ``success_threshold`` a stage also ends early once the success rate over the last ``window`` team-episodes
-    of that stage reaches it. Stage changes reach every team through ``env_method("set_stage", ...)``: rewards
-    change at once, placements at each team's next reset. The state (stage, iterations) is saved with checkpoints.
+    of that stage reaches it. With ``time_shares`` stages 1 and 2 end at shares of a time budget instead of after
+    their iterations (checked at the end of each iteration). Stage changes reach every team through
+    ``env_method("set_stage", ...)``: rewards change at once, placements at each team's next reset. The state (stage,
+    iterations) is saved with checkpoints.
 
     :param iterations_per_stage: PPO iterations of stages 1, 2 and 3; the last may be ``None`` (open-ended: training
         is ended by something else, e.g. a :class:`TimeBudgetCallback`)
     :param success_threshold: success rate in [0, 1] that ends stages 1 and 2 early, or ``None``
     :param window: team-episodes in the rolling success rate
     :param verbose: 1 prints each stage change
+    :param time_shares: fractions in [0, 1] of ``clock``'s budget after which stages 1 and 2 end (cumulative, e.g.
+        ``(0.2, 0.4)``), or ``None`` (they end after their iterations)
+    :param clock: the run's clock with its budget; needed with ``time_shares``
     """
 
     def __init__(
@@ -52,6 +57,8 @@ class CurriculumCallback(BaseCallback):
         success_threshold: float | None = None,
         window: int = 100,
         verbose: int = 0,
+        time_shares: tuple[float, float] | None = None,
+        clock: TrainingClock | None = None,
     ) -> None:
         super().__init__(verbose)
         iterations = tuple(None if value is None else int(value) for value in iterations_per_stage)
@@ -63,7 +70,16 @@ class CurriculumCallback(BaseCallback):
             raise ValueError(f"success_threshold must be in [0, 1] or None, got {success_threshold!r}")
         if not isinstance(window, int) or window < 1:
             raise ValueError(f"window must be an integer >= 1, got {window!r}")
+        if time_shares is not None:
+            valid = len(time_shares) == 2 and 0.0 <= time_shares[0] <= time_shares[1] <= 1.0
+            if not valid or clock is None or clock.budget is None:
+                raise ValueError(
+                    f"time_shares must be two increasing fractions in [0, 1] with a clock that has a budget, got "
+                    f"{time_shares!r} and {'no clock' if clock is None else f'a budget of {clock.budget!r}'}"
+                )
         self.iterations_per_stage = iterations
+        self.time_shares = time_shares
+        self.clock = clock
         self.success_threshold = success_threshold
         self.window = window
         self.stage = 1
@@ -116,9 +132,14 @@ class CurriculumCallback(BaseCallback):
         self._advance_finished_stages()
 
     def _advance_finished_stages(self) -> None:
-        """Move past every stage whose iterations are done (a stage of 0 iterations is skipped at once)."""
-        while self.stage < 3 and self.stage_iteration >= self.iterations_per_stage[self.stage - 1]:
-            self._next_stage("iterations done")
+        """Move past every stage whose iterations (or share of the time) are done; a stage of none is skipped at once."""
+        while self.stage < 3:
+            if self.time_shares is None and self.stage_iteration >= self.iterations_per_stage[self.stage - 1]:
+                self._next_stage("iterations done")
+            elif self.time_shares is not None and self.clock.seconds >= self.time_shares[self.stage - 1] * self.clock.budget:
+                self._next_stage("its share of the time budget done")
+            else:
+                break
 
     def _next_stage(self, reason: str) -> None:
         self.stage += 1
