@@ -11,7 +11,6 @@ deterministic actions). It prints each set-up's stage plan, training wall time a
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import time
 from pathlib import Path
 
@@ -36,9 +35,8 @@ def main() -> None:
     args = parser.parse_args()
     budget = {"steps": args.steps, "n_envs": args.teams, "seed": args.seed, "progress_bar": False, "env": dict(args.env)}
     fast = TrainSettings(preset=args.fast, logdir=str(args.logdir), **budget)
-    thesis = TrainSettings(preset=args.thesis, recurrent=False if args.thesis_mlp else None, iterations=(1, 1, 1),
-                           logdir=str(args.logdir), **budget)  # fmt: skip
-    thesis = dataclasses.replace(thesis, iterations=thesis.curriculum_over(args.steps))
+    thesis = TrainSettings(preset=args.thesis, recurrent=False if args.thesis_mlp else None, logdir=str(args.logdir),
+                           **budget)  # fmt: skip
     for settings in (fast, thesis):
         started = time.perf_counter()
         run = train(settings, command=f"benchmarks/fast_vs_thesis.py {settings.preset}")

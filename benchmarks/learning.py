@@ -21,7 +21,6 @@ of the budget's iterations, or of its minutes, as 5000 : 5000 : 15000 in thesis 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import time
 from pathlib import Path
 
@@ -45,14 +44,10 @@ def run(setup: str, seed: int, budget: Budget, eval_every: int, logdir: Path) ->
 
     :param budget: ``("steps", agent-steps)`` or ``("minutes", minutes)``
     """
-    settings = TrainSettings(preset=setup, seed=seed, eval_every=eval_every, progress_bar=False, logdir=str(logdir))
-    kind, amount = budget
-    if kind == "minutes":  # the training spreads a curriculum over the minutes itself
-        settings = dataclasses.replace(settings, minutes=amount)
-    elif sum(settings.setup().iterations[:2]) > 0:  # a curriculum: the budget is split in its proportions
-        settings = dataclasses.replace(settings, iterations=settings.curriculum_over(amount))
-    else:
-        settings = dataclasses.replace(settings, steps=amount)
+    kind, amount = budget  # a curriculum is spread over either budget in its proportions
+    settings = TrainSettings(
+        preset=setup, seed=seed, eval_every=eval_every, progress_bar=False, logdir=str(logdir), **{kind: amount}
+    )
     run_dir = logdir / f"{Path(setup).stem}_s{seed}"  # a set-up file: its name without folder and suffix
     started = time.perf_counter()
     train(settings, command=f"benchmarks/learning.py {setup} seed {seed}", run_dir=run_dir)

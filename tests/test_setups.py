@@ -66,6 +66,7 @@ def test_bad_setups_are_one_line_errors(tmp_path: Path, capsys: pytest.CaptureFi
         ({"colour": "red"}, r"unknown keys \['colour'\]"),
         ({"teams": 0}, "teams must be an integer >= 1"),
         ({"curriculum": {"iterations": [1, 2]}}, "iterations must be three integers"),
+        ({"curriculum": {"iterations": [0, 0, 0]}}, r"iterations must be three integers >= 0, not all 0"),
         ({"env": {"preset": "ch5-bearing", "n_agents": 2}}, "n_agents"),
         ({"policy": {**good["policy"], "cell": "rnn"}}, "cell must be one of"),
     ):

@@ -128,17 +128,21 @@ def test_a_steps_budget_sets_the_last_stage_and_repeats_by_seed(tmp_path: Path) 
     assert runs[0].model.num_timesteps == 4 * 16 * 12
     for first, second in zip(runs[0].model.policy.parameters(), runs[1].model.policy.parameters()):
         assert torch.equal(first, second)  # the same seed gives the same model
-    with pytest.raises(ValueError, match="does not reach the last curriculum stage"):
-        TrainSettings(preset=setup, iterations=(5, 0, 1), steps=16 * 12, n_envs=2)
 
 
-def test_a_curriculum_spread_over_a_budget_keeps_its_proportions() -> None:
+def test_a_steps_budget_spreads_a_curriculum_in_its_proportions() -> None:
     # thesis 5.3: 5000 : 5000 : 15000 iterations; 128 steps x 8 teams x 3 agents = 3072 agent-steps per iteration
-    thesis = TrainSettings(preset="ch5-bearing", n_envs=8, env={"n_agents": 3})
-    assert thesis.curriculum_over(600_000) == (39, 39, 118)  # 600,000 / 3072 = 195.3 -> 196 iterations: 20/20/60 %
-    assert thesis.curriculum_over(3072) == (0, 0, 1)
-    fast = TrainSettings(preset="fast-ch5-bearing", n_envs=8, env={"n_agents": 3})  # stage 3 only: 6144 per iteration
-    assert fast.curriculum_over(600_000) == (0, 0, 98)
+    common = {"n_envs": 8, "env": {"n_agents": 3}}
+    thesis = TrainSettings(preset="ch5-bearing", steps=600_000, **common)
+    assert thesis.resolved_iterations() == (39, 39, 118)  # 600,000 / 3072 = 195.3 -> 196 iterations: 20/20/60 %
+    assert yaml.safe_load(yaml.safe_dump(thesis.to_dict()))["iterations"] == [39, 39, 118]
+    assert TrainSettings(preset="ch5-bearing", steps=3072, **common).resolved_iterations() == (0, 0, 1)
+    given = TrainSettings(preset="ch5-bearing", iterations=(1, 1, 3), steps=10 * 3072, **common)
+    assert given.resolved_iterations() == (2, 2, 6)  # given iterations are proportions too
+    resolved = TrainSettings(preset="ch5-bearing", iterations=(39, 39, 118), steps=600_000, **common)
+    assert resolved.resolved_iterations() == (39, 39, 118)  # a run's config.yaml resolves to itself on --resume
+    fast = TrainSettings(preset="fast-ch5-bearing", steps=600_000, **common)  # stage 3 only: 6144 per iteration
+    assert fast.resolved_iterations() == (0, 0, 98)
 
 
 def test_a_clocked_schedule_follows_whichever_budget_is_further_along(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -122,8 +122,8 @@ class TrainSettings:
         settings (``episodes``, ``stage``, ``seed``, ``n_envs``, ``workers``, ``deterministic``, ``record``) into ``eval/``
     :param recurrent: recurrent actor and critic
     :param cell: recurrent cell, ``"gru"`` or ``"lstm"``; only for recurrent policies
-    :param steps: budget in agent-steps (rounded up to whole iterations); the last curriculum stage gets what the
-        stages before it leave, and schedules run over the budget
+    :param steps: budget in agent-steps (rounded up to whole iterations), split between the stages in the
+        proportions of the curriculum's iterations; schedules run over the budget
     :param minutes: budget in minutes of training wall-clock (not deterministic). Without ``steps`` and ``iterations``
         it replaces the set-up's budget: stages 1 and 2 end at their shares of the time in the curriculum's
         proportions (:meth:`stage_time_shares`) and stage 3 runs until the time is up; with them, training ends at
@@ -271,9 +271,10 @@ class TrainSettings:
         return self.setup().config(**self.env)
 
     def resolved_iterations(self) -> tuple[int, int, int | None]:
-        """Iterations per stage: the set-up's unless given; with a steps budget the last stage that has iterations gets
-        what the stages before it leave of the budget (in whole iterations, rounded up); with only a time budget stage 3
-        is open-ended (``None``) and stages 1-2 end at shares of the time (:meth:`stage_time_shares`)."""
+        """Iterations per stage: the set-up's unless given; with a steps budget, the budget's iterations (rounded up)
+        split in the curriculum's proportions (:meth:`curriculum_proportions`; stage 3 gets what stages 1-2 leave);
+        with only a time budget stage 3 is open-ended (``None``) and stages 1-2 end at shares of the time
+        (:meth:`stage_time_shares`)."""
         iterations = self.iterations if self.iterations is not None else self.setup().iterations
         budget = self.resolved_training("steps")
         if budget is None:
@@ -281,36 +282,25 @@ class TrainSettings:
                 return (iterations[0], iterations[1], None)
             return iterations
         total = -(-budget // self.steps_per_iteration())
-        last = max((stage for stage in range(3) if (iterations[stage] or 0) > 0), default=2)  # None: open-ended
-        before = sum(iterations[:last])
-        if total <= before:
-            raise ValueError(
-                f"a budget of {budget} agent-steps ({total} iterations of {self.steps_per_iteration()}) does not reach the "
-                f"last curriculum stage, which starts after {before} iterations"
-            )
-        return tuple(total - before if stage == last else (iterations[stage] if stage < last else 0) for stage in range(3))
-
-    def curriculum_over(self, steps: int) -> tuple[int, int, int]:
-        """Iterations per stage that spend ``steps`` agent-steps (rounded up to whole iterations) in the proportions of
-        the set-up's curriculum, e.g. 20 / 20 / 60 % for the thesis's 5000 : 5000 : 15000 (thesis 5.3); stage 3 gets
-        what stages 1-2 leave.
-
-        :param steps: budget in agent-steps
-        """
-        total = -(-steps // self.steps_per_iteration())
-        iterations = [count or 0 for count in self.setup().iterations]
-        first, second = (total * count // sum(iterations) for count in iterations[:2])
+        proportions = self.curriculum_proportions()
+        first, second = (total * count // sum(proportions) for count in proportions[:2])
         return first, second, total - first - second
+
+    def curriculum_proportions(self) -> tuple[int, int, int]:
+        """The curriculum's iterations per stage as proportions, e.g. 5000 : 5000 : 15000 (thesis 5.3), which a steps
+        budget and a time budget split in the same ratio (20, 20 and 60 %); an open-ended stage 3 counts as the
+        set-up's."""
+        first, second, third = self.iterations if self.iterations is not None else self.setup().iterations
+        return first, second, self.setup().iterations[2] if third is None else third
 
     def stage_time_shares(self) -> tuple[float, float] | None:
         """With a time budget alone (stage 3 open-ended): the fractions of it after which stages 1 and 2 end, in the
-        proportions of the set-up's curriculum, e.g. 0.2 and 0.4 for the thesis's 5000 : 5000 : 15000 (thesis 5.3);
-        otherwise ``None`` (stages end after their iterations)."""
-        first, second, third = self.resolved_iterations()
-        if third is not None:
+        curriculum's proportions (:meth:`curriculum_proportions`: 0.2 and 0.4 for the thesis's); otherwise ``None``
+        (stages end after their iterations)."""
+        if self.resolved_iterations()[2] is not None:
             return None
-        total = first + second + (self.setup().iterations[2] or 0)
-        return (first / total, (first + second) / total) if total else (0.0, 0.0)
+        first, second, third = self.curriculum_proportions()
+        return first / (first + second + third), (first + second) / (first + second + third)
 
     def budget_seconds(self) -> float | None:
         """The time budget in seconds, or ``None``."""

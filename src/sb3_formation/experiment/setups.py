@@ -46,8 +46,8 @@ class SetUp:
     :param teams: parallel teams during training
     :param evaluation: ``episodes`` and ``stage`` of the evaluation protocol
     :param training: optional training features (:data:`TRAINING_DEFAULTS`): ``normalize_reward`` (divide rewards by
-        a running std of the discounted return, SB3's ``VecNormalize``), ``steps`` (a budget of agent-steps; the
-        last curriculum stage gets what the others leave), ``eval_every`` and ``eval_episodes`` (periodic evaluation)
+        a running std of the discounted return, SB3's ``VecNormalize``), ``steps`` (a budget of agent-steps, split
+        between the stages in the curriculum's proportions), ``eval_every`` and ``eval_episodes`` (periodic evaluation)
     :param source: the file it was read from
     """
 
@@ -68,8 +68,9 @@ class SetUp:
             raise ValueError(f"{where}: env: preset must be one of {sorted(PRESETS)}, got {self.env.get('preset')!r}")
         self.config()  # validates the env overrides
         iterations = self.curriculum.get("iterations")
-        if not (isinstance(iterations, (list, tuple)) and len(iterations) == 3 and all(is_count(i) for i in iterations)):
-            raise ValueError(f"{where}: curriculum: iterations must be three integers >= 0, got {iterations!r}")
+        valid = isinstance(iterations, (list, tuple)) and len(iterations) == 3 and all(is_count(i) for i in iterations)
+        if not valid or sum(iterations) < 1:
+            raise ValueError(f"{where}: curriculum: iterations must be three integers >= 0, not all 0, got {iterations!r}")
         unknown = sorted(set(self.curriculum) - {"iterations", "success_threshold"})
         if unknown:
             raise ValueError(f"{where}: unknown curriculum keys {unknown}; valid: iterations, success_threshold")
