@@ -300,7 +300,8 @@ class TrainSettings:
         if self.resolved_iterations()[2] is not None:
             return None
         first, second, third = self.curriculum_proportions()
-        return first / (first + second + third), (first + second) / (first + second + third)
+        total = first + second + third
+        return first / total, (first + second) / total
 
     def budget_seconds(self) -> float | None:
         """The time budget in seconds, or ``None``."""

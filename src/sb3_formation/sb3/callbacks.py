@@ -133,13 +133,14 @@ class CurriculumCallback(BaseCallback):
 
     def _advance_finished_stages(self) -> None:
         """Move past every stage whose iterations (or share of the time) are done; a stage of none is skipped at once."""
-        while self.stage < 3:
-            if self.time_shares is None and self.stage_iteration >= self.iterations_per_stage[self.stage - 1]:
-                self._next_stage("iterations done")
-            elif self.time_shares is not None and self.clock.seconds >= self.time_shares[self.stage - 1] * self.clock.budget:
-                self._next_stage("its share of the time budget done")
-            else:
-                break
+        reason = "iterations done" if self.time_shares is None else "its share of the time budget done"
+        while self.stage < 3 and self._stage_done():
+            self._next_stage(reason)
+
+    def _stage_done(self) -> bool:
+        if self.time_shares is None:
+            return self.stage_iteration >= self.iterations_per_stage[self.stage - 1]
+        return self.clock.seconds >= self.time_shares[self.stage - 1] * self.clock.budget
 
     def _next_stage(self, reason: str) -> None:
         self.stage += 1
