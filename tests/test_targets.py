@@ -26,7 +26,7 @@ def test_targets_resolve_through_one_registry() -> None:
     assert load_policy("controller:random").config.n_agents == 6  # default set-up: ch5-bearing
     assert target_kind("controller:random") == "controller" and target_kind("runs/a:b") is None
     assert evaluation_folder("controller:random", "ch4-team") == Path("evaluations/controller-random_ch4-team")
-    with pytest.raises(ValueError, match="unknown controller 'pid'; controllers: random"):
+    with pytest.raises(ValueError, match="unknown controller 'pid'; controllers: classical, random"):
         load_policy("controller:pid")
     with pytest.raises(ValueError, match="a preset applies to controller targets only"):
         load_policy("runs/x", preset="ch5-bearing")
@@ -43,21 +43,22 @@ def test_a_controller_is_evaluated_reproducibly_by_seed() -> None:
     assert first.summary["model"] == {"controller": "RandomController", "gains": {"seed": None}}
 
 
-def test_controller_targets_work_with_every_command(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("name", ["random", "classical"])
+def test_controller_targets_work_with_every_command(name: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)
     short = ["--preset", "ch4-individual"]
-    assert main(["evaluate", "controller:random", *short, *QUICK, "--trajectories", "1"]) == 0
-    folder = tmp_path / "evaluations" / "controller-random_ch4-individual"
+    assert main(["evaluate", f"controller:{name}", *short, *QUICK, "--trajectories", "1"]) == 0
+    folder = tmp_path / "evaluations" / f"controller-{name}_ch4-individual"
     summary = json.loads((folder / "summary.json").read_text())
     assert summary["episodes"] == 2 and summary["n_agents"] == 3 and summary["stage"] == 3
-    assert main(["plot", "trajectories", "controller:random", *short]) == 0
+    assert main(["plot", "trajectories", f"controller:{name}", *short]) == 0
     assert (folder / "figures" / "trajectory_000.png").stat().st_size > 10_000
-    assert main(["render", "controller:random", *short, "--max-steps", "5", "--out", "random.gif"]) == 0
-    assert (tmp_path / "random.gif").stat().st_size > 1_000
+    assert main(["render", f"controller:{name}", *short, "--max-steps", "5", "--out", f"{name}.gif"]) == 0
+    assert (tmp_path / f"{name}.gif").stat().st_size > 1_000
     # compare reuses the stored evaluation of the same controller under the same protocol
-    assert main(["compare", "controller:random", *short, *QUICK, "--out", "bars.png", "--table", "table.md"]) == 0
-    assert "| controller:random | 2 |" in (tmp_path / "table.md").read_text()
-    assert main(["rollout", "controller:random", *short, "--episodes", "1", "--max-steps", "5", "--out", "f.png"]) == 0
+    assert main(["compare", f"controller:{name}", *short, *QUICK, "--out", "bars.png", "--table", "table.md"]) == 0
+    assert f"| controller:{name} | 2 |" in (tmp_path / "table.md").read_text()
+    assert main(["rollout", f"controller:{name}", *short, "--episodes", "1", "--max-steps", "5", "--out", "f.png"]) == 0
     assert (tmp_path / "f.png").is_file()
 
 

@@ -4,9 +4,10 @@
 """
 
 from sb3_formation.controllers.base import Controller, TeamPolicy
+from sb3_formation.controllers.classical import ClassicalController, ClassicalGains
 from sb3_formation.controllers.random import RandomController
 
 #: Controllers by name: ``controller:<name>`` on the command line, :func:`sb3_formation.load_policy` in Python.
-CONTROLLERS: dict[str, type[Controller]] = {"random": RandomController}
+CONTROLLERS: dict[str, type[Controller]] = {"classical": ClassicalController, "random": RandomController}
 
-__all__ = ["CONTROLLERS", "Controller", "RandomController", "TeamPolicy"]
+__all__ = ["CONTROLLERS", "ClassicalController", "ClassicalGains", "Controller", "RandomController", "TeamPolicy"]
