@@ -11,11 +11,15 @@ deterministic actions). It prints:
 - time to success: wall-clock and agent-steps until the periodic evaluation first reached 50 %, 80 % and 90 %;
 - a figure of the periodic success rate against wall-clock, per set-up and seed (``--out``).
 
+``--controllers classical`` adds a row per controller and thesis task (``--controller-presets``), evaluated on the
+same protocol and seeds (its wall time is the evaluation's; it trains nothing).
+
 A thesis set-up trained on the same budget keeps its curriculum's proportions (stages 1, 2 and 3 get 20, 20 and 60 %
 of the budget's iterations, or of its minutes, as 5000 : 5000 : 15000 in thesis 5.3).
 
     python benchmarks/learning.py --setups fast-ch5-bearing,ch5-bearing --seeds 0,1,2 --steps 6000000
     python benchmarks/learning.py --setups fast-ch5-bearing,ch5-bearing --seeds 0,1,2 --minutes 15
+    python benchmarks/learning.py --setups "" --controllers classical
 """
 
 from __future__ import annotations
@@ -67,35 +71,50 @@ def success_over_time(run_dir: Path) -> tuple[list[tuple[float, int, float]], in
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--setups", default="fast-ch5-bearing", help="comma-separated set-ups")
+    parser.add_argument("--setups", default="fast-ch5-bearing", help="comma-separated set-ups (may be empty)")
+    parser.add_argument("--controllers", default="", help="comma-separated controllers to evaluate beside the set-ups")
+    parser.add_argument(
+        "--controller-presets", default=",".join(THESIS_RESULTS), help="comma-separated set-ups the controllers act in"
+    )
     parser.add_argument("--seeds", default="0,1,2", help="comma-separated seeds")
     budgets = parser.add_mutually_exclusive_group()
     budgets.add_argument("--steps", type=int, default=6_000_000, help="training budget in agent-steps per run")
     budgets.add_argument("--minutes", type=float, help="training budget in minutes of wall-clock per run (not --steps)")
     parser.add_argument("--eval-every", type=int, default=25, help="iterations between periodic evaluations")
-    parser.add_argument("--episodes", type=int, default=200, help="final evaluation episodes (thesis 5.4: 200)")
+    parser.add_argument(
+        "--episodes", type=int, help="final evaluation episodes (default: the set-up's protocol; thesis 4.4: 500, 5.4: 200)"
+    )
     parser.add_argument("--logdir", type=Path, default=Path("runs/benchmark-learning"), help="folder of the runs")
     parser.add_argument("--out", type=Path, default=Path("learning.png"), help="success-against-time figure")
     args = parser.parse_args()
     budget = ("steps", args.steps) if args.minutes is None else ("minutes", args.minutes)
     rows, curves = [], {}
-    for setup in args.setups.split(","):
+    protocol = {"episodes": args.episodes, "stage": 3, "seed": 0, "n_envs": 8}
+    for setup in filter(None, args.setups.split(",")):
         for seed in (int(seed) for seed in args.seeds.split(",")):
             run_dir, seconds = run(setup, seed, budget, args.eval_every, args.logdir)
-            protocol = {"episodes": args.episodes, "stage": 3, "seed": 0, "n_envs": 8}
-            summary = evaluate_target(run_dir / "final_model.zip", protocol, out=run_dir / "eval").summary
+            summary = evaluate_target(run_dir, protocol, out=run_dir / "eval").summary
             curves[(setup, seed)], steps = success_over_time(run_dir)
             rows.append((setup, seed, summary, seconds, steps))
             print(f"{setup} seed {seed}: {summary['success_rate']:.1%} after {seconds / 60:.1f} min", flush=True)
-    print_tables(rows, curves, budget, args.episodes)
-    draw(curves, args.out)
+    for name in filter(None, args.controllers.split(",")):
+        for preset in args.controller_presets.split(","):
+            started = time.perf_counter()
+            out = args.logdir / f"controller-{name}_{Path(preset).stem}"
+            summary = evaluate_target(f"controller:{name}", protocol, preset=preset, out=out).summary
+            rows.append((f"controller:{name} on {preset}", None, summary, time.perf_counter() - started, None))
+            print(f"controller:{name} on {preset}: {summary['success_rate']:.1%}", flush=True)
+    print_tables(rows, curves, budget)
+    if curves:
+        draw(curves, args.out)
 
 
-def print_tables(rows: list, curves: dict, budget: Budget, episodes: int) -> None:
-    """The results table and the time-to-success table, in Markdown."""
+def print_tables(rows: list, curves: dict, budget: Budget) -> None:
+    """The results table and the time-to-success table, in Markdown (controllers: no seed, no agent-steps)."""
     headings = ["set-up", "seed", "success (95 % CI)", "angle error (deg)", "bearing error", "distance error (m)",
                 "agent contacts", "obstacle contacts", "steps to goal", "wall time (min)", "agent-steps/s"]  # fmt: skip
-    print(f"\n{episodes} stage-3 episodes (seed 0 onwards); means over the successful ones")
+    episodes = sorted({summary["episodes"] for _, _, summary, _, _ in rows})
+    print(f"\n{'/'.join(map(str, episodes))} stage-3 episodes (seed 0 onwards); means over the successful ones")
     kind, amount = budget
     print(f"budget {amount:,} {'agent-steps' if kind == 'steps' else 'minutes'} per run\n")
     print("| " + " | ".join(headings) + " |")
@@ -105,11 +124,11 @@ def print_tables(rows: list, curves: dict, budget: Budget, episodes: int) -> Non
     for setup, seed, summary, seconds, steps in rows:
         low, high = summary["success_rate_ci95"]
         means = summary["successful_episodes"]
-        cells = [setup, str(seed), f"{summary['success_rate']:.1%} ({low:.1%} - {high:.1%})"]
+        cells = [setup, "-" if seed is None else str(seed), f"{summary['success_rate']:.1%} ({low:.1%} - {high:.1%})"]
         for name in ("angle_error_deg", "bearing_error", "neighbour_distance_error", "collisions_agent",
                      "collisions_obstacle", "length"):  # fmt: skip
             cells.append("-" if means[name]["mean"] is None else table_number(means[name]["mean"]))
-        cells += [f"{seconds / 60:.1f}", f"{steps / seconds:,.0f}"]
+        cells += [f"{seconds / 60:.1f}", "-" if steps is None else f"{steps / seconds:,.0f}"]
         print("| " + " | ".join(cells) + " |")
     print("\nTime until the periodic evaluation (20 episodes) first reached a success rate\n")
     print("| set-up | seed | " + " | ".join(f"{level:.0%}: min / M agent-steps" for level in LEVELS) + " |")
