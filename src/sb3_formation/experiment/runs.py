@@ -20,7 +20,9 @@ from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.save_util import json_to_data
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize, unwrap_vec_wrapper
 
+from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.experiment.setups import residual_policy
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
 from sb3_formation.sb3.trained import TrainedPolicy
@@ -98,8 +100,10 @@ def latest_checkpoint(run_dir: Path) -> Path | None:
     return complete[-1] if complete else None
 
 
-def load_trained(path: str | os.PathLike[str], device: str = "auto") -> TrainedPolicy:
-    """Load a run folder (its final model, else its latest checkpoint) or a model ``.zip`` with its normaliser beside.
+def load_trained(path: str | os.PathLike[str], device: str = "auto") -> TeamPolicy:
+    """Load a run folder (its final model, else its latest checkpoint) or a model ``.zip`` with its normaliser beside,
+    as a :class:`TrainedPolicy` (a :class:`~sb3_formation.controllers.residual.ResidualPolicy` around one when the
+    model is a correction of a controller).
 
     :param path: a run folder, or a model file whose normaliser is ``normalizer.npz`` / ``final_normalizer.npz``
         in the same folder
@@ -132,4 +136,6 @@ def load_trained(path: str | os.PathLike[str], device: str = "auto") -> TrainedP
             normalizer_state = {key: data[key] for key in data.files}
     except (zipfile.BadZipFile, ValueError, OSError) as error:
         raise ValueError(f"{normalizer_path} is not a normaliser file: {error}") from error
-    return TrainedPolicy(model, config, normalizer_state, source=model_path)
+    trained = TrainedPolicy(model, config, normalizer_state, source=model_path)
+    residual = getattr(model, "residual", None)  # a correction of a controller (a set-up's residual)
+    return residual_policy(residual, trained) if residual else trained

@@ -20,6 +20,9 @@ import yaml
 from stable_baselines3.common.type_aliases import Schedule
 from stable_baselines3.common.utils import LinearSchedule
 
+from sb3_formation.controllers import CONTROLLERS
+from sb3_formation.controllers.base import Controller, TeamPolicy
+from sb3_formation.controllers.residual import ResidualPolicy, check_residual_scale
 from sb3_formation.env.config import PRESETS, FormationConfig
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import CELLS, RecurrentFormationPolicy
@@ -48,6 +51,9 @@ class SetUp:
     :param training: optional training features (:data:`TRAINING_DEFAULTS`): ``normalize_reward`` (divide rewards by
         a running std of the discounted return, SB3's ``VecNormalize``), ``steps`` (a budget of agent-steps, split
         between the stages in the curriculum's proportions), ``eval_every`` and ``eval_episodes`` (periodic evaluation)
+    :param residual: optional: train a correction of a controller (``controller``: a name of
+        :data:`~sb3_formation.controllers.CONTROLLERS`, ``gains``: its keyword arguments, ``scale``: the correction's
+        bound as a fraction of F_max); the env then receives ``clip(a_controller + scale * a_policy, -1, 1)``
     :param source: the file it was read from
     """
 
@@ -60,6 +66,7 @@ class SetUp:
     teams: int
     evaluation: dict[str, Any]
     training: dict[str, Any] = field(default_factory=dict)
+    residual: dict[str, Any] = field(default_factory=dict)
     source: Path | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
@@ -95,6 +102,14 @@ class SetUp:
         if not isinstance(self.policy.get("recurrent", False), bool) or team_critic not in (None, True, False):
             raise ValueError(f"{where}: policy: recurrent must be true or false, team_critic true, false or unset")
         self.ppo_kwargs()  # validates the policy choices
+        if self.residual:
+            unknown = sorted(set(self.residual) - {"controller", "gains", "scale"})
+            if unknown or "controller" not in self.residual or "scale" not in self.residual:
+                raise ValueError(f"{where}: residual needs controller and scale and may give gains, got {self.residual!r}")
+            try:
+                residual_base(self.residual, self.config())
+            except (TypeError, ValueError) as error:
+                raise ValueError(f"{where}: residual: {error}") from error
 
     @property
     def recurrent(self) -> bool:
@@ -156,11 +171,32 @@ class SetUp:
         keys = [f.name for f in fields(cls) if f.name not in ("name", "source")]
         if not isinstance(values, dict):
             raise ValueError(f"set-up {name!r} must be a mapping of {keys}, not {type(values).__name__}")
-        required = [key for key in keys if key != "training"]
+        required = [key for key in keys if key not in ("training", "residual")]
         unknown, missing = sorted(set(values) - set(keys)), [key for key in required if key not in values]
         if unknown or missing:
             raise ValueError(f"set-up {name!r}: unknown keys {unknown}, missing keys {missing}; a set-up has {keys}")
         return cls(name=name, source=source, **values)
+
+
+def residual_base(spec: dict[str, Any], config: FormationConfig) -> tuple[Controller, float]:
+    """The controller and the correction's bound that a set-up's ``residual`` describes.
+
+    :param spec: ``controller``, ``scale`` and optional ``gains`` (see :class:`SetUp`)
+    :param config: the task the controller acts in
+    """
+    name = spec["controller"]
+    if name not in CONTROLLERS:
+        raise ValueError(f"unknown controller {name!r}; controllers: {', '.join(sorted(CONTROLLERS))}")
+    gains = spec.get("gains") or {}
+    if not isinstance(gains, dict):
+        raise ValueError(f"gains must be a mapping of gain names to values, got {gains!r}")
+    return CONTROLLERS[name](config, **gains), check_residual_scale(spec["scale"])
+
+
+def residual_policy(spec: dict[str, Any], correction: TeamPolicy) -> ResidualPolicy:
+    """The residual policy of a set-up's ``residual`` with ``correction`` (e.g. a trained model) as its learned part."""
+    base, scale = residual_base(spec, correction.config)
+    return ResidualPolicy(base, correction, scale)
 
 
 #: Training features a set-up may switch on, and their defaults (the thesis's: none of them).

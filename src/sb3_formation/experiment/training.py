@@ -23,6 +23,7 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.logger import CSVOutputFormat, Logger, TensorBoardOutputFormat
 from stable_baselines3.common.vec_env import VecEnv, unwrap_vec_wrapper
 
+from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.experiment.evaluation import evaluate
 from sb3_formation.experiment.runs import (
     BEST_MODEL,
@@ -40,7 +41,7 @@ from sb3_formation.experiment.runs import (
     saved_algorithm,
 )
 from sb3_formation.experiment.settings import TrainSettings, load_settings
-from sb3_formation.experiment.setups import with_schedules
+from sb3_formation.experiment.setups import residual_base, residual_policy, with_schedules
 from sb3_formation.sb3.callbacks import (
     CurriculumCallback,
     FormationMetricsCallback,
@@ -49,6 +50,7 @@ from sb3_formation.sb3.callbacks import (
     TrainingClock,
 )
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
+from sb3_formation.sb3.residual import ResidualVecEnv
 from sb3_formation.sb3.trained import TrainedPolicy
 from sb3_formation.sb3.vec_env import FormationVecEnv
 from sb3_formation.utils.files import atomic_directory, atomic_write
@@ -156,7 +158,11 @@ class PeriodicEvaluation(BaseCallback):
             return
         self.evaluated = iteration
         env = self.model.get_env()
-        policy = TrainedPolicy(self.model.policy, self.config, unwrap_vec_wrapper(env, ScaleNormalizeVecEnv).state_dict())
+        policy: TeamPolicy = TrainedPolicy(
+            self.model.policy, self.config, unwrap_vec_wrapper(env, ScaleNormalizeVecEnv).state_dict()
+        )
+        if getattr(self.model, "residual", None):
+            policy = residual_policy(self.model.residual, policy)
         summary = evaluate(policy, self.episodes, stage=3, seed=PERIODIC_EVALUATION_SEED, n_envs=min(8, self.episodes)).summary
         self.logger.record("eval/success_rate", summary["success_rate"])
         for name, statistics in summary["all_episodes"].items():
@@ -204,6 +210,9 @@ def make_training_env(settings: TrainSettings, stage: int, normalizer_path: Path
         n_workers=settings.workers,
     )
     dim, mask = venv.agent_observation_dim, venv.binary_observation_mask
+    residual = settings.setup().residual
+    if residual:  # the controller acts on the raw observations, below the normaliser
+        venv = ResidualVecEnv(venv, *residual_base(residual, config))
     if normalizer_path is None:
         env: VecEnv = ScaleNormalizeVecEnv(venv, dim, mask)
     else:
@@ -251,6 +260,7 @@ def train(settings: TrainSettings, command: str | None = None, run_dir: str | os
         env=env, seed=settings.seed, device=settings.device, verbose=0, **with_schedules(kwargs)
     )
     model.formation_config = dataclasses.asdict(settings.config())
+    model.residual = settings.setup().residual  # the model file says how its actions are meant (load_trained)
     _learn(model, settings, run_dir, curriculum, clock)
     return run_dir
 

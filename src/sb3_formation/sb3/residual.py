@@ -1,0 +1,42 @@
+"""Training a residual policy: the VecEnv wrapper that adds a controller's action to the policy's correction."""
+
+from __future__ import annotations
+
+import numpy as np
+from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepReturn
+
+from sb3_formation.controllers.base import Controller
+from sb3_formation.controllers.residual import add_correction, check_residual_scale
+
+
+class ResidualVecEnv(VecEnvWrapper):
+    """Makes the agent's action a bounded correction of a controller's: the env receives
+    ``clip(a_controller + scale * a, -1, 1)``, the controller acting on the raw observations (wrap the
+    :class:`~sb3_formation.sb3.vec_env.FormationVecEnv` itself, below any normaliser).
+
+    :param venv: the formation VecEnv (raw observations; with team observations the first ``agent_obs_dim`` columns)
+    :param base: the controller, acting in the env's task
+    :param scale: the correction's bound, a fraction of F_max
+    """
+
+    def __init__(self, venv: VecEnv, base: Controller, scale: float) -> None:
+        super().__init__(venv)
+        self.base, self.scale = base, check_residual_scale(scale)
+        self.agent_obs_dim: int = venv.agent_observation_dim
+        self._observations: np.ndarray | None = None
+
+    def reset(self) -> VecEnvObs:
+        self._observations = self.venv.reset()
+        return self._observations
+
+    def step_async(self, actions: np.ndarray) -> None:
+        if self._observations is None:
+            raise RuntimeError("reset() the env before stepping it")
+        base, _ = self.base.predict(self._observations[:, : self.agent_obs_dim])
+        self.venv.step_async(add_correction(base.astype(np.float64), actions, self.scale))
+
+    def step_wait(self) -> VecEnvStepReturn:
+        observations, rewards, dones, infos = self.venv.step_wait()
+        self._observations = observations
+        return observations, rewards, dones, infos
