@@ -1,0 +1,115 @@
+"""Residual policies: the controller's action plus a bounded learned correction, in training and in evaluation."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from sb3_formation.cli import main
+from sb3_formation.controllers import ClassicalController
+from sb3_formation.controllers.residual import ResidualPolicy, add_correction
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.formation_env import FormationEnv
+from sb3_formation.experiment.evaluation import evaluate
+from sb3_formation.experiment.setups import SETUPS_FOLDER, SetUp, load_setup
+from sb3_formation.experiment.targets import load_policy
+from sb3_formation.sb3.residual import ResidualVecEnv
+from sb3_formation.sb3.vec_env import FormationVecEnv
+
+CH5 = FormationConfig.preset("ch5-bearing", stage=3)
+
+
+class ConstantPolicy:
+    """A correction that is the same action for every row."""
+
+    def __init__(self, config: FormationConfig, action: tuple[float, float]) -> None:
+        self.config, self.action = config, np.asarray(action, dtype=np.float32)
+
+    def fit(self, config: FormationConfig) -> ConstantPolicy:
+        return self
+
+    def predict(self, observation, state=None, episode_start=None, deterministic=True):
+        return np.tile(self.action, (len(np.asarray(observation).reshape(-1, observation.shape[-1])), 1)), None
+
+
+def test_a_correction_is_bounded_and_the_sum_clipped() -> None:
+    base = np.array([[0.5, -0.9], [0.0, 0.95]])
+    # corrections are clipped to [-1, 1] first (as the env clips actions), then scaled by 0.3, then the sum clipped
+    corrected = add_correction(base, np.array([[1.0, -1.0], [-4.0, 0.5]]), 0.3)
+    np.testing.assert_allclose(corrected, [[0.8, -1.0], [-0.3, 1.0]], atol=1e-7)
+    with pytest.raises(ValueError, match="residual scale must be a number in \\(0, 2\\]"):
+        ResidualPolicy(ClassicalController(CH5), ConstantPolicy(CH5, (0, 0)), 0.0)
+
+
+def test_a_zero_correction_acts_exactly_as_the_controller() -> None:
+    controller = ClassicalController(CH5)
+    zero = ResidualPolicy(controller, ConstantPolicy(CH5, (0.0, 0.0)), 0.3)
+    shifted = ResidualPolicy(controller, ConstantPolicy(CH5, (0.5, 0.0)), 0.3)
+    env = FormationEnv(CH5)
+    rows = np.stack(list(env.reset(seed=2)[0].values()))
+    for _ in range(40):
+        actions = controller.predict(rows)[0]
+        np.testing.assert_array_equal(zero.predict(rows)[0], actions)
+        np.testing.assert_allclose(shifted.predict(rows)[0], np.clip(actions + np.array([0.15, 0.0]), -1, 1), atol=1e-6)
+        rows, *_ = env.step_array(actions)
+    # evaluated episodes are the controller's, bit for bit
+    protocol = {"episodes": 2, "stage": 3, "seed": 5, "n_envs": 2, "env_overrides": {"max_steps": 150}, "record": 0}
+    assert evaluate(zero, **protocol).episodes == evaluate(controller, **protocol).episodes
+
+
+def test_the_training_env_adds_the_controller_to_the_agent_action() -> None:
+    """Stepping the residual VecEnv with zero corrections replays the controller's team, slot by slot."""
+    controller = ClassicalController(CH5)
+    venv = ResidualVecEnv(FormationVecEnv(CH5, n_envs=2, team_observations=True), controller, 0.3)
+    venv.seed(11)
+    observations = venv.reset()
+    env = FormationEnv(CH5)
+    rows = np.stack(list(env.reset(seed=11 + 6)[0].values()))  # team 1's seed: 11 + 1 * n_agents
+    for _ in range(25):
+        np.testing.assert_array_equal(observations[6:12, : rows.shape[1]], rows)
+        observations, *_ = venv.step(np.zeros((12, 2), dtype=np.float32))
+        rows, *_ = env.step_array(controller.predict(rows)[0])
+    venv.close()
+
+
+def test_a_residual_setup_trains_saves_and_loads_as_a_residual_policy(tmp_path: Path) -> None:
+    values = yaml.safe_load((SETUPS_FOLDER / "residual-ch5-bearing.yaml").read_text())
+    values["policy"]["net_arch"] = {"pi": [16], "vf": [16]}
+    values["ppo"] |= {"n_steps": 16, "batch_size": 64, "n_epochs": 2}
+    values["teams"] = 2
+    values["training"] |= {"steps": 2 * 16 * 12, "eval_every": 1, "eval_episodes": 2}
+    setup = tmp_path / "residual.yaml"
+    setup.write_text(yaml.safe_dump(values))
+    run = tmp_path / "run"
+    assert main(["train", "--preset", str(setup), "--env", "max_steps=40", "--run-dir", str(run), "--no-progress"]) == 0
+    policy = load_policy(run)
+    assert isinstance(policy, ResidualPolicy) and policy.scale == 0.3 and isinstance(policy.base, ClassicalController)
+    # with the correction's mean set to zero the trained policy acts as the controller
+    with torch.no_grad():
+        for parameter in policy.correction.policy.action_net.parameters():
+            parameter.zero_()
+    env = FormationEnv(policy.config.replace(stage=3))
+    rows = np.stack(list(env.reset(seed=4)[0].values()))
+    for _ in range(20):
+        actions = policy.predict(rows)[0]
+        np.testing.assert_array_equal(actions, policy.base.predict(rows)[0])
+        rows, *_ = env.step_array(actions)
+
+
+def test_residual_setups_are_checked() -> None:
+    setup = load_setup("residual-ch5-bearing")
+    values = {key: getattr(setup, key) for key in ("description", "env", "policy", "ppo", "curriculum", "teams", "evaluation")}
+    with pytest.raises(ValueError, match="residual needs controller and scale"):
+        SetUp("bad", **values, residual={"controller": "classical"})
+    with pytest.raises(ValueError, match="unknown controller 'pid'"):
+        SetUp("bad", **values, residual={"controller": "pid", "scale": 0.3})
+    with pytest.raises(ValueError, match="unknown gains \\['k_gaol'\\]"):
+        SetUp("bad", **values, residual={"controller": "classical", "scale": 0.3, "gains": {"k_gaol": 1}})
+    with pytest.raises(
+        ValueError, match="residual: the residual scale must be a number in \\(0, 2\\] \\(a fraction of F_max\\), got 3"
+    ):
+        SetUp("bad", **values, residual={"controller": "classical", "scale": 3})
