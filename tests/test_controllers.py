@@ -167,3 +167,24 @@ def test_goal_attraction_turns_aside_without_progress() -> None:
     turns = np.radians([80.0, 0.0, 40.0])
     expected = speed * np.stack([np.cos(turns), np.sin(turns)], axis=1)
     np.testing.assert_allclose(controller.goal_velocity(goal, change), expected, atol=1e-15)
+
+
+@pytest.mark.parametrize("preset", ["ch5-angle", "ch5-bearing"])
+@pytest.mark.parametrize("n_agents", [3, 10, 16])
+def test_flies_teams_of_any_size_in_formation(preset: str, n_agents: int) -> None:
+    """From a regular polygon turned by 25 deg (out of the bearing reference) across an empty world to the goal, with
+    every interior angle near beta^ref at the end."""
+    config = FormationConfig.preset(preset, n_agents=n_agents, stage=3)
+    turn = math.radians(25)
+    rotation = np.array([[math.cos(turn), math.sin(turn)], [-math.sin(turn), math.cos(turn)]])
+    start = reference_polygon(n_agents, config.start_circumradius) @ rotation + np.array([3.0, 5.0])
+    env = FormationEnv(config)
+    observations, _ = env.reset(options={"scenario": Scenario(start, goal=[11.0, 6.0])})
+    controller, rows = ClassicalController(config), np.stack(list(observations.values()))
+    for _ in range(config.max_steps):
+        rows, _, terminated, truncated, infos = env.step_array(controller.predict(rows)[0])
+        if terminated or truncated:
+            break
+    assert terminated
+    assert max(abs(info["angle_error_deg"]) for info in infos) < 5.0
+    assert sum(info["collisions_agent"] for info in infos) == 0

@@ -24,6 +24,7 @@ from sb3_formation.controllers import CONTROLLERS
 from sb3_formation.controllers.base import Controller, TeamPolicy
 from sb3_formation.controllers.residual import ResidualPolicy, check_residual_scale
 from sb3_formation.env.config import PRESETS, FormationConfig
+from sb3_formation.sb3.imitation import ImitationSettings
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import CELLS, RecurrentFormationPolicy
 
@@ -54,6 +55,9 @@ class SetUp:
     :param residual: optional: train a correction of a controller (``controller``: a name of
         :data:`~sb3_formation.controllers.CONTROLLERS`, ``gains``: its keyword arguments, ``scale``: the correction's
         bound as a fraction of F_max); the env then receives ``clip(a_controller + scale * a_policy, -1, 1)``
+    :param imitation: optional: pretrain the actor on a controller's actions before PPO (``controller``, ``gains``,
+        and the fields of :class:`~sb3_formation.sb3.imitation.ImitationSettings`: rounds, steps, epochs, batch_size,
+        learning_rate, critic_warmup)
     :param source: the file it was read from
     """
 
@@ -67,6 +71,7 @@ class SetUp:
     evaluation: dict[str, Any]
     training: dict[str, Any] = field(default_factory=dict)
     residual: dict[str, Any] = field(default_factory=dict)
+    imitation: dict[str, Any] = field(default_factory=dict)
     source: Path | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
@@ -110,11 +115,34 @@ class SetUp:
                 residual_base(self.residual, self.config())
             except (TypeError, ValueError) as error:
                 raise ValueError(f"{where}: residual: {error}") from error
+        if self.imitation:
+            if self.recurrent or self.residual:
+                raise ValueError(f"{where}: imitation pretrains an MLP actor of whole actions: not recurrent, not residual")
+            try:
+                self.teacher(self.config())
+            except (TypeError, ValueError) as error:
+                raise ValueError(f"{where}: imitation: {error}") from error
 
     @property
     def recurrent(self) -> bool:
         """Whether the set-up's policy is recurrent."""
         return bool(self.policy.get("recurrent", False))
+
+    def teacher(self, config: FormationConfig) -> tuple[Controller, ImitationSettings] | None:
+        """The controller the actor imitates before PPO and how (``None`` without an ``imitation`` block).
+
+        :param config: the task the controller acts in
+        """
+        if not self.imitation:
+            return None
+        settings = {key: value for key, value in self.imitation.items() if key not in ("controller", "gains")}
+        unknown = sorted(set(settings) - set(ImitationSettings.__dataclass_fields__))
+        if unknown or "controller" not in self.imitation:
+            raise ValueError(
+                f"the imitation block needs controller and may give gains and {list(ImitationSettings.__dataclass_fields__)}; "
+                f"unknown: {unknown}"
+            )
+        return controller_from_spec(self.imitation, config), ImitationSettings(**settings)
 
     def training_option(self, name: str) -> Any:
         """A training feature's value: the set-up's, else its default (:data:`TRAINING_DEFAULTS`)."""
@@ -171,11 +199,22 @@ class SetUp:
         keys = [f.name for f in fields(cls) if f.name not in ("name", "source")]
         if not isinstance(values, dict):
             raise ValueError(f"set-up {name!r} must be a mapping of {keys}, not {type(values).__name__}")
-        required = [key for key in keys if key not in ("training", "residual")]
+        required = [key for key in keys if key not in ("training", "residual", "imitation")]
         unknown, missing = sorted(set(values) - set(keys)), [key for key in required if key not in values]
         if unknown or missing:
             raise ValueError(f"set-up {name!r}: unknown keys {unknown}, missing keys {missing}; a set-up has {keys}")
         return cls(name=name, source=source, **values)
+
+
+def controller_from_spec(spec: dict[str, Any], config: FormationConfig) -> Controller:
+    """The controller a set-up block names (``controller`` and optional ``gains``), acting in ``config``."""
+    name = spec["controller"]
+    if name not in CONTROLLERS:
+        raise ValueError(f"unknown controller {name!r}; controllers: {', '.join(sorted(CONTROLLERS))}")
+    gains = spec.get("gains") or {}
+    if not isinstance(gains, dict):
+        raise ValueError(f"gains must be a mapping of gain names to values, got {gains!r}")
+    return CONTROLLERS[name](config, **gains)
 
 
 def residual_base(spec: dict[str, Any], config: FormationConfig) -> tuple[Controller, float]:
@@ -184,13 +223,7 @@ def residual_base(spec: dict[str, Any], config: FormationConfig) -> tuple[Contro
     :param spec: ``controller``, ``scale`` and optional ``gains`` (see :class:`SetUp`)
     :param config: the task the controller acts in
     """
-    name = spec["controller"]
-    if name not in CONTROLLERS:
-        raise ValueError(f"unknown controller {name!r}; controllers: {', '.join(sorted(CONTROLLERS))}")
-    gains = spec.get("gains") or {}
-    if not isinstance(gains, dict):
-        raise ValueError(f"gains must be a mapping of gain names to values, got {gains!r}")
-    return CONTROLLERS[name](config, **gains), check_residual_scale(spec["scale"])
+    return controller_from_spec(spec, config), check_residual_scale(spec["scale"])
 
 
 def residual_policy(spec: dict[str, Any], correction: TeamPolicy) -> ResidualPolicy:

@@ -49,6 +49,7 @@ from sb3_formation.sb3.callbacks import (
     TimeBudgetCallback,
     TrainingClock,
 )
+from sb3_formation.sb3.imitation import FrozenActorCallback, pretrain_actor
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 from sb3_formation.sb3.residual import ResidualVecEnv
 from sb3_formation.sb3.trained import TrainedPolicy
@@ -115,6 +116,8 @@ class CheckpointCallback(BaseCallback):
 PERIODIC_EVALUATION_SEED = 1_000_000
 #: File beside ``best_model.zip`` holding the evaluation that made it the best.
 BEST_EVALUATION = "best_evaluation.json"
+#: Per-round records of the imitation pretraining (set-ups with an ``imitation`` block).
+IMITATION_FILE = "imitation.json"
 
 
 class PeriodicEvaluation(BaseCallback):
@@ -261,8 +264,20 @@ def train(settings: TrainSettings, command: str | None = None, run_dir: str | os
     )
     model.formation_config = dataclasses.asdict(settings.config())
     model.residual = settings.setup().residual  # the model file says how its actions are meant (load_trained)
+    teacher = settings.setup().teacher(settings.config())
+    if teacher is not None:
+        records = pretrain_actor(model, *teacher, seed=settings.seed, log=_print_imitation_round)
+        atomic_write(run_dir / IMITATION_FILE, json.dumps(records, indent=2))
     _learn(model, settings, run_dir, curriculum, clock)
     return run_dir
+
+
+def _print_imitation_round(record: dict[str, float]) -> None:
+    print(
+        f"imitation round {record['round']}: {record['states']:,} states (teacher flies {record['teacher_share']:.0%} of "
+        f"the steps), mean squared error {record['loss']:.4f}",
+        flush=True,
+    )
 
 
 def resume(run_dir: str | os.PathLike[str]) -> Path:
@@ -275,7 +290,11 @@ def resume(run_dir: str | os.PathLike[str]) -> Path:
     settings = load_settings(run_dir)
     checkpoint = latest_checkpoint(run_dir)
     if checkpoint is None:
-        raise FileNotFoundError(f"{run_dir} has no complete checkpoint under checkpoints/ to resume from")
+        if (run_dir / FINAL_MODEL).exists() or not (run_dir / "command.txt").exists():
+            raise FileNotFoundError(f"{run_dir} has no complete checkpoint under checkpoints/ to resume from")
+        # killed before its first checkpoint (e.g. during imitation pretraining): the same seed repeats it exactly
+        print(f"{run_dir} has no checkpoint yet: training it again from the start")
+        return train(settings, command=(run_dir / "command.txt").read_text().strip(), run_dir=run_dir)
     for leftover in (run_dir / "checkpoints").glob(".iteration_*"):  # folders of a write that was killed
         shutil.rmtree(leftover, ignore_errors=True)
     state = json.loads((checkpoint / STATE_FILE).read_text())
@@ -313,6 +332,9 @@ def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: Curri
     budget = TimeBudgetCallback(clock)
     checkpoint = CheckpointCallback(run_dir, curriculum, clock, settings.checkpoint_every)
     callbacks: list[BaseCallback] = [curriculum, FormationMetricsCallback(settings.to_dict()), budget, checkpoint]
+    teacher = settings.setup().teacher(settings.config())
+    if teacher is not None and teacher[1].critic_warmup > 0:
+        callbacks.append(FrozenActorCallback(teacher[1].critic_warmup, curriculum))
     every = settings.resolved_training("eval_every")
     periodic = None
     if every is not None:

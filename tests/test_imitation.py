@@ -1,0 +1,122 @@
+"""Imitation pretraining: behaviour cloning with DAgger relabelling, the critic warm-up, and its place in train/resume."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from stable_baselines3 import PPO
+
+from sb3_formation.controllers import ClassicalController
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.experiment.runs import load_trained
+from sb3_formation.experiment.settings import TrainSettings
+from sb3_formation.experiment.setups import SETUPS_FOLDER, SetUp, load_setup
+from sb3_formation.experiment.training import IMITATION_FILE, resume, train
+from sb3_formation.sb3.imitation import ImitationSettings, actor_parameters, imitation_error, pretrain_actor
+from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
+from sb3_formation.sb3.policies import FormationPolicy
+from sb3_formation.sb3.vec_env import FormationVecEnv
+
+CONFIG = FormationConfig.preset("ch5-bearing", stage=3, max_steps=60)
+
+
+def teacher_states(teacher: ClassicalController, seed: int, steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """Raw observations of two teams flown by the teacher, and its actions on them."""
+    venv = FormationVecEnv(CONFIG, n_envs=2)
+    venv.seed(seed)
+    observations, rows, labels = venv.reset(), [], []
+    for _ in range(steps):
+        actions = teacher.predict(observations)[0]
+        rows.append(observations)
+        labels.append(actions)
+        observations, *_ = venv.step(actions)
+    return np.concatenate(rows), np.concatenate(labels)
+
+
+def test_pretraining_lowers_the_error_against_the_teacher_on_held_out_states() -> None:
+    teacher = ClassicalController(CONFIG)
+    venv = FormationVecEnv(CONFIG, n_envs=2)
+    env = ScaleNormalizeVecEnv(venv, venv.agent_observation_dim, venv.binary_observation_mask)
+    model = PPO(FormationPolicy, env, n_steps=16, seed=0, policy_kwargs={"net_arch": {"pi": [64, 64], "vf": [16]}})
+    held_out, labels = teacher_states(teacher, seed=99, steps=60)  # other scenarios than the training rounds'
+    settings = ImitationSettings(rounds=3, steps=60, epochs=30, batch_size=256, learning_rate=3e-3)
+    records = pretrain_actor(model, teacher, settings, seed=0)
+    # rounds grow the data set (12 slots a step) and hand the flying over to the student
+    assert [(r["states"], r["teacher_share"]) for r in records] == [(720, 1.0), (1440, 0.5), (2160, 0.25)]
+    before_model = PPO(FormationPolicy, env, n_steps=16, seed=0, policy_kwargs={"net_arch": {"pi": [64, 64], "vf": [16]}})
+    observations = env.normalize_obs(held_out)
+    before = imitation_error(before_model.policy, observations, labels)
+    after = imitation_error(model.policy, observations, labels)
+    assert after < 0.5 * before, (before, after)
+
+
+def tiny_imitation_setup(tmp_path: Path, **imitation: object) -> Path:
+    values = yaml.safe_load((SETUPS_FOLDER / "imitate-ch5-bearing.yaml").read_text())
+    values["policy"]["net_arch"] = {"pi": [16], "vf": [16]}
+    values["ppo"] |= {"n_steps": 16, "batch_size": 64, "n_epochs": 2}
+    values["imitation"] |= {"rounds": 2, "steps": 20, "epochs": 2, "batch_size": 64, "critic_warmup": 2, **imitation}
+    values["teams"] = 2
+    values["training"] |= {"steps": 4 * 16 * 12, "eval_every": None}
+    path = tmp_path / "imitate.yaml"
+    path.write_text(yaml.safe_dump(values))
+    return path
+
+
+def test_the_actor_is_frozen_while_the_critic_warms_up(tmp_path: Path) -> None:
+    setup = tiny_imitation_setup(tmp_path)
+    snapshots = []
+
+    def run(iterations: int) -> dict[str, torch.Tensor]:
+        settings = TrainSettings(preset=str(setup), steps=iterations * 16 * 12, env={"max_steps": 40}, progress_bar=False)
+        folder = train(settings, command="test", run_dir=tmp_path / f"run{iterations}")
+        snapshots.append(json.loads((folder / IMITATION_FILE).read_text()))
+        return {name: value.clone() for name, value in load_trained(folder).policy.state_dict().items()}
+
+    first, warm, moved = run(1), run(2), run(3)  # the same seed: the same pretraining
+    assert snapshots[0] == snapshots[1] == snapshots[2]
+    actor = {"mlp_extractor.policy_net.0.weight", "action_net.weight", "action_net.bias", "log_std"}
+    for name in actor:
+        assert torch.equal(first[name], warm[name]), name  # iterations 1 and 2 warm the critic up
+        assert not torch.equal(warm[name], moved[name]), name  # the third moves the actor
+    assert not torch.equal(first["value_net.weight"], warm["value_net.weight"])
+
+
+def test_a_run_killed_before_its_first_checkpoint_is_trained_again_on_resume(tmp_path: Path) -> None:
+    settings = TrainSettings(preset=str(tiny_imitation_setup(tmp_path)), steps=16 * 12, progress_bar=False)
+    first = train(settings, command="test", run_dir=tmp_path / "first")
+    killed = tmp_path / "killed"  # what a kill during pretraining leaves: settings and command, no checkpoint
+    killed.mkdir()
+    for name in ("config.yaml", "command.txt"):
+        (killed / name).write_text((first / name).read_text())
+    assert resume(killed) == killed
+    trained, again = load_trained(first), load_trained(killed)
+    for name, value in trained.policy.state_dict().items():
+        assert torch.equal(value, again.policy.state_dict()[name]), name
+    with pytest.raises(FileNotFoundError, match="no complete checkpoint"):
+        resume(first)  # finished: its final model exists
+
+
+def test_imitation_setups_are_checked() -> None:
+    setup = load_setup("imitate-ch5-bearing")
+    controller, settings = setup.teacher(setup.config())
+    assert isinstance(controller, ClassicalController) and settings.rounds == 4 and settings.critic_warmup == 10
+    values = {key: getattr(setup, key) for key in ("description", "env", "policy", "ppo", "curriculum", "teams", "evaluation")}
+    with pytest.raises(ValueError, match="unknown: \\['round'\\]"):
+        SetUp("bad", **values, imitation={"controller": "classical", "round": 3})
+    with pytest.raises(ValueError, match="imitation: rounds must be an integer >= 1, got 0"):
+        SetUp("bad", **values, imitation={"controller": "classical", "rounds": 0})
+    with pytest.raises(ValueError, match="not recurrent, not residual"):
+        SetUp("bad", **{**values, "policy": {**setup.policy, "recurrent": True}}, imitation={"controller": "classical"})
+
+
+def test_the_actor_parameters_are_the_actor_layers_its_head_and_a_learned_log_std() -> None:
+    venv = FormationVecEnv(CONFIG, n_envs=1)
+    for learn_sigma, count in ((True, 7), (False, 6)):  # 2 x (weight, bias) layers, the head's (weight, bias), log-std
+        policy = PPO(FormationPolicy, venv, n_steps=8, policy_kwargs={"learn_sigma": learn_sigma}).policy
+        parameters = actor_parameters(policy)
+        assert len(parameters) == count and not any(p is q for p in parameters for q in policy.value_net.parameters())
