@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 import yaml
@@ -17,42 +16,11 @@ from sb3_formation.experiment.runs import load_trained
 from sb3_formation.experiment.settings import TrainSettings
 from sb3_formation.experiment.setups import SETUPS_FOLDER, SetUp, load_setup
 from sb3_formation.experiment.training import IMITATION_FILE, resume, train
-from sb3_formation.sb3.imitation import ImitationSettings, actor_parameters, imitation_error, pretrain_actor
-from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
+from sb3_formation.sb3.imitation import actor_parameters
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.vec_env import FormationVecEnv
 
 CONFIG = FormationConfig.preset("ch5-bearing", stage=3, max_steps=60)
-
-
-def teacher_states(teacher: ClassicalController, seed: int, steps: int) -> tuple[np.ndarray, np.ndarray]:
-    """Raw observations of two teams flown by the teacher, and its actions on them."""
-    venv = FormationVecEnv(CONFIG, n_envs=2)
-    venv.seed(seed)
-    observations, rows, labels = venv.reset(), [], []
-    for _ in range(steps):
-        actions = teacher.predict(observations)[0]
-        rows.append(observations)
-        labels.append(actions)
-        observations, *_ = venv.step(actions)
-    return np.concatenate(rows), np.concatenate(labels)
-
-
-def test_pretraining_lowers_the_error_against_the_teacher_on_held_out_states() -> None:
-    teacher = ClassicalController(CONFIG)
-    venv = FormationVecEnv(CONFIG, n_envs=2)
-    env = ScaleNormalizeVecEnv(venv, venv.agent_observation_dim, venv.binary_observation_mask)
-    model = PPO(FormationPolicy, env, n_steps=16, seed=0, policy_kwargs={"net_arch": {"pi": [64, 64], "vf": [16]}})
-    held_out, labels = teacher_states(teacher, seed=99, steps=60)  # other scenarios than the training rounds'
-    settings = ImitationSettings(rounds=3, steps=60, epochs=30, batch_size=256, learning_rate=3e-3)
-    records = pretrain_actor(model, teacher, settings, seed=0)
-    # rounds grow the data set (12 slots a step) and hand the flying over to the student
-    assert [(r["states"], r["teacher_share"]) for r in records] == [(720, 1.0), (1440, 0.5), (2160, 0.25)]
-    before_model = PPO(FormationPolicy, env, n_steps=16, seed=0, policy_kwargs={"net_arch": {"pi": [64, 64], "vf": [16]}})
-    observations = env.normalize_obs(held_out)
-    before = imitation_error(before_model.policy, observations, labels)
-    after = imitation_error(model.policy, observations, labels)
-    assert after < 0.5 * before, (before, after)
 
 
 def tiny_imitation_setup(tmp_path: Path, **imitation: object) -> Path:
@@ -97,8 +65,9 @@ def test_a_run_killed_before_its_first_checkpoint_is_trained_again_on_resume(tmp
     trained, again = load_trained(first), load_trained(killed)
     for name, value in trained.policy.state_dict().items():
         assert torch.equal(value, again.policy.state_dict()[name]), name
+    (killed / "checkpoints").rename(tmp_path / "gone")  # a folder whose final model exists is not trained again
     with pytest.raises(FileNotFoundError, match="no complete checkpoint"):
-        resume(first)  # finished: its final model exists
+        resume(killed)
 
 
 def test_imitation_setups_are_checked() -> None:

@@ -57,9 +57,10 @@ class ImitationSettings:
 
 
 def actor_parameters(policy: Any) -> list[th.nn.Parameter]:
-    """The parameters that move the action distribution: the actor's layers, the action head and the log-std."""
+    """The parameters that move the action distribution: the actor's layers, the action head and a learned log-std
+    (a fixed sigma's is left out)."""
     parameters = [*policy.mlp_extractor.policy_net.parameters(), *policy.action_net.parameters()]
-    return [*parameters, policy.log_std] if isinstance(policy.log_std, th.nn.Parameter) else parameters
+    return [*parameters, policy.log_std] if policy.log_std.requires_grad else parameters
 
 
 def imitation_error(policy: Any, observations: np.ndarray, actions: np.ndarray) -> float:
@@ -130,6 +131,10 @@ def pretrain_actor(
     :return: one record per round
     """
     rng = np.random.default_rng(seed)
+    # SB3 initialises the action head with gain 0.01 (near-zero first actions); that small head also scales down the
+    # gradients reaching the hidden layers, which then barely move for hundreds of steps: start the fit from gain 1
+    with th.no_grad():
+        th.nn.init.orthogonal_(model.policy.action_net.weight, gain=1.0)
     raw_sets, label_sets, records = [], [], []
     for round_index in range(settings.rounds):
         share = 0.5**round_index
