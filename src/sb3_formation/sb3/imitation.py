@@ -93,9 +93,7 @@ def collect(model: PPO, teacher: Controller, steps: int, teacher_share: float, r
     return np.concatenate(raw_rows), np.concatenate(labels)
 
 
-def fit_actor(
-    model: PPO, raw: np.ndarray, labels: np.ndarray, settings: ImitationSettings, rng: np.random.Generator
-) -> float:
+def fit_actor(model: PPO, raw: np.ndarray, labels: np.ndarray, settings: ImitationSettings, rng: np.random.Generator) -> float:
     """Fit the actor's mean action to ``labels`` for ``settings.epochs`` passes; return the last epoch's mean loss."""
     policy = model.policy
     normalizer = unwrap_vec_wrapper(model.get_env(), ScaleNormalizeVecEnv)
