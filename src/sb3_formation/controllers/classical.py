@@ -64,8 +64,13 @@ class ClassicalGains:
 
     def __post_init__(self) -> None:
         for name, value in asdict(self).items():
-            if name != "use_bearings" and not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"ClassicalGains.{name}={value!r} is invalid: it must be a finite number >= 0")
+            if name == "use_bearings":
+                valid, allowed = isinstance(value, bool), "true or false"
+            else:
+                number = isinstance(value, (int, float)) and not isinstance(value, bool)
+                valid, allowed = number and math.isfinite(value) and value >= 0, "a finite number >= 0"
+            if not valid:
+                raise ValueError(f"ClassicalGains.{name}={value!r} is invalid: it must be {allowed}")
 
 
 class ClassicalController(Controller):
