@@ -76,7 +76,8 @@ def test_the_training_env_adds_the_controller_to_the_agent_action() -> None:
     venv.close()
 
 
-def test_a_residual_setup_trains_saves_and_loads_as_a_residual_policy(tmp_path: Path) -> None:
+def test_a_residual_setup_trains_saves_and_loads_as_a_residual_policy(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)  # compare writes the controller's evaluation under evaluations/
     values = yaml.safe_load((SETUPS_FOLDER / "residual-ch5-bearing.yaml").read_text())
     values["policy"]["net_arch"] = {"pi": [16], "vf": [16]}
     values["ppo"] |= {"n_steps": 16, "batch_size": 64, "n_epochs": 2}
@@ -86,6 +87,9 @@ def test_a_residual_setup_trains_saves_and_loads_as_a_residual_policy(tmp_path: 
     setup.write_text(yaml.safe_dump(values))
     run = tmp_path / "run"
     assert main(["train", "--preset", str(setup), "--env", "max_steps=40", "--run-dir", str(run), "--no-progress"]) == 0
+    # compare takes runs and controllers together: --preset is the controllers' set-up
+    quick = ["--episodes", "2", "--n-envs", "2", "--no-progress", "--out", str(tmp_path / "c.png")]
+    assert main(["compare", str(run), "controller:classical", "--preset", "ch5-bearing", *quick]) == 0
     policy = load_policy(run)
     assert isinstance(policy, ResidualPolicy) and policy.scale == 0.3 and isinstance(policy.base, ClassicalController)
     # with the correction's mean set to zero the trained policy acts as the controller

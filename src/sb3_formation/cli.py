@@ -439,12 +439,14 @@ def compare_command(args: argparse.Namespace) -> int:
         )
     summaries = {}
     for label, target in zip(labels, args.targets):
+        # --preset is the set-up of the controller: targets; runs and models act in the task they were trained in
+        own = argparse.Namespace(**{**vars(args), "preset": args.preset if target_kind(target) else None})
         wanted = {**protocol, "seed": args.seed, "deterministic": not args.stochastic}
-        summary = None if args.force else stored_summary(target, wanted, args.preset)
+        summary = None if args.force else stored_summary(target, wanted, own.preset)
         if summary is not None:
-            print(f"{target}: reusing {evaluation_file(target, SUMMARY_FILE, args.preset)}")
-        args.stage = protocol["stage"]
-        summaries[label] = summary or _evaluate(args, target, protocol["episodes"])
+            print(f"{target}: reusing {evaluation_file(target, SUMMARY_FILE, own.preset)}")
+        own.stage = protocol["stage"]
+        summaries[label] = summary or _evaluate(own, target, protocol["episodes"])
     table = comparison_table(summaries, over=args.over)
     print(table)
     if args.table is not None:

@@ -63,14 +63,9 @@ def actor_parameters(policy: Any) -> list[th.nn.Parameter]:
     return [*parameters, policy.log_std] if policy.log_std.requires_grad else parameters
 
 
-def imitation_error(policy: Any, observations: np.ndarray, actions: np.ndarray) -> float:
-    """Mean squared difference between the policy's mean actions on normalised ``observations`` and ``actions``."""
-    with th.no_grad():
-        mean = policy.get_distribution(th.as_tensor(observations, device=policy.device)).mode()
-        return float(((mean - th.as_tensor(actions, device=policy.device)) ** 2).mean())
-
-
-def collect(model: PPO, teacher: Controller, steps: int, teacher_share: float, rng: np.random.Generator) -> tuple:
+def collect(
+    model: PPO, teacher: Controller, steps: int, teacher_share: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """Fly the model's training env for ``steps`` steps; return the raw observations and the teacher's actions on them.
 
     :param teacher_share: probability that a step is flown by the teacher (else by the student's mean action)
