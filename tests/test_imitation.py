@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -16,7 +17,8 @@ from sb3_formation.experiment.runs import load_trained
 from sb3_formation.experiment.settings import TrainSettings
 from sb3_formation.experiment.setups import SETUPS_FOLDER, SetUp, load_setup
 from sb3_formation.experiment.training import IMITATION_FILE, resume, train
-from sb3_formation.sb3.imitation import actor_parameters
+from sb3_formation.sb3.imitation import ImitationSettings, actor_parameters, pretrain_actor
+from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.vec_env import FormationVecEnv
 
@@ -89,3 +91,39 @@ def test_the_actor_parameters_are_the_actor_layers_its_head_and_a_learned_log_st
         policy = PPO(FormationPolicy, venv, n_steps=8, policy_kwargs={"learn_sigma": learn_sigma}).policy
         parameters = actor_parameters(policy)
         assert len(parameters) == count and not any(p is q for p in parameters for q in policy.value_net.parameters())
+
+
+def teacher_flight(teacher: ClassicalController, steps: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Raw observations of two teams flown by ``teacher`` from scenario seed ``seed`` on, and its actions on them."""
+    venv = FormationVecEnv(CONFIG, n_envs=2)
+    venv.seed(seed)
+    observations, rows, labels = venv.reset(), [], []
+    for _ in range(steps):
+        actions = teacher.predict(observations)[0]
+        rows.append(observations)
+        labels.append(actions)
+        observations, *_ = venv.step(actions)
+    return np.concatenate(rows), np.concatenate(labels)
+
+
+@pytest.mark.slow
+def test_imitation_pretraining_lowers_the_actors_error_against_the_teacher_on_held_out_states() -> None:
+    teacher = ClassicalController(CONFIG)
+    held_out, labels = teacher_flight(teacher, 200, seed=123)  # scenarios the pretraining never flies
+    venv = FormationVecEnv(CONFIG, n_envs=2)
+    env = ScaleNormalizeVecEnv(venv, venv.agent_observation_dim, venv.binary_observation_mask, center=True)
+    kwargs = {"net_arch": {"pi": [64, 64], "vf": [16]}}
+    model = PPO(FormationPolicy, env, n_steps=16, batch_size=64, seed=0, policy_kwargs=kwargs)
+
+    def error() -> float:
+        observations = torch.as_tensor(env.normalize_obs(held_out))
+        with torch.no_grad():
+            actions = model.policy.get_distribution(observations).mode()
+        return float(((actions - torch.as_tensor(labels)) ** 2).mean())
+
+    before = error()  # SB3's near-zero first actions: about the labels' own mean square
+    assert before == pytest.approx(float((labels**2).mean()), rel=0.05)
+    settings = ImitationSettings(rounds=2, steps=100, epochs=200, batch_size=256, learning_rate=1e-3)
+    records = pretrain_actor(model, teacher, settings, seed=0)
+    assert [record["states"] for record in records] == [1200, 2400]  # 100 steps x 12 slots per round
+    assert error() < 0.5 * before

@@ -207,7 +207,7 @@ def test_save_load_round_trip(tmp_path: Path) -> None:
     wrapper.save(path)
     assert sorted(os.listdir(tmp_path)) == ["vecnormalize.npz"]
     with np.load(path) as data:
-        assert set(data.files) == {"mean", "var", "count", "agent_obs_dim", "binary_mask", "epsilon", "clip_obs"}
+        assert set(data.files) == {"mean", "var", "count", "agent_obs_dim", "binary_mask", "epsilon", "clip_obs", "center"}
     venv = make_venv(n_blocks=3, seed=1)
     loaded = ScaleNormalizeVecEnv.load(path, venv, agent_obs_dim=AGENT_OBS_DIM, binary_mask=BINARY_MASK)
     assert loaded.training is False
@@ -363,3 +363,30 @@ def test_scaled_values_are_clipped_but_flags_untouched() -> None:
     unclipped = make_wrapper(clip_obs=None)
     unclipped.load_state_dict(wrapper.state_dict())
     assert unclipped.clip_obs == 10.0
+
+
+def test_centred_output_subtracts_the_running_mean_from_continuous_features(tmp_path: Path) -> None:
+    wrapper = make_wrapper(center=True, clip_obs=None)
+    raw, normalised, _ = run(wrapper, 6)
+    stream = own_stream(raw)
+    expected = (raw[-1] - stream.mean(axis=0)) / np.sqrt(stream.var(axis=0) + wrapper.epsilon)
+    expected[:, 2] = raw[-1][:, 2]  # the flag is left alone
+    np.testing.assert_allclose(normalised[-1], expected, rtol=1e-5, atol=1e-6)
+    space = wrapper.observation_space  # centred features fall on both sides of 0; the flag keeps its bounds
+    assert space.low[1] == -np.inf and space.high[1] == np.inf and (space.low[2], space.high[2]) == (-np.inf, np.inf)
+    wrapper.save(tmp_path / "centred.npz")
+    loaded = ScaleNormalizeVecEnv.load(tmp_path / "centred.npz", make_venv())
+    assert loaded.center and loaded.observation_space.low[0] < 0 < loaded.observation_space.high[0]
+    np.testing.assert_array_equal(loaded.normalize_obs(raw[-1]), wrapper.normalize_obs(raw[-1]))
+    with pytest.raises(ValueError, match="saved statistics have center=True but this wrapper has center=False"):
+        make_wrapper().load_state_dict(wrapper.state_dict())
+
+
+def test_files_saved_before_centring_existed_load_as_scale_only(tmp_path: Path) -> None:
+    wrapper = make_wrapper()
+    raw, _, _ = run(wrapper, 4)
+    state = {key: value for key, value in wrapper.state_dict().items() if key != "center"}
+    np.savez(tmp_path / "old.npz", **state)
+    loaded = ScaleNormalizeVecEnv.load(tmp_path / "old.npz", make_venv())
+    assert not loaded.center
+    np.testing.assert_array_equal(loaded.normalize_obs(raw[-1]), wrapper.normalize_obs(raw[-1]))

@@ -50,8 +50,10 @@ class SetUp:
     :param teams: parallel teams during training
     :param evaluation: ``episodes`` and ``stage`` of the evaluation protocol
     :param training: optional training features (:data:`TRAINING_DEFAULTS`): ``normalize_reward`` (divide rewards by
-        a running std of the discounted return, SB3's ``VecNormalize``), ``steps`` (a budget of agent-steps, split
-        between the stages in the curriculum's proportions), ``eval_every`` and ``eval_episodes`` (periodic evaluation)
+        a running std of the discounted return, SB3's ``VecNormalize``), ``center_observations`` (subtract the running
+        mean of the observations too, unlike thesis 3.1.4: ``ScaleNormalizeVecEnv(center=True)``), ``steps`` (a budget
+        of agent-steps, split between the stages in the curriculum's proportions), ``eval_every`` and
+        ``eval_episodes`` (periodic evaluation)
     :param residual: optional: train a correction of a controller (``controller``: a name of
         :data:`~sb3_formation.controllers.CONTROLLERS`, ``gains``: its keyword arguments, ``scale``: the correction's
         bound as a fraction of F_max); the env then receives ``clip(a_controller + scale * a_policy, -1, 1)``
@@ -89,8 +91,9 @@ class SetUp:
         unknown = sorted(set(self.training) - set(TRAINING_DEFAULTS))
         if unknown:
             raise ValueError(f"{where}: unknown training keys {unknown}; valid: {list(TRAINING_DEFAULTS)}")
-        if not isinstance(self.training_option("normalize_reward"), bool):
-            raise ValueError(f"{where}: training: normalize_reward must be true or false")
+        for name in ("normalize_reward", "center_observations"):
+            if not isinstance(self.training_option(name), bool):
+                raise ValueError(f"{where}: training: {name} must be true or false")
         for name in ("steps", "eval_every", "eval_episodes"):
             value = self.training_option(name)
             if value is not None and not (is_count(value) and value >= 1):
@@ -233,7 +236,13 @@ def residual_policy(spec: dict[str, Any], correction: TeamPolicy) -> ResidualPol
 
 
 #: Training features a set-up may switch on, and their defaults (the thesis's: none of them).
-TRAINING_DEFAULTS: dict[str, Any] = {"normalize_reward": False, "steps": None, "eval_every": None, "eval_episodes": 20}
+TRAINING_DEFAULTS: dict[str, Any] = {
+    "normalize_reward": False,
+    "center_observations": False,
+    "steps": None,
+    "eval_every": None,
+    "eval_episodes": 20,
+}
 
 
 def schedule(value: Any, where: str = "schedule") -> float | Schedule:

@@ -217,7 +217,7 @@ def make_training_env(settings: TrainSettings, stage: int, normalizer_path: Path
     if residual:  # the controller acts on the raw observations, below the normaliser
         venv = ResidualVecEnv(venv, *residual_base(residual, config))
     if normalizer_path is None:
-        env: VecEnv = ScaleNormalizeVecEnv(venv, dim, mask)
+        env: VecEnv = ScaleNormalizeVecEnv(venv, dim, mask, center=settings.resolved_training("center_observations"))
     else:
         env = ScaleNormalizeVecEnv.load(normalizer_path, venv, training=True, agent_obs_dim=dim, binary_mask=mask)
     if not settings.resolved_training("normalize_reward"):

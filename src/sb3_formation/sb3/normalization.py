@@ -1,8 +1,9 @@
 """Scale-only observation normalisation (thesis 3.1.4, design.md "Sensors and observation").
 
-Continuous observation values are divided by a running standard deviation per feature, without subtracting the mean,
-then clipped to [-10, 10] (``clip_obs``); the 0/1 flags are left as they are. The running variance is kept with
-Stable-Baselines3's ``RunningMeanStd`` (Chan, Golub & LeVeque's parallel update, the batch form of Welford's algorithm).
+Continuous observation values are divided by a running standard deviation per feature, without subtracting the mean
+(tuned set-ups may subtract it: ``center``), then clipped to [-10, 10] (``clip_obs``); the 0/1 flags are left as they
+are. The running variance is kept with Stable-Baselines3's ``RunningMeanStd`` (Chan, Golub & LeVeque's parallel
+update, the batch form of Welford's algorithm).
 
 Every slot of the wrapped ``VecEnv`` is one agent. Its observation is one or more blocks with the same per-agent layout:
 normally just the agent's own observation (k = 1); with a team critic, its own observation followed by those of the
@@ -25,7 +26,8 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvStepRetu
 
 from sb3_formation.utils.files import atomic_path
 
-#: Keys of ``ScaleNormalizeVecEnv.state_dict()``, which are also the arrays of the saved ``.npz`` file.
+#: Keys of ``ScaleNormalizeVecEnv.state_dict()``, which are also the arrays of the saved ``.npz`` file (files saved before
+#: ``center`` existed lack it and are scale-only).
 STATE_KEYS = ("mean", "var", "count", "agent_obs_dim", "binary_mask", "epsilon", "clip_obs")
 
 
@@ -34,8 +36,8 @@ class ScaleNormalizeVecEnv(VecEnvWrapper):
     Scale-only observation normalisation for a vectorized environment whose slots are agents.
 
     Non-binary features are divided by ``sqrt(var + epsilon)``, ``var`` being the running variance of that feature over
-    every agent's own observation seen so far (on reset and on every step, while ``training``). There is no mean
-    subtraction; the scaled values are clipped to ``[-clip_obs, clip_obs]`` (as RLlib's ``MeanStdFilter``, the
+    every agent's own observation seen so far (on reset and on every step, while ``training``). Unless ``center``,
+    there is no mean subtraction; the scaled values are clipped to ``[-clip_obs, clip_obs]`` (as RLlib's ``MeanStdFilter``, the
     thesis's tool, and SB3's ``VecNormalize`` do by default, 10), which bounds the features that were (nearly)
     constant so far, such as lidar rays that have only ever read 1; ``clip_obs=None`` switches clipping off.
     Binary features pass through unchanged; observations are returned as float32.
@@ -56,6 +58,9 @@ class ScaleNormalizeVecEnv(VecEnvWrapper):
     :param training: whether to update the statistics (set to False to freeze them, e.g. for evaluation)
     :param epsilon: added to the variance before the square root, so that a constant feature gives no division by zero
     :param clip_obs: bound of the scaled non-binary features, or ``None`` for no clipping
+    :param center: also subtract the running mean from the non-binary features, as SB3's ``VecNormalize`` does (a
+        departure from thesis 3.1.4 for tuned set-ups: without it, lidar rays that mostly read 1 come out at the clip
+        bound, which slows supervised fitting of the actor)
     """
 
     obs_rms: RunningMeanStd
@@ -69,6 +74,7 @@ class ScaleNormalizeVecEnv(VecEnvWrapper):
         training: bool = True,
         epsilon: float = 1e-8,
         clip_obs: float | None = 10.0,
+        center: bool = False,
     ):
         observation_space = venv.observation_space
         if not isinstance(observation_space, spaces.Box) or len(observation_space.shape) != 1:
@@ -99,6 +105,7 @@ class ScaleNormalizeVecEnv(VecEnvWrapper):
         self.binary_mask = binary_mask.copy()
         self.epsilon = float(epsilon)
         self.clip_obs = None if clip_obs is None else float(clip_obs)
+        self.center = bool(center)
         self.training = training
         self.obs_rms = RunningMeanStd(epsilon=0.0, shape=(agent_obs_dim,))
         self.old_obs = None
@@ -110,6 +117,9 @@ class ScaleNormalizeVecEnv(VecEnvWrapper):
         bound = np.inf if self.clip_obs is None else self.clip_obs
         low = np.where(space.low < 0, -bound, 0.0)
         high = np.where(space.high > 0, bound, 0.0)
+        if self.center:  # a centred feature falls on either side of 0 unless it is always 0
+            low = np.where((space.low < 0) | (space.high > 0), -bound, 0.0)
+            high = -low
         low[binary] = space.low[binary]
         high[binary] = space.high[binary]
         return spaces.Box(low.astype(np.float32), high.astype(np.float32), dtype=np.float32)
@@ -131,8 +141,9 @@ class ScaleNormalizeVecEnv(VecEnvWrapper):
         size = self.n_blocks * self.agent_obs_dim
         if obs.ndim == 0 or obs.shape[-1] != size:
             raise ValueError(f"observation of shape {obs.shape} does not end in the expected size {size}")
-        statistics = {"var": self.obs_rms.var, "epsilon": self.epsilon, "binary_mask": self.binary_mask}
-        return scale_observations(obs, observation_scale(statistics), self.clip_obs)
+        state = {"mean": self.obs_rms.mean, "var": self.obs_rms.var, "epsilon": self.epsilon}
+        state |= {"binary_mask": self.binary_mask, "center": self.center}
+        return scale_observations(obs, observation_scale(state), self.clip_obs, observation_offset(state))
 
     def get_original_obs(self) -> np.ndarray:
         """
@@ -186,6 +197,7 @@ class ScaleNormalizeVecEnv(VecEnvWrapper):
             "binary_mask": self.binary_mask.copy(),
             "epsilon": np.array(self.epsilon, dtype=np.float64),
             "clip_obs": np.array(np.nan if self.clip_obs is None else self.clip_obs, dtype=np.float64),  # NaN: no clip
+            "center": np.array(self.center),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -222,6 +234,9 @@ class ScaleNormalizeVecEnv(VecEnvWrapper):
         for name, array in (("mean", mean), ("var", var)):
             if array.shape != (self.agent_obs_dim,):
                 raise ValueError(f"saved {name} has shape {array.shape} but agent_obs_dim is {self.agent_obs_dim}")
+        center = bool(np.asarray(state.get("center", False)))
+        if center != self.center:
+            raise ValueError(f"saved statistics have center={center} but this wrapper has center={self.center}")
         count = float(np.asarray(state["count"]))
         epsilon = float(np.asarray(state["epsilon"]))
         if not np.isfinite(count) or count < 0 or np.any(~np.isfinite(var)) or np.any(var < 0):
@@ -285,6 +300,7 @@ class ScaleNormalizeVecEnv(VecEnvWrapper):
             int(state["agent_obs_dim"]) if agent_obs_dim is None else agent_obs_dim,
             np.asarray(state["binary_mask"]) if binary_mask is None else np.asarray(binary_mask),
             training=training,
+            center=bool(np.asarray(state.get("center", False))),
         )
         try:
             wrapper.load_state_dict(state)  # checks sizes, mask and statistics against the env's
@@ -303,15 +319,32 @@ def observation_scale(state: dict[str, Any]) -> np.ndarray:
     return scale
 
 
-def scale_observations(obs: np.ndarray, scale: np.ndarray, clip_obs: float | None) -> np.ndarray:
-    """Divide every ``scale.size``-long block of ``obs`` by ``scale`` and clip to ``[-clip_obs, clip_obs]``.
+def observation_offset(state: dict[str, Any]) -> np.ndarray:
+    """What is subtracted from each per-agent feature before scaling: the running mean with ``center``, else 0 (and
+    always 0 for the binary features).
+    """
+    mean = np.asarray(state["mean"], dtype=np.float64)
+    if not bool(np.asarray(state.get("center", False))):
+        return np.zeros_like(mean)
+    return np.where(np.asarray(state["binary_mask"], dtype=bool), 0.0, mean)
+
+
+def scale_observations(
+    obs: np.ndarray, scale: np.ndarray, clip_obs: float | None, offset: np.ndarray | None = None
+) -> np.ndarray:
+    """Subtract ``offset`` from every ``scale.size``-long block of ``obs``, divide by ``scale`` and clip to
+    ``[-clip_obs, clip_obs]``.
 
     :param obs: observations of shape ``(..., k * scale.size)``
     :param scale: per-feature divisors (:func:`observation_scale`)
     :param clip_obs: bound of the scaled values, ``None`` for none (flags are 0/1, so clipping leaves them alone)
+    :param offset: per-feature offsets (:func:`observation_offset`), ``None`` for none
     :return: float32 array of the shape of ``obs``
     """
-    blocks = obs.reshape((*obs.shape[:-1], -1, scale.size)).astype(np.float64) / scale
+    blocks = obs.reshape((*obs.shape[:-1], -1, scale.size)).astype(np.float64)
+    if offset is not None:
+        blocks = blocks - offset
+    blocks = blocks / scale
     if clip_obs is not None:
         blocks = np.clip(blocks, -clip_obs, clip_obs)
     return blocks.reshape(obs.shape).astype(np.float32)

@@ -16,7 +16,7 @@ import numpy as np
 
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.observations import observation_fields
-from sb3_formation.sb3.normalization import STATE_KEYS, observation_scale, scale_observations
+from sb3_formation.sb3.normalization import STATE_KEYS, observation_offset, observation_scale, scale_observations
 from sb3_formation.sb3.vec_env import slot_observations
 
 #: Fields that shape the observation vector: a model only fits envs that agree on them.
@@ -38,6 +38,7 @@ class TrainedPolicy:
     normalizer_state: dict[str, np.ndarray]
     source: Path | None = None
     _scale: np.ndarray = field(init=False, repr=False)
+    _offset: np.ndarray = field(init=False, repr=False)
     _clip: float | None = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -45,6 +46,7 @@ class TrainedPolicy:
         if missing:
             raise ValueError(f"the normaliser statistics lack {missing}")
         self._scale = observation_scale(self.normalizer_state)
+        self._offset = observation_offset(self.normalizer_state)
         clip = float(self.normalizer_state["clip_obs"])
         self._clip = None if math.isnan(clip) else clip
 
@@ -89,6 +91,6 @@ class TrainedPolicy:
         """The model's actions for raw observations of whole teams (row k: agent ``k % n`` of team ``k // n``)."""
         rows = np.asarray(observation).reshape(-1, self._scale.size)
         scaled = scale_observations(
-            slot_observations(rows, self.config.n_agents, self.team_observations), self._scale, self._clip
+            slot_observations(rows, self.config.n_agents, self.team_observations), self._scale, self._clip, self._offset
         )
         return self.policy.predict(scaled, state=state, episode_start=episode_start, deterministic=deterministic)
