@@ -29,8 +29,9 @@ from sb3_formation.experiment.runs import (
 )
 from sb3_formation.experiment.settings import TrainSettings, load_settings
 from sb3_formation.experiment.setups import SETUPS_FOLDER, load_setup, schedule, setup_names
-from sb3_formation.experiment.training import make_training_env
+from sb3_formation.experiment.training import make_training_env, train
 from sb3_formation.sb3.callbacks import ClockedSchedule, TrainingClock
+from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
 
 SMALL = {"net_arch": {"pi": [16], "vf": [16]}}
@@ -114,6 +115,23 @@ def test_reward_normalisation_divides_by_the_running_return_std(tmp_path: Path) 
     assert unwrap_vec_wrapper(resumed, VecNormalize).ret_rms.var == pytest.approx(float(saved["var"]))
     env.close()
     resumed.close()
+
+
+def test_centred_observations_train_save_and_act_as_the_training_normaliser(tmp_path: Path) -> None:
+    training = {**load_setup("fast-ch5-bearing").training, "center_observations": True, "steps": 16 * 12, "eval_every": None}
+    settings = TrainSettings(preset=str(tiny_yaml(tmp_path, training=training)), progress_bar=False)
+    env = make_training_env(settings, stage=3)
+    assert unwrap_vec_wrapper(env, ScaleNormalizeVecEnv).center
+    folder = train(settings, command="test", run_dir=tmp_path / "run")
+    policy = load_trained(folder)
+    state = policy.normalizer_state
+    assert bool(state["center"])
+    raw = np.random.default_rng(0).normal(state["mean"], np.sqrt(state["var"]), size=(6, state["mean"].size))
+    raw[:, state["binary_mask"]] = 1.0
+    scale = np.sqrt(state["var"] + state["epsilon"])
+    expected = np.where(state["binary_mask"], raw, np.clip((raw - state["mean"]) / scale, -10, 10)).astype(np.float32)
+    actions = policy.predict(raw, deterministic=True)[0]
+    np.testing.assert_array_equal(actions, policy.policy.predict(expected, deterministic=True)[0])
 
 
 def test_a_steps_budget_sets_the_last_stage_and_repeats_by_seed(tmp_path: Path) -> None:
