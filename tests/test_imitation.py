@@ -74,7 +74,7 @@ def test_a_run_killed_before_its_first_checkpoint_is_trained_again_on_resume(tmp
 
 def test_imitation_setups_are_checked() -> None:
     setup = load_setup("imitate-ch5-bearing")
-    controller, settings = setup.teacher(setup.config())
+    controller, settings = setup.teacher(setup.config()), setup.imitation_settings()
     assert isinstance(controller, ClassicalController) and settings.rounds == 4 and settings.critic_warmup == 10
     values = {key: getattr(setup, key) for key in ("description", "env", "policy", "ppo", "curriculum", "teams", "evaluation")}
     with pytest.raises(ValueError, match="unknown: \\['round'\\]"):

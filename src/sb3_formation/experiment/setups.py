@@ -122,6 +122,7 @@ class SetUp:
             if self.recurrent or self.residual:
                 raise ValueError(f"{where}: imitation pretrains an MLP actor of whole actions: not recurrent, not residual")
             try:
+                self.imitation_settings()
                 self.teacher(self.config())
             except (TypeError, ValueError) as error:
                 raise ValueError(f"{where}: imitation: {error}") from error
@@ -131,11 +132,8 @@ class SetUp:
         """Whether the set-up's policy is recurrent."""
         return bool(self.policy.get("recurrent", False))
 
-    def teacher(self, config: FormationConfig) -> tuple[Controller, ImitationSettings] | None:
-        """The controller the actor imitates before PPO and how (``None`` without an ``imitation`` block).
-
-        :param config: the task the controller acts in
-        """
+    def imitation_settings(self) -> ImitationSettings | None:
+        """How the actor is pretrained before PPO (``None`` without an ``imitation`` block)."""
         if not self.imitation:
             return None
         settings = {key: value for key, value in self.imitation.items() if key not in ("controller", "gains")}
@@ -145,7 +143,14 @@ class SetUp:
                 f"the imitation block needs controller and may give gains and {list(ImitationSettings.__dataclass_fields__)}; "
                 f"unknown: {unknown}"
             )
-        return controller_from_spec(self.imitation, config), ImitationSettings(**settings)
+        return ImitationSettings(**settings)
+
+    def teacher(self, config: FormationConfig) -> Controller | None:
+        """The controller the actor imitates before PPO (``None`` without an ``imitation`` block).
+
+        :param config: the task the controller acts in
+        """
+        return controller_from_spec(self.imitation, config) if self.imitation else None
 
     def training_option(self, name: str) -> Any:
         """A training feature's value: the set-up's, else its default (:data:`TRAINING_DEFAULTS`)."""

@@ -264,9 +264,11 @@ def train(settings: TrainSettings, command: str | None = None, run_dir: str | os
     )
     model.formation_config = dataclasses.asdict(settings.config())
     model.residual = settings.setup().residual  # the model file says how its actions are meant (load_trained)
-    teacher = settings.setup().teacher(settings.config())
-    if teacher is not None:
-        records = pretrain_actor(model, *teacher, seed=settings.seed, log=_print_imitation_round)
+    setup = settings.setup()
+    imitation = setup.imitation_settings()
+    if imitation is not None:
+        teacher = setup.teacher(settings.config())
+        records = pretrain_actor(model, teacher, imitation, seed=settings.seed, log=_print_imitation_round)
         atomic_write(run_dir / IMITATION_FILE, json.dumps(records, indent=2))
     _learn(model, settings, run_dir, curriculum, clock)
     return run_dir
@@ -332,9 +334,9 @@ def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: Curri
     budget = TimeBudgetCallback(clock)
     checkpoint = CheckpointCallback(run_dir, curriculum, clock, settings.checkpoint_every)
     callbacks: list[BaseCallback] = [curriculum, FormationMetricsCallback(settings.to_dict()), budget, checkpoint]
-    teacher = settings.setup().teacher(settings.config())
-    if teacher is not None and teacher[1].critic_warmup > 0:
-        callbacks.append(FrozenActorCallback(teacher[1].critic_warmup, curriculum))
+    imitation = settings.setup().imitation_settings()
+    if imitation is not None and imitation.critic_warmup > 0:
+        callbacks.append(FrozenActorCallback(imitation.critic_warmup, curriculum))
     every = settings.resolved_training("eval_every")
     periodic = None
     if every is not None:

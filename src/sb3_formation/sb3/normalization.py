@@ -319,14 +319,13 @@ def observation_scale(state: dict[str, Any]) -> np.ndarray:
     return scale
 
 
-def observation_offset(state: dict[str, Any]) -> np.ndarray:
-    """What is subtracted from each per-agent feature before scaling: the running mean with ``center``, else 0 (and
-    always 0 for the binary features).
+def observation_offset(state: dict[str, Any]) -> np.ndarray | None:
+    """What is subtracted from each per-agent feature before scaling: the running mean with ``center`` (0 for the
+    binary features), else nothing (``None``).
     """
-    mean = np.asarray(state["mean"], dtype=np.float64)
     if not bool(np.asarray(state.get("center", False))):
-        return np.zeros_like(mean)
-    return np.where(np.asarray(state["binary_mask"], dtype=bool), 0.0, mean)
+        return None
+    return np.where(np.asarray(state["binary_mask"], dtype=bool), 0.0, np.asarray(state["mean"], dtype=np.float64))
 
 
 def scale_observations(

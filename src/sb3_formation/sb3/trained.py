@@ -38,7 +38,7 @@ class TrainedPolicy:
     normalizer_state: dict[str, np.ndarray]
     source: Path | None = None
     _scale: np.ndarray = field(init=False, repr=False)
-    _offset: np.ndarray = field(init=False, repr=False)
+    _offset: np.ndarray | None = field(init=False, repr=False)
     _clip: float | None = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
