@@ -27,7 +27,7 @@ REFERENCE = Path(__file__).with_name("data") / "thesis_training_reference.json"
 
 def test_the_four_thesis_setups_are_shipped_with_their_citations() -> None:
     thesis = ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing"]
-    assert setup_names() == [*thesis, *(f"fast-{name}" for name in thesis), "imitate-ch5-bearing", "residual-ch5-bearing"]
+    assert setup_names() == [*thesis, *(f"fast-{name}" for name in thesis), "imitate-ch5-bearing", *(f"residual-{name}" for name in thesis)]
     thesis_ppo = {"n_steps": 128, "batch_size": 512, "n_epochs": 10, "learning_rate": 5e-5, "gamma": 0.995}
     thesis_ppo |= {"gae_lambda": 0.95, "clip_range": 0.2, "clip_range_vf": 20.0, "target_kl": 0.03}
     expected = {  # thesis 4.3/4.4 and 5.3/5.4: iterations, teams, evaluation episodes, recurrent, action scale
