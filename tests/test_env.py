@@ -352,3 +352,26 @@ def test_non_numeric_action_names_the_agent() -> None:
     actions["agent_3"] = ["a", 1]
     with pytest.raises(ValueError, match="agent_3 is not numeric"):
         env.step(actions)
+
+
+def test_reference_bearings_are_observed_last_only_when_asked() -> None:
+    plain = FormationEnv(FormationConfig.preset("ch5-bearing", n_agents=4))
+    env = FormationEnv(FormationConfig.preset("ch5-bearing", n_agents=4, observe_reference_bearings=True))
+    assert "reference_bearings" not in plain.observation_layout and env.observation_layout["reference_bearings"] == slice(
+        211, 215
+    )
+    assert not env.binary_observation_mask[211:].any()
+    observations, _ = env.reset(seed=3)
+    plain_observations, _ = plain.reset(seed=3)
+    # a square traversed anti-clockwise: the edge from agent i to i + 1 points at 45 + 90 i deg (Table 5.2's rule)
+    r = np.sqrt(0.5)
+    expected = {0: [-r, r, r, r], 1: [-r, -r, -r, r], 2: [r, -r, -r, -r], 3: [r, r, r, -r]}
+    for _ in range(3):
+        for agent, bearings in expected.items():
+            row = observations[f"agent_{agent}"]
+            np.testing.assert_allclose(row[211:], bearings, atol=1e-7)
+            assert row[:211].tobytes() == plain_observations[f"agent_{agent}"].tobytes()  # Table 3.1's part unchanged
+            assert env.observation_space(f"agent_{agent}").contains(row)
+        actions = {agent: np.array([0.3, -0.2]) for agent in env.agents}
+        observations, *_ = env.step(actions)
+        plain_observations, *_ = plain.step(actions)

@@ -76,6 +76,22 @@ def test_the_training_env_adds_the_controller_to_the_agent_action() -> None:
     venv.close()
 
 
+def test_in_teams_of_several_sizes_each_team_gets_the_controller_of_its_size() -> None:
+    config = CH5.replace(observe_reference_bearings=True)
+    controller = ClassicalController(config)
+    venv = ResidualVecEnv(FormationVecEnv(config, n_envs=2, team_sizes=[3, 4]), controller, 0.3)
+    venv.seed(11)
+    observations = venv.reset()
+    square = config.replace(n_agents=4)
+    env = FormationEnv(square)
+    rows = np.stack(list(env.reset(seed=11 + 3)[0].values()))  # team 1 (4 agents) starts at slot 3
+    for _ in range(25):
+        np.testing.assert_array_equal(observations[3:7], rows)
+        observations, *_ = venv.step(np.zeros((7, 2), dtype=np.float32))
+        rows, *_ = env.step_array(ClassicalController(square).predict(rows)[0])
+    venv.close()
+
+
 def test_a_residual_setup_trains_saves_and_loads_as_a_residual_policy(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)  # compare writes the controller's evaluation under evaluations/
     values = yaml.safe_load((SETUPS_FOLDER / "residual-ch5-bearing.yaml").read_text())
@@ -102,6 +118,45 @@ def test_a_residual_setup_trains_saves_and_loads_as_a_residual_policy(tmp_path: 
         actions = policy.predict(rows)[0]
         np.testing.assert_array_equal(actions, policy.base.predict(rows)[0])
         rows, *_ = env.step_array(actions)
+
+
+def test_a_policy_trained_on_several_team_sizes_acts_in_teams_of_any_size(tmp_path: Path) -> None:
+    values = yaml.safe_load((SETUPS_FOLDER / "mixed-ch5-bearing.yaml").read_text())
+    values["policy"]["net_arch"] = {"pi": [16], "vf": [16]}
+    values["ppo"] |= {"n_steps": 16, "batch_size": 16, "n_epochs": 1}
+    values["teams"], values["team_sizes"] = 2, [3, 4]
+    values["training"] |= {"steps": 16 * 7, "eval_every": None}
+    setup = tmp_path / "mixed.yaml"
+    setup.write_text(yaml.safe_dump(values))
+    run = tmp_path / "run"
+    assert main(["train", "--preset", str(setup), "--env", "max_steps=30", "--run-dir", str(run), "--no-progress"]) == 0
+    policy = load_policy(run)
+    assert policy.correction.team_sizes == (3, 4) and policy.correction.any_team_size
+    for n in (3, 7):  # a size it was trained on and one it never saw
+        result = evaluate(policy, episodes=2, n_envs=2, env_overrides={"n_agents": n}, record=0)
+        assert result.n_agents == n and len(result.episodes) == 2
+    one_size = tmp_path / "one-size"
+    assert (
+        main(
+            [
+                "train",
+                "--preset",
+                str(setup),
+                "--agents",
+                "4",
+                "--env",
+                "max_steps=30",
+                "--run-dir",
+                str(one_size),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
+    single = load_policy(one_size)
+    assert single.correction.team_sizes == (4,) and not single.correction.any_team_size
+    with pytest.raises(ValueError, match="n_agents=4 in the model, 7 in the env"):
+        evaluate(single, episodes=1, env_overrides={"n_agents": 7})
 
 
 def test_residual_setups_are_checked() -> None:

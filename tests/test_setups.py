@@ -18,7 +18,7 @@ from sb3_formation.cli import main
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.experiment.runs import FINAL_MODEL
 from sb3_formation.experiment.settings import TrainSettings, layered_settings
-from sb3_formation.experiment.setups import SETUPS_FOLDER, load_setup, setup_names
+from sb3_formation.experiment.setups import SETUPS_FOLDER, SetUp, load_setup, setup_names
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
 
@@ -27,7 +27,13 @@ REFERENCE = Path(__file__).with_name("data") / "thesis_training_reference.json"
 
 def test_the_four_thesis_setups_are_shipped_with_their_citations() -> None:
     thesis = ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing"]
-    assert setup_names() == [*thesis, *(f"fast-{name}" for name in thesis), "imitate-ch5-bearing", *(f"residual-{name}" for name in thesis)]
+    assert setup_names() == [
+        *thesis,
+        *(f"fast-{name}" for name in thesis),
+        "imitate-ch5-bearing",
+        "mixed-ch5-bearing",
+        *(f"residual-{name}" for name in thesis),
+    ]
     thesis_ppo = {"n_steps": 128, "batch_size": 512, "n_epochs": 10, "learning_rate": 5e-5, "gamma": 0.995}
     thesis_ppo |= {"gae_lambda": 0.95, "clip_range": 0.2, "clip_range_vf": 20.0, "target_kl": 0.03}
     expected = {  # thesis 4.3/4.4 and 5.3/5.4: iterations, teams, evaluation episodes, recurrent, action scale
@@ -145,3 +151,15 @@ def test_thesis_setups_train_as_before_the_redesign(case: str, tmp_path: Path, o
         np.testing.assert_allclose(values, reference["tensors"][name], rtol=1e-6, atol=1e-9, err_msg=name)
     if digest != reference["sha256"]:  # pragma: no cover - another machine's rounding
         pytest.skip(f"parameters agree to 1e-6 but not bit for bit ({digest[:12]} vs {reference['sha256'][:12]})")
+
+
+def test_team_sizes_are_checked() -> None:
+    setup = load_setup("mixed-ch5-bearing")
+    assert setup.team_sizes == [3, 4, 5, 6, 7, 8] and setup.config().observe_reference_bearings
+    values = {key: getattr(setup, key) for key in ("description", "env", "policy", "ppo", "curriculum", "teams", "evaluation")}
+    with pytest.raises(ValueError, match="team_sizes must be a non-empty list of team sizes, got 5"):
+        SetUp("bad", **values, team_sizes=5)
+    with pytest.raises(ValueError, match=r"team_sizes: FormationConfig\.n_agents=2 is invalid"):
+        SetUp("bad", **values, team_sizes=[3, 2])
+    with pytest.raises(ValueError, match=r"a team critic reads teams of one size; team_sizes lists \[3, 4\]"):
+        SetUp("bad", **{**values, "policy": {**values["policy"], "team_critic": True}}, team_sizes=[3, 4])

@@ -191,3 +191,37 @@ def test_worker_errors_leave_the_other_workers_in_step() -> None:
         venv.step(np.zeros((12, 2)))
     venv.close()
     venv.close()  # a second close is harmless
+
+
+def test_teams_of_several_sizes_share_one_rollout_each_team_as_its_own_env() -> None:
+    config = FormationConfig.preset("ch5-bearing", stage=3, observe_reference_bearings=True)
+    venv = FormationVecEnv(config, n_envs=3, team_sizes=[3, 5])  # sizes in turn: 3, 5, 3
+    assert venv.num_envs == 11 and [venv.team_slots(team) for team in range(3)] == [slice(0, 3), slice(3, 8), slice(8, 11)]
+    venv.seed(40)
+    observations = venv.reset()
+    actions = np.random.default_rng(0).uniform(-1, 1, (11, 2))
+    stepped, rewards, _, _ = venv.step(actions)
+    for first, size in [(0, 3), (3, 5), (8, 3)]:
+        env = FormationEnv(config.replace(n_agents=size))
+        reset_observations, _ = env.reset(seed=40 + first)  # SB3 gives slot k the seed 40 + k; a team its first slot's
+        step_observations, step_rewards, *_ = env.step({f"agent_{i}": actions[first + i] for i in range(size)})
+        for agent in range(size):
+            assert observations[first + agent].tobytes() == reset_observations[f"agent_{agent}"].tobytes()
+            assert stepped[first + agent].tobytes() == step_observations[f"agent_{agent}"].tobytes()
+            assert rewards[first + agent] == np.float32(step_rewards[f"agent_{agent}"])
+    assert venv.get_attr("config", [2, 3])[0].n_agents == 3 and venv.get_attr("config", [3])[0].n_agents == 5
+    workers = FormationVecEnv(config, n_envs=3, team_sizes=[3, 5], n_workers=2)
+    workers.seed(40)
+    assert workers.reset().tobytes() == observations.tobytes()
+    assert workers.step(actions)[0].tobytes() == stepped.tobytes()
+    workers.close()
+
+
+def test_teams_of_several_sizes_refuse_a_team_critic_and_bad_sizes() -> None:
+    config = FormationConfig.preset("ch5-bearing")
+    with pytest.raises(ValueError, match=r"team critic\) need teams of one size, got team_sizes \[3, 4\]"):
+        FormationVecEnv(config, n_envs=2, team_sizes=[3, 4], team_observations=True)
+    with pytest.raises(ValueError, match="n_agents=2 is invalid"):
+        FormationVecEnv(config, n_envs=2, team_sizes=[3, 2])
+    with pytest.raises(ValueError, match="at least one team size"):
+        FormationVecEnv(config, n_envs=2, team_sizes=[])

@@ -34,6 +34,8 @@ _EXPORTS: dict[str, str] = {
     "ScaleNormalizeVecEnv": "sb3_formation.sb3.normalization",
     "make_formation_vec_env": "sb3_formation.sb3.vec_env",
     "load_policy": "sb3_formation.experiment.targets",
+    "load_pretrained": "sb3_formation.experiment.pretrained",
+    "pretrained_names": "sb3_formation.experiment.pretrained",
     "load_setup": "sb3_formation.experiment.setups",
 }
 

@@ -25,6 +25,8 @@ from sb3_formation.experiment.evaluation import (
     seed_policy,
     stored_summary,
 )
+from sb3_formation.experiment.export import export_pretrained
+from sb3_formation.experiment.pretrained import pretrained_card, pretrained_names
 from sb3_formation.experiment.runs import FINAL_MODEL
 from sb3_formation.experiment.settings import (
     CLI_CONVERSIONS,
@@ -64,8 +66,14 @@ def _indices(text: str) -> list[int]:
     return values
 
 
-TARGET_HELP = "a run folder, a model .zip (normaliser beside it) or controller:<name> (e.g. controller:random)"
-PRESET_HELP = f"set-up of a controller: target (default {DEFAULT_SETUP}); a run's model acts in the task it was trained in"
+TARGET_HELP = (
+    "a run folder, a model .zip (normaliser beside it), controller:<name> (e.g. controller:classical) or "
+    "pretrained:<name> (a shipped policy: sb3-formation pretrained)"
+)
+PRESET_HELP = (
+    f"set-up of a controller: target (default {DEFAULT_SETUP}); trained models act in the task they were trained in "
+    "(pretrained: refuses another)"
+)
 
 
 def _add_protocol_arguments(parser: argparse.ArgumentParser) -> None:
@@ -106,6 +114,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="list the set-ups --preset can name",
         description="List the set-ups shipped with the package (a set-up YAML file's path works as --preset too).",
     )
+    pretrained = commands.add_parser(
+        "pretrained",
+        help="list the trained policies shipped with the package (pretrained:<name> targets), or export one",
+        description="List the shipped policies with their stored evaluation (the thesis protocol), or with --export "
+        "make one of a finished run: its model without optimiser state, its normaliser, settings, a fresh evaluation "
+        "of that model file and a card recording the command, seed, wall time and versions.",
+    )
+    pretrained.add_argument("--export", type=Path, metavar="RUN_DIR", help="a finished run folder to ship")
+    pretrained.add_argument("--name", help="name of the exported policy (pretrained:<name>)")
+    pretrained.add_argument("--into", type=Path, help="folder of shipped policies (default: the package's)")
     evaluate = commands.add_parser(
         "evaluate",
         help="evaluate a trained policy: success rate with a 95%% interval, errors, episodes.csv, trajectories",
@@ -128,7 +146,7 @@ def build_parser() -> argparse.ArgumentParser:
         "runs side by side; training: episode reward and success rate against the iteration, mean and std over runs.",
     )
     plot.add_argument("figure", help=f"one of {', '.join(FIGURES)}")
-    plot.add_argument("targets", nargs="+", help="run folders, controller:<name> targets, or eval folders / files")
+    plot.add_argument("targets", nargs="+", help="run folders, <kind>:<name> targets, or eval folders / files")
     plot.add_argument("--out", type=Path, help="figure file; .png (default), .svg or .pdf")
     plot.add_argument("--episodes", type=_indices, help="recorded episodes to draw, e.g. 0,2 (default: all recorded)")
     plot.add_argument("--every", type=positive_int, default=25, help="steps between formation outlines (default 25)")
@@ -159,7 +177,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Evaluate every run on the same fixed-seed episodes (reusing its eval/ when it holds the same "
         "protocol for the same model file), print a Markdown table and write the evaluation bar chart.",
     )
-    compare.add_argument("targets", nargs="+", help="run folders, model .zip files or controller:<name> targets")
+    compare.add_argument("targets", nargs="+", help="run folders, model .zip files or <kind>:<name> targets")
     _add_protocol_arguments(compare)
     compare.add_argument("--labels", help="comma-separated label per run (default: the run folder names)")
     compare.add_argument("--over", choices=("successful", "all"), default="successful", help="episodes for the means")
@@ -288,6 +306,35 @@ def presets_command(args: argparse.Namespace) -> int:
     width = max(len(name) for name in names)
     for name in names:
         print(f"{name:<{width}}  {load_setup(name).description}")
+    return 0
+
+
+def pretrained_command(args: argparse.Namespace) -> int:
+    """``sb3-formation pretrained``: the shipped policies with their stored figures, or ``--export`` of a run."""
+    if args.export is not None or args.name is not None or args.into is not None:
+        if args.export is None or args.name is None:
+            raise ValueError("--export RUN_DIR and --name NAME go together")
+        options = {} if args.into is None else {"root": args.into}
+        folder = export_pretrained(args.export, args.name, command=args.command_line, progress_bar=True, **options)
+        print(f"pretrained:{args.name} written to {folder}")
+        card = pretrained_card(args.name, folder.parent)
+        _print_summary(card["summary"])
+        return 0
+    columns = "target | set-up | n | success (95 % CI) | angle error (deg) | bearing error | agent contacts | steps | training"
+    print(f"| {columns} |\n|---|---|---:|---:|---:|---:|---:|---:|---:|")
+    for name in pretrained_names():
+        card = pretrained_card(name)
+        summary = card["summary"]
+        low, high = summary["success_rate_ci95"]
+        means = {key: value["mean"] for key, value in summary["successful_episodes"].items()}
+        contacts = summary["all_episodes"]["collisions_agent"]["mean"]
+        sizes = card.get("team_sizes", [card["n_agents"]])
+        n = f"{card['n_agents']} (trained on {', '.join(map(str, sizes))})" if len(sizes) > 1 else card["n_agents"]
+        print(
+            f"| pretrained:{name} | {card['setup']} | {n} | {summary['success_rate']:.1%} "
+            f"({low:.1%}-{high:.1%}) | {means['angle_error_deg']:.2f} | {means['bearing_error']:.4f} | {contacts:.3g} | "
+            f"{means['length']:.0f} | {card['training_seconds'] / 60:.1f} min |"
+        )
     return 0
 
 
@@ -491,6 +538,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "compare": compare_command,
         "sweep": sweep_command,
         "presets": presets_command,
+        "pretrained": pretrained_command,
     }
     try:
         return commands[args.command](args)

@@ -70,6 +70,9 @@ class FormationConfig:
     :param stage_disabled_terms: for stages 1, 2, 3, the reward terms switched off in that stage
     :param max_placement_tries: scenario draws before the sampler gives up with an error
     :param placement_clearance: minimum gap (m) between a drawn obstacle and the start formation or the goal area
+    :param observe_reference_bearings: append the agent's two reference bearings (Table 5.2, normalised) to its
+        observation: a departure from Table 3.1 for policies that act in teams of several sizes, where an agent's
+        reference depends on its index and n (the angle error already carries beta^ref)
     """
 
     world_width: float = 15.0
@@ -118,6 +121,7 @@ class FormationConfig:
     )
     max_placement_tries: int = 200
     placement_clearance: float = 0.05
+    observe_reference_bearings: bool = False
 
     def __post_init__(self) -> None:
         positive = (
@@ -139,7 +143,8 @@ class FormationConfig:
             object.__setattr__(self, name, int(getattr(self, name)))  # numpy integers become plain ints
         _check("formation_scale", self.formation_scale, "in (0, 1)", lambda v: 0 < v < 1)
         _check("layout", self.layout, f"one of {LAYOUTS}", lambda v: v in LAYOUTS)
-        _check("team_reward", self.team_reward, "True or False", lambda v: isinstance(v, bool))
+        for name in ("team_reward", "observe_reference_bearings"):
+            _check(name, getattr(self, name), "True or False", lambda v: isinstance(v, bool))
         if self.d_comm <= self.d_ref:
             raise ValueError(f"d_comm={self.d_comm} must be > d_ref={self.d_ref}")
         disabled = tuple(tuple(stage_terms) for stage_terms in self.stage_disabled_terms)

@@ -62,6 +62,10 @@ class FormationEnv(ParallelEnv):
     | 208-209   | previous_action                | a_t-1^i (0 after reset)                                  | -     |
     | 210       | previous_reward                | r_t-1^i (0 after reset)                                  | -     |
 
+    With ``observe_reference_bearings`` (a departure from Table 3.1, for policies acting in teams of several sizes)
+    four values follow: ``reference_bearings``, the unit reference bearings g_j^{i,ref} (Table 5.2) towards the
+    preceding (x, y) then succeeding neighbour, which depend on the agent's index and on n.
+
     ## Rewards
 
     Per agent, the weighted sum of the terms below (coefficients: ``FormationConfig``, presets from Tables 4.1 and
@@ -341,6 +345,7 @@ class FormationEnv(ParallelEnv):
             self.step_count,
             self.previous_actions,
             self.previous_rewards,
+            self.reference_bearings,
         )
 
     def _infos(

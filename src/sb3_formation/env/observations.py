@@ -1,7 +1,8 @@
 """The per-agent observation of thesis Table 3.1: its fields, their order, honest bounds, and the builder.
 
-Order (design.md): lidar l, state z, errors e, flags f, then previous action / reward / time step s. Raw values in
-SI units and degrees; normalisation belongs to the SB3 layer.
+Order (design.md): lidar l, state z, errors e, flags f, then previous action / reward / time step s; with
+``FormationConfig.observe_reference_bearings`` (a departure, for teams of several sizes) the agent's reference bearings
+come last. Raw values in SI units and degrees; normalisation belongs to the SB3 layer.
 """
 
 from __future__ import annotations
@@ -68,6 +69,8 @@ def observation_fields(config: FormationConfig) -> list[ObservationField]:
         ("previous_action", "a_t-1^i", 2, -1.0, 1.0, "fraction of F_max"),
         ("previous_reward", "r_t-1^i", 1, -config.reward_clip, config.reward_clip, "reward"),
     ]
+    if config.observe_reference_bearings:  # a departure from Table 3.1 (FormationConfig.observe_reference_bearings)
+        specs.append(("reference_bearings", "g_j^{i,ref} (preceding x, y; succeeding x, y)", 4, -1.0, 1.0, "unit"))
     return [
         ObservationField(
             name,
@@ -105,6 +108,7 @@ def build_observations(
     step: int,
     previous_actions: np.ndarray,
     previous_rewards: np.ndarray,
+    reference: np.ndarray | None = None,
 ) -> np.ndarray:
     """Every agent's observation, written into ``out`` and returned as a new array, in the order of :func:`observation_fields`.
 
@@ -121,6 +125,7 @@ def build_observations(
     :param step: current time step t
     :param previous_actions: ``(n, 2)`` last clipped actions
     :param previous_rewards: ``(n,)`` last rewards
+    :param reference: ``(n, 2, 2)`` reference bearings, written last when the config observes them
     """
     _fill_observations(
         out,
@@ -144,6 +149,8 @@ def build_observations(
         previous_actions,
         previous_rewards,
     )
+    if config.observe_reference_bearings:
+        out[:, -4:] = reference.reshape(len(out), 4)
     return out.copy()
 
 

@@ -136,6 +136,7 @@ def load_trained(path: str | os.PathLike[str], device: str = "auto") -> TeamPoli
             normalizer_state = {key: data[key] for key in data.files}
     except (zipfile.BadZipFile, ValueError, OSError) as error:
         raise ValueError(f"{normalizer_path} is not a normaliser file: {error}") from error
-    trained = TrainedPolicy(model, config, normalizer_state, source=model_path)
+    team_sizes = tuple(getattr(model, "team_sizes", None) or ())  # files saved before mixed teams: the config's
+    trained = TrainedPolicy(model, config, normalizer_state, source=model_path, team_sizes=team_sizes)
     residual = getattr(model, "residual", None)  # a correction of a controller (a set-up's residual)
     return residual_policy(residual, trained) if residual else trained

@@ -307,9 +307,17 @@ class TrainSettings:
         """The time budget in seconds, or ``None``."""
         return None if self.minutes is None else 60.0 * self.minutes
 
+    def team_sizes(self) -> list[int]:
+        """The size of each training team: the set-up's ``team_sizes`` in turn, else the task's ``n_agents`` (an
+        ``n_agents`` of this run's ``env``, e.g. ``--agents``, gives every team that size)."""
+        sizes = self.setup().team_sizes
+        if sizes is None or "n_agents" in self.env:
+            sizes = [self.config().n_agents]
+        return [sizes[team % len(sizes)] for team in range(self.resolved_n_envs())]
+
     def steps_per_iteration(self) -> int:
-        """Agent-steps of one PPO iteration: n_steps in every slot (teams x agents)."""
-        return self.ppo_kwargs()["n_steps"] * self.resolved_n_envs() * self.config().n_agents
+        """Agent-steps of one PPO iteration: n_steps in every slot (the agents of every team)."""
+        return self.ppo_kwargs()["n_steps"] * sum(self.team_sizes())
 
     def resolved_training(self, name: str) -> Any:
         """A training feature (see :data:`~sb3_formation.experiment.setups.TRAINING_DEFAULTS`): this run's, else the

@@ -48,6 +48,9 @@ class SetUp:
     :param ppo: keyword arguments of ``PPO`` (``n_steps``, ``batch_size``, ``learning_rate``, ...)
     :param curriculum: ``iterations`` (PPO iterations of stages 1, 2, 3) and ``success_threshold`` (or null)
     :param teams: parallel teams during training
+    :param team_sizes: optional: teams of several sizes in one rollout, taken in turn (team j has
+        ``team_sizes[j % len(team_sizes)]`` agents; :class:`~sb3_formation.sb3.vec_env.FormationVecEnv`); without it
+        every team has the task's ``n_agents``. A policy trained on several sizes acts in teams of any size
     :param evaluation: ``episodes`` and ``stage`` of the evaluation protocol
     :param training: optional training features (:data:`TRAINING_DEFAULTS`): ``normalize_reward`` (divide rewards by
         a running std of the discounted return, SB3's ``VecNormalize``), ``center_observations`` (subtract the running
@@ -74,6 +77,7 @@ class SetUp:
     training: dict[str, Any] = field(default_factory=dict)
     residual: dict[str, Any] = field(default_factory=dict)
     imitation: dict[str, Any] = field(default_factory=dict)
+    team_sizes: list[int] | None = None
     source: Path | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
@@ -110,6 +114,17 @@ class SetUp:
         if not isinstance(self.policy.get("recurrent", False), bool) or team_critic not in (None, True, False):
             raise ValueError(f"{where}: policy: recurrent must be true or false, team_critic true, false or unset")
         self.ppo_kwargs()  # validates the policy choices
+        if self.team_sizes is not None:
+            sizes = self.team_sizes
+            if not (isinstance(sizes, list) and sizes and all(is_count(size) for size in sizes)):
+                raise ValueError(f"{where}: team_sizes must be a non-empty list of team sizes, got {sizes!r}")
+            if "team_size" in self.ppo_kwargs()["policy_kwargs"] and len(set(sizes)) > 1:
+                raise ValueError(f"{where}: a team critic reads teams of one size; team_sizes lists {sizes}")
+            for size in sizes:
+                try:
+                    self.config(n_agents=size)
+                except ValueError as error:
+                    raise ValueError(f"{where}: team_sizes: {error}") from error
         if self.residual:
             unknown = sorted(set(self.residual) - {"controller", "gains", "scale"})
             if unknown or "controller" not in self.residual or "scale" not in self.residual:
@@ -207,7 +222,7 @@ class SetUp:
         keys = [f.name for f in fields(cls) if f.name not in ("name", "source")]
         if not isinstance(values, dict):
             raise ValueError(f"set-up {name!r} must be a mapping of {keys}, not {type(values).__name__}")
-        required = [key for key in keys if key not in ("training", "residual", "imitation")]
+        required = [key for key in keys if key not in ("training", "residual", "imitation", "team_sizes")]
         unknown, missing = sorted(set(values) - set(keys)), [key for key in required if key not in values]
         if unknown or missing:
             raise ValueError(f"set-up {name!r}: unknown keys {unknown}, missing keys {missing}; a set-up has {keys}")

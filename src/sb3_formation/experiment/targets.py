@@ -2,7 +2,9 @@
 
 - a run folder (its final model, else its latest checkpoint) or a model ``.zip`` (normaliser statistics beside it);
 - ``controller:<name>``: a hand-written controller of :data:`~sb3_formation.controllers.CONTROLLERS`, acting in the
-  task of the set-up given as ``preset`` (default ``ch5-bearing``).
+  task of the set-up given as ``preset`` (default ``ch5-bearing``);
+- ``pretrained:<name>``: a policy shipped with the package (:mod:`~sb3_formation.experiment.pretrained`), acting in
+  the task it was trained for (a ``preset`` of another task is refused).
 
 ``evaluate``, ``render``, ``plot`` and ``compare`` of the command line and :func:`load_policy` in Python resolve targets
 here; a new kind of target is a new entry of :data:`TARGET_KINDS`.
@@ -12,13 +14,27 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 from sb3_formation.controllers import CONTROLLERS
 from sb3_formation.controllers.base import TeamPolicy
+from sb3_formation.experiment.pretrained import load_pretrained, pretrained_folder
 from sb3_formation.experiment.runs import load_trained
 from sb3_formation.experiment.settings import load_settings
 from sb3_formation.experiment.setups import DEFAULT_SETUP, load_setup
+
+
+@dataclass(frozen=True)
+class TargetKind:
+    """What a ``<kind>:<name>`` target is.
+
+    :param load: (name, preset, device) -> the policy
+    :param setup: (name, preset) -> the set-up whose evaluation protocol and task the target is evaluated in
+    """
+
+    load: Callable[[str, str | None, str], TeamPolicy]
+    setup: Callable[[str, str | None], str]
 
 
 def _controller(name: str, preset: str | None, device: str) -> TeamPolicy:
@@ -27,8 +43,15 @@ def _controller(name: str, preset: str | None, device: str) -> TeamPolicy:
     return CONTROLLERS[name](load_setup(preset or DEFAULT_SETUP).config())
 
 
-#: Target kinds written ``<kind>:<name>``: kind -> loader(name, preset, device).
-TARGET_KINDS: dict[str, Callable[[str, str | None, str], TeamPolicy]] = {"controller": _controller}
+def _pretrained_setup(name: str, preset: str | None) -> str:
+    return preset or load_settings(pretrained_folder(name)).preset
+
+
+#: Target kinds written ``<kind>:<name>``.
+TARGET_KINDS: dict[str, TargetKind] = {
+    "controller": TargetKind(_controller, lambda name, preset: preset or DEFAULT_SETUP),
+    "pretrained": TargetKind(load_pretrained, _pretrained_setup),
+}
 
 
 def target_kind(target: str | os.PathLike[str]) -> str | None:
@@ -42,12 +65,12 @@ def load_policy(target: str | os.PathLike[str], preset: str | None = None, devic
 
     :param target: a run folder, a model ``.zip``, or ``<kind>:<name>`` (e.g. ``controller:random``)
     :param preset: for ``controller:`` targets, the set-up whose task the controller acts in (default ``ch5-bearing``);
-        a trained model acts in the task it was trained in, so it takes none
+        a trained model acts in the task it was trained in, so a run takes none and ``pretrained:`` refuses another
     :param device: torch device of a trained model
     """
     kind = target_kind(target)
     if kind is not None:
-        return TARGET_KINDS[kind](str(target).partition(":")[2], preset, device)
+        return TARGET_KINDS[kind].load(str(target).partition(":")[2], preset, device)
     if preset is not None:
         raise ValueError(f"a preset applies to controller targets only; {target} acts in the task it was trained in")
     return load_trained(Path(target), device=device)
@@ -66,9 +89,10 @@ def run_folder(target: str | os.PathLike[str]) -> Path | None:
 
 def default_protocol(target: str | os.PathLike[str], preset: str | None = None) -> dict:
     """``episodes`` and ``stage`` of the evaluation protocol of a target's set-up (the run's, with its ``evaluation``
-    settings; a controller's ``preset``); empty for a model file outside any run folder."""
-    if target_kind(target) is not None:
-        return dict(load_setup(preset or DEFAULT_SETUP).evaluation)
+    settings; a ``<kind>:<name>`` target's :attr:`TargetKind.setup`); empty for a model file outside any run folder."""
+    kind = target_kind(target)
+    if kind is not None:
+        return dict(load_setup(TARGET_KINDS[kind].setup(str(target).partition(":")[2], preset)).evaluation)
     folder = run_folder(target)
     if folder is None:
         return {}
@@ -78,10 +102,11 @@ def default_protocol(target: str | os.PathLike[str], preset: str | None = None) 
 
 def evaluation_folder(target: str | os.PathLike[str], preset: str | None = None) -> Path:
     """Where the evaluation files of a target go by default: ``eval/`` in its run folder (or beside a model file), and
-    ``evaluations/<kind>-<name>_<preset>/`` in the working folder for a ``<kind>:<name>`` target."""
+    ``evaluations/<kind>-<name>_<set-up>/`` in the working folder for a ``<kind>:<name>`` target."""
     kind = target_kind(target)
     if kind is not None:
-        return Path("evaluations") / f"{kind}-{str(target).partition(':')[2]}_{Path(preset or DEFAULT_SETUP).stem}"
+        name = str(target).partition(":")[2]
+        return Path("evaluations") / f"{kind}-{name}_{Path(TARGET_KINDS[kind].setup(name, preset)).stem}"
     path = Path(target)
     return (path if path.is_dir() else path.parent) / "eval"
 

@@ -8,12 +8,14 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepR
 
 from sb3_formation.controllers.base import Controller
 from sb3_formation.controllers.residual import add_correction, check_residual_scale
+from sb3_formation.env.config import FormationConfig
 
 
 class ResidualVecEnv(VecEnvWrapper):
     """Makes the agent's action a bounded correction of a controller's: the env receives
     ``clip(a_controller + scale * a, -1, 1)``, the controller acting on the raw observations (wrap the
-    :class:`~sb3_formation.sb3.vec_env.FormationVecEnv` itself, below any normaliser).
+    :class:`~sb3_formation.sb3.vec_env.FormationVecEnv` itself, below any normaliser). In teams of several sizes each
+    team's agents are controlled by the controller fitted to its size.
 
     :param venv: the formation VecEnv (raw observations; with team observations the first ``agent_obs_dim`` columns)
     :param base: the controller, acting in the env's task
@@ -24,6 +26,11 @@ class ResidualVecEnv(VecEnvWrapper):
         super().__init__(venv)
         self.base, self.scale = base, check_residual_scale(scale)
         self.agent_obs_dim: int = venv.agent_observation_dim
+        #: each team task's controller and the slots of its teams (whole teams, agent 0 first, as ``predict`` expects)
+        slots: dict[FormationConfig, list[int]] = {}
+        for team, config in enumerate(venv.team_configs):
+            slots.setdefault(config, []).extend(range(venv.num_envs)[venv.team_slots(team)])
+        self._controllers = [(base.fit(config), np.array(team_slots)) for config, team_slots in slots.items()]
         self._observations: np.ndarray | None = None
 
     def reset(self) -> VecEnvObs:
@@ -33,8 +40,11 @@ class ResidualVecEnv(VecEnvWrapper):
     def step_async(self, actions: np.ndarray) -> None:
         if self._observations is None:
             raise RuntimeError("reset() the env before stepping it")
-        base, _ = self.base.predict(self._observations[:, : self.agent_obs_dim])
-        self.venv.step_async(add_correction(base.astype(np.float64), actions, self.scale))
+        own = self._observations[:, : self.agent_obs_dim]
+        base = np.empty((len(own), 2))
+        for controller, slots in self._controllers:
+            base[slots], _ = controller.predict(own[slots])
+        self.venv.step_async(add_correction(base, actions, self.scale))
 
     def step_wait(self) -> VecEnvStepReturn:
         observations, rewards, dones, infos = self.venv.step_wait()

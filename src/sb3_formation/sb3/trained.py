@@ -7,6 +7,7 @@ each slot's own observation followed by its whole team's.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,17 +32,21 @@ class TrainedPolicy:
     :param config: the task configuration it was trained in
     :param normalizer_state: :meth:`~sb3_formation.sb3.normalization.ScaleNormalizeVecEnv.state_dict` of its training env
     :param source: the model file it was loaded from, if any
+    :param team_sizes: the team sizes it was trained on (default: ``config.n_agents``); a policy trained on several
+        acts in teams of any size (its observation does not depend on n), others only in teams of their own size
     """
 
     model: Any
     config: FormationConfig
     normalizer_state: dict[str, np.ndarray]
     source: Path | None = None
+    team_sizes: tuple[int, ...] = ()
     _scale: np.ndarray = field(init=False, repr=False)
     _offset: np.ndarray | None = field(init=False, repr=False)
     _clip: float | None = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
+        self.team_sizes = tuple(self.team_sizes) or (self.config.n_agents,)
         missing = [key for key in STATE_KEYS if key not in self.normalizer_state]
         if missing:
             raise ValueError(f"the normaliser statistics lack {missing}")
@@ -64,14 +69,21 @@ class TrainedPolicy:
         """Whether the network reads each slot's whole team (a team critic, thesis fig. 4.3)."""
         return getattr(self.policy, "team_size", None) is not None
 
+    @property
+    def any_team_size(self) -> bool:
+        """Whether it acts in teams of any size: trained on several, with no team critic (which reads a whole team)."""
+        return len(self.team_sizes) > 1 and not self.team_observations
+
     def fit(self, config: FormationConfig) -> TrainedPolicy:
-        """``self``, if the model can act in envs of ``config``.
+        """The policy acting in envs of ``config``: ``self``, or (a policy of :attr:`any_team_size` in a team of
+        another size) a copy that acts there.
 
         :raises ValueError: naming every observation-shaping difference, or normaliser statistics of another layout
         """
+        shaping = [name for name in OBSERVATION_SHAPING_FIELDS if not (name == "n_agents" and self.any_team_size)]
         differences = [
             f"{name}={getattr(self.config, name)} in the model, {getattr(config, name)} in the env"
-            for name in OBSERVATION_SHAPING_FIELDS
+            for name in shaping
             if getattr(self.config, name) != getattr(config, name)
         ]
         if differences:
@@ -83,7 +95,7 @@ class TrainedPolicy:
                 f"the normaliser statistics are for {int(np.asarray(state['agent_obs_dim']))} features with other flags; "
                 f"this env's observations have {mask.size}"
             )
-        return self
+        return self if config.n_agents == self.config.n_agents else dataclasses.replace(self, config=config)
 
     def predict(
         self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True

@@ -1,7 +1,8 @@
 """``FormationVecEnv``: many teams of a :class:`FormationEnv` as one SB3 ``VecEnv`` with one slot per agent.
 
-Slot k is agent ``k % n_agents`` of team ``k // n_agents``, so one SB3 ``PPO`` shares its parameters across every
-agent of every team. All slots of a team end together and are reset in the same step, as SB3 expects of a ``VecEnv``.
+The teams' agents take the slots one team after the other (slot k is agent ``k % n`` of team ``k // n`` when every
+team has n agents), so one SB3 ``PPO`` shares its parameters across every agent of every team, whatever its size.
+All slots of a team end together and are reset in the same step, as SB3 expects of a ``VecEnv``.
 """
 
 from __future__ import annotations
@@ -39,21 +40,19 @@ def slot_observations(own: np.ndarray, n_agents: int, team_observations: bool) -
 class TeamBatch:
     """A block of teams stepped in one process: the unit of both the in-process and the worker-process VecEnv.
 
-    :param config: task configuration of every team
-    :param n_teams: number of teams in this block
+    :param configs: task configuration of each team of this block
     :param team_observations: each slot also sees its whole team's observations (for a team critic)
     :param render_mode: render mode of the teams' envs
     """
 
-    def __init__(self, config: FormationConfig, n_teams: int, team_observations: bool, render_mode: str | None) -> None:
-        self.envs = [FormationEnv(config, render_mode=render_mode) for _ in range(n_teams)]
-        self.n_agents = config.n_agents
+    def __init__(self, configs: Sequence[FormationConfig], team_observations: bool, render_mode: str | None) -> None:
+        self.envs = [FormationEnv(config, render_mode=render_mode) for config in configs]
         self.team_observations = team_observations
-        self.statistics = [EpisodeStatistics() for _ in range(n_teams)]
+        self.statistics = [EpisodeStatistics() for _ in configs]
         self.start_time = time.time()
 
     def _slot_observations(self, own: np.ndarray) -> np.ndarray:
-        return slot_observations(own, self.n_agents, self.team_observations)
+        return slot_observations(own, len(own), self.team_observations)
 
     def reset(self, seeds: Sequence[int | None], options: Sequence[dict[str, Any]]) -> np.ndarray:
         """Reset every team; team j with ``seeds[j]`` and ``options[j]``. :return: ``(n_teams * n, obs_dim)``"""
@@ -67,15 +66,17 @@ class TeamBatch:
     def step(self, actions: np.ndarray, first_team: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict[str, Any]]]:
         """Step every team with its agents' rows of ``actions``; teams that end are reset at once.
 
-        :param actions: ``(n_teams * n, 2)`` actions
+        :param actions: ``(slots, 2)`` actions, each team's agents one after the other
         :param first_team: global index of this block's first team (for error messages)
         :return: observations, rewards, dones and infos of every slot, in SB3's ``VecEnv`` conventions
         """
-        n_agents = self.n_agents
         observations, rewards, dones, infos = [], [], [], []
+        start = 0
         for team, (env, statistics) in enumerate(zip(self.envs, self.statistics)):
+            n_agents = env.config.n_agents
+            team_actions, start = actions[start : start + n_agents], start + n_agents
             try:
-                result = env.step_array(actions[team * n_agents : (team + 1) * n_agents])
+                result = env.step_array(team_actions)
             except ValueError as error:
                 raise ValueError(f"team {first_team + team}: {error}") from error
             team_observations, agent_rewards, terminated, truncated, slot_infos = result
@@ -127,14 +128,17 @@ class TeamBatch:
 
 
 class FormationVecEnv(VecEnv):
-    """``n_envs`` teams of ``config.n_agents`` agents as an SB3 ``VecEnv`` of ``n_envs * n_agents`` slots.
+    """``n_envs`` teams of a :class:`FormationEnv` as an SB3 ``VecEnv`` with one slot per agent.
 
-    - Slot k is agent ``k % n_agents`` of team ``k // n_agents``; every slot has the env's per-agent spaces (with
-      ``team_observations`` the observation is [own, then every team member's, agent 0 first], for a team critic).
+    - The teams' agents take the slots one team after the other: with ``config.n_agents`` agents in every team, slot
+      k is agent ``k % n`` of team ``k // n``. With ``team_sizes`` the teams have several sizes (their observations
+      have the same size, Table 3.1) and one rollout mixes them; every slot has the env's per-agent spaces (with
+      ``team_observations`` the observation is [own, then every team member's, agent 0 first], for a team critic,
+      so the teams must have one size).
     - All slots of a team end together and are reset in the same step; an ended slot's info has
       ``terminal_observation`` and ``TimeLimit.truncated`` (True exactly for time-outs, so PPO bootstraps them).
-    - Seeding: ``seed(s)`` (as ``PPO(seed=s)`` calls it) gives team j the seed ``s + j * n_agents``, the seed SB3
-      assigns to the team's first slot; each team then draws its scenarios from its own generator.
+    - Seeding: ``seed(s)`` (as ``PPO(seed=s)`` calls it) gives each team the seed SB3 assigns to its first slot,
+      ``s + slot``; each team then draws its scenarios from its own generator.
     - ``get_attr``, ``set_attr`` and ``env_method`` reach the teams of the given slots; a call on several slots of
       one team acts once on that team, and results are repeated for each requested slot.
     - Episode statistics are counted once per team: the info of the team's first slot carries ``episode``
@@ -149,6 +153,8 @@ class FormationVecEnv(VecEnv):
     :param n_workers: worker processes (1: step every team in this process)
     :param render_mode: ``None`` or ``"rgb_array"``; ``render()`` tiles the teams' frames
     :param start_method: multiprocessing start method for the workers (default: ``forkserver`` where available)
+    :param team_sizes: team sizes (each >= 3) taken in turn: team j has ``team_sizes[j % len(team_sizes)]`` agents
+        (default: ``config.n_agents`` for every team)
     """
 
     def __init__(
@@ -159,38 +165,55 @@ class FormationVecEnv(VecEnv):
         n_workers: int = 1,
         render_mode: str | None = None,
         start_method: str | None = None,
+        team_sizes: Sequence[int] | None = None,
     ) -> None:
         if not (isinstance(n_envs, int) and n_envs >= 1):
             raise ValueError(f"n_envs must be an integer >= 1, got {n_envs!r}")
         if not (isinstance(n_workers, int) and 1 <= n_workers <= n_envs):
             raise ValueError(f"n_workers must be an integer in [1, n_envs={n_envs}], got {n_workers!r}")
+        sizes = [config.n_agents] if team_sizes is None else list(team_sizes)
+        if not sizes:
+            raise ValueError("team_sizes must list at least one team size")
+        if team_observations and len(set(sizes)) > 1:
+            raise ValueError(f"team observations (a team critic) need teams of one size, got team_sizes {sizes}")
+        sizes_of = {size: config.replace(n_agents=size) for size in sizes}  # validates every size
         self.config = config
         self.n_teams = n_envs
-        self.n_agents = config.n_agents
+        #: the task of each team (they differ in n_agents only)
+        self.team_configs = [sizes_of[sizes[team % len(sizes)]] for team in range(n_envs)]
         self.team_observations = team_observations
         self.n_workers = n_workers
+        self._team_sizes = np.array([team_config.n_agents for team_config in self.team_configs])
+        self._team_starts = np.concatenate([[0], np.cumsum(self._team_sizes)])  # team j: slots starts[j]:starts[j + 1]
+        self._slot_teams = np.repeat(np.arange(n_envs), self._team_sizes)
         probe = FormationEnv(config)
         agent_space = probe.observation_space(probe.possible_agents[0])
         self.agent_observation_dim = agent_space.shape[0]
         self.binary_observation_mask = probe.binary_observation_mask
         self.observation_layout = probe.observation_layout
-        blocks = 1 + self.n_agents if team_observations else 1
+        blocks = 1 + int(self._team_sizes[0]) if team_observations else 1
         observation_space = gymnasium.spaces.Box(np.tile(agent_space.low, blocks), np.tile(agent_space.high, blocks))
         self._team_blocks = [block.tolist() for block in np.array_split(np.arange(n_envs), n_workers)]
-        arguments = [(config, len(block), team_observations, render_mode) for block in self._team_blocks]
+        arguments = [
+            ([self.team_configs[team] for team in block], team_observations, render_mode) for block in self._team_blocks
+        ]
         if n_workers == 1:
             self._batches: list[TeamBatch | WorkerProcess] = [TeamBatch(*arguments[0])]
         else:
             context = worker_context(start_method)
             self._batches = [WorkerProcess(TeamBatch, block, "FormationVecEnv worker", context) for block in arguments]
         self._actions: np.ndarray | None = None
-        super().__init__(n_envs * self.n_agents, observation_space, probe.action_space(probe.possible_agents[0]))
+        super().__init__(int(self._team_starts[-1]), observation_space, probe.action_space(probe.possible_agents[0]))
 
     # Slot and team bookkeeping -----------------------------------------------------------------------------------
 
+    def team_slots(self, team: int) -> slice:
+        """The slots of a team's agents, agent 0 first."""
+        return slice(int(self._team_starts[team]), int(self._team_starts[team + 1]))
+
     def _teams_of(self, indices: VecEnvIndices) -> list[int]:
         """Teams of the given slots, in order of first appearance."""
-        return list(dict.fromkeys(slot // self.n_agents for slot in self._get_indices(indices)))
+        return list(dict.fromkeys(int(self._slot_teams[slot]) for slot in self._get_indices(indices)))
 
     def _per_block(self, teams: Iterable[int]) -> list[tuple[int, list[int]]]:
         """Group global team indices by block: (block index, team indices within the block)."""
@@ -224,11 +247,9 @@ class FormationVecEnv(VecEnv):
     # VecEnv interface --------------------------------------------------------------------------------------------
 
     def reset(self) -> VecEnvObs:
+        firsts = self._team_starts
         arguments = {
-            block: (
-                [self._seeds[team * self.n_agents] for team in teams],
-                [self._options[team * self.n_agents] for team in teams],
-            )
+            block: ([self._seeds[firsts[team]] for team in teams], [self._options[firsts[team]] for team in teams])
             for block, teams in enumerate(self._team_blocks)
         }
         observations = self._run("reset", arguments)
@@ -240,9 +261,9 @@ class FormationVecEnv(VecEnv):
         self._actions = np.asarray(actions).reshape(self.num_envs, -1)
 
     def step_wait(self) -> VecEnvStepReturn:
-        n_agents = self.n_agents
+        starts = self._team_starts
         arguments = {
-            block: (self._actions[teams[0] * n_agents : (teams[-1] + 1) * n_agents], teams[0])
+            block: (self._actions[starts[teams[0]] : starts[teams[-1] + 1]], teams[0])
             for block, teams in enumerate(self._team_blocks)
         }
         results = self._run("step", arguments)
@@ -257,7 +278,7 @@ class FormationVecEnv(VecEnv):
     def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
         slots = list(self._get_indices(indices))
         values = self._call_teams("get_attr", self._teams_of(slots), attr_name)
-        return [values[slot // self.n_agents] for slot in slots]
+        return [values[self._slot_teams[slot]] for slot in slots]
 
     def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
         self._call_teams("set_attr", self._teams_of(indices), attr_name, value)
@@ -267,7 +288,7 @@ class FormationVecEnv(VecEnv):
     ) -> list[Any]:
         slots = list(self._get_indices(indices))
         values = self._call_teams("env_method", self._teams_of(slots), method_name, method_args, method_kwargs)
-        return [values[slot // self.n_agents] for slot in slots]
+        return [values[self._slot_teams[slot]] for slot in slots]
 
     def env_is_wrapped(self, wrapper_class: type[gymnasium.Wrapper], indices: VecEnvIndices = None) -> list[bool]:
         return [False for _ in self._get_indices(indices)]
@@ -292,6 +313,7 @@ def make_formation_vec_env(
     normalize: bool = True,
     team_critic: bool | None = None,
     render_mode: str | None = None,
+    team_sizes: Sequence[int] | None = None,
     **config_overrides: Any,
 ) -> VecEnv:
     """The one call a notebook needs: ``n_envs`` teams of a thesis preset as an SB3 ``VecEnv``, one slot per agent.
@@ -300,11 +322,12 @@ def make_formation_vec_env(
     :param n_envs: number of teams (the thesis trained 12 in chapter 4 and 14 in chapter 5: see the set-ups)
     :param n_agents: team size (default: the preset's)
     :param stage: curriculum stage (default: the preset's, 1)
-    :param seed: seed of the teams' scenario generators (team j gets ``seed + j * n_agents``); ``None``: random
+    :param seed: seed of the teams' scenario generators (each team gets ``seed`` + its first slot); ``None``: random
     :param n_workers: worker processes stepping the teams
     :param normalize: wrap in :class:`~sb3_formation.normalization.ScaleNormalizeVecEnv`
     :param team_critic: give every slot its team's observations (default: when the preset uses the team reward)
     :param render_mode: ``None`` or ``"rgb_array"``
+    :param team_sizes: teams of several sizes, taken in turn (see :class:`FormationVecEnv`); default: ``n_agents``
     :param config_overrides: further :class:`FormationConfig` fields
     """
     from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
@@ -322,6 +345,7 @@ def make_formation_vec_env(
         team_observations=team_observations,
         n_workers=n_workers,
         render_mode=render_mode,
+        team_sizes=team_sizes,
     )
     if seed is not None:
         venv.seed(seed)

@@ -1,0 +1,93 @@
+"""Making a shipped policy (:mod:`sb3_formation.experiment.pretrained`) of a finished training run."""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import json
+import os
+import platform
+import shutil
+from pathlib import Path
+
+import stable_baselines3
+import torch
+
+from sb3_formation import __version__
+from sb3_formation.experiment.evaluation import evaluate
+from sb3_formation.experiment.pretrained import CARD_FILE, PRETRAINED_DIR, SUMMARY_PATH, numerics_fingerprint
+from sb3_formation.experiment.runs import (
+    FINAL_MODEL,
+    FINAL_NORMALIZER,
+    STATE_FILE,
+    latest_checkpoint,
+    load_trained,
+    saved_algorithm,
+)
+from sb3_formation.experiment.settings import load_settings
+from sb3_formation.utils.files import atomic_directory
+
+#: Attributes of a saved model that acting does not need (the last rollout's observations, episode buffers).
+UNSHIPPED_ATTRIBUTES = ("_last_obs", "_last_original_obs", "_last_episode_starts", "ep_info_buffer", "ep_success_buffer")
+
+
+def export_pretrained(
+    run_dir: str | os.PathLike[str],
+    name: str,
+    root: Path = PRETRAINED_DIR,
+    command: str | None = None,
+    progress_bar: bool = False,
+) -> Path:
+    """Make a shipped policy of a finished run: trim its final model, evaluate that file on the run's protocol, and
+    write the folder (replacing one of the same name only once all of it is written).
+
+    :param run_dir: a run folder with ``final_model.zip``, ``final_normalizer.npz`` and its last checkpoint
+    :param name: the policy's name (``pretrained:<name>``): letters, digits, ``-`` and ``_``
+    :param root: the folder of shipped policies (default: the package's)
+    :param command: the command that exported it, recorded in the card
+    :param progress_bar: show the evaluation's progress bar
+    :return: the policy's folder
+    """
+    if not name or not all(character.isalnum() or character in "-_" for character in name):
+        raise ValueError(f"a shipped policy's name is letters, digits, '-' and '_', got {name!r}")
+    run_dir = Path(run_dir)
+    settings = load_settings(run_dir)
+    checkpoint = latest_checkpoint(run_dir)
+    missing = [file for file in (FINAL_MODEL, FINAL_NORMALIZER) if not (run_dir / file).is_file()]
+    if missing or checkpoint is None:
+        raise ValueError(f"{run_dir} is not a finished run: it lacks {', '.join(missing) or 'a checkpoint'}")
+    state = json.loads((checkpoint / STATE_FILE).read_text())
+    protocol = settings.resolved_evaluation()
+    protocol["n_workers"] = protocol.pop("workers", 1)
+    with atomic_directory(root / name) as folder:
+        model = saved_algorithm(run_dir / FINAL_MODEL).load(run_dir / FINAL_MODEL, device="cpu")
+        policy = model.policy
+        policy.optimizer = policy.optimizer_class(policy.parameters(), **policy.optimizer.defaults)  # an empty state
+        model.save(folder / FINAL_MODEL, exclude=list(UNSHIPPED_ATTRIBUTES))
+        shutil.copyfile(run_dir / FINAL_NORMALIZER, folder / FINAL_NORMALIZER)
+        shutil.copyfile(run_dir / "config.yaml", folder / "config.yaml")
+        result = evaluate(load_trained(folder, device="cpu"), **{**protocol, "record": 0}, progress_bar=progress_bar)
+        # the summary names the shipped model (its SHA-256), not the temporary folder it was evaluated in
+        result = dataclasses.replace(result, model={**result.model, "file": f"pretrained:{name}"})
+        result.save((folder / SUMMARY_PATH).parent)
+        card = {
+            "name": name,
+            "setup": settings.preset,
+            "n_agents": settings.config().n_agents,
+            "team_sizes": sorted(set(settings.team_sizes())),
+            "seed": settings.seed,
+            "training_command": (run_dir / "command.txt").read_text().strip(),
+            "export_command": command,
+            "training_seconds": round(float(state["training_seconds"]), 1),
+            "training_agent_steps": int(state["num_timesteps"]),
+            "package_version": __version__,
+            "versions": {
+                "stable_baselines3": stable_baselines3.__version__,
+                "torch": torch.__version__,
+                "python": platform.python_version(),
+            },
+            "exported": datetime.date.today().isoformat(),
+            "numerics": numerics_fingerprint(),  # where a machine's is the same, the stored episodes replay exactly
+        }
+        (folder / CARD_FILE).write_text(json.dumps(card, indent=2) + "\n")
+    return root / name

@@ -1,0 +1,188 @@
+"""Shipped policies: exported from a run, loaded by name, refused in other tasks, and their stored evaluation reproduced."""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from sb3_formation import FormationEnv, load_policy
+from sb3_formation.cli import main
+from sb3_formation.experiment.evaluation import EPISODES_FILE, evaluate
+from sb3_formation.experiment.export import export_pretrained
+from sb3_formation.experiment.pretrained import (
+    PRETRAINED_DIR,
+    load_pretrained,
+    numerics_fingerprint,
+    pretrained_card,
+    pretrained_folder,
+    pretrained_names,
+)
+from sb3_formation.experiment.runs import FINAL_MODEL, latest_checkpoint
+from sb3_formation.experiment.setups import SETUPS_FOLDER, load_setup
+
+THESIS_TASKS = ("ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing")
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A finished run of a shrunken residual-ch5-bearing set-up, with a 3-episode evaluation protocol."""
+    folder = tmp_path_factory.mktemp("pretrained")
+    values = yaml.safe_load((SETUPS_FOLDER / "residual-ch5-bearing.yaml").read_text())
+    values["policy"]["net_arch"] = {"pi": [16], "vf": [16]}
+    values["ppo"] |= {"n_steps": 16, "batch_size": 64, "n_epochs": 2}
+    values["teams"] = 2
+    values["training"] |= {"steps": 2 * 16 * 12, "eval_every": 100}
+    values["evaluation"] = {"episodes": 3, "stage": 3}
+    setup = folder / "tiny.yaml"
+    setup.write_text(yaml.safe_dump(values))
+    run = folder / "run"
+    assert main(["train", "--preset", str(setup), "--env", "max_steps=60", "--run-dir", str(run), "--no-progress"]) == 0
+    return run
+
+
+def test_an_exported_policy_is_the_runs_model_trimmed_and_evaluated(tiny_run: Path, tmp_path: Path) -> None:
+    folder = export_pretrained(tiny_run, "tiny", root=tmp_path, command="the command")
+    assert pretrained_names(tmp_path) == ["tiny"] and pretrained_folder("tiny", tmp_path) == folder
+    card = pretrained_card("tiny", tmp_path)
+    state = json.loads((latest_checkpoint(tiny_run) / "state.json").read_text())
+    assert card["training_seconds"] == round(state["training_seconds"], 1) and card["seed"] == 0
+    assert card["training_agent_steps"] == state["num_timesteps"] == 2 * 16 * 12
+    assert card["training_command"] == (tiny_run / "command.txt").read_text().strip()
+    assert card["export_command"] == "the command" and card["n_agents"] == 6 and card["team_sizes"] == [6]
+    assert card["numerics"] == numerics_fingerprint()
+    assert card["setup"].endswith("tiny.yaml") and card["package_version"] == "0.1.0"
+    shipped, run = load_pretrained("tiny", root=tmp_path), load_policy(tiny_run)
+    # the same weights, without the optimiser's moments: a smaller file
+    for mine, theirs in zip(shipped.correction.policy.parameters(), run.correction.policy.parameters()):
+        assert torch.equal(mine, theirs)
+    assert (folder / FINAL_MODEL).stat().st_size < 0.6 * (tiny_run / FINAL_MODEL).stat().st_size
+    # the stored evaluation is of the shipped file, and the run's own model plays the same episodes
+    summary = card["summary"]
+    digest = hashlib.sha256((folder / FINAL_MODEL).read_bytes()).hexdigest()
+    assert summary["model"] == {"file": "pretrained:tiny", "sha256": digest}
+    again = evaluate(run, episodes=3, stage=3, seed=0, n_envs=8, record=0)
+    assert summary["episodes"] == 3 and summary["success_rate"] == again.summary["success_rate"]
+    with open(folder / "eval" / EPISODES_FILE) as stream:
+        stored = list(csv.DictReader(stream))
+    assert [row["length"] for row in stored] == [str(row["length"]) for row in again.episodes]
+    assert [row["return"] for row in stored] == [str(row["return"]) for row in again.episodes]
+
+
+def test_export_refuses_bad_input_and_keeps_what_is_shipped(tiny_run: Path, tmp_path: Path) -> None:
+    export_pretrained(tiny_run, "kept", root=tmp_path)
+    before = (tmp_path / "kept" / FINAL_MODEL).read_bytes()
+    with pytest.raises(ValueError, match="a shipped policy's name is letters, digits"):
+        export_pretrained(tiny_run, "../kept", root=tmp_path)
+    unfinished = tmp_path / "unfinished"
+    unfinished.mkdir()
+    (unfinished / "config.yaml").write_text((tiny_run / "config.yaml").read_text())
+    with pytest.raises(ValueError, match=r"is not a finished run: it lacks final_model\.zip, final_normalizer\.npz"):
+        export_pretrained(unfinished, "kept", root=tmp_path)
+    assert (tmp_path / "kept" / FINAL_MODEL).read_bytes() == before
+    with pytest.raises(ValueError, match="no shipped policy 'gone'; shipped: kept"):
+        load_pretrained("gone", root=tmp_path)
+    assert main(["pretrained", "--name", "x"]) == 2  # --export and --name go together
+
+
+def test_the_four_thesis_tasks_ship_a_policy_trained_for_their_task() -> None:
+    assert set(THESIS_TASKS) <= set(pretrained_names())
+    for task in THESIS_TASKS:
+        card = pretrained_card(task)
+        assert load_setup(card["setup"]).config() == load_setup(task).config()
+        assert card["summary"]["episodes"] == load_setup(task).evaluation["episodes"]
+        assert card["summary"]["stage"] == 3 and card["summary"]["seed"] == 0 and card["summary"]["deterministic"]
+        # the stored evaluation is of the shipped file, and its rate is that of its stored episodes
+        folder = pretrained_folder(task)
+        assert card["summary"]["model"]["sha256"] == hashlib.sha256((folder / FINAL_MODEL).read_bytes()).hexdigest()
+        with open(folder / "eval" / EPISODES_FILE) as stream:
+            successes = [row["success"] == "True" for row in csv.DictReader(stream)]
+        assert len(successes) == card["summary"]["episodes"]
+        assert sum(successes) == round(card["summary"]["success_rate"] * len(successes))
+    size = sum(path.stat().st_size for path in PRETRAINED_DIR.rglob("*") if path.is_file())
+    assert size < 8 * 2**20
+
+
+def test_a_shipped_policy_refuses_another_task_or_team_size() -> None:
+    policy = load_pretrained("ch5-bearing", preset="ch5-bearing")  # its own task, named by the thesis preset
+    assert policy.config.n_agents == 6
+    with pytest.raises(
+        ValueError, match=r"pretrained:ch5-bearing was not trained for preset ch4-team: n_agents=3 \(trained with 6\)"
+    ):
+        load_pretrained("ch5-bearing", preset="ch4-team")
+    with pytest.raises(ValueError, match=r"k_angle=0\.3 \(trained with 0\.0\); k_bearing=0\.0 \(trained with 0\.3\)"):
+        load_policy("pretrained:ch5-bearing", preset="ch5-angle")
+    with pytest.raises(ValueError, match="n_agents=6 in the model, 4 in the env"):
+        evaluate(policy, episodes=1, env_overrides={"n_agents": 4})
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", THESIS_TASKS)
+def test_a_shipped_policy_reproduces_its_stored_episodes(name: str, tmp_path: Path) -> None:
+    """Its first 20 stored evaluation episodes, replayed on this machine, give the same rows, digit for digit.
+
+    The exporting machine's float kernels are recorded as :func:`numerics_fingerprint` (a fixed numpy and torch
+    computation, not this package's code); a CPU that rounds them otherwise plays other episodes, so there the replay
+    is skipped, saying so."""
+    card = pretrained_card(name)
+    if numerics_fingerprint() != card["numerics"]:  # pragma: no cover - another CPU
+        pytest.skip(f"this CPU rounds floats unlike the one that exported pretrained:{name}; replay not comparable")
+    summary = card["summary"]
+    result = evaluate(load_pretrained(name), episodes=20, stage=summary["stage"], seed=summary["seed"], record=0)
+    result.save(tmp_path)
+    stored = (pretrained_folder(name) / "eval" / EPISODES_FILE).read_text().splitlines()
+    assert (tmp_path / EPISODES_FILE).read_text().splitlines() == stored[:21]
+
+
+def test_shipped_policies_load_in_a_fresh_process_without_network_or_run_folder(tmp_path: Path) -> None:
+    script = """
+import socket, sys
+def refuse(*args, **kwargs):
+    raise OSError("network access attempted")
+socket.socket.connect = socket.create_connection = refuse
+from sb3_formation import FormationEnv, load_pretrained, pretrained_names
+import numpy as np
+for name in pretrained_names():
+    policy = load_pretrained(name)
+    rows = np.stack(list(FormationEnv(policy.config.replace(stage=3)).reset(seed=1)[0].values()))
+    actions, _ = policy.predict(rows)
+    assert actions.shape == (policy.config.n_agents, 2) and np.isfinite(actions).all()
+    print(name)
+"""
+    done = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == pretrained_names()
+    assert list(tmp_path.iterdir()) == []  # it wrote nothing where it ran
+
+
+def test_pretrained_targets_work_with_every_command(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:
+    monkeypatch.chdir(tmp_path)
+    assert main(["pretrained"]) == 0
+    listing = capsys.readouterr().out
+    for name in pretrained_names():
+        rate = pretrained_card(name)["summary"]["success_rate"]
+        assert f"| pretrained:{name} | {pretrained_card(name)['setup']} |" in listing and f"| {rate:.1%} (" in listing
+    quick = ["--episodes", "2", "--n-envs", "2", "--no-progress"]
+    assert main(["evaluate", "pretrained:ch5-bearing", *quick, "--trajectories", "1"]) == 0
+    folder = tmp_path / "evaluations" / "pretrained-ch5-bearing_residual-ch5-bearing"
+    summary = json.loads((folder / "summary.json").read_text())
+    stored = pretrained_card("ch5-bearing")["summary"]
+    assert summary["model"]["sha256"] == stored["model"]["sha256"] and summary["episodes"] == 2
+    assert main(["plot", "trajectories", "pretrained:ch5-bearing"]) == 0
+    assert (folder / "figures" / "trajectory_000.png").stat().st_size > 10_000
+    assert main(["render", "pretrained:ch5-bearing", "--max-steps", "5", "--out", "shipped.gif"]) == 0
+    assert (tmp_path / "shipped.gif").stat().st_size > 1_000
+    table = ["--table", "table.md", "--out", "bars.png"]
+    assert main(["compare", "pretrained:ch5-bearing", "controller:classical", "--preset", "ch5-bearing", *quick, *table]) == 0
+    assert "| pretrained:ch5-bearing | 2 |" in (tmp_path / "table.md").read_text()
+    assert main(["evaluate", "pretrained:ch5-bearing", "--preset", "ch4-team", *quick]) == 2
+    rows = np.stack(list(FormationEnv(load_setup("ch5-bearing").config(stage=3)).reset(seed=2)[0].values()))
+    assert np.isfinite(load_policy("pretrained:ch5-bearing").predict(rows)[0]).all()
