@@ -7,10 +7,11 @@ import hashlib
 import json
 import subprocess
 import sys
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 import pytest
+import tomllib
 import torch
 import yaml
 
@@ -186,3 +187,16 @@ def test_pretrained_targets_work_with_every_command(tmp_path: Path, monkeypatch:
     assert main(["evaluate", "pretrained:ch5-bearing", "--preset", "ch4-team", *quick]) == 2
     rows = np.stack(list(FormationEnv(load_setup("ch5-bearing").config(stage=3)).reset(seed=2)[0].values()))
     assert np.isfinite(load_policy("pretrained:ch5-bearing").predict(rows)[0]).all()
+
+
+def test_every_file_of_the_shipped_policies_is_package_data() -> None:
+    """The wheel takes what pyproject.toml's package-data globs name (a wheel built on 2026-11-24 held every file)."""
+    globs = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
+    package = PRETRAINED_DIR.parent
+
+    def packaged(file: PurePosixPath) -> bool:  # setuptools' globs: each * stays within one folder
+        return any(file.match(glob) and len(file.parts) == len(PurePosixPath(glob).parts) for glob in globs["sb3_formation"])
+
+    files = [PurePosixPath(path.relative_to(package).as_posix()) for path in PRETRAINED_DIR.rglob("*") if path.is_file()]
+    assert files and all(packaged(file) for file in files)
+    assert not packaged(PurePosixPath("pretrained/x/eval/figures/a.png"))  # deeper files would be left out
