@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from PIL import Image
 
 from sb3_formation.cli import main
 from sb3_formation.controllers import ClassicalController
@@ -135,6 +136,12 @@ def test_a_policy_trained_on_several_team_sizes_acts_in_teams_of_any_size(tmp_pa
     for n in (3, 7):  # a size it was trained on and one it never saw
         result = evaluate(policy, episodes=2, n_envs=2, env_overrides={"n_agents": n}, record=0)
         assert result.n_agents == n and len(result.episodes) == 2
+    gif = tmp_path / "five.gif"
+    assert main(["render", str(run), "--agents", "5", "--max-steps", "4", "--out", str(gif)]) == 0
+    with Image.open(gif) as image:
+        assert image.n_frames == 5  # the first observation and 4 steps
+    assert main(["render", str(run), "--agents", "2", "--out", str(tmp_path / "two.gif")]) == 2  # the size reaches the env
+    assert not (tmp_path / "two.gif").exists()
     one_size = tmp_path / "one-size"
     assert (
         main(

@@ -133,7 +133,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     evaluate.add_argument("target", help=TARGET_HELP)
     _add_protocol_arguments(evaluate)
-    evaluate.add_argument("--agents", type=int, help="team size (default: the model's; must match it)")
+    evaluate.add_argument(
+        "--agents", type=int, help="team size (default: the model's; another only for one trained on several)"
+    )
     evaluate.add_argument(
         "--trajectories", type=int, default=5, metavar="K", help="record every step of the first K episodes (default 5)"
     )
@@ -169,6 +171,7 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--fps", type=positive_int, default=20, help="frames per second (default 20)")
     render.add_argument("--frame-every", type=positive_int, default=1, help="keep every k-th step as a frame")
     render.add_argument("--max-steps", type=positive_int, help="cut episodes at this many steps (default: the model's)")
+    render.add_argument("--agents", type=int, help="team size (default: the model's; another only for one trained on several)")
     render.add_argument("--stochastic", action="store_true", help="sample actions instead of using the mean")
     render.add_argument("--device", default="auto", help="torch device (default auto)")
     compare = commands.add_parser(
@@ -462,7 +465,9 @@ def render_command(args: argparse.Namespace) -> int:
         deterministic=not args.stochastic,
         fps=args.fps,
         frame_every=args.frame_every,
-        env_overrides={} if args.max_steps is None else {"max_steps": args.max_steps},
+        env_overrides={
+            name: value for name, value in (("max_steps", args.max_steps), ("n_agents", args.agents)) if value is not None
+        },
         progress_bar=True,
     )
     print(f"{frames} frames written to {out}")
