@@ -125,8 +125,17 @@ def test_a_shipped_policy_refuses_another_task_or_team_size() -> None:
         evaluate(policy, episodes=1, env_overrides={"n_agents": 4})
 
 
+def test_the_policy_trained_on_several_team_sizes_takes_any_size_but_no_other_task() -> None:
+    assert pretrained_card("mixed-ch5-bearing")["team_sizes"] == [3, 4, 5, 6, 7, 8]
+    policy = load_pretrained("mixed-ch5-bearing", preset="mixed-ch5-bearing")
+    result = evaluate(policy, episodes=1, n_envs=1, env_overrides={"n_agents": 10, "max_steps": 5}, record=0)
+    assert result.n_agents == 10 and result.episodes[0]["length"] == 5  # a size it never saw
+    with pytest.raises(ValueError, match=r"observe_reference_bearings=False \(trained with True\)"):
+        load_pretrained("mixed-ch5-bearing", preset="ch5-bearing")  # the thesis observation lacks the bearings
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("name", THESIS_TASKS)
+@pytest.mark.parametrize("name", [*THESIS_TASKS, "mixed-ch5-bearing"])
 def test_a_shipped_policy_reproduces_its_stored_episodes(name: str, tmp_path: Path) -> None:
     """Its first 20 stored evaluation episodes, replayed on this machine, give the same rows, digit for digit.
 

@@ -163,3 +163,18 @@ def test_team_sizes_are_checked() -> None:
         SetUp("bad", **values, team_sizes=[3, 2])
     with pytest.raises(ValueError, match=r"a team critic reads teams of one size; team_sizes lists \[3, 4\]"):
         SetUp("bad", **{**values, "policy": {**values["policy"], "team_critic": True}}, team_sizes=[3, 4])
+
+
+def test_a_runs_team_sizes_are_recorded_resolved_and_flags_replace_the_setups() -> None:
+    settings = TrainSettings(preset="mixed-ch5-bearing")
+    assert settings.resolved_team_sizes() == [3, 4, 5, 6, 7, 8]
+    assert settings.steps_per_iteration() == 256 * 2 * (3 + 4 + 5 + 6 + 7 + 8)  # 12 teams: each size twice
+    saved = settings.to_dict()
+    assert saved["team_sizes"] == [3, 4, 5, 6, 7, 8] and saved["env"]["n_agents"] == 6
+    assert TrainSettings.from_dict(saved).resolved_team_sizes() == [3, 4, 5, 6, 7, 8]  # a resumed run keeps its mix
+    assert TrainSettings(preset="mixed-ch5-bearing", env={"n_agents": 4}).resolved_team_sizes() == [4]  # --agents 4
+    assert TrainSettings(preset="ch5-bearing", team_sizes=[3, 5]).steps_per_iteration() == 128 * 7 * (3 + 5)  # 14 teams
+    with pytest.raises(ValueError, match="team_sizes must be a non-empty list of team sizes, got \\[\\]"):
+        TrainSettings(preset="mixed-ch5-bearing", team_sizes=[])
+    with pytest.raises(ValueError, match=r"a team critic reads teams of n_agents=3; team_sizes lists \[3, 4\]"):
+        TrainSettings(preset="ch4-team", team_sizes=[3, 4])

@@ -74,7 +74,7 @@ def export_pretrained(
             "name": name,
             "setup": settings.preset,
             "n_agents": settings.config().n_agents,
-            "team_sizes": sorted(set(settings.team_sizes())),
+            "team_sizes": sorted(set(settings.resolved_team_sizes())),
             "seed": settings.seed,
             "training_command": (run_dir / "command.txt").read_text().strip(),
             "export_command": command,

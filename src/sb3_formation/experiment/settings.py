@@ -118,6 +118,8 @@ class TrainSettings:
     :param success_threshold: end curriculum stages 1-2 early at this rolling success rate
     :param progress_bar: show a progress bar
     :param seeds: the seeds of an experiment (``sb3-formation sweep`` trains one run per seed; ``train`` uses ``seed``)
+    :param team_sizes: team sizes taken in turn (default: the set-up's ``team_sizes``; an ``n_agents`` in ``env``, e.g.
+        ``--agents``, gives every team that size); a run's ``config.yaml`` records them resolved
     :param evaluation: evaluate the final model with these :func:`~sb3_formation.experiment.evaluation.evaluate`
         settings (``episodes``, ``stage``, ``seed``, ``n_envs``, ``workers``, ``deterministic``, ``record``) into ``eval/``
     :param recurrent: recurrent actor and critic
@@ -159,6 +161,7 @@ class TrainSettings:
         default=True, metadata=option("no progress bar", flag="--no-progress", action="store_const", const=False)
     )
     seeds: list[int] | None = None
+    team_sizes: list[int] | None = None
     evaluation: dict[str, Any] | None = None
     recurrent: bool | None = field(
         default=None,
@@ -219,6 +222,15 @@ class TrainSettings:
             self.seeds = list(self.seeds)
             if not self.seeds or not all(isinstance(seed, int) and not isinstance(seed, bool) for seed in self.seeds):
                 raise ValueError(f"seeds must be a non-empty list of integers, got {self.seeds!r}")
+        if self.team_sizes is not None:
+            self.team_sizes = list(self.team_sizes) if isinstance(self.team_sizes, (list, tuple)) else self.team_sizes
+            if not (isinstance(self.team_sizes, list) and self.team_sizes and all(is_count(n) for n in self.team_sizes)):
+                raise ValueError(f"team_sizes must be a non-empty list of team sizes, got {self.team_sizes!r}")
+            for size in self.team_sizes:
+                self.config().replace(n_agents=size)  # validates the size
+        sizes, n_agents = self.resolved_team_sizes(), self.config().n_agents
+        if "team_size" in self.ppo_kwargs()["policy_kwargs"] and set(sizes) != {n_agents}:
+            raise ValueError(f"a team critic reads teams of n_agents={n_agents}; team_sizes lists {sizes}")
         if self.evaluation is not None:
             unknown = sorted(set(self.evaluation) - EVALUATION_KEYS) if isinstance(self.evaluation, dict) else None
             if unknown is None or unknown:
@@ -258,6 +270,7 @@ class TrainSettings:
             values[name] = self.resolved_training(name)
         values["cell"] = self.ppo_kwargs()["policy_kwargs"].get("cell") if values["recurrent"] else None
         values["env"] = _plain(dataclasses.asdict(self.config()))
+        values["team_sizes"] = self.resolved_team_sizes()
         values["ppo"] = _plain({name: value for name, value in self.ppo_kwargs().items() if name != "policy"})
         values["ppo"]["policy_kwargs"].pop("cell", None)  # written once, as the top-level cell
         return values
@@ -307,17 +320,18 @@ class TrainSettings:
         """The time budget in seconds, or ``None``."""
         return None if self.minutes is None else 60.0 * self.minutes
 
-    def team_sizes(self) -> list[int]:
-        """The size of each training team: the set-up's ``team_sizes`` in turn, else the task's ``n_agents`` (an
-        ``n_agents`` of this run's ``env``, e.g. ``--agents``, gives every team that size)."""
+    def resolved_team_sizes(self) -> list[int]:
+        """The team sizes taken in turn: as given, else the set-up's, else (or with an ``n_agents`` in ``env``) the
+        task's ``n_agents``."""
+        if self.team_sizes is not None:
+            return list(self.team_sizes)
         sizes = self.setup().team_sizes
-        if sizes is None or "n_agents" in self.env:
-            sizes = [self.config().n_agents]
-        return [sizes[team % len(sizes)] for team in range(self.resolved_n_envs())]
+        return [self.config().n_agents] if sizes is None or "n_agents" in self.env else list(sizes)
 
     def steps_per_iteration(self) -> int:
         """Agent-steps of one PPO iteration: n_steps in every slot (the agents of every team)."""
-        return self.ppo_kwargs()["n_steps"] * sum(self.team_sizes())
+        sizes = self.resolved_team_sizes()  # team j has sizes[j % len(sizes)] agents
+        return self.ppo_kwargs()["n_steps"] * sum(sizes[team % len(sizes)] for team in range(self.resolved_n_envs()))
 
     def resolved_training(self, name: str) -> Any:
         """A training feature (see :data:`~sb3_formation.experiment.setups.TRAINING_DEFAULTS`): this run's, else the

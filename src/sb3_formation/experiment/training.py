@@ -211,7 +211,7 @@ def make_training_env(settings: TrainSettings, stage: int, normalizer_path: Path
         n_envs=settings.resolved_n_envs(),
         team_observations="team_size" in settings.ppo_kwargs()["policy_kwargs"],
         n_workers=settings.workers,
-        team_sizes=settings.team_sizes(),
+        team_sizes=settings.resolved_team_sizes(),
     )
     dim, mask = venv.agent_observation_dim, venv.binary_observation_mask
     residual = settings.setup().residual
@@ -265,7 +265,7 @@ def train(settings: TrainSettings, command: str | None = None, run_dir: str | os
     )
     model.formation_config = dataclasses.asdict(settings.config())
     model.residual = settings.setup().residual  # the model file says how its actions are meant (load_trained)
-    model.team_sizes = sorted(set(settings.team_sizes()))  # and which team sizes it acts in
+    model.team_sizes = sorted(set(settings.resolved_team_sizes()))  # and which team sizes it acts in
     setup = settings.setup()
     imitation = setup.imitation_settings()
     if imitation is not None:
