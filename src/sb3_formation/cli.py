@@ -292,7 +292,7 @@ def train_command(args: argparse.Namespace) -> int:
             stages = f"stages 1, 2 end at {shares[0]:.0%}, {shares[1]:.0%} of the time, stage 3 until the time is up"
         budget = "" if settings.minutes is None else f", at most {settings.minutes:g} min"
         print(
-            f"training {settings.preset}: n={settings.config().n_agents}, {stages}{budget}, "
+            f"training {settings.preset}: n={'/'.join(map(str, settings.resolved_team_sizes()))}, {stages}{budget}, "
             f"{settings.resolved_n_envs()} teams, {policy} policy"
         )
         run_dir = train(settings, command=args.command_line, run_dir=args.run_dir)
