@@ -16,6 +16,7 @@ import yaml
 
 from sb3_formation.cli import main
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.experiment.pretrained import numerics_fingerprint
 from sb3_formation.experiment.runs import FINAL_MODEL
 from sb3_formation.experiment.settings import TrainSettings, layered_settings
 from sb3_formation.experiment.setups import SETUPS_FOLDER, SetUp, load_setup, setup_names
@@ -138,8 +139,12 @@ def test_thesis_setups_train_as_before_the_redesign(case: str, tmp_path: Path, o
     before the package was split into layers (``tests/data/thesis_training_reference.json``, written by the same
     command on the code of commit b5de348, with one torch thread). On the machine that recorded them the SHA-256 of the
     parameters matched; the test compares each tensor's sum and sum of squares to 1e-6, so that another CPU's rounding
-    does not fail it while any change of settings, networks, seeding or data flow does."""
-    reference = json.loads(REFERENCE.read_text())[case]
+    does not fail it while any change of settings, networks, seeding or data flow does. A CPU with other vector units
+    (AVX-512 and AMX) rounds beyond 1e-6 in three iterations: for it, ``by_numerics`` holds the same command's
+    parameters under its :func:`numerics_fingerprint`, recorded on 2026-11-24; the code of commit c0c2d01, which met
+    the first reference in CI, gives the same SHA-256 there."""
+    data = json.loads(REFERENCE.read_text())
+    reference = data.get("by_numerics", {}).get(numerics_fingerprint(), data)[case]
     run_dir = tmp_path / "run"
     extra = ["--no-recurrent"] if case.endswith("-mlp") else []
     preset = case.removesuffix("-mlp")
