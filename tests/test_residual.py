@@ -90,6 +90,8 @@ def test_in_teams_of_several_sizes_each_team_gets_the_controller_of_its_size() -
         np.testing.assert_array_equal(observations[3:7], rows)
         observations, *_ = venv.step(np.zeros((7, 2), dtype=np.float32))
         rows, *_ = env.step_array(ClassicalController(square).predict(rows)[0])
+    with pytest.raises(ValueError, match=r"actions must have shape \(7, 2\), one row per slot, got \(2, 7\)"):
+        venv.step(np.zeros((2, 7)))  # the correction is checked before the controller's action is added
     venv.close()
 
 

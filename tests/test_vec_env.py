@@ -168,6 +168,22 @@ def test_bad_actions_and_arguments_name_the_problem() -> None:
     actions[8, 1] = np.nan  # slot 8 = agent 2 of team 1
     with pytest.raises(ValueError, match=r"team 1: action of agent_2 is not finite"):
         venv.step(actions)
+    # every team's actions are checked before any team steps: team 0 has not moved
+    assert venv.get_attr("step_count", [0])[0] == 0
+    rows = "one row per slot"
+    with pytest.raises(ValueError, match=rf"actions must have shape \(12, 2\), {rows}, got \(2, 12\)"):
+        venv.step(np.zeros((2, 12)))  # 24 numbers, but not one row per slot
+    with pytest.raises(ValueError, match=rf"actions must have shape \(12, 2\), {rows}, got \(11, 2\)"):
+        venv.step(np.zeros((11, 2)))
+    for bad, kind in [(None, "NoneType"), ({"agent_0": [0, 0]}, "dict"), (np.zeros((12, 2), complex), "dtype complex128")]:
+        with pytest.raises(ValueError, match=f"actions must be an array of real numbers of shape \\(12, 2\\), got {kind}"):
+            venv.step(bad)
+    assert venv.get_attr("step_count", [0])[0] == 0
+    flat = np.linspace(-1, 1, 24)
+    twin = FormationVecEnv(FormationConfig.preset("ch5-bearing"), n_envs=2)
+    venv.seed(3), twin.seed(3)
+    venv.reset(), twin.reset()
+    assert venv.step(flat)[0].tobytes() == twin.step(flat.reshape(12, 2))[0].tobytes()  # the documented flat form
     with pytest.raises(ValueError, match="n_workers"):
         FormationVecEnv(FormationConfig.preset("ch5-bearing"), n_envs=2, n_workers=3)
     with pytest.raises(ValueError, match="n_envs"):

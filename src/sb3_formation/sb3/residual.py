@@ -40,6 +40,7 @@ class ResidualVecEnv(VecEnvWrapper):
     def step_async(self, actions: np.ndarray) -> None:
         if self._observations is None:
             raise RuntimeError("reset() the env before stepping it")
+        actions = self.venv.checked_actions(actions)
         own = self._observations[:, : self.agent_obs_dim]
         base = np.empty((len(own), 2))
         for controller, slots in self._controllers:

@@ -257,8 +257,32 @@ class FormationVecEnv(VecEnv):
         self._reset_options()
         return np.concatenate([observations[block] for block in range(len(self._batches))])
 
+    def checked_actions(self, actions: Any) -> np.ndarray:
+        """The slots' actions as a ``(num_envs, 2)`` float64 array, checked before any team steps.
+
+        :param actions: ``(num_envs, 2)`` real numbers, one row per slot (or the same flattened, ``(num_envs * 2,)``)
+        :raises ValueError: another shape, a value that is not a real number, or one that is not finite (naming its
+            team and agent)
+        """
+        array = np.asarray(actions) if isinstance(actions, (np.ndarray, list, tuple)) else None
+        if array is None or array.dtype.kind not in "iuf":
+            kind = type(actions).__name__ if array is None else f"dtype {array.dtype}"
+            raise ValueError(f"actions must be an array of real numbers of shape ({self.num_envs}, 2), got {kind}")
+        if array.shape == (self.num_envs * 2,):
+            array = array.reshape(self.num_envs, 2)
+        if array.shape != (self.num_envs, 2):
+            raise ValueError(f"actions must have shape ({self.num_envs}, 2), one row per slot, got {array.shape}")
+        array = array.astype(np.float64)
+        bad = np.flatnonzero(~np.isfinite(array).all(axis=1))
+        if bad.size:
+            slot = int(bad[0])
+            team = int(self._slot_teams[slot])
+            agent = slot - int(self._team_starts[team])
+            raise ValueError(f"team {team}: action of agent_{agent} is not finite: {array[slot].tolist()}")
+        return array
+
     def step_async(self, actions: np.ndarray) -> None:
-        self._actions = np.asarray(actions).reshape(self.num_envs, -1)
+        self._actions = self.checked_actions(actions)
 
     def step_wait(self) -> VecEnvStepReturn:
         starts = self._team_starts
