@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import yaml
 from PIL import Image
 
@@ -57,6 +58,20 @@ def test_bad_input_is_a_clear_error(capsys: pytest.CaptureFixture[str]) -> None:
     assert "--bogus" in capsys.readouterr().err
     assert main(["rollout", "--preset", "ch9"]) == 2
     assert "unknown preset 'ch9'" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")
+def test_a_device_this_machine_lacks_is_refused_before_anything_is_written(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    for device, message in [
+        ("cuda", "device 'cuda': torch sees no CUDA GPU on this machine; use --device auto or cpu"),
+        ("tpu9", "device must be auto, cpu, cuda or cuda:<index>, got 'tpu9'"),
+        ("meta", "device must be auto, cpu, cuda or cuda:<index>, got 'meta'"),
+    ]:
+        assert main(["train", "--device", device, "--logdir", str(tmp_path / "runs"), "--iterations", "0,0,1"]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "runs").exists()
 
 
 # evaluate, plot, render and compare on real (tiny) training runs ------------------------------------------------------

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import torch
 import yaml
 
 from sb3_formation.env.config import FormationConfig
@@ -99,6 +100,21 @@ def option(help: str, **argparse_options: Any) -> dict[str, Any]:
         ``flag`` option replaces the default flag name
     """
     return {"cli": {"help": help, **argparse_options}}
+
+
+def check_device(device: Any) -> None:
+    """Refuse a torch device this machine does not have (``auto`` takes a GPU if there is one, else the CPU).
+
+    :raises ValueError: not a device name, or a GPU that torch does not see here
+    """
+    try:
+        kind = None if device == "auto" else torch.device(device).type
+    except (RuntimeError, TypeError):
+        raise ValueError(f"device must be auto, cpu, cuda or cuda:<index>, got {device!r}") from None
+    if kind == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {device!r}: torch sees no CUDA GPU on this machine; use --device auto or cpu")
+    if kind not in (None, "cpu", "cuda"):
+        raise ValueError(f"device must be auto, cpu, cuda or cuda:<index>, got {device!r}")
 
 
 @dataclass
@@ -197,6 +213,7 @@ class TrainSettings:
     ppo: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        check_device(self.device)
         setup = self.setup()  # validates the preset
         self.config()  # validates the env overrides
         if self.minutes is not None and (isinstance(self.minutes, bool) or not isinstance(self.minutes, (int, float))
