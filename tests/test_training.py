@@ -19,7 +19,7 @@ from stable_baselines3.common.save_util import load_from_zip_file
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_formation.cli import build_parser, main, train_settings
-from sb3_formation.experiment.runs import STATE_FILE, latest_checkpoint, load_trained
+from sb3_formation.experiment.runs import FINAL_MODEL, STATE_FILE, latest_checkpoint, load_trained
 from sb3_formation.experiment.settings import TrainSettings, reduce_to_overrides
 from sb3_formation.experiment.setups import load_setup, thesis_setup_for
 from sb3_formation.experiment.training import make_training_env
@@ -290,3 +290,26 @@ def test_ctrl_c_with_workers_checkpoints_and_stops(tmp_path: Path) -> None:
     state = json.loads((latest_checkpoint(run_dir) / STATE_FILE).read_text())
     assert state["curriculum"]["iteration"] >= 2
     assert state["num_timesteps"] == state["curriculum"]["iteration"] * 128 * 12  # the interrupted rollout is dropped
+
+
+def test_resuming_a_finished_run_says_so_and_rewrites_a_lost_final_model(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 15, point 1: with no iterations left the run is finished; a final model lost in a kill while it was
+    written comes back from the last checkpoint."""
+    run_dir = tmp_path / "run"
+    arguments = ["train", "--preset", "ch4-individual", "--iterations", "1,1,0", "--n-envs", "2", "--no-progress"]
+    assert main([*arguments, "--env", "max_steps=20", "--run-dir", str(run_dir)]) == 0
+    model = (run_dir / FINAL_MODEL).read_bytes()
+    capsys.readouterr()
+    assert main(["train", "--resume", str(run_dir)]) == 0
+    assert f"{run_dir} is finished (2 iterations, final_model.zip written): nothing to resume" in capsys.readouterr().out
+    assert (run_dir / FINAL_MODEL).read_bytes() == model
+    (run_dir / FINAL_MODEL).unlink()
+    (run_dir / "final_normalizer.npz").unlink()
+    assert main(["train", "--resume", str(run_dir)]) == 0
+    (tmp_path / "before.zip").write_bytes(model)
+    before = load_from_zip_file(tmp_path / "before.zip")[1]["policy"]
+    after = load_from_zip_file(run_dir / FINAL_MODEL)[1]["policy"]
+    assert sorted(before) == sorted(after) and all((before[name] == after[name]).all() for name in before)
+    assert load_trained(run_dir, device="cpu").config.n_agents == 3

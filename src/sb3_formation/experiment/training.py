@@ -305,6 +305,11 @@ def resume(run_dir: str | os.PathLike[str]) -> Path:
     clock = TrainingClock(settings.budget_seconds(), spent=state.get("training_seconds", 0.0))
     curriculum = make_curriculum(settings, clock)
     curriculum.load_state_dict(state["curriculum"])
+    total = curriculum.total_iterations
+    finals = all((run_dir / name).is_file() for name in (FINAL_MODEL, FINAL_NORMALIZER))
+    if finals and total is not None and curriculum.iteration >= total:
+        print(f"{run_dir} is finished ({total} iterations, {FINAL_MODEL} written): nothing to resume")
+        return run_dir
     env = make_training_env(settings, curriculum.stage, checkpoint / NORMALIZER_FILE)
     model = saved_algorithm(checkpoint / MODEL_FILE).load(checkpoint / MODEL_FILE, env=env, device=settings.device)
     model.set_random_seed(int(np.random.SeedSequence([settings.seed, curriculum.iteration]).generate_state(1)[0]))
