@@ -305,6 +305,13 @@ def test_resuming_a_finished_run_says_so_and_rewrites_a_lost_final_model(
     assert main(["train", "--resume", str(run_dir)]) == 0
     assert f"{run_dir} is finished (2 iterations, final_model.zip written): nothing to resume" in capsys.readouterr().out
     assert (run_dir / FINAL_MODEL).read_bytes() == model
+    # issue 15, point 3: a new run into the same folder is refused before anything is written
+    files = {path: path.read_bytes() for path in run_dir.rglob("*") if path.is_file()}
+    again = ["train", "--preset", "ch5-bearing", "--iterations", "0,0,1", "--n-envs", "1", "--run-dir", str(run_dir)]
+    assert main(again) == 2
+    message = f"--run-dir {run_dir} is not empty (a run is there already): continue it with --resume {run_dir}"
+    assert message in capsys.readouterr().err
+    assert {path: path.read_bytes() for path in run_dir.rglob("*") if path.is_file()} == files
     (run_dir / FINAL_MODEL).unlink()
     (run_dir / "final_normalizer.npz").unlink()
     assert main(["train", "--resume", str(run_dir)]) == 0

@@ -108,7 +108,9 @@ def build_parser() -> argparse.ArgumentParser:
         options = dict(options)
         train.add_argument(options.pop("flag"), dest=name, default=None, **options)
     train.add_argument("--resume", type=Path, metavar="RUN_DIR", help="continue a run from its latest checkpoint")
-    train.add_argument("--run-dir", type=Path, help="write the run into this folder (default: a new one under --logdir)")
+    train.add_argument(
+        "--run-dir", type=Path, help="write the run into this new or empty folder (default: a new one under --logdir)"
+    )
     commands.add_parser(
         "presets",
         help="list the set-ups --preset can name",
@@ -282,6 +284,11 @@ def train_command(args: argparse.Namespace) -> int:
         settings = load_settings(run_dir)
     else:
         settings = train_settings(args)
+        if args.run_dir is not None and args.run_dir.is_dir() and any(args.run_dir.iterdir()):
+            raise ValueError(
+                f"--run-dir {args.run_dir} is not empty (a run is there already): continue it with --resume "
+                f"{args.run_dir}, or give an empty or new folder"
+            )
         cell = settings.ppo_kwargs()["policy_kwargs"].get("cell")
         policy = f"recurrent ({cell})" if settings.resolved_recurrent() else "MLP"
         shares = settings.stage_time_shares()
