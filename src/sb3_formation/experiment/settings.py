@@ -240,9 +240,10 @@ class TrainSettings:
             if not self.seeds or not all(isinstance(seed, int) and not isinstance(seed, bool) for seed in self.seeds):
                 raise ValueError(f"seeds must be a non-empty list of integers, got {self.seeds!r}")
         if self.team_sizes is not None:
-            self.team_sizes = list(self.team_sizes) if isinstance(self.team_sizes, (list, tuple)) else self.team_sizes
-            if not (isinstance(self.team_sizes, list) and self.team_sizes and all(is_count(n) for n in self.team_sizes)):
-                raise ValueError(f"team_sizes must be a non-empty list of team sizes, got {self.team_sizes!r}")
+            sizes = self.team_sizes
+            if not (isinstance(sizes, (list, tuple)) and sizes and all(is_count(n) for n in sizes)):
+                raise ValueError(f"team_sizes must be a non-empty list of team sizes, got {sizes!r}")
+            self.team_sizes = list(sizes)
             for size in self.team_sizes:
                 self.config().replace(n_agents=size)  # validates the size
         sizes, n_agents = self.resolved_team_sizes(), self.config().n_agents
