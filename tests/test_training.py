@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -320,3 +321,25 @@ def test_resuming_a_finished_run_says_so_and_rewrites_a_lost_final_model(
     after = load_from_zip_file(run_dir / FINAL_MODEL)[1]["policy"]
     assert sorted(before) == sorted(after) and all((before[name] == after[name]).all() for name in before)
     assert load_trained(run_dir, device="cpu").config.n_agents == 3
+
+
+def test_resume_recovers_a_checkpoint_caught_in_a_folder_swap_and_leaves_it_alone(tmp_path: Path) -> None:
+    """Issue 15, point 2: a kill between the two renames of a checkpoint's swap leaves it only in a hidden folder;
+    resuming puts it back, and does not rewrite the checkpoint it starts from (which reopened that window)."""
+    run_dir = tmp_path / "run"
+    arguments = ["train", "--preset", "ch4-individual", "--iterations", "1,1,1", "--n-envs", "2", "--no-progress"]
+    assert main([*arguments, "--checkpoint-every", "1", "--env", "max_steps=20", "--run-dir", str(run_dir)]) == 0
+    checkpoints = run_dir / "checkpoints"
+    aside = checkpoints / ".iteration_000002.old.k1ll"  # what atomic_directory leaves between its renames
+    aside.mkdir()
+    (checkpoints / "iteration_000002").rename(aside / "iteration_000002")
+    shutil.rmtree(checkpoints / "iteration_000003")
+    for name in (FINAL_MODEL, "final_normalizer.npz"):
+        (run_dir / name).unlink()
+    assert latest_checkpoint(run_dir) == checkpoints / "iteration_000002"
+    assert sorted(path.name for path in checkpoints.iterdir()) == ["iteration_000001", "iteration_000002"]
+    loaded = (checkpoints / "iteration_000002" / "model.zip").stat()
+    assert main(["train", "--resume", str(run_dir)]) == 0
+    again = (checkpoints / "iteration_000002" / "model.zip").stat()
+    assert (again.st_ino, again.st_mtime_ns) == (loaded.st_ino, loaded.st_mtime_ns)
+    assert (run_dir / FINAL_MODEL).is_file() and latest_checkpoint(run_dir).name == "iteration_000003"

@@ -11,7 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from sb3_formation.utils.files import FILE_MODE, atomic_directory, atomic_path, atomic_write
+from sb3_formation.utils import files
+from sb3_formation.utils.files import FILE_MODE, atomic_directory, atomic_path, atomic_write, restore_directory
 from sb3_formation.utils.processes import WorkerProcess, gather
 
 
@@ -80,6 +81,32 @@ def test_atomic_directory_swaps_whole_folders(tmp_path: Path, strict_umask: None
         (folder / "model.zip").write_text("model")
     assert sorted(path.name for path in target.iterdir()) == ["model.zip"]  # replaced, not merged
     assert [path.name for path in target.parent.iterdir()] == ["iteration_000002"]
+
+
+def test_a_kill_between_the_two_renames_of_a_folder_swap_is_undone(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 15, point 2: the old folder renamed aside, the process killed before the new one took its place."""
+    target = tmp_path / "iteration_000004"
+    with atomic_directory(target) as folder:
+        (folder / "state.json").write_text("old")
+    renames = []
+
+    def killed_at_the_second_rename(source: str, destination: str) -> None:
+        renames.append(destination)
+        if len(renames) == 2:
+            raise SystemExit("killed")
+        os.rename(source, destination)
+
+    monkeypatch.setattr(files.os, "replace", killed_at_the_second_rename)
+    with pytest.raises(SystemExit), atomic_directory(target) as folder:
+        (folder / "state.json").write_text("new")
+    monkeypatch.undo()
+    assert not target.exists() and Path(renames[0]).name == "iteration_000004"  # the window: only the hidden copy
+    assert restore_directory(target) and (target / "state.json").read_text() == "old"
+    assert [path.name for path in tmp_path.iterdir()] == ["iteration_000004"]  # the hidden folders are gone
+    assert not restore_directory(target)  # nothing left to put back
+    with atomic_directory(target) as folder:  # the next write of it goes through
+        (folder / "state.json").write_text("new")
+    assert (target / "state.json").read_text() == "new"
 
 
 def test_atomic_directory_folder_is_readable_like_its_files(tmp_path: Path, strict_umask: None) -> None:

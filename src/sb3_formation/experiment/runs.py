@@ -26,7 +26,7 @@ from sb3_formation.experiment.setups import residual_policy
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
 from sb3_formation.sb3.trained import TrainedPolicy
-from sb3_formation.utils.files import atomic_path
+from sb3_formation.utils.files import atomic_path, restore_directory
 
 MODEL_FILE, NORMALIZER_FILE, STATE_FILE = "model.zip", "normalizer.npz", "state.json"
 FINAL_MODEL, FINAL_NORMALIZER = "final_model.zip", "final_normalizer.npz"
@@ -94,7 +94,11 @@ def normalize_rewards(env: VecEnv, gamma: float, path: Path | None = None) -> Ve
 
 
 def latest_checkpoint(run_dir: Path) -> Path | None:
-    """The most advanced complete checkpoint of a run, or ``None``."""
+    """The most advanced complete checkpoint of a run, or ``None`` (a checkpoint a kill left renamed aside in the
+    middle of its replacement is put back first)."""
+    for aside in (run_dir / "checkpoints").glob(".iteration_*.old.*"):
+        for folder in aside.glob("iteration_*"):
+            restore_directory(run_dir / "checkpoints" / folder.name)
     folders = sorted((run_dir / "checkpoints").glob("iteration_*"), key=lambda path: int(path.name.split("_")[1]))
     complete = [folder for folder in folders if (folder / STATE_FILE).exists()]
     return complete[-1] if complete else None

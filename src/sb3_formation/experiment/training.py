@@ -94,10 +94,16 @@ class CheckpointCallback(BaseCallback):
             self.save()
 
     def save(self) -> Path:
-        """Write a checkpoint of the state after the last completed iteration and return its folder."""
+        """Write a checkpoint of the state after the last completed iteration and return its folder.
+
+        A checkpoint of that iteration already on disk (the one a resumed run started from) is kept as it is: it holds
+        the same state, and replacing it would open the window of a folder swap for nothing.
+        """
         iteration = self.curriculum.iteration
         self.model.num_timesteps = iteration * self.model.n_steps * self.model.get_env().num_envs  # drop a partial rollout
         target = self.run_dir / "checkpoints" / f"iteration_{iteration:06d}"
+        if (target / STATE_FILE).is_file():
+            return target
         with atomic_directory(target) as folder:
             save_model(self.model, self.model.get_env(), folder, MODEL_FILE, NORMALIZER_FILE)
             state = {

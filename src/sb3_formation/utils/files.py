@@ -69,9 +69,10 @@ def atomic_directory(target: Path) -> Iterator[Path]:
     """Write into a hidden temporary sibling folder, then rename it to ``target`` only if all went well.
 
     An existing ``target`` is first renamed aside (hidden) and deleted after the swap, so a crash at any point leaves
-    either the old or the new folder under a hidden name or under ``target``, never a half-written ``target``.
+    either the old or the new folder under a hidden name or under ``target``, never a half-written ``target``; a kill
+    between the two renames is undone by :func:`restore_directory` (called here first, and by readers).
     """
-    target.parent.mkdir(parents=True, exist_ok=True)
+    restore_directory(target)
     temporary = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
     try:
         yield temporary
@@ -90,6 +91,24 @@ def atomic_directory(target: Path) -> Iterator[Path]:
     finally:
         if temporary.exists():
             shutil.rmtree(temporary, ignore_errors=True)
+
+
+def restore_directory(target: Path) -> bool:
+    """Put back a folder that :func:`atomic_directory` had renamed aside when a kill stopped it before the new folder
+    took its place (the one window of its swap). Returns whether it put one back.
+
+    :param target: the folder ``atomic_directory`` was replacing
+    """
+    target.parent.mkdir(parents=True, exist_ok=True)
+    if target.exists():
+        return False
+    for aside in sorted(target.parent.glob(f".{target.name}.old.*")):
+        if (aside / target.name).is_dir():
+            os.replace(aside / target.name, target)
+            fsync_directory(target.parent, files=False)
+            shutil.rmtree(aside, ignore_errors=True)
+            return True
+    return False
 
 
 def fsync_directory(folder: Path, files: bool = True) -> None:
