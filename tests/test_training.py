@@ -26,6 +26,7 @@ from sb3_formation.experiment.setups import load_setup, thesis_setup_for
 from sb3_formation.experiment.training import make_training_env
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
+from sb3_formation.utils.files import folder_lock
 
 #: Tiny runs: one team, episodes of 20 steps, so every iteration of 128 steps ends several team-episodes.
 QUICK = ["--n-envs", "1", "--env", "max_steps=20", "--no-progress"]
@@ -310,9 +311,18 @@ def test_resuming_a_finished_run_says_so_and_rewrites_a_lost_final_model(
     files = {path: path.read_bytes() for path in run_dir.rglob("*") if path.is_file()}
     again = ["train", "--preset", "ch5-bearing", "--iterations", "0,0,1", "--n-envs", "1", "--run-dir", str(run_dir)]
     assert main(again) == 2
-    message = f"--run-dir {run_dir} is not empty (a run is there already): continue it with --resume {run_dir}"
+    message = f"{run_dir} is not empty (a run is there already): continue it with --resume {run_dir}"
     assert message in capsys.readouterr().err
     assert {path: path.read_bytes() for path in run_dir.rglob("*") if path.is_file()} == files
+    # ... and a run folder another process trains in is locked: neither a resume nor a new run may enter it
+    empty = tmp_path / "empty"
+    with folder_lock(run_dir, "run folder"), folder_lock(empty, "run folder"):
+        assert main(["train", "--resume", str(run_dir)]) == 2
+        assert f"run folder {run_dir} is in use by another process (pid {os.getpid()})" in capsys.readouterr().err
+        assert main([*again[:-1], str(empty)]) == 2
+        assert f"run folder {empty} is in use by another process (pid {os.getpid()})" in capsys.readouterr().err
+    assert {path: path.read_bytes() for path in run_dir.rglob("*") if path.is_file()} == files
+    assert [path.name for path in empty.iterdir()] == [".lock"]
     (run_dir / FINAL_MODEL).unlink()
     (run_dir / "final_normalizer.npz").unlink()
     assert main(["train", "--resume", str(run_dir)]) == 0

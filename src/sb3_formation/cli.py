@@ -284,11 +284,6 @@ def train_command(args: argparse.Namespace) -> int:
         settings = load_settings(run_dir)
     else:
         settings = train_settings(args)
-        if args.run_dir is not None and args.run_dir.is_dir() and any(args.run_dir.iterdir()):
-            raise ValueError(
-                f"--run-dir {args.run_dir} is not empty (a run is there already): continue it with --resume "
-                f"{args.run_dir}, or give an empty or new folder"
-            )
         cell = settings.ppo_kwargs()["policy_kwargs"].get("cell")
         policy = f"recurrent ({cell})" if settings.resolved_recurrent() else "MLP"
         shares = settings.stage_time_shares()

@@ -54,7 +54,7 @@ from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 from sb3_formation.sb3.residual import ResidualVecEnv
 from sb3_formation.sb3.trained import TrainedPolicy
 from sb3_formation.sb3.vec_env import FormationVecEnv
-from sb3_formation.utils.files import atomic_directory, atomic_write
+from sb3_formation.utils.files import LOCK_FILE, atomic_directory, atomic_write, folder_lock
 
 # Models and checkpoints ----------------------------------------------------------------------------------------
 
@@ -253,13 +253,24 @@ def train(settings: TrainSettings, command: str | None = None, run_dir: str | os
 
     :param settings: the run's settings
     :param command: the command line to record in ``command.txt`` (default: this process's)
-    :param run_dir: the run folder (created if needed; default: a new ``<logdir>/<preset>_<n>a_s<seed>_<time>``)
+    :param run_dir: a new or empty folder (default: a new ``<logdir>/<preset>_<n>a_s<seed>_<time>``); it is locked
+        (:func:`~sb3_formation.utils.files.folder_lock`) while the run trains
+    :raises ValueError: ``run_dir`` holds something already (a run: continue it with :func:`resume`)
+    :raises RuntimeError: another process trains in ``run_dir``
     """
-    if run_dir is None:
-        run_dir = new_run_dir(settings)
-    else:
-        run_dir = Path(run_dir)
-        run_dir.mkdir(parents=True, exist_ok=True)
+    run_dir = new_run_dir(settings) if run_dir is None else Path(run_dir)
+    with folder_lock(run_dir, "run folder"):
+        if any(path.name != LOCK_FILE for path in run_dir.iterdir()):
+            raise ValueError(
+                f"{run_dir} is not empty (a run is there already): continue it with --resume {run_dir}, or give an "
+                "empty or new folder"
+            )
+        _train(settings, command, run_dir)
+    return run_dir
+
+
+def _train(settings: TrainSettings, command: str | None, run_dir: Path) -> None:
+    """Train ``settings`` from the start into ``run_dir`` (locked by the caller)."""
     atomic_write(run_dir / "config.yaml", yaml.safe_dump(settings.to_dict(), sort_keys=False))
     atomic_write(run_dir / "command.txt", (command or " ".join(sys.argv)) + "\n")
     clock = TrainingClock(settings.budget_seconds())
@@ -279,7 +290,6 @@ def train(settings: TrainSettings, command: str | None = None, run_dir: str | os
         records = pretrain_actor(model, teacher, imitation, seed=settings.seed, log=_print_imitation_round)
         atomic_write(run_dir / IMITATION_FILE, json.dumps(records, indent=2))
     _learn(model, settings, run_dir, curriculum, clock)
-    return run_dir
 
 
 def _print_imitation_round(record: dict[str, float]) -> None:
@@ -294,17 +304,27 @@ def resume(run_dir: str | os.PathLike[str]) -> Path:
     """Continue a run from its latest checkpoint: same curriculum stage, timestep count, normaliser and optimiser.
 
     The random generators are re-seeded from the run's seed and the checkpoint's iteration, so resuming the same
-    checkpoint twice gives the same continuation.
+    checkpoint twice gives the same continuation. The run folder is locked while it trains.
+
+    :raises RuntimeError: another process trains in ``run_dir``
     """
     run_dir = Path(run_dir)
     settings = load_settings(run_dir)
+    with folder_lock(run_dir, "run folder"):
+        _resume(settings, run_dir)
+    return run_dir
+
+
+def _resume(settings: TrainSettings, run_dir: Path) -> None:
+    """Continue the run in ``run_dir`` (locked by the caller) from its latest checkpoint."""
     checkpoint = latest_checkpoint(run_dir)
     if checkpoint is None:
         if (run_dir / FINAL_MODEL).exists() or not (run_dir / "command.txt").exists():
             raise FileNotFoundError(f"{run_dir} has no complete checkpoint under checkpoints/ to resume from")
         # killed before its first checkpoint (e.g. during imitation pretraining): the same seed repeats it exactly
         print(f"{run_dir} has no checkpoint yet: training it again from the start")
-        return train(settings, command=(run_dir / "command.txt").read_text().strip(), run_dir=run_dir)
+        _train(settings, (run_dir / "command.txt").read_text().strip(), run_dir)
+        return
     for leftover in (run_dir / "checkpoints").glob(".iteration_*"):  # folders of a write that was killed
         shutil.rmtree(leftover, ignore_errors=True)
     state = json.loads((checkpoint / STATE_FILE).read_text())
@@ -315,12 +335,11 @@ def resume(run_dir: str | os.PathLike[str]) -> Path:
     finals = all((run_dir / name).is_file() for name in (FINAL_MODEL, FINAL_NORMALIZER))
     if finals and total is not None and curriculum.iteration >= total:
         print(f"{run_dir} is finished ({total} iterations, {FINAL_MODEL} written): nothing to resume")
-        return run_dir
+        return
     env = make_training_env(settings, curriculum.stage, checkpoint / NORMALIZER_FILE)
     model = saved_algorithm(checkpoint / MODEL_FILE).load(checkpoint / MODEL_FILE, env=env, device=settings.device)
     model.set_random_seed(int(np.random.SeedSequence([settings.seed, curriculum.iteration]).generate_state(1)[0]))
     _learn(model, settings, run_dir, curriculum, clock)
-    return run_dir
 
 
 def make_curriculum(settings: TrainSettings, clock: TrainingClock) -> CurriculumCallback:

@@ -5,12 +5,21 @@ crash or a kill leaves either the old file or the new one, never half of one. Fi
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import secrets
 import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - Windows: folders are not locked
+    fcntl = None  # type: ignore[assignment]
+
+#: Name of the lock file :func:`folder_lock` keeps in a folder.
+LOCK_FILE = ".lock"
 
 #: Mode of every file the package writes (rw-r--r--), whatever the process's umask.
 FILE_MODE = 0o644
@@ -123,3 +132,37 @@ def fsync_directory(folder: Path, files: bool = True) -> None:
         os.fsync(handle)
     finally:
         os.close(handle)
+
+
+@contextlib.contextmanager
+def folder_lock(folder: Path, what: str = "folder") -> Iterator[None]:
+    """Hold an exclusive lock on ``folder`` (created if needed) while the block runs, through ``folder/.lock``.
+
+    The operating system drops the lock when the process ends, however it ends, so a killed process never leaves its
+    folder locked. The file keeps the holder's process id for the message others get.
+
+    :param folder: the folder to lock
+    :param what: what the folder is, for the error message (e.g. ``"run folder"``)
+    :raises RuntimeError: another process holds the lock
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    if fcntl is None:  # pragma: no cover
+        yield
+        return
+    with open(folder / LOCK_FILE, "a+") as stream:
+        try:
+            fcntl.flock(stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as error:
+            if error.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+                raise
+            stream.seek(0)
+            holder = stream.read().strip() or "unknown"
+            raise RuntimeError(f"{what} {folder} is in use by another process (pid {holder}); wait for it to end") from None
+        stream.seek(0)
+        stream.truncate()
+        stream.write(str(os.getpid()))
+        stream.flush()
+        try:
+            yield
+        finally:
+            fcntl.flock(stream.fileno(), fcntl.LOCK_UN)
