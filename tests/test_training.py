@@ -21,7 +21,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from sb3_formation.cli import build_parser, main, train_settings
 from sb3_formation.experiment.runs import FINAL_MODEL, STATE_FILE, latest_checkpoint, load_trained
-from sb3_formation.experiment.settings import TrainSettings, reduce_to_overrides
+from sb3_formation.experiment.settings import TrainSettings, layered_settings, reduce_to_overrides
 from sb3_formation.experiment.setups import load_setup, thesis_setup_for
 from sb3_formation.experiment.training import make_training_env
 from sb3_formation.sb3.policies import FormationPolicy
@@ -154,6 +154,77 @@ def test_train_cli_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureF
             main(["train", "--minutes", minutes, "--logdir", str(tmp_path / "runs")])
         assert "--minutes" in capsys.readouterr().err
     assert not (tmp_path / "runs").exists()  # nothing written
+
+
+#: Issue 15, points 4 and 6: bad settings of ``train`` (flags, or a YAML file's text), each with the words its one-line
+#: error must hold. None of them may leave a folder behind.
+BAD_TRAIN_INPUT = [
+    (["--workers", "5", "--n-envs", "2"], None, "workers=5 exceeds n_envs=2"),
+    (["--seed", "99999999999"], None, "argument --seed: must be an integer in [0, 2**32 - 1], got 99999999999"),
+    (["--device", "tpu9"], None, "device must be auto, cpu, cuda or cuda:<index>, got 'tpu9'"),
+    (["--success-threshold", "-3"], None, "success_threshold must be a number in [0, 1]"),
+    (["--iterations", "-1,2,3"], None, "argument --iterations: expected three iteration counts A,B,C (stages 1, 2, 3)"),
+    (["--env", "v_max=[1,"], None, "argument --env: the value of v_max is not valid YAML"),
+    (["--env", "v_max=true"], None, "FormationConfig.v_max=True is invalid: it must be a finite number > 0"),
+    ([], "seed: -5", "seed must be an integer in [0, 2**32 - 1], got -5"),
+    ([], "seeds: [1, 4294967296]", "each of seeds must be an integer in [0, 2**32 - 1], got 4294967296"),
+    ([], "ppo: {policy_kwargs: 7}", "ppo: policy_kwargs must be a mapping, got 7"),
+    ([], "ppo: 7", "ppo must be a mapping of field names to values, got 7"),
+    ([], "env: 5", "env must be a mapping of field names to values, got 5"),
+    ([], "iterations: 5", "iterations must be three integers >= 0 (stages 1, 2, 3), got 5"),
+    ([], "iterations: [0, 0, 0]", "iterations must give at least one stage an iteration"),
+    ([], "preset: 5", "preset must be a set-up name or the path of a set-up YAML file, got 5"),
+    ([], "success_threshold: true", "success_threshold must be a number in [0, 1]"),
+]
+
+
+@pytest.mark.parametrize(("flags", "yaml_text", "message"), BAD_TRAIN_INPUT)
+def test_bad_train_settings_are_one_line_errors_before_anything_is_written(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], flags: list[str], yaml_text: str | None, message: str
+) -> None:
+    arguments = ["train", "--logdir", str(tmp_path / "runs"), *flags]
+    if yaml_text is not None:
+        (tmp_path / "bad.yaml").write_text(yaml_text + "\n")
+        arguments += ["--config", str(tmp_path / "bad.yaml")]
+    try:
+        code = main(arguments)
+    except SystemExit as error:  # argparse's own errors
+        code = error.code
+    assert code == 2
+    error = capsys.readouterr().err
+    assert message in error and "Traceback" not in error
+    assert not (tmp_path / "runs").exists()
+
+
+def test_numbers_are_read_as_users_write_them() -> None:
+    """Issue 15, point 6: PyYAML reads ``3e-4`` as a string; settings files and ``--env`` read it as a number."""
+    settings = train_settings(build_parser().parse_args(["train", "--env", "v_max=5e-2", "--env", "dt=1E-1"]))
+    assert settings.config().v_max == 0.05 and settings.config().dt == 0.1
+    assert layered_settings(None, ppo={"learning_rate": 3e-4}).ppo_kwargs()["learning_rate"] == 3e-4
+
+
+def test_damaged_files_of_a_run_are_one_line_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 15, point 6: an empty normaliser (for ``evaluate``, and a checkpoint's for ``--resume``) and a damaged
+    ``config.yaml`` are named in one line; nothing saved is touched."""
+    run_dir = tmp_path / "run"
+    arguments = ["train", "--preset", "ch4-individual", "--iterations", "1,1,0", "--n-envs", "2", "--no-progress"]
+    assert main([*arguments, "--env", "max_steps=20", "--run-dir", str(run_dir)]) == 0
+    capsys.readouterr()
+    (run_dir / "final_normalizer.npz").write_bytes(b"")
+    assert main(["evaluate", str(run_dir), "--episodes", "1", "--no-progress"]) == 2
+    assert f"{run_dir / 'final_normalizer.npz'} is not a normaliser file (empty or damaged" in capsys.readouterr().err
+    for name in (FINAL_MODEL, "final_normalizer.npz"):
+        (run_dir / name).unlink()
+    checkpoint = latest_checkpoint(run_dir)
+    (checkpoint / "normalizer.npz").write_bytes(b"")
+    assert main(["train", "--resume", str(run_dir)]) == 2
+    assert f"{checkpoint / 'normalizer.npz'} is not a ScaleNormalizeVecEnv file (empty or" in capsys.readouterr().err
+    for text, message in [("preset: [oops", "config.yaml is not valid YAML"), ("- 1", "must hold a mapping of settings")]:
+        (run_dir / "config.yaml").write_text(text)
+        assert main(["train", "--resume", str(run_dir)]) == 2
+        error = capsys.readouterr().err
+        assert message in error and len(error.strip().splitlines()) == 1
+    assert not (run_dir / FINAL_MODEL).exists() and (checkpoint / "model.zip").stat().st_size > 0
 
 
 @pytest.mark.slow

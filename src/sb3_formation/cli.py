@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import shlex
 import sys
 from collections.abc import Sequence
@@ -531,10 +532,24 @@ def sweep_command(args: argparse.Namespace) -> int:
     return 1 if result.failed else 0
 
 
+def _attach_negative_values(argv: list[str]) -> list[str]:
+    """``--iterations -1,2,3`` as ``--iterations=-1,2,3``: argparse reads a value that starts with a dash and is not a
+    plain negative number as an option (and says only "expected one argument"); attached, the option's own check
+    names the problem."""
+    joined: list[str] = []
+    for token in argv:
+        previous = joined[-1] if joined else ""
+        if previous.startswith("--") and "=" not in previous and re.fullmatch(r"-[0-9.][^ ]*", token):
+            joined[-1] = f"{previous}={token}"
+        else:
+            joined.append(token)
+    return joined
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``sb3-formation`` console script."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(_attach_negative_values(argv))
     args.command_line = shlex.join(["sb3-formation", *argv])
     commands = {
         "rollout": rollout_command,

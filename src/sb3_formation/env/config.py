@@ -129,19 +129,21 @@ class FormationConfig:
             "m_ang_deg m_dist reward_clip"
         ).split()
         for name in positive:
-            _check(name, getattr(self, name), "a finite number > 0", lambda v: math.isfinite(v) and v > 0)
+            _check(name, getattr(self, name), "a finite number > 0", lambda v: _is_real(v) and math.isfinite(v) and v > 0)
         for name in "r_c r_reached r_late k1 r_o r_j".split() + [f"k_{t}" for t in REWARD_TERMS]:
-            _check(name, getattr(self, name), "a finite number", math.isfinite)
-        _check("d_safe", self.d_safe, "a finite number >= 0", lambda v: math.isfinite(v) and v >= 0)
-        _check("placement_clearance", self.placement_clearance, "a number >= 0", lambda v: math.isfinite(v) and v >= 0)
-        _check("max_force", self.max_force, "None or a number > 0", lambda v: v is None or (math.isfinite(v) and v > 0))
+            _check(name, getattr(self, name), "a finite number", lambda v: _is_real(v) and math.isfinite(v))
+        _check("d_safe", self.d_safe, "a finite number >= 0", lambda v: _is_real(v) and math.isfinite(v) and v >= 0)
+        clearance = self.placement_clearance
+        _check("placement_clearance", clearance, "a number >= 0", lambda v: _is_real(v) and math.isfinite(v) and v >= 0)
+        force = self.max_force
+        _check("max_force", force, "None or a number > 0", lambda v: v is None or (_is_real(v) and math.isfinite(v) and v > 0))
         _check("n_agents", self.n_agents, "an integer >= 3", lambda v: _is_int(v) and v >= 3)
         for name in ("physics_substeps", "lidar_rays", "max_steps", "max_placement_tries"):
             _check(name, getattr(self, name), "an integer >= 1", lambda v: _is_int(v) and v >= 1)
         _check("stage", self.stage, "1, 2 or 3", lambda v: _is_int(v) and v in (1, 2, 3))
         for name in ("n_agents", "physics_substeps", "lidar_rays", "max_steps", "max_placement_tries", "stage"):
             object.__setattr__(self, name, int(getattr(self, name)))  # numpy integers become plain ints
-        _check("formation_scale", self.formation_scale, "in (0, 1)", lambda v: 0 < v < 1)
+        _check("formation_scale", self.formation_scale, "in (0, 1)", lambda v: _is_real(v) and 0 < v < 1)
         _check("layout", self.layout, f"one of {LAYOUTS}", lambda v: v in LAYOUTS)
         for name in ("team_reward", "observe_reference_bearings"):
             _check(name, getattr(self, name), "True or False", lambda v: isinstance(v, bool))
@@ -239,6 +241,11 @@ class FormationConfig:
 
 def _is_int(value: Any) -> bool:
     return isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
+
+
+def _is_real(value: Any) -> bool:
+    """A real number; not a bool (YAML's ``true`` is not 1 m/s)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
 
 
 def _check_stage(stage: Any) -> None:

@@ -26,7 +26,7 @@ from sb3_formation.experiment.setups import residual_policy
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
 from sb3_formation.sb3.trained import TrainedPolicy
-from sb3_formation.utils.files import atomic_path, restore_directory
+from sb3_formation.utils.files import atomic_path, read_arrays, restore_directory
 
 MODEL_FILE, NORMALIZER_FILE, STATE_FILE = "model.zip", "normalizer.npz", "state.json"
 FINAL_MODEL, FINAL_NORMALIZER = "final_model.zip", "final_normalizer.npz"
@@ -85,10 +85,13 @@ def normalize_rewards(env: VecEnv, gamma: float, path: Path | None = None) -> Ve
     if path is not None:
         if not path.is_file():
             raise FileNotFoundError(f"the reward normaliser statistics are missing: expected {path}")
-        with np.load(path, allow_pickle=False) as data:
-            statistics = RunningMeanStd(shape=())
-            statistics.mean, statistics.var, statistics.count = (np.asarray(data[key]) for key in REWARD_STATE_KEYS)
-            statistics.count = float(statistics.count)
+        data = read_arrays(path, "a reward normaliser file")
+        missing = [key for key in REWARD_STATE_KEYS if key not in data]
+        if missing:
+            raise ValueError(f"{path} is not a reward normaliser file: it lacks {missing}")
+        statistics = RunningMeanStd(shape=())
+        statistics.mean, statistics.var = (np.asarray(data[key]) for key in REWARD_STATE_KEYS[:2])
+        statistics.count = float(data[REWARD_STATE_KEYS[2]])
         wrapper.ret_rms = statistics
     return wrapper
 
@@ -135,11 +138,7 @@ def load_trained(path: str | os.PathLike[str], device: str = "auto") -> TeamPoli
     if stored is None:
         raise ValueError(f"{model_path} was not saved by sb3-formation: it carries no formation_config")
     config = FormationConfig(**{**stored, "stage_disabled_terms": tuple(tuple(t) for t in stored["stage_disabled_terms"])})
-    try:
-        with np.load(normalizer_path, allow_pickle=False) as data:
-            normalizer_state = {key: data[key] for key in data.files}
-    except (zipfile.BadZipFile, ValueError, OSError) as error:
-        raise ValueError(f"{normalizer_path} is not a normaliser file: {error}") from error
+    normalizer_state = read_arrays(normalizer_path, "a normaliser file")
     team_sizes = tuple(getattr(model, "team_sizes", None) or ())  # files saved before mixed teams: the config's
     trained = TrainedPolicy(model, config, normalizer_state, source=model_path, team_sizes=team_sizes)
     residual = getattr(model, "residual", None)  # a correction of a controller (a set-up's residual)

@@ -17,10 +17,10 @@ from pathlib import Path
 from typing import Any
 
 import torch
-import yaml
 
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.experiment.setups import DEFAULT_SETUP, SetUp, is_count, load_setup, with_schedules
+from sb3_formation.utils.yaml_files import read_yaml
 
 #: Keys of a run's ``evaluation:`` settings (arguments of :func:`~sb3_formation.experiment.evaluation.evaluate`).
 EVALUATION_KEYS = frozenset({"episodes", "stage", "seed", "n_envs", "workers", "deterministic", "record"})
@@ -44,6 +44,8 @@ PPO_OVERRIDABLE = frozenset(
         "max_sequence_length",
     }
 )
+#: Largest seed: numpy's and PyTorch's generators take seeds in [0, 2**32 - 1].
+MAX_SEED = 2**32 - 1
 
 
 # Command-line value types ---------------------------------------------------------------------------------------------
@@ -58,10 +60,10 @@ def positive_int(text: str) -> int:
 
 
 def seed_value(text: str) -> int:
-    """A seed: an integer >= 0."""
+    """A seed: an integer in [0, 2**32 - 1]."""
     value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"must be an integer in [0, 2**32 - 1], got {value}")
     return value
 
 
@@ -89,7 +91,10 @@ def assignment(text: str) -> tuple[str, object]:
     name, separator, value = text.partition("=")
     if not separator or not name:
         raise argparse.ArgumentTypeError(f"expected FIELD=VALUE, got {text!r}")
-    return name.strip(), yaml.safe_load(value)
+    try:
+        return name.strip(), read_yaml(value, f"the value of {name.strip()}")
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 def option(help: str, **argparse_options: Any) -> dict[str, Any]:
@@ -115,6 +120,20 @@ def check_device(device: Any) -> None:
         raise ValueError(f"device {device!r}: torch sees no CUDA GPU on this machine; use --device auto or cpu")
     if kind not in (None, "cpu", "cuda"):
         raise ValueError(f"device must be auto, cpu, cuda or cuda:<index>, got {device!r}")
+
+
+def is_number(value: Any) -> bool:
+    """A finite real number (not a bool)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def check_seed(name: str, value: Any) -> None:
+    """Refuse a seed that is not an integer in [0, :data:`MAX_SEED`].
+
+    :param name: the setting, for the message
+    """
+    if not (is_count(value) and value <= MAX_SEED):
+        raise ValueError(f"{name} must be an integer in [0, 2**32 - 1], got {value!r}")
 
 
 @dataclass
@@ -213,19 +232,30 @@ class TrainSettings:
     ppo: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        for name in ("env", "ppo"):
+            if not isinstance(getattr(self, name), dict):
+                raise ValueError(f"{name} must be a mapping of field names to values, got {getattr(self, name)!r}")
+        if not isinstance(self.ppo.get("policy_kwargs", {}), dict):
+            raise ValueError(f"ppo: policy_kwargs must be a mapping, got {self.ppo['policy_kwargs']!r}")
         check_device(self.device)
+        check_seed("seed", self.seed)
         setup = self.setup()  # validates the preset
         self.config()  # validates the env overrides
+        threshold = self.success_threshold
+        if threshold is not None and not (is_number(threshold) and 0 <= threshold <= 1):
+            raise ValueError(f"success_threshold must be a number in [0, 1] or null (the set-up's), got {threshold!r}")
         if self.minutes is not None and (isinstance(self.minutes, bool) or not isinstance(self.minutes, (int, float))
                                          or not (math.isfinite(self.minutes) and self.minutes > 0)):  # fmt: skip
             raise ValueError(f"minutes must be a finite number > 0, got {self.minutes!r}")
         if self.iterations is not None:
+            iterations = self.iterations if isinstance(self.iterations, (list, tuple)) else ()
             # a run's config.yaml writes a stage 3 that runs until a time budget ends as null
-            open_ended = self.minutes is not None and len(self.iterations) == 3 and self.iterations[2] is None
-            counts = self.iterations[:2] if open_ended else self.iterations
-            valid = len(self.iterations) == 3 and all(is_count(value) for value in counts)
-            if not valid or not (open_ended or sum(counts) >= 1):
+            open_ended = self.minutes is not None and len(iterations) == 3 and iterations[2] is None
+            counts = iterations[:2] if open_ended else iterations
+            if not (len(iterations) == 3 and all(is_count(value) for value in counts)):
                 raise ValueError(f"iterations must be three integers >= 0 (stages 1, 2, 3), got {self.iterations!r}")
+            if not (open_ended or sum(counts) >= 1):
+                raise ValueError(f"iterations must give at least one stage an iteration, got {self.iterations!r}")
             self.iterations = (*(int(value) for value in counts), *((None,) if open_ended else ()))
         optional = tuple(name for name in ("n_envs", "steps", "eval_every") if getattr(self, name) is not None)
         for name in ("workers", "checkpoint_every", *optional):
@@ -237,8 +267,10 @@ class TrainSettings:
             raise ValueError(f"unknown ppo setting(s) {unknown}; valid: {sorted(PPO_OVERRIDABLE | set(setup.ppo))}")
         if self.seeds is not None:
             self.seeds = list(self.seeds)
-            if not self.seeds or not all(isinstance(seed, int) and not isinstance(seed, bool) for seed in self.seeds):
+            if not self.seeds:
                 raise ValueError(f"seeds must be a non-empty list of integers, got {self.seeds!r}")
+            for seed in self.seeds:
+                check_seed("each of seeds", seed)
         if self.team_sizes is not None:
             sizes = self.team_sizes
             if not (isinstance(sizes, (list, tuple)) and sizes and all(is_count(n) for n in sizes)):
@@ -246,6 +278,8 @@ class TrainSettings:
             self.team_sizes = list(sizes)
             for size in self.team_sizes:
                 self.config().replace(n_agents=size)  # validates the size
+        if self.workers > self.resolved_n_envs():
+            raise ValueError(f"workers={self.workers} exceeds n_envs={self.resolved_n_envs()}: a worker steps whole teams")
         sizes, n_agents = self.resolved_team_sizes(), self.config().n_agents
         if "team_size" in self.ppo_kwargs()["policy_kwargs"] and set(sizes) != {n_agents}:
             raise ValueError(f"a team critic reads teams of n_agents={n_agents}; team_sizes lists {sizes}")
@@ -401,6 +435,13 @@ def reduce_to_overrides(values: dict[str, Any]) -> dict[str, Any]:
     A run's ``config.yaml`` holds every resolved value; reduced, it can be reused with another set-up or team size
     (``--config old/config.yaml --reward bearing``) without pinning the old set-up's coefficients.
     """
+    ppo = values.get("ppo") or {}
+    if not (
+        isinstance(values.get("env") or {}, dict)
+        and isinstance(ppo, dict)
+        and isinstance(ppo.get("policy_kwargs") or {}, dict)
+    ):
+        return values  # reported by TrainSettings
     try:
         setup = load_setup(values.get("preset", DEFAULT_SETUP))
         defaults = _plain(dataclasses.asdict(setup.config()))
@@ -431,10 +472,7 @@ def read_settings_file(path: str | os.PathLike[str]) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no such settings file {path}")
-    try:
-        values = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as error:
-        raise ValueError(f"{path} is not valid YAML: {error}") from error
+    values = read_yaml(path.read_text(), str(path)) or {}
     if not isinstance(values, dict):
         raise ValueError(f"{path} must hold a mapping of settings, not {type(values).__name__}")
     return reduce_to_overrides(values)
@@ -449,6 +487,8 @@ def layered_settings(config_file: str | os.PathLike[str] | None = None, **flags:
     """
     values = read_settings_file(config_file) if config_file is not None else {}
     flags = {name: value for name, value in flags.items() if value is not None}
+    if not isinstance(values.get("env") or {}, dict):
+        raise ValueError(f"{config_file}: env must be a mapping of field names to values, got {values['env']!r}")
     env = {**(values.get("env") or {}), **flags.pop("env", {})}
     return TrainSettings.from_dict({**values, **flags, "env": env})
 
@@ -458,7 +498,13 @@ def load_settings(run_dir: str | os.PathLike[str]) -> TrainSettings:
     path = Path(run_dir) / "config.yaml"
     if not path.exists():
         raise FileNotFoundError(f"{run_dir} is not a run folder: {path} is missing")
-    return TrainSettings.from_dict(yaml.safe_load(path.read_text()))
+    values = read_yaml(path.read_text(), str(path))
+    if not isinstance(values, dict):
+        raise ValueError(f"{path} must hold a mapping of settings, not {type(values).__name__}")
+    try:
+        return TrainSettings.from_dict(values)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{path} holds invalid settings: {error}") from None
 
 
 def cli_options() -> list[tuple[str, dict[str, Any]]]:

@@ -16,7 +16,6 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-import yaml
 from stable_baselines3.common.type_aliases import Schedule
 from stable_baselines3.common.utils import LinearSchedule
 
@@ -27,6 +26,7 @@ from sb3_formation.env.config import PRESETS, FormationConfig
 from sb3_formation.sb3.imitation import ImitationSettings
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import CELLS, RecurrentFormationPolicy
+from sb3_formation.utils.yaml_files import read_yaml
 
 #: The folder of the shipped set-ups, one ``<name>.yaml`` each.
 SETUPS_FOLDER = Path(__file__).with_name("setups")
@@ -305,6 +305,8 @@ def load_setup(name: str | os.PathLike[str]) -> SetUp:
 
     :raises ValueError: an unknown name (the valid ones are listed) or an invalid file
     """
+    if not isinstance(name, (str, os.PathLike)):
+        raise ValueError(f"preset must be a set-up name or the path of a set-up YAML file, got {name!r}")
     path = Path(name)
     if path.suffix not in (".yaml", ".yml"):
         if str(name) not in setup_names():
@@ -312,10 +314,7 @@ def load_setup(name: str | os.PathLike[str]) -> SetUp:
         path = SETUPS_FOLDER / f"{name}.yaml"
     if not path.is_file():
         raise ValueError(f"no set-up file {path}")
-    try:
-        values = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as error:
-        raise ValueError(f"{path} is not valid YAML: {error}") from error
+    values = read_yaml(path.read_text(), str(path))
     return SetUp.from_dict(path.stem, values, source=path)
 
 

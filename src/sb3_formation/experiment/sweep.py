@@ -23,7 +23,7 @@ import numpy as np
 
 from sb3_formation.env.episodes import EPISODE_METRICS
 from sb3_formation.experiment.evaluation import SUMMARY_FILE, TABLE_METRICS, evaluate_target, table_number
-from sb3_formation.experiment.runs import FINAL_MODEL, latest_checkpoint
+from sb3_formation.experiment.runs import FINAL_MODEL
 from sb3_formation.experiment.settings import TrainSettings, read_settings_file
 from sb3_formation.experiment.training import resume, train
 from sb3_formation.utils.files import atomic_write
@@ -51,7 +51,7 @@ def run_trial(settings: dict[str, Any], run_dir: str) -> dict[str, Any]:
     if (folder / FINAL_MODEL).exists() and (folder / "eval" / SUMMARY_FILE).exists():
         return {"status": "skipped", "run_dir": run_dir, "summary": json.loads((folder / "eval" / SUMMARY_FILE).read_text())}
     if not (folder / FINAL_MODEL).exists():
-        if latest_checkpoint(folder) is not None:
+        if (folder / "config.yaml").exists():  # a trial that was stopped: from its checkpoint, or again from the start
             resume(folder)
         else:
             train(trial, command=f"sb3-formation sweep (trial {folder.name})", run_dir=folder)

@@ -251,6 +251,9 @@ def new_run_dir(settings: TrainSettings) -> Path:
 def train(settings: TrainSettings, command: str | None = None, run_dir: str | os.PathLike[str] | None = None) -> Path:
     """Run the whole curriculum of ``settings`` in a new run folder and return the folder.
 
+    The environment and the model are built before the folder is made, so settings that fail there leave nothing
+    behind.
+
     :param settings: the run's settings
     :param command: the command line to record in ``command.txt`` (default: this process's)
     :param run_dir: a new or empty folder (default: a new ``<logdir>/<preset>_<n>a_s<seed>_<time>``); it is locked
@@ -258,31 +261,58 @@ def train(settings: TrainSettings, command: str | None = None, run_dir: str | os
     :raises ValueError: ``run_dir`` holds something already (a run: continue it with :func:`resume`)
     :raises RuntimeError: another process trains in ``run_dir``
     """
-    run_dir = new_run_dir(settings) if run_dir is None else Path(run_dir)
-    with folder_lock(run_dir, "run folder"):
-        if any(path.name != LOCK_FILE for path in run_dir.iterdir()):
-            raise ValueError(
-                f"{run_dir} is not empty (a run is there already): continue it with --resume {run_dir}, or give an "
-                "empty or new folder"
-            )
-        _train(settings, command, run_dir)
+    if run_dir is not None:
+        _check_unused(Path(run_dir))
+    model, curriculum, clock = _new_model(settings)
+    try:
+        run_dir = new_run_dir(settings) if run_dir is None else Path(run_dir)
+        with folder_lock(run_dir, "run folder"):
+            _check_unused(run_dir)  # again, under the lock: another process may have started in it meanwhile
+            _start(model, settings, command, run_dir, curriculum, clock)
+    finally:
+        model.get_env().close()
     return run_dir
 
 
-def _train(settings: TrainSettings, command: str | None, run_dir: Path) -> None:
-    """Train ``settings`` from the start into ``run_dir`` (locked by the caller)."""
-    atomic_write(run_dir / "config.yaml", yaml.safe_dump(settings.to_dict(), sort_keys=False))
-    atomic_write(run_dir / "command.txt", (command or " ".join(sys.argv)) + "\n")
+def _check_unused(run_dir: Path) -> None:
+    """Refuse a run folder that is a file or holds anything but its lock."""
+    if run_dir.exists() and (not run_dir.is_dir() or any(path.name != LOCK_FILE for path in run_dir.iterdir())):
+        raise ValueError(
+            f"{run_dir} is not empty (a run is there already): continue it with --resume {run_dir}, or give an empty "
+            "or new folder"
+        )
+
+
+def _new_model(settings: TrainSettings) -> tuple[PPO, CurriculumCallback, TrainingClock]:
+    """A new run's model on its training env, with its curriculum and clock."""
     clock = TrainingClock(settings.budget_seconds())
     curriculum = make_curriculum(settings, clock)
     env = make_training_env(settings, curriculum.stage)
     kwargs = settings.ppo_kwargs()
-    model = algorithm_for(kwargs["policy"])(
-        env=env, seed=settings.seed, device=settings.device, verbose=0, **with_schedules(kwargs)
-    )
+    try:
+        model = algorithm_for(kwargs["policy"])(
+            env=env, seed=settings.seed, device=settings.device, verbose=0, **with_schedules(kwargs)
+        )
+    except BaseException:
+        env.close()
+        raise
     model.formation_config = dataclasses.asdict(settings.config())
     model.residual = settings.setup().residual  # the model file says how its actions are meant (load_trained)
     model.team_sizes = sorted(set(settings.resolved_team_sizes()))  # and which team sizes it acts in
+    return model, curriculum, clock
+
+
+def _start(
+    model: PPO,
+    settings: TrainSettings,
+    command: str | None,
+    run_dir: Path,
+    curriculum: CurriculumCallback,
+    clock: TrainingClock,
+) -> None:
+    """Record the settings in ``run_dir`` (locked by the caller) and train ``model`` from the start."""
+    atomic_write(run_dir / "config.yaml", yaml.safe_dump(settings.to_dict(), sort_keys=False))
+    atomic_write(run_dir / "command.txt", (command or " ".join(sys.argv)) + "\n")
     setup = settings.setup()
     imitation = setup.imitation_settings()
     if imitation is not None:
@@ -319,11 +349,16 @@ def _resume(settings: TrainSettings, run_dir: Path) -> None:
     """Continue the run in ``run_dir`` (locked by the caller) from its latest checkpoint."""
     checkpoint = latest_checkpoint(run_dir)
     if checkpoint is None:
-        if (run_dir / FINAL_MODEL).exists() or not (run_dir / "command.txt").exists():
+        if (run_dir / FINAL_MODEL).exists():
             raise FileNotFoundError(f"{run_dir} has no complete checkpoint under checkpoints/ to resume from")
         # killed before its first checkpoint (e.g. during imitation pretraining): the same seed repeats it exactly
         print(f"{run_dir} has no checkpoint yet: training it again from the start")
-        _train(settings, (run_dir / "command.txt").read_text().strip(), run_dir)
+        command = run_dir / "command.txt"
+        model, curriculum, clock = _new_model(settings)
+        try:
+            _start(model, settings, command.read_text().strip() if command.exists() else None, run_dir, curriculum, clock)
+        finally:
+            model.get_env().close()
         return
     for leftover in (run_dir / "checkpoints").glob(".iteration_*"):  # folders of a write that was killed
         shutil.rmtree(leftover, ignore_errors=True)
@@ -337,9 +372,12 @@ def _resume(settings: TrainSettings, run_dir: Path) -> None:
         print(f"{run_dir} is finished ({total} iterations, {FINAL_MODEL} written): nothing to resume")
         return
     env = make_training_env(settings, curriculum.stage, checkpoint / NORMALIZER_FILE)
-    model = saved_algorithm(checkpoint / MODEL_FILE).load(checkpoint / MODEL_FILE, env=env, device=settings.device)
-    model.set_random_seed(int(np.random.SeedSequence([settings.seed, curriculum.iteration]).generate_state(1)[0]))
-    _learn(model, settings, run_dir, curriculum, clock)
+    try:
+        model = saved_algorithm(checkpoint / MODEL_FILE).load(checkpoint / MODEL_FILE, env=env, device=settings.device)
+        model.set_random_seed(int(np.random.SeedSequence([settings.seed, curriculum.iteration]).generate_state(1)[0]))
+        _learn(model, settings, run_dir, curriculum, clock)
+    finally:
+        env.close()
 
 
 def make_curriculum(settings: TrainSettings, clock: TrainingClock) -> CurriculumCallback:
@@ -400,4 +438,3 @@ def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: Curri
         print(f"stopped by a signal; checkpoint {latest_checkpoint(run_dir)}; continue with --resume {run_dir}")
     else:
         save_model(model, model.get_env(), run_dir, FINAL_MODEL, FINAL_NORMALIZER)
-    model.get_env().close()

@@ -24,7 +24,7 @@ from gymnasium import spaces
 from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvStepReturn, VecEnvWrapper
 
-from sb3_formation.utils.files import atomic_path
+from sb3_formation.utils.files import atomic_path, read_arrays
 
 #: Keys of ``ScaleNormalizeVecEnv.state_dict()``, which are also the arrays of the saved ``.npz`` file (files saved before
 #: ``center`` existed lack it and are scale-only).
@@ -290,8 +290,7 @@ class ScaleNormalizeVecEnv(VecEnvWrapper):
         path = Path(load_path)
         if not path.is_file():
             raise FileNotFoundError(f"no saved normalisation statistics at {str(path)!r}")
-        with np.load(path, allow_pickle=False) as data:
-            state = {key: data[key] for key in data.files}
+        state = read_arrays(path, "a ScaleNormalizeVecEnv file")
         missing = [key for key in STATE_KEYS if key not in state]
         if missing:
             raise ValueError(f"{str(path)!r} is not a ScaleNormalizeVecEnv file: it lacks {missing}")

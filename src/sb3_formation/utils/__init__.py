@@ -1,1 +1,2 @@
-"""Helpers with no knowledge of the task: atomic files and worker processes (standard library and numpy only)."""
+"""Helpers with no knowledge of the task: atomic files and folder locks, YAML as users write it, and worker processes
+(standard library, numpy and PyYAML only)."""

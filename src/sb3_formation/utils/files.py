@@ -10,8 +10,11 @@ import os
 import secrets
 import shutil
 import tempfile
+import zipfile
 from collections.abc import Iterator
 from pathlib import Path
+
+import numpy as np
 
 try:
     import fcntl
@@ -118,6 +121,24 @@ def restore_directory(target: Path) -> bool:
             shutil.rmtree(aside, ignore_errors=True)
             return True
     return False
+
+
+def read_arrays(path: Path, what: str) -> dict[str, np.ndarray]:
+    """Every array of the ``.npz`` file at ``path``.
+
+    :param path: the file
+    :param what: what the file should be, for the message (e.g. ``"a normaliser file"``)
+    :raises FileNotFoundError: no file at ``path``
+    :raises ValueError: the file is empty, cut short or not a ``.npz`` file
+    """
+    if not path.is_file():
+        raise FileNotFoundError(f"no file {path} ({what})")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {key: data[key] for key in data.files}
+    except (zipfile.BadZipFile, EOFError, ValueError, OSError) as error:
+        reason = str(error) or type(error).__name__
+        raise ValueError(f"{path} is not {what} (empty or damaged: {reason})") from None
 
 
 def fsync_directory(folder: Path, files: bool = True) -> None:

@@ -1,0 +1,34 @@
+"""YAML as users write it: PyYAML follows YAML 1.1, which reads ``3e-4`` (a number to anyone writing a learning rate)
+as a string because it has no dot. :func:`read_yaml` reads it, and ``1E5``, ``-2e+3``, as numbers."""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+import yaml
+
+
+class NumberLoader(yaml.SafeLoader):
+    """PyYAML's safe loader that also reads exponent numbers without a dot (``3e-4``) as floats."""
+
+
+NumberLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
+
+
+def read_yaml(text: str, source: str) -> Any:
+    """The data of YAML ``text`` (``None`` for an empty text), numbers read as users write them.
+
+    :param text: the YAML text
+    :param source: where the text comes from (a file's path, an option), for the error message
+    :raises ValueError: the text is not valid YAML (the message names ``source`` and the parser's first line)
+    """
+    try:
+        return yaml.load(text, Loader=NumberLoader)  # a SafeLoader: builds plain data only
+    except yaml.YAMLError as error:
+        reason = " ".join(str(error).split())
+        raise ValueError(f"{source} is not valid YAML: {reason}") from None
