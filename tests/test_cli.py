@@ -149,6 +149,19 @@ def test_compare_prints_a_table_and_reuses_matching_evaluations(
     assert "reusing" not in capsys.readouterr().out
 
 
+def test_compare_checks_every_target_before_it_evaluates_any(
+    runs: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 15, point 10: a missing second target is named before the first is evaluated into its eval/."""
+    assert main(["evaluate", str(runs[0]), "--episodes", "4", "--n-envs", "2", "--no-progress"]) == 0
+    summary = (runs[0] / "eval" / "summary.json").read_bytes()
+    missing = tmp_path / "missing_run"
+    arguments = ["compare", str(runs[0]), str(missing), "--episodes", "2", "--force", "--out", str(tmp_path / "c.png")]
+    assert main(arguments) == 2
+    assert f"no model at {missing}" in capsys.readouterr().err
+    assert (runs[0] / "eval" / "summary.json").read_bytes() == summary and not (tmp_path / "c.png").exists()
+
+
 @pytest.mark.parametrize(
     ("arguments", "message"),
     [

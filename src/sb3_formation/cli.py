@@ -40,7 +40,7 @@ from sb3_formation.experiment.settings import (
 )
 from sb3_formation.experiment.setups import DEFAULT_SETUP, load_setup, setup_names, thesis_setup_for
 from sb3_formation.experiment.targets import default_protocol, evaluation_file, evaluation_folder, load_policy, target_kind
-from sb3_formation.experiment.training import resume, train
+from sb3_formation.experiment.training import TrainingStopped, resume, train
 from sb3_formation.utils.files import atomic_path, atomic_write
 from sb3_formation.viz.plots import (
     FIGURES,
@@ -482,6 +482,10 @@ def compare_command(args: argparse.Namespace) -> int:
     labels = _labels(args.labels, args.targets)
     if len(set(labels)) != len(labels):
         raise ValueError(f"labels must differ, got {labels}")
+    # --preset is the set-up of the controller: targets; runs and models act in the task they were trained in
+    presets = [args.preset if target_kind(target) else None for target in args.targets]
+    for target, preset in zip(args.targets, presets):  # every target loads before any is evaluated (and written to)
+        load_policy(target, preset, args.device)
     protocols = [default_protocol(target, args.preset) for target in args.targets]
     protocol = {
         # the set-ups' protocol (the larger one if they differ, e.g. chapter 4's 500 episodes and chapter 5's 200)
@@ -493,9 +497,8 @@ def compare_command(args: argparse.Namespace) -> int:
             "none of the targets belongs to a run folder whose set-up gives the number of episodes: give --episodes"
         )
     summaries = {}
-    for label, target in zip(labels, args.targets):
-        # --preset is the set-up of the controller: targets; runs and models act in the task they were trained in
-        own = argparse.Namespace(**{**vars(args), "preset": args.preset if target_kind(target) else None})
+    for label, target, preset in zip(labels, args.targets, presets):
+        own = argparse.Namespace(**{**vars(args), "preset": preset})
         wanted = {**protocol, "seed": args.seed, "deterministic": not args.stochastic}
         summary = None if args.force else stored_summary(target, wanted, own.preset)
         if summary is not None:
@@ -564,6 +567,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     }
     try:
         return commands[args.command](args)
+    except TrainingStopped as stop:
+        print(f"sb3-formation: {stop}", file=sys.stderr)
+        return 128 + stop.signal_number
     except (ValueError, TypeError, OSError, RuntimeError) as error:  # bad input, files, a failed worker: one line
         if args.debug:
             raise

@@ -82,10 +82,10 @@ class CheckpointCallback(BaseCallback):
         self.clock = clock
         self.every = every
         self.keep = keep
-        self.stop_requested = False
+        self.stop_signal: int | None = None  # the signal that asked training to stop
 
     def _on_step(self) -> bool:
-        return not self.stop_requested
+        return self.stop_signal is None
 
     def _on_rollout_start(self) -> None:
         # a rollout starts after the previous iteration's update (SB3 calls train() after the rollout-end callbacks)
@@ -187,12 +187,27 @@ class PeriodicEvaluation(BaseCallback):
             atomic_write(self.run_dir / BEST_EVALUATION, json.dumps(score, indent=2))
 
 
+class TrainingStopped(Exception):
+    """Training stopped on SIGINT (Ctrl-C) or SIGTERM, after writing a checkpoint: ``resume`` continues it. The command
+    line exits with the conventional code 128 + the signal's number (130, 143).
+
+    :param signal_number: the signal that stopped it
+    :param run_dir: the run folder
+    :param checkpoint: the checkpoint written
+    """
+
+    def __init__(self, signal_number: int, run_dir: Path, checkpoint: Path | None) -> None:
+        self.signal_number, self.run_dir = signal_number, run_dir
+        name = signal.Signals(signal_number).name
+        super().__init__(f"stopped by {name}; checkpoint {checkpoint}; continue with --resume {run_dir}")
+
+
 @contextmanager
 def stop_on_signals(checkpoint: CheckpointCallback) -> Iterator[None]:
     """While active, SIGINT (Ctrl-C) and SIGTERM ask training to stop after the current step (then it checkpoints)."""
 
     def request_stop(signum: int, frame: Any) -> None:
-        checkpoint.stop_requested = True
+        checkpoint.stop_signal = signum
 
     previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
@@ -428,13 +443,12 @@ def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: Curri
             )
         checkpoint.init_callback(model)  # (again) for when nothing was left to learn
         checkpoint.save()
-        if periodic is not None and not checkpoint.stop_requested:  # the last iteration's policy is a candidate too
+        if periodic is not None and checkpoint.stop_signal is None:  # the last iteration's policy is a candidate too
             periodic.init_callback(model)
             periodic.evaluate()
             model.logger.dump(model.num_timesteps)
     if clock.exhausted:
         print(f"time budget of {settings.minutes:g} min reached after {curriculum.iteration} iterations")
-    if checkpoint.stop_requested:
-        print(f"stopped by a signal; checkpoint {latest_checkpoint(run_dir)}; continue with --resume {run_dir}")
-    else:
-        save_model(model, model.get_env(), run_dir, FINAL_MODEL, FINAL_NORMALIZER)
+    if checkpoint.stop_signal is not None:
+        raise TrainingStopped(checkpoint.stop_signal, run_dir, latest_checkpoint(run_dir))
+    save_model(model, model.get_env(), run_dir, FINAL_MODEL, FINAL_NORMALIZER)
