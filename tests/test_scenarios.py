@@ -10,7 +10,8 @@ import pytest
 
 from sb3_formation.env import scenarios
 from sb3_formation.env.config import FormationConfig
-from sb3_formation.env.scenarios import PlacementError, Scenario, sample_scenario
+from sb3_formation.env.formation_env import FormationEnv
+from sb3_formation.env.scenarios import CURRICULUM_LAYOUTS, PlacementError, Scenario, sample_scenario
 
 SEEDS = range(200)
 TOL = 1e-9  # m; placements are computed, so allow float round-off only
@@ -400,3 +401,30 @@ def test_unknown_stage_is_rejected() -> None:
     for stage in (0, 4):
         with pytest.raises(ValueError, match="stage must be 1, 2 or 3"):
             sample_scenario(config, stage, np.random.default_rng(0))
+
+
+def test_the_curriculum_scales_to_the_world_and_refuses_one_too_small() -> None:
+    """Issue 15, point 8: placements follow world_width / world_height; a world the team cannot start in is refused."""
+    thesis = CURRICULUM_LAYOUTS["ch5"]
+    assert thesis.fitted(15.0, 10.0) is thesis  # the thesis's world: the thesis's numbers, untouched
+    large = thesis.fitted(30.0, 20.0)  # twice as wide and high: every position doubles, radii stay
+    assert large.goal_x == pytest.approx((8.0, 22.0)) and large.start_y == pytest.approx((4.0, 16.0))
+    assert np.allclose(large.stage1_obstacle_x, ((8.0, 15.0), (15.0, 22.0))) and large.stage3_radii == (0.8, 0.8)
+    config = FormationConfig.preset("ch5-bearing", world_width=10.0, world_height=7.0, stage=3)
+    env = FormationEnv(config)
+    space = env.observation_space("agent_0")
+    for stage in (1, 2, 3):
+        env.set_stage(stage)
+        for seed in range(60):
+            observations, _ = env.reset(seed=seed)
+            positions = env.world.positions
+            assert np.all(positions >= config.agent_radius) and np.all(positions <= (10.0 - 0.2, 7.0 - 0.2))
+            assert 0 <= env.goal[0] <= 10.0 and 0 <= env.goal[1] <= 7.0
+            assert all(space.contains(observation) for observation in observations.values())
+    # 8 m x 6 m: the stage-3 start (4/15 of 8 m, 2/10 of 6 m) = (2.13, 1.20) m is 1.20 m from the bottom wall; the
+    # six agents' start circle reaches formation_scale * min(eta_c, d_ref / (2 sin 30 deg)) + agent_radius from it
+    small = FormationConfig.preset("ch5-bearing", world_width=8.0, world_height=6.0)
+    reach = small.formation_scale * min(small.eta_c, small.d_ref) + small.agent_radius
+    message = f"a team starting at (2.13, 1.20) m needs {reach:.2f} m to every wall, has 1.20 m"
+    with pytest.raises(ValueError, match=re.escape(message)):
+        FormationEnv(small)

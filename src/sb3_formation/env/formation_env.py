@@ -15,7 +15,7 @@ from sb3_formation.env.geometry import FormationState, measure_formation, refere
 from sb3_formation.env.observations import build_observations, observation_fields, observation_layout
 from sb3_formation.env.rendering import HumanWindow, render_frame
 from sb3_formation.env.rewards import combine_rewards, nearest_gaps, reward_constants, reward_terms
-from sb3_formation.env.scenarios import Scenario, sample_scenario
+from sb3_formation.env.scenarios import Scenario, check_world_fits, sample_scenario
 from sb3_formation.env.sensors import Lidar
 from sb3_formation.env.state import TeamState, state_fields, state_layout, state_vector
 from sb3_formation.env.world import World
@@ -122,6 +122,7 @@ class FormationEnv(ParallelEnv):
             modes = self.metadata["render_modes"]
             raise ValueError(f"render_mode={render_mode!r} is not supported; use one of {modes} or None")
         self.config = config if config is not None else FormationConfig()
+        check_world_fits(self.config)
         self.render_mode = render_mode
         self.render_lidar = render_lidar
         n_agents = self.config.n_agents

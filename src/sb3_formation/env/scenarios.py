@@ -1,11 +1,14 @@
 """Scenarios: where the agents start, where the goal is, where the obstacles are; and the curriculum that draws them.
 
 The thesis gives placements in pixels with 1 px = 1 cm (sections 4.3 and 5.3); :data:`CURRICULUM_LAYOUTS`
-converts them to metres once, here.
+converts them to metres once, here. They are the thesis's 15 m x 10 m world's (:data:`THESIS_WORLD`); in a world of
+another size the positions scale with its width and height (:meth:`CurriculumLayout.fitted`; radii stay), and a world
+in which the starting formation does not fit at the scaled start positions is refused (:func:`check_world_fits`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -113,6 +116,31 @@ class CurriculumLayout:
     stage1_large_count: int = 3
     stage1_small_radius: float = 70 * CM  # one small obstacle of radius 70 cm at the centroid-goal mid-point
 
+    def fitted(self, width: float, height: float) -> CurriculumLayout:
+        """The layout with every x scaled by ``width`` / 15 m and every y by ``height`` / 10 m (:data:`THESIS_WORLD`);
+        radii unchanged. The thesis's world gets the layout itself.
+
+        :param width: the world's width (m)
+        :param height: the world's height (m)
+        """
+        if (width, height) == THESIS_WORLD:
+            return self
+        sx, sy = width / THESIS_WORLD[0], height / THESIS_WORLD[1]
+        return dataclasses.replace(
+            self,
+            goal_x=tuple(x * sx for x in self.goal_x),
+            start_x=tuple(x * sx for x in self.start_x),
+            stage1_obstacle_x=tuple((low * sx, high * sx) for low, high in self.stage1_obstacle_x),
+            stage3_obstacle_x=(self.stage3_obstacle_x[0] * sx, self.stage3_obstacle_x[1] * sx),
+            goal_y=(self.goal_y[0] * sy, self.goal_y[1] * sy),
+            start_y=(self.start_y[0] * sy, self.start_y[1] * sy),
+            obstacle_y=(self.obstacle_y[0] * sy, self.obstacle_y[1] * sy),
+        )
+
+
+#: The world of the thesis's placements (m): 1500 x 1000 px (sections 4.3, 5.3).
+THESIS_WORLD = (1500 * CM, 1000 * CM)
+
 
 #: Thesis 4.3 (chapter 4) and 5.3 (chapter 5), converted from cm.
 CURRICULUM_LAYOUTS: dict[str, CurriculumLayout] = {
@@ -152,6 +180,29 @@ def start_formation(config: FormationConfig, centroid: np.ndarray, order: np.nda
     return positions
 
 
+def curriculum_layout(config: FormationConfig) -> CurriculumLayout:
+    """The placements of ``config.layout`` fitted to ``config``'s world (:meth:`CurriculumLayout.fitted`)."""
+    return CURRICULUM_LAYOUTS[config.layout].fitted(config.world_width, config.world_height)
+
+
+def check_world_fits(config: FormationConfig) -> None:
+    """Refuse a world in which the starting formation would cross a wall at one of the (scaled) start positions.
+
+    :raises ValueError: naming the world, the start position and the room the formation needs
+    """
+    layout = curriculum_layout(config)
+    reach = config.start_circumradius + config.agent_radius  # from the centroid to an agent's far edge
+    for x in (*layout.start_x, *layout.goal_x):  # stages 1-2 start at the goal's x
+        for y in layout.start_y:
+            room = min(x, config.world_width - x, y, config.world_height - y)
+            if room < reach:
+                raise ValueError(
+                    f"the {config.world_width:g} m x {config.world_height:g} m world is too small for the curriculum of "
+                    f"layout {config.layout!r}: a team starting at ({x:.2f}, {y:.2f}) m needs {reach:.2f} m to every "
+                    f"wall, has {room:.2f} m; enlarge the world or shrink the formation (d_ref, eta_c, formation_scale)"
+                )
+
+
 def sample_scenario(config: FormationConfig, stage: int, rng: np.random.Generator) -> Scenario:
     """Draw a curriculum scenario of ``stage`` under ``config.layout`` from ``rng``.
 
@@ -168,7 +219,7 @@ def sample_scenario(config: FormationConfig, stage: int, rng: np.random.Generato
     """
     if stage not in (1, 2, 3):
         raise ValueError(f"stage must be 1, 2 or 3, got {stage!r}")
-    layout = CURRICULUM_LAYOUTS[config.layout]
+    layout = curriculum_layout(config)
     for _ in range(config.max_placement_tries):
         goal = np.array([rng.choice(layout.goal_x), rng.uniform(*layout.goal_y)])
         start_y = max(layout.start_y, key=lambda y: abs(y - goal[1]))
