@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 from typing import Any
 
 import numpy as np
+import pymunk
 import pytest
 
-from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.config import COLLISION_BIAS, FormationConfig
 
 PRESET_NAMES = ("ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing")
 
@@ -348,12 +350,23 @@ def test_stage_arguments_are_validated_and_numpy_integers_accepted() -> None:
     assert numpy_sized.n_agents == 4 and type(numpy_sized.n_agents) is int and type(numpy_sized.stage) is int
 
 
-def test_travel_per_substep_must_stay_below_the_agent_radius() -> None:
-    # 1.0 m/s * 0.3 s / 2 sub-steps = 0.15 m < 0.2 m: fine; 2.0 m/s gives 0.3 m >= 0.2 m: rejected
-    FormationConfig.preset("ch5-bearing", v_max=1.0)
-    with pytest.raises(ValueError, match=r"0\.300 m per Pymunk sub-step.*physics_substeps"):
-        FormationConfig.preset("ch5-bearing", v_max=2.0)
-    FormationConfig.preset("ch5-bearing", v_max=2.0, physics_substeps=4)  # 0.15 m per sub-step
+def test_substeps_keep_overlaps_within_the_tolerance_or_the_config_is_refused() -> None:
+    """Issue 15, point 9. A sub-step may move an agent OVERLAP_TOLERANCE * R * min(1 - bias^dt, 0.8) / 2 (m)."""
+    thesis = FormationConfig.preset("ch5-bearing")  # 0.1 * 0.2 m * 0.8 / 2 = 8 mm; 0.05 m/s * 0.3 s = 15 mm: 2 sub-steps
+    assert 1 - COLLISION_BIAS**0.3 > 0.8 and thesis.max_substep_travel == pytest.approx(0.008)
+    assert thesis.physics_substeps == 2
+    fast = FormationConfig.preset("ch5-bearing", v_max=1.0)  # 0.3 m / 8 mm = 37.5: 38 sub-steps
+    assert fast.physics_substeps == 38 and thesis.replace(v_max=1.0) == fast  # chosen again for the copy
+    short = FormationConfig.preset("ch5-bearing", dt=0.1, v_max=0.3)  # 1 - bias^0.1 = 0.469...: 0.03 m / 0.00469 m
+    assert short.physics_substeps == math.ceil(0.03 / (0.1 * 0.2 * (1 - COLLISION_BIAS**0.1) / 2)) == 7
+    slow = FormationConfig.preset("ch5-bearing", v_max=0.01)  # 3 mm per step: the thesis's 2 sub-steps still
+    assert slow.physics_substeps == 2
+    given = FormationConfig.preset("ch5-bearing", v_max=1.0, physics_substeps=40)
+    assert given.physics_substeps == 40 and given.replace(n_agents=4).physics_substeps == 40  # given: kept
+    message = r"physics_substeps=20 lets agents move 0\.0150 m per Pymunk sub-step, more than the 0\.0080 m .* >= 38"
+    with pytest.raises(ValueError, match=message):
+        FormationConfig.preset("ch5-bearing", v_max=1.0, physics_substeps=20)
+    assert pymunk.Space().collision_bias == COLLISION_BIAS  # the world's bias is Pymunk's default
 
 
 def test_largest_team_that_fits_the_start_formation() -> None:

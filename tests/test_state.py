@@ -194,7 +194,7 @@ def test_rendering_is_a_pure_function_of_the_state() -> None:
 def test_contacts_of_the_last_step_are_in_the_state() -> None:
     """Agent 0 pushed into the left wall touches it; agent 1, pushed after it, touches agent 0 in the second step
     (0.15 m per step at v_max 0.5 m/s, dt 0.3 s)."""
-    env = square_env(v_max=0.5, physics_substeps=4)
+    env = square_env(v_max=0.5)
     touching = Scenario([[0.25, 5.0], [0.75, 5.0], [5.0, 7.0], [5.0, 3.0]], goal=[12.0, 5.0])
     env.reset(seed=0, options={"scenario": touching})
     push = {"agent_0": [-1.0, 0.0], "agent_1": [-1.0, 0.0], "agent_2": [0.0, 0.0], "agent_3": [0.0, 0.0]}

@@ -425,3 +425,11 @@ def test_resume_recovers_a_checkpoint_caught_in_a_folder_swap_and_leaves_it_alon
     again = (checkpoints / "iteration_000002" / "model.zip").stat()
     assert (again.st_ino, again.st_mtime_ns) == (loaded.st_ino, loaded.st_mtime_ns)
     assert (run_dir / FINAL_MODEL).is_file() and latest_checkpoint(run_dir).name == "iteration_000003"
+    # determinism: resuming the same checkpoint again gives the same model, bit for bit
+    first = load_from_zip_file(run_dir / FINAL_MODEL)[1]["policy"]
+    shutil.rmtree(checkpoints / "iteration_000003")
+    for name in (FINAL_MODEL, "final_normalizer.npz"):
+        (run_dir / name).unlink()
+    assert main(["train", "--resume", str(run_dir)]) == 0
+    second = load_from_zip_file(run_dir / FINAL_MODEL)[1]["policy"]
+    assert sorted(first) == sorted(second) and all(first[name].equal(second[name]) for name in first)

@@ -16,6 +16,18 @@ import numpy as np
 
 from sb3_formation.env.geometry import interior_angle_deg
 
+#: Deepest overlap allowed between two agents, or an agent and an obstacle or a wall, as a fraction of the agent
+#: radius (2 cm for the thesis's 20 cm agents). :attr:`FormationConfig.substeps` is chosen to keep it.
+OVERLAP_TOLERANCE = 0.1
+#: Pymunk's contact bias: the fraction of an overlap left after one second of solving. Pymunk's default, (1 - 0.1)^60
+#: as Chipmunk computes it (``pymunk.Space().collision_bias``); the world sets it explicitly.
+COLLISION_BIAS = 0.0017970074436457143
+#: The largest share of an overlap counted as removed by Pymunk in one step, however long: measured, crowds pressing
+#: together keep more than the bias alone predicts for steps of 0.5 s.
+MAX_OVERLAP_REMOVAL = 0.8
+#: Pymunk sub-steps of the thesis's physics (the fewest the package uses).
+THESIS_SUBSTEPS = 2
+
 #: Names of the reward terms, in the order of eq. (42); chapter 4's ``ref`` term (eq. 22) is ``dist``.
 REWARD_TERMS: tuple[str, ...] = ("time", "angle", "bearing", "dist", "centroid", "goal", "move", "velocity", "coll")
 
@@ -36,7 +48,9 @@ class FormationConfig:
     :param max_force: force F_max (N) produced by an action of 1; ``None`` means m * v_max / dt,
         so a full action reaches v_max from rest in one step
     :param dt: environment step Delta t (s)
-    :param physics_substeps: Pymunk sub-steps inside one environment step
+    :param physics_substeps: Pymunk sub-steps inside one environment step; ``None`` (default) becomes the fewest, and
+        at least the thesis's 2, that keep overlaps within :data:`OVERLAP_TOLERANCE` (:attr:`substeps_needed`). A
+        number given is refused if it lets bodies overlap more
     :param lidar_rays: number of lidar rays b x d, spread evenly over 360 deg starting at +x
     :param lidar_range: lidar range l_s (m), measured from the agent's surface
     :param d_ref: reference neighbour distance d^ref (m)
@@ -83,7 +97,7 @@ class FormationConfig:
     v_max: float = 0.05
     max_force: float | None = None
     dt: float = 0.3
-    physics_substeps: int = 2
+    physics_substeps: int | None = None
     lidar_rays: int = 90
     lidar_range: float = 1.5
     d_ref: float = 1.5
@@ -138,11 +152,14 @@ class FormationConfig:
         force = self.max_force
         _check("max_force", force, "None or a number > 0", lambda v: v is None or (_is_real(v) and math.isfinite(v) and v > 0))
         _check("n_agents", self.n_agents, "an integer >= 3", lambda v: _is_int(v) and v >= 3)
-        for name in ("physics_substeps", "lidar_rays", "max_steps", "max_placement_tries"):
+        for name in ("lidar_rays", "max_steps", "max_placement_tries"):
             _check(name, getattr(self, name), "an integer >= 1", lambda v: _is_int(v) and v >= 1)
+        substeps = self.physics_substeps
+        _check("physics_substeps", substeps, "None or an integer >= 1", lambda v: v is None or (_is_int(v) and v >= 1))
         _check("stage", self.stage, "1, 2 or 3", lambda v: _is_int(v) and v in (1, 2, 3))
-        for name in ("n_agents", "physics_substeps", "lidar_rays", "max_steps", "max_placement_tries", "stage"):
+        for name in ("n_agents", "lidar_rays", "max_steps", "max_placement_tries", "stage"):
             object.__setattr__(self, name, int(getattr(self, name)))  # numpy integers become plain ints
+        object.__setattr__(self, "physics_substeps", self.substeps_needed if substeps is None else int(substeps))
         _check("formation_scale", self.formation_scale, "in (0, 1)", lambda v: _is_real(v) and 0 < v < 1)
         _check("layout", self.layout, f"one of {LAYOUTS}", lambda v: v in LAYOUTS)
         for name in ("team_reward", "observe_reference_bearings"):
@@ -157,12 +174,12 @@ class FormationConfig:
             if unknown:
                 raise ValueError(f"stage_disabled_terms names unknown reward terms {unknown}; valid: {list(REWARD_TERMS)}")
         object.__setattr__(self, "stage_disabled_terms", disabled)
-        travel = self.v_max * self.dt / self.physics_substeps
-        if travel >= self.agent_radius:
+        if self.physics_substeps < self.substeps_needed:
             raise ValueError(
-                f"an agent would move {travel:.3f} m per Pymunk sub-step (v_max * dt / physics_substeps), not less than "
-                f"agent_radius={self.agent_radius} m, and could pass through walls and obstacles: raise physics_substeps "
-                "or lower v_max or dt"
+                f"physics_substeps={self.physics_substeps} lets agents move {self.v_max * self.dt / self.physics_substeps:.4f}"
+                f" m per Pymunk sub-step, more than the {self.max_substep_travel:.4f} m that keeps overlaps within "
+                f"{OVERLAP_TOLERANCE:.0%} of agent_radius: give physics_substeps >= {self.substeps_needed}, or leave it "
+                "unset (chosen from v_max, dt and agent_radius)"
             )
         side = self.start_side_length
         if side <= 2 * self.agent_radius:
@@ -181,6 +198,22 @@ class FormationConfig:
     def force_max(self) -> float:
         """F_max (N): the force of a unit action; m * v_max / dt unless ``max_force`` is set."""
         return self.max_force if self.max_force is not None else self.agent_mass * self.v_max / self.dt
+
+    @property
+    def max_substep_travel(self) -> float:
+        """The longest move (m) of an agent in one Pymunk sub-step that keeps overlaps within
+        :data:`OVERLAP_TOLERANCE`: two agents closing head-on (2 v_max) sink by up to twice one agent's move per
+        sub-step before the solver stops them, and over a step Pymunk removes the share 1 - bias^dt of an overlap
+        (:data:`COLLISION_BIAS`), taken as at most :data:`MAX_OVERLAP_REMOVAL`; the move keeps this balance within the
+        tolerance (checked for 3-16 agents, radii 0.1-0.3 m, v_max 0.05-1 m/s, dt 0.05-0.5 s by the fuzz test)."""
+        removal = min(1.0 - COLLISION_BIAS**self.dt, MAX_OVERLAP_REMOVAL)
+        return OVERLAP_TOLERANCE * self.agent_radius * removal / 2.0
+
+    @property
+    def substeps_needed(self) -> int:
+        """The fewest Pymunk sub-steps per environment step whose moves stay within :attr:`max_substep_travel`, and
+        at least the thesis's 2."""
+        return max(THESIS_SUBSTEPS, math.ceil(self.v_max * self.dt / self.max_substep_travel))
 
     @property
     def beta_ref_deg(self) -> float:
@@ -232,10 +265,13 @@ class FormationConfig:
         return cls(**{**PRESETS[name], **overrides})
 
     def replace(self, **changes: Any) -> FormationConfig:
-        """A copy with ``changes`` applied (validated like a new config)."""
+        """A copy with ``changes`` applied (validated like a new config). Sub-steps that were chosen for this config
+        (``physics_substeps`` equal to :attr:`substeps_needed`) are chosen again for the copy unless given."""
         unknown = sorted(set(changes) - set(self.field_names()))
         if unknown:
             raise ValueError(f"unknown FormationConfig field(s) {unknown}; valid fields: {list(self.field_names())}")
+        if "physics_substeps" not in changes and self.physics_substeps == self.substeps_needed:
+            changes["physics_substeps"] = None
         return dataclasses.replace(self, **changes)
 
 

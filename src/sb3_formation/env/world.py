@@ -3,7 +3,7 @@
 Agents are dynamic circles that do not rotate; obstacles are static circles; the world's border is four thick static
 walls. Each environment step applies the agents' forces as the second-order integrator of eq. 19 (semi-implicit
 Euler, as Pymunk itself integrates): v <- v + F / m * dt, then the speed is clamped to v_max, then Pymunk moves the
-bodies over ``physics_substeps`` sub-steps and resolves contacts (inelastic, frictionless). Contacts are counted
+bodies over ``config.physics_substeps`` sub-steps and resolves contacts (inelastic, frictionless). Contacts are counted
 once per pair per environment step.
 """
 
@@ -16,7 +16,7 @@ import numpy as np
 import pymunk
 import pymunk.batch
 
-from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.config import COLLISION_BIAS, FormationConfig
 from sb3_formation.env.scenarios import Scenario
 
 AGENT_COLLISION_TYPE = 1
@@ -54,6 +54,7 @@ class World:
         self.config = config
         self.space = pymunk.Space()
         self.space.collision_slop = COLLISION_SLOP
+        self.space.collision_bias = COLLISION_BIAS  # the substeps of the config are chosen for it
         self.space.iterations = 20  # keeps a column of 16 agents pressed on a wall within 1 cm
         self.agent_bodies: list[pymunk.Body] = []
         self._agent_of_shape: dict[pymunk.Shape, int] = {}
