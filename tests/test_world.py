@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import gc
 import math
 
 import numpy as np
+import pymunk
 import pytest
 
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.formation_env import FormationEnv
 from sb3_formation.env.scenarios import Scenario
 from sb3_formation.env.world import World, clamp_speed
 
@@ -232,3 +235,27 @@ def test_clamp_speed_at_limit_unchanged() -> None:
     assert np.array_equal(clamp_speed(np.array([[3.0, 4.0]]), 5.0), [[3.0, 4.0]])
     assert clamp_speed(np.array([[-6.0, 8.0]]), 5.0) == pytest.approx(np.array([[-3.0, 4.0]]), abs=1e-15)
     assert clamp_speed(np.array([[0.05, 0.05]]), 0.05) == pytest.approx(np.array([[0.05, 0.05]]) / math.sqrt(2), abs=1e-15)
+
+
+def test_resets_reuse_one_space_so_memory_stays_flat() -> None:
+    """Issue 15, point 10: a Pymunk space is freed only by the cyclic garbage collector, so a new space per episode
+    let thousands wait (memory grew by ~90 MiB). Every episode reuses the env's one space, holding only its own
+    walls, obstacles and agents."""
+    env = FormationEnv(FormationConfig.preset("ch5-bearing", stage=3, max_steps=2))
+    zero = {agent: np.zeros(2) for agent in env.possible_agents}
+    gc.collect()
+    gc.disable()  # nothing is collected: what the resets leave alive stays countable
+    try:
+        before = sum(isinstance(thing, pymunk.Space) for thing in gc.get_objects())
+        for seed in range(200):
+            env.reset(seed=seed)
+            while env.agents:
+                env.step(zero)
+        after = sum(isinstance(thing, pymunk.Space) for thing in gc.get_objects())
+    finally:
+        gc.enable()
+    assert after - before <= 1  # the env's own space (none before the first reset)
+    space, obstacles = env.world.space, len(env.obstacles)
+    assert len(space.shapes) == 4 + obstacles + 6 and len(space.bodies) == 1 + 6  # walls, obstacles, agents
+    env.reset(seed=7)
+    assert env.world.space is space

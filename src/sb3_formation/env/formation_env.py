@@ -205,7 +205,10 @@ class FormationEnv(ParallelEnv):
             scenario.validate(self.config)
         n_agents = self.config.n_agents
         self.scenario = scenario
-        self.world = World(self.config, scenario)
+        if self.world is None:
+            self.world = World(self.config, scenario)
+        else:
+            self.world.place(scenario)
         self.goal = scenario.goal
         self.obstacles = scenario.obstacles
         self.lidar.set_obstacles(scenario.obstacles)

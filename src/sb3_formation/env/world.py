@@ -44,7 +44,7 @@ def clamp_speed(velocities: np.ndarray, v_max: float) -> np.ndarray:  # pragma: 
 
 
 class World:
-    """One team's Pymunk space, built from a :class:`Scenario`.
+    """One team's Pymunk space, built from a :class:`Scenario`; :meth:`place` puts the next episode's in the same space.
 
     :param config: task configuration (world size, agent radius and mass, v_max, dt, sub-steps)
     :param scenario: placement of agents, goal and obstacles (validated by the caller)
@@ -56,12 +56,35 @@ class World:
         self.space.collision_slop = COLLISION_SLOP
         self.space.collision_bias = COLLISION_BIAS  # the substeps of the config are chosen for it
         self.space.iterations = 20  # keeps a column of 16 agents pressed on a wall within 1 cm
+        self._agent_pairs: set[tuple[int, int]] = set()
+        self._obstacle_pairs: set[tuple[int, int]] = set()
+        self.space.on_collision(AGENT_COLLISION_TYPE, AGENT_COLLISION_TYPE, pre_solve=self._record_agent_contact)
+        self.space.on_collision(AGENT_COLLISION_TYPE, OBSTACLE_COLLISION_TYPE, pre_solve=self._record_obstacle_contact)
+        # Pymunk's batch API reads and writes every body of the space at once, in the space's own order
+        self._read_buffer = pymunk.batch.Buffer()
+        self._write_buffer = pymunk.batch.Buffer()
+        self._substep = config.dt / config.physics_substeps
+        self.place(scenario)
+
+    def place(self, scenario: Scenario) -> None:
+        """Empty the space and put the walls, the obstacles and the agents of ``scenario`` in it, as a new world would.
+
+        Reusing one space for every episode keeps memory flat: a Pymunk space is freed only by Python's cyclic
+        garbage collector, which lets thousands of old ones wait.
+
+        :param scenario: placement of agents, goal and obstacles (validated by the caller)
+        """
+        config = self.config
+        self.space.remove(*self.space.shapes, *self.space.bodies)
+        # the walls and obstacles hang on a static body of this episode (the space's own would keep every old shape)
+        self._static_body = pymunk.Body(body_type=pymunk.Body.STATIC)
+        self.space.add(self._static_body)
         self.agent_bodies: list[pymunk.Body] = []
         self._agent_of_shape: dict[pymunk.Shape, int] = {}
         self._obstacle_of_shape: dict[pymunk.Shape, int] = {}
         self._add_walls()
         for x, y, radius in scenario.obstacles:
-            shape = pymunk.Circle(self.space.static_body, float(radius), (float(x), float(y)))
+            shape = pymunk.Circle(self._static_body, float(radius), (float(x), float(y)))
             self._add_obstacle_shape(shape)
         for index, (x, y) in enumerate(scenario.agent_positions):
             body = pymunk.Body(config.agent_mass, float("inf"))
@@ -71,21 +94,15 @@ class World:
             self.space.add(body, shape)
             self.agent_bodies.append(body)
             self._agent_of_shape[shape] = index
-        self._agent_pairs: set[tuple[int, int]] = set()
-        self._obstacle_pairs: set[tuple[int, int]] = set()
-        self.space.on_collision(AGENT_COLLISION_TYPE, AGENT_COLLISION_TYPE, pre_solve=self._record_agent_contact)
-        self.space.on_collision(AGENT_COLLISION_TYPE, OBSTACLE_COLLISION_TYPE, pre_solve=self._record_obstacle_contact)
-        # Pymunk's batch API reads and writes every body of the space at once, in the space's own order
-        self._read_buffer = pymunk.batch.Buffer()
-        self._write_buffer = pymunk.batch.Buffer()
+        self._read_buffer.clear()
         pymunk.batch.get_space_bodies(self.space, pymunk.batch.BodyFields.BODY_ID, self._read_buffer)
         body_ids = list(np.frombuffer(self._read_buffer.int_buf(), dtype=np.uintp))
         rows = [body_ids.index(body.id) for body in self.agent_bodies]
         contiguous = rows == list(range(rows[0], rows[0] + len(rows)))
         self._agent_rows = slice(rows[0], rows[0] + len(rows)) if contiguous else np.array(rows)
         self._body_velocities = np.zeros((len(body_ids), 2))  # static bodies keep velocity 0
+        self._write_buffer.clear()
         self._write_buffer.set_float_buf(self._body_velocities.ravel())  # Pymunk reads this array's memory
-        self._substep = config.dt / config.physics_substeps
         self.positions = np.array(scenario.agent_positions, dtype=np.float64)
         self.velocities = np.zeros_like(self.positions)
 
@@ -93,7 +110,7 @@ class World:
         width, height, half = self.config.world_width, self.config.world_height, WALL_THICKNESS / 2
         corners = [(-half, -half), (width + half, -half), (width + half, height + half), (-half, height + half)]
         for start, end in zip(corners, corners[1:] + corners[:1]):
-            self._add_obstacle_shape(pymunk.Segment(self.space.static_body, start, end, half))
+            self._add_obstacle_shape(pymunk.Segment(self._static_body, start, end, half))
 
     def _add_obstacle_shape(self, shape: pymunk.Shape) -> None:
         shape.collision_type = OBSTACLE_COLLISION_TYPE
