@@ -38,7 +38,8 @@ def main() -> None:
         if episode % args.every == 0:
             rss = resident_mib()
             reference = rss if reference is None else reference
-            print(f"{episode:>7,} resets: {rss:7.1f} MiB resident, {rss - reference:+6.1f} MiB since {args.every:,}", flush=True)
+            growth = rss - reference
+            print(f"{episode:>7,} resets: {rss:7.1f} MiB resident, {growth:+6.1f} MiB since {args.every:,}", flush=True)
 
 
 if __name__ == "__main__":
