@@ -278,14 +278,11 @@ def train(settings: TrainSettings, command: str | None = None, run_dir: str | os
     """
     if run_dir is not None:
         _check_unused(Path(run_dir))
-    model, curriculum, clock = _new_model(settings)
-    try:
+    with _new_model(settings) as (model, curriculum, clock):
         run_dir = new_run_dir(settings) if run_dir is None else Path(run_dir)
         with folder_lock(run_dir, "run folder"):
             _check_unused(run_dir)  # again, under the lock: another process may have started in it meanwhile
             _start(model, settings, command, run_dir, curriculum, clock)
-    finally:
-        model.get_env().close()
     return run_dir
 
 
@@ -298,23 +295,23 @@ def _check_unused(run_dir: Path) -> None:
         )
 
 
-def _new_model(settings: TrainSettings) -> tuple[PPO, CurriculumCallback, TrainingClock]:
-    """A new run's model on its training env, with its curriculum and clock."""
+@contextmanager
+def _new_model(settings: TrainSettings) -> Iterator[tuple[PPO, CurriculumCallback, TrainingClock]]:
+    """A new run's model on its training env, with its curriculum and clock; the env is closed on leaving."""
     clock = TrainingClock(settings.budget_seconds())
     curriculum = make_curriculum(settings, clock)
     env = make_training_env(settings, curriculum.stage)
-    kwargs = settings.ppo_kwargs()
     try:
+        kwargs = settings.ppo_kwargs()
         model = algorithm_for(kwargs["policy"])(
             env=env, seed=settings.seed, device=settings.device, verbose=0, **with_schedules(kwargs)
         )
-    except BaseException:
+        model.formation_config = dataclasses.asdict(settings.config())
+        model.residual = settings.setup().residual  # the model file says how its actions are meant (load_trained)
+        model.team_sizes = sorted(set(settings.resolved_team_sizes()))  # and which team sizes it acts in
+        yield model, curriculum, clock
+    finally:
         env.close()
-        raise
-    model.formation_config = dataclasses.asdict(settings.config())
-    model.residual = settings.setup().residual  # the model file says how its actions are meant (load_trained)
-    model.team_sizes = sorted(set(settings.resolved_team_sizes()))  # and which team sizes it acts in
-    return model, curriculum, clock
 
 
 def _start(
@@ -369,11 +366,8 @@ def _resume(settings: TrainSettings, run_dir: Path) -> None:
         # killed before its first checkpoint (e.g. during imitation pretraining): the same seed repeats it exactly
         print(f"{run_dir} has no checkpoint yet: training it again from the start")
         command = run_dir / "command.txt"
-        model, curriculum, clock = _new_model(settings)
-        try:
+        with _new_model(settings) as (model, curriculum, clock):
             _start(model, settings, command.read_text().strip() if command.exists() else None, run_dir, curriculum, clock)
-        finally:
-            model.get_env().close()
         return
     for leftover in (run_dir / "checkpoints").glob(".iteration_*"):  # folders of a write that was killed
         shutil.rmtree(leftover, ignore_errors=True)
