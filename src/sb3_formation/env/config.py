@@ -17,7 +17,7 @@ import numpy as np
 from sb3_formation.env.geometry import interior_angle_deg
 
 #: Deepest overlap allowed between two agents, or an agent and an obstacle or a wall, as a fraction of the agent
-#: radius (2 cm for the thesis's 20 cm agents). :attr:`FormationConfig.substeps` is chosen to keep it.
+#: radius (2 cm for the thesis's 20 cm agents). :attr:`FormationConfig.substeps_needed` keeps it.
 OVERLAP_TOLERANCE = 0.1
 #: Pymunk's contact bias: the fraction of an overlap left after one second of solving. Pymunk's default, (1 - 0.1)^60
 #: as Chipmunk computes it (``pymunk.Space().collision_bias``); the world sets it explicitly.

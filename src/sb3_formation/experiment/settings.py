@@ -244,8 +244,7 @@ class TrainSettings:
         threshold = self.success_threshold
         if threshold is not None and not (is_number(threshold) and 0 <= threshold <= 1):
             raise ValueError(f"success_threshold must be a number in [0, 1] or null (the set-up's), got {threshold!r}")
-        if self.minutes is not None and (isinstance(self.minutes, bool) or not isinstance(self.minutes, (int, float))
-                                         or not (math.isfinite(self.minutes) and self.minutes > 0)):  # fmt: skip
+        if self.minutes is not None and not (is_number(self.minutes) and self.minutes > 0):
             raise ValueError(f"minutes must be a finite number > 0, got {self.minutes!r}")
         if self.iterations is not None:
             iterations = self.iterations if isinstance(self.iterations, (list, tuple)) else ()
