@@ -380,7 +380,7 @@ class EpisodeRecorder(BaseCallback):
                 sum(info["collisions_obstacle"] for info in agents),
                 sum(info["collisions_agent"] for info in agents),
             ]
-            run["terms"].append([np.mean([info["reward_terms"][term] for info in agents]) for term in REWARD_TERMS])
+            run["terms"].append([np.mean([info[f"reward_{term}"] for info in agents]) for term in REWARD_TERMS])
             team_dones = dones[team * self.n_agents : (team + 1) * self.n_agents]
             assert team_dones.all() or not team_dones.any()  # a team ends as a whole
             if team_dones[0]:

@@ -30,6 +30,9 @@ THESIS_SUBSTEPS = 2
 
 #: Names of the reward terms, in the order of eq. (42); chapter 4's ``ref`` term (eq. 22) is ``dist``.
 REWARD_TERMS: tuple[str, ...] = ("time", "angle", "bearing", "dist", "centroid", "goal", "move", "velocity", "coll")
+#: Keys of the reward terms in an agent's step infos, ``reward_<term>``: flat, so that every client library (TorchRL's
+#: ``PettingZooWrapper`` stacks each info value as a tensor) takes them.
+REWARD_INFO_KEYS: tuple[str, ...] = tuple(f"reward_{term}" for term in REWARD_TERMS)
 
 #: Names of the curriculum placement layouts (see :mod:`sb3_formation.scenarios`).
 LAYOUTS: tuple[str, ...] = ("ch4", "ch5")

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from sb3_formation.env.config import REWARD_TERMS
+from sb3_formation.env.config import REWARD_INFO_KEYS, REWARD_TERMS
 
 
 @dataclass(frozen=True)
@@ -77,8 +77,8 @@ class EpisodeStatistics:
             errors[2] += info["neighbour_distance_error"] / n_agents
             collisions[0] += info["collisions_obstacle"]
             collisions[1] += info["collisions_agent"]
-            for index, value in enumerate(info["reward_terms"].values()):
-                terms[index] += value / n_agents
+            for index, key in enumerate(REWARD_INFO_KEYS):
+                terms[index] += info[key] / n_agents
 
     def summary(self, success: bool, stage: int) -> dict[str, Any]:
         """The episode's means over steps (and over agents), collision totals, success and curriculum stage."""

@@ -10,7 +10,7 @@ import numpy as np
 from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
-from sb3_formation.env.config import REWARD_TERMS, FormationConfig
+from sb3_formation.env.config import REWARD_INFO_KEYS, REWARD_TERMS, FormationConfig
 from sb3_formation.env.geometry import FormationState, measure_formation, reference_bearings, ring_neighbours
 from sb3_formation.env.observations import build_observations, observation_fields, observation_layout
 from sb3_formation.env.rendering import HumanWindow, render_frame
@@ -69,9 +69,10 @@ class FormationEnv(ParallelEnv):
     ## Rewards
 
     Per agent, the weighted sum of the terms below (coefficients: ``FormationConfig``, presets from Tables 4.1 and
-    5.1), terms of the stage's ``stage_disabled_terms`` left out, clipped to [-10, 10]. ``infos[agent]["reward_terms"]``
-    holds every term before its coefficient. With ``team_reward`` each per-agent term is replaced by its team average
-    and ``coll`` by the team collision term (eqs 27-32).
+    5.1), terms of the stage's ``stage_disabled_terms`` left out, clipped to [-10, 10]. ``infos[agent]["reward_<term>"]``
+    holds every term before its coefficient (flat keys, :data:`~sb3_formation.env.config.REWARD_INFO_KEYS`). With
+    ``team_reward`` each per-agent term is replaced by its team average and ``coll`` by the team collision term
+    (eqs 27-32).
 
     | term     | equation  | value                                                                          |
     |----------|-----------|--------------------------------------------------------------------------------|
@@ -96,8 +97,9 @@ class FormationEnv(ParallelEnv):
     two neighbours of norm(g_ref - g)), ``neighbour_distance_error`` (m, mean positive part), ``centroid_distance`` (m,
     agent to centroid), ``goal_distance`` (m, centroid to goal), ``collisions_obstacle`` and ``collisions_agent``
     (obstacles or walls, and other agents, touched during this step; a pair is counted once per step), ``success``
-    and ``reward_terms``. Contacts are Pymunk's, over the step's sub-steps; the collision reward reads the distances
-    at the end of the step (eqs 24/39), so a touch that has already ended by then is counted but not penalised.
+    and ``reward_<term>`` for every term below. Contacts are Pymunk's, over the step's sub-steps; the collision reward
+    reads the distances at the end of the step (eqs 24/39), so a touch that has already ended by then is counted but
+    not penalised.
 
     ## Reset options
 
@@ -373,7 +375,7 @@ class FormationEnv(ParallelEnv):
                 "collisions_obstacle": obstacle_contact,
                 "collisions_agent": agent_contact,
                 "success": success,
-                "reward_terms": dict(zip(REWARD_TERMS, agent_terms)),
+                **dict(zip(REWARD_INFO_KEYS, agent_terms)),
             }
             for angle, bearing, distance, centroid, obstacle_contact, agent_contact, agent_terms in rows
         ]
@@ -421,15 +423,22 @@ class FormationEnv(ParallelEnv):
 
     # Rendering ----------------------------------------------------------------------------------------------------
 
-    def render(self) -> np.ndarray | None:
-        """``rgb_array``: an ``(H, W, 3)`` uint8 image of the world; ``human``: draw it in a window."""
-        if self.render_mode is None:
+    def render(self, mode: str | None = None) -> np.ndarray | None:
+        """``rgb_array``: an ``(H, W, 3)`` uint8 image of the world; ``human``: draw it in a window.
+
+        :param mode: the render mode, default ``render_mode``; older wrappers (RLlib's ``ParallelPettingZooEnv``) pass
+            it as an argument, as the PettingZoo API once did
+        """
+        mode = self.render_mode if mode is None else mode
+        if mode is None:
             gymnasium.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' or 'human'")
             return None
+        if mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render mode {mode!r} is not supported; use one of {self.metadata['render_modes']}")
         if self.world is None:
             raise RuntimeError("render() called before reset()")
         frame = render_frame(self.team_state(), self.config, draw_lidar=self.render_lidar)
-        if self.render_mode == "rgb_array":
+        if mode == "rgb_array":
             return frame
         if self._renderer is None:
             self._renderer = HumanWindow(frame.shape[1], frame.shape[0], self.metadata["render_fps"])
