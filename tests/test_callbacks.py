@@ -16,13 +16,16 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.logger import configure
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 from tensorboard.plugins.custom_scalar import layout_pb2
+from tensorboard_events import read_hparams
 
 from sb3_formation import REWARD_TERMS, FormationPolicy, make_formation_vec_env
 from sb3_formation.sb3.callbacks import (
+    HPARAM_METRICS,
     CurriculumCallback,
     FormationMetricsCallback,
     ProgressBarCallback,
     custom_scalars_layout,
+    hparam_values,
 )
 
 N_AGENTS = 6  # ch5-bearing
@@ -405,7 +408,14 @@ class EpisodeRecorder(BaseCallback):
 
 
 METRIC_TAGS = EPISODE_SCALARS
-HYPERPARAMETERS = {"preset": "ch5-bearing", "n_steps": N_STEPS, "iterations": [3, 0, 0], "success_threshold": None}
+HYPERPARAMETERS = {
+    "preset": "ch5-bearing",
+    "n_steps": N_STEPS,
+    "iterations": [3, 0, 0],
+    "success_threshold": None,
+    "ppo": {"learning_rate": 3e-4},
+    "env": {"team_reward": True},
+}
 WINDOW = 3
 
 
@@ -419,7 +429,10 @@ def metrics_run(tmp_path_factory: pytest.TempPathFactory) -> SimpleNamespace:
     learn_iterations(model, 3, [recorder, FormationMetricsCallback(HYPERPARAMETERS, window=WINDOW)])
     model.logger.close()
     return SimpleNamespace(
-        recorder=recorder, events=read_events(folder), steps=[N_STEPS * 2 * N_AGENTS * k for k in (1, 2, 3)]
+        recorder=recorder,
+        events=read_events(folder),
+        hparams=read_hparams(folder),
+        steps=[N_STEPS * 2 * N_AGENTS * k for k in (1, 2, 3)],
     )
 
 
@@ -452,13 +465,21 @@ def test_metrics_are_rolling_means_of_the_observed_episodes(metrics_run: SimpleN
     assert all(value > 0 for value in angle)  # stage-2 starts are regular hexagons, but random actions bend them
 
 
-def test_hyperparameters_are_written_as_text(metrics_run: SimpleNamespace) -> None:
-    tensors = metrics_run.events.Tags()["tensors"]
-    tags = [tag for tag in tensors if "hparams" in tag]
-    assert len(tags) == 1
-    text = metrics_run.events.Tensors(tags[0])[0].tensor_proto.string_val[0].decode()
-    for key, value in HYPERPARAMETERS.items():
-        assert f"{key}: {json.dumps(value)}" in text
+def test_settings_go_to_the_hparams_tab_with_the_success_rate_and_errors_as_metrics(metrics_run: SimpleNamespace) -> None:
+    """Issue 16, point 5: SB3's ``HParam``; nested settings flattened, lists as JSON, ``None`` left out (TensorBoard)."""
+    assert metrics_run.hparams["metrics"] == list(HPARAM_METRICS)
+    assert {"episode/success_rate", "formation/angle_error_deg", "formation/bearing_error"} <= set(HPARAM_METRICS)
+    assert metrics_run.hparams["hparams"] == {
+        "preset": "ch5-bearing",
+        "n_steps": float(N_STEPS),
+        "iterations": "[3, 0, 0]",
+        "ppo/learning_rate": 0.0003,
+        "env/team_reward": 1.0,  # TensorBoard stores a bool as a number
+    }
+    assert hparam_values({"env": {"v_max": 0.05, "stage_disabled_terms": [["goal"], [], []]}}) == {
+        "env/v_max": 0.05,
+        "env/stage_disabled_terms": '[["goal"], [], []]',
+    }
 
 
 def test_custom_scalars_layout_is_written_and_names_written_charts(metrics_run: SimpleNamespace) -> None:
@@ -487,8 +508,7 @@ def test_metrics_callback_logs_only_the_stage_before_any_episode_ends(tmp_path: 
     events = read_events(tmp_path)
     assert "curriculum/stage" in events.Tags()["scalars"]
     assert not set(METRIC_TAGS) & set(events.Tags()["scalars"])
-    text_tag = next(tag for tag in events.Tags()["tensors"] if "hparams" in tag)
-    assert events.Tensors(text_tag)[0].tensor_proto.string_val[0].decode() == "    (none)"
+    assert read_hparams(tmp_path) == {"metrics": list(HPARAM_METRICS), "hparams": {}}
 
 
 # ProgressBarCallback --------------------------------------------------------------------------------------------------

@@ -18,6 +18,7 @@ from issue_names import EPISODE_SCALARS
 from PIL import Image
 from stable_baselines3.common.save_util import load_from_zip_file
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+from tensorboard_events import read_hparams
 
 from sb3_formation.cli import build_parser, main, train_settings
 from sb3_formation.experiment.runs import FINAL_MODEL, STATE_FILE, latest_checkpoint, load_trained
@@ -253,7 +254,9 @@ def test_train_run_folder_and_tensorboard(tmp_path: Path) -> None:
     assert set(SCALARS) <= scalars, set(SCALARS) - scalars
     assert [event.value for event in events.Scalars("curriculum/stage")] == [1.0, 2.0, 3.0]  # stage of each iteration
     assert all(event.value == 20.0 for event in events.Scalars("episode/length"))  # no success in 20 steps
-    assert any("hparams" in tag for tag in events.Tags()["tensors"])
+    hparams = read_hparams(run_dir / "tensorboard")
+    assert "episode/success_rate" in hparams["metrics"] and hparams["hparams"]["preset"] == "ch5-bearing"
+    assert hparams["hparams"]["env/n_agents"] == 6 and hparams["hparams"]["iterations"] == "[1, 1, 1]"
 
 
 @pytest.mark.slow

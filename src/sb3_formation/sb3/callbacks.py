@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.logger import TensorBoardOutputFormat
+from stable_baselines3.common.logger import HParam, TensorBoardOutputFormat
 from stable_baselines3.common.utils import FloatSchedule
 
 from sb3_formation.env.config import REWARD_TERMS
@@ -25,6 +25,35 @@ TENSORBOARD_METRICS: dict[str, str] = {
     SUCCESS_RATE_TAG: "success",
     **{metric.tensorboard: name for name, metric in EPISODE_METRICS.items() if metric.tensorboard is not None},
 }
+
+
+#: The HParams tab's metrics: the scalars it shows beside a run's settings (the last value each run logged).
+HPARAM_METRICS: tuple[str, ...] = (
+    SUCCESS_RATE_TAG,
+    "formation/angle_error_deg",
+    "formation/bearing_error",
+    "eval/success_rate",
+    "eval/angle_error_deg",
+)
+
+
+def hparam_values(settings: dict[str, Any], prefix: str = "") -> dict[str, bool | str | float | None]:
+    """A run's settings as SB3's ``HParam`` takes them: nested mappings flattened to ``env/v_max``-style names, lists
+    and other values written as JSON text.
+
+    :param settings: the settings (e.g. a run's resolved configuration)
+    :param prefix: prefix of every name (for the recursion)
+    """
+    values: dict[str, bool | str | float | None] = {}
+    for key, value in settings.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            values.update(hparam_values(value, f"{name}/"))
+        elif value is None or isinstance(value, (bool, int, float, str)):
+            values[name] = value
+        else:
+            values[name] = json.dumps(value)
+    return values
 
 
 def finished_episodes(infos: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -161,10 +190,11 @@ class FormationMetricsCallback(BaseCallback):
     ``episode/success_rate``, ``episode/length``, ``episode/collisions_obstacle``, ``episode/collisions_agent`` and
     ``reward/<term>`` (each reward term's per-step mean before its coefficient), plus ``curriculum/stage`` (the stage
     the iteration's rollout ran in). At the
-    start of training it writes ``hparams`` (the run's settings, as text) and a custom-scalars layout that groups
+    start of training it writes the run's settings through SB3's ``HParam`` (TensorBoard's HParams tab, with
+    :data:`HPARAM_METRICS` as its metrics; names from :func:`hparam_values`) and a custom-scalars layout that groups
     these charts in TensorBoard.
 
-    :param hyperparameters: settings to write as text (e.g. the resolved run configuration)
+    :param hyperparameters: the settings for the HParams tab (e.g. the resolved run configuration)
     :param window: team-episodes in the rolling means
     """
 
@@ -174,8 +204,9 @@ class FormationMetricsCallback(BaseCallback):
         self.episodes: deque[dict[str, Any]] = deque(maxlen=window)
 
     def _on_training_start(self) -> None:
-        text = "\n".join(f"    {key}: {json.dumps(value)}" for key, value in sorted(self.hyperparameters.items()))
-        self.logger.record("hparams", text or "    (none)", exclude=("stdout", "log", "json", "csv"))
+        metrics = dict.fromkeys(HPARAM_METRICS, 0.0)  # the tab shows each run's last logged value of these scalars
+        hparams = HParam(hparam_values(self.hyperparameters), metrics)
+        self.logger.record("hparams", hparams, exclude=("stdout", "log", "json", "csv"))
         writer = next(
             (output.writer for output in self.logger.output_formats if isinstance(output, TensorBoardOutputFormat)), None
         )
