@@ -1,14 +1,21 @@
-"""Other libraries take the environment as it is (issue 16): TorchRL's PettingZoo wrapper (and so BenchMARL)."""
+"""Other libraries take the environment as it is (issue 16): TorchRL's PettingZoo wrapper (and so BenchMARL), and SB3's
+own tools on our VecEnv (EvalCallback with synchronised normaliser statistics, VecNormalize's API)."""
 
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
+from stable_baselines3 import PPO
+from stable_baselines3.common.callbacks import EvalCallback
+from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_formation import FormationConfig, FormationEnv
+from sb3_formation import FormationConfig, FormationEnv, make_formation_vec_env
 from sb3_formation.env.config import REWARD_INFO_KEYS
+from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 
 PRESETS = ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing"]
 
@@ -31,3 +38,40 @@ def test_torchrl_wraps_checks_and_rolls_out_every_preset(preset: str) -> None:
     info = rollout["next", "agent", "info"]
     assert all(info[key].shape == (50, n_agents) for key in REWARD_INFO_KEYS)
     assert torch.isfinite(rollout["next", "agent", "observation"]).all()
+
+
+def test_eval_callback_evaluates_with_the_training_statistics_frozen(tmp_path: Path) -> None:
+    """Issue 16, point 3: ``ScaleNormalizeVecEnv`` is a ``VecNormalize``, so ``EvalCallback`` synchronises a second
+    env's statistics with the training env's (``sync_envs_normalization``) and the frozen copy does not move."""
+    train_env = make_formation_vec_env("ch4-individual", n_envs=2, seed=0, max_steps=10)
+    eval_env = make_formation_vec_env("ch4-individual", n_envs=1, seed=100, max_steps=10)
+    eval_env.training = False
+    assert isinstance(train_env, VecNormalize) and not train_env.norm_reward
+    model = PPO("MlpPolicy", train_env, n_steps=16, batch_size=48, n_epochs=1, seed=0, device="cpu")
+    assert model.get_vec_normalize_env() is train_env
+    # evaluated at the last step of the only rollout: nothing updates the training statistics after the copy
+    callback = EvalCallback(eval_env, n_eval_episodes=2, eval_freq=16, log_path=str(tmp_path), verbose=0)
+    model.learn(16 * train_env.num_envs, callback=callback)
+    assert eval_env.obs_rms is not train_env.obs_rms
+    assert eval_env.obs_rms.count == train_env.obs_rms.count == 6 * (1 + 16)  # 6 slots: reset, then 16 steps
+    assert np.array_equal(eval_env.obs_rms.var, train_env.obs_rms.var)
+    assert np.array_equal(
+        eval_env.normalize_obs(eval_env.get_original_obs()), train_env.normalize_obs(eval_env.get_original_obs())
+    )
+    # unnormalize_obs undoes normalize_obs (where nothing was clipped)
+    raw = train_env.get_original_obs()
+    scaled = train_env.normalize_obs(raw)
+    inside = np.abs(scaled) < train_env.clip_obs
+    assert np.allclose(train_env.unnormalize_obs(scaled)[inside], raw[inside], rtol=1e-5, atol=1e-6)
+
+
+def test_a_saved_normaliser_loads_through_vec_normalize_api(tmp_path: Path) -> None:
+    """``ScaleNormalizeVecEnv.load(path, venv)`` as ``VecNormalize.load(path, venv)``: frozen by default."""
+    env = make_formation_vec_env("ch4-individual", n_envs=1, seed=0)
+    env.reset()
+    for _ in range(5):
+        env.step(np.zeros((env.num_envs, 2)))
+    env.save(tmp_path / "normalizer.npz")
+    loaded = ScaleNormalizeVecEnv.load(tmp_path / "normalizer.npz", make_formation_vec_env("ch4-individual", normalize=False))
+    assert isinstance(loaded, VecNormalize) and not loaded.training
+    assert np.array_equal(loaded.obs_rms.var, env.obs_rms.var) and loaded.obs_rms.count == env.obs_rms.count

@@ -13,7 +13,7 @@ import pytest
 import torch
 import yaml
 from stable_baselines3 import PPO
-from stable_baselines3.common.vec_env import VecNormalize, unwrap_vec_wrapper
+from stable_baselines3.common.vec_env import unwrap_vec_wrapper
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_formation import FormationPolicy, make_formation_vec_env
@@ -24,6 +24,7 @@ from sb3_formation.experiment.runs import (
     FINAL_NORMALIZER,
     latest_checkpoint,
     load_trained,
+    reward_normalizer,
     reward_normalizer_file,
     save_model,
 )
@@ -92,7 +93,7 @@ def test_reward_normalisation_divides_by_the_running_return_std(tmp_path: Path) 
     VecNormalize, recomputed here with numpy), and the statistics survive a save and a resume."""
     settings = TrainSettings(preset=str(tiny_yaml(tmp_path)), n_envs=1)
     env = make_training_env(settings, stage=3)
-    rewards = unwrap_vec_wrapper(env, VecNormalize)
+    rewards = reward_normalizer(env)
     assert rewards is not None and not rewards.norm_obs and rewards.gamma == 0.99
     env.seed(0)
     env.reset()
@@ -112,7 +113,7 @@ def test_reward_normalisation_divides_by_the_running_return_std(tmp_path: Path) 
     assert float(saved["var"]) == pytest.approx(np.var(np.concatenate(raw_returns)), rel=1e-5)
     assert float(saved["count"]) == pytest.approx(len(np.concatenate(raw_returns)) + 1e-4)  # SB3 starts at 1e-4
     resumed = make_training_env(settings, stage=3, normalizer_path=tmp_path / FINAL_NORMALIZER)
-    assert unwrap_vec_wrapper(resumed, VecNormalize).ret_rms.var == pytest.approx(float(saved["var"]))
+    assert reward_normalizer(resumed).ret_rms.var == pytest.approx(float(saved["var"]))
     env.close()
     resumed.close()
 

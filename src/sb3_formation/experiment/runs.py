@@ -18,7 +18,7 @@ import numpy as np
 from stable_baselines3 import PPO
 from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.save_util import json_to_data
-from stable_baselines3.common.vec_env import VecEnv, VecNormalize, unwrap_vec_wrapper
+from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecNormalize, unwrap_vec_wrapper
 
 from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.env.config import FormationConfig
@@ -68,11 +68,21 @@ def save_model(model: PPO, env: VecEnv, folder: Path, model_file: str, normalize
     with atomic_path(folder / model_file) as temporary:
         model.save(temporary)
     unwrap_vec_wrapper(env, ScaleNormalizeVecEnv).save(folder / normalizer_file)
-    rewards = unwrap_vec_wrapper(env, VecNormalize)
+    rewards = reward_normalizer(env)
     if rewards is not None:
         statistics = {key: np.asarray(getattr(rewards.ret_rms, key), dtype=np.float64) for key in REWARD_STATE_KEYS}
         with atomic_path(folder / reward_normalizer_file(normalizer_file)) as temporary, open(temporary, "wb") as stream:
             np.savez(stream, **statistics)
+
+
+def reward_normalizer(env: VecEnv) -> VecNormalize | None:
+    """The ``VecNormalize`` that divides ``env``'s rewards, if any (:class:`ScaleNormalizeVecEnv` is a ``VecNormalize``
+    for observations only)."""
+    while isinstance(env, VecEnvWrapper):
+        if isinstance(env, VecNormalize) and env.norm_reward:
+            return env
+        env = env.venv
+    return None
 
 
 def normalize_rewards(env: VecEnv, gamma: float, path: Path | None = None) -> VecNormalize:

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.running_mean_std import RunningMeanStd
+from stable_baselines3.common.vec_env import VecNormalize
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvStepReturn, VecEnvWrapper
 
 from sb3_formation.utils.files import atomic_path, read_arrays
@@ -31,9 +32,14 @@ from sb3_formation.utils.files import atomic_path, read_arrays
 STATE_KEYS = ("mean", "var", "count", "agent_obs_dim", "binary_mask", "epsilon", "clip_obs")
 
 
-class ScaleNormalizeVecEnv(VecEnvWrapper):
+class ScaleNormalizeVecEnv(VecNormalize):
     """
     Scale-only observation normalisation for a vectorized environment whose slots are agents.
+
+    A :class:`~stable_baselines3.common.vec_env.VecNormalize` for SB3's tools: ``sync_envs_normalization`` (and so
+    ``EvalCallback``) copies its ``obs_rms`` to an evaluation env's, ``model.get_vec_normalize_env()`` finds it, and
+    ``ScaleNormalizeVecEnv.load(path, venv)`` loads it as ``VecNormalize.load`` does (from its own ``.npz`` file). It
+    normalises observations only (``norm_reward`` is False; SB3's own ``VecNormalize`` on top divides rewards).
 
     Non-binary features are divided by ``sqrt(var + epsilon)``, ``var`` being the running variance of that feature over
     every agent's own observation seen so far (on reset and on every step, while ``training``). Unless ``center``,
@@ -109,7 +115,14 @@ class ScaleNormalizeVecEnv(VecEnvWrapper):
         self.training = training
         self.obs_rms = RunningMeanStd(epsilon=0.0, shape=(agent_obs_dim,))
         self.old_obs = None
-        super().__init__(venv, observation_space=self._scaled_space(observation_space))
+        # not VecNormalize.__init__, which keeps one statistic per value of the whole observation
+        VecEnvWrapper.__init__(self, venv, observation_space=self._scaled_space(observation_space))
+        # VecNormalize's own attributes, as SB3's tools read them: observations only, no reward normalisation
+        self.norm_obs, self.norm_reward, self.norm_obs_keys = True, False, None
+        self.ret_rms = RunningMeanStd(shape=())
+        self.clip_reward, self.gamma = np.inf, 0.99
+        self.returns = np.zeros(self.num_envs)
+        self.old_reward = np.array([])
 
     def _scaled_space(self, space: spaces.Box) -> spaces.Box:
         """The wrapped space after scaling: unbounded where values can be non-zero, flags keep their bounds."""
@@ -145,6 +158,20 @@ class ScaleNormalizeVecEnv(VecEnvWrapper):
         state |= {"binary_mask": self.binary_mask, "center": self.center}
         return scale_observations(obs, observation_scale(state), self.clip_obs, observation_offset(state))
 
+    def unnormalize_obs(self, obs: np.ndarray) -> np.ndarray:
+        """
+        Undo :meth:`normalize_obs` (up to clipping) with the current statistics.
+
+        :param obs: normalised observations of shape ``(..., k * agent_obs_dim)``
+        :return: float64 raw observations
+        """
+        state = {"mean": self.obs_rms.mean, "var": self.obs_rms.var, "epsilon": self.epsilon}
+        state |= {"binary_mask": self.binary_mask, "center": self.center}
+        blocks = np.asarray(obs, dtype=np.float64).reshape(*np.shape(obs)[:-1], self.n_blocks, self.agent_obs_dim)
+        offset = observation_offset(state)
+        raw = blocks * observation_scale(state) + (0.0 if offset is None else offset)
+        return raw.reshape(np.shape(obs))
+
     def get_original_obs(self) -> np.ndarray:
         """
         :return: a copy of the raw (unnormalised) observations of the most recent step or reset
@@ -174,7 +201,7 @@ class ScaleNormalizeVecEnv(VecEnvWrapper):
         """
         obs, rewards, dones, infos = self.venv.step_wait()
         assert isinstance(obs, np.ndarray)
-        self.old_obs = obs
+        self.old_obs, self.old_reward = obs, rewards
         if self.training:
             self._update(obs)
         for idx, done in enumerate(dones):
