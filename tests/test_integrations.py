@@ -3,15 +3,17 @@ own tools on our VecEnv (EvalCallback with synchronised normaliser statistics, V
 
 from __future__ import annotations
 
+import re
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import torch
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import EvalCallback
-from stable_baselines3.common.vec_env import VecNormalize
+from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
 from sb3_formation import FormationConfig, FormationEnv, make_formation_vec_env
 from sb3_formation.env.config import REWARD_INFO_KEYS
@@ -75,3 +77,40 @@ def test_a_saved_normaliser_loads_through_vec_normalize_api(tmp_path: Path) -> N
     loaded = ScaleNormalizeVecEnv.load(tmp_path / "normalizer.npz", make_formation_vec_env("ch4-individual", normalize=False))
     assert isinstance(loaded, VecNormalize) and not loaded.training
     assert np.array_equal(loaded.obs_rms.var, env.obs_rms.var) and loaded.obs_rms.count == env.obs_rms.count
+
+
+def readme_snippets(section: str) -> list[str]:
+    """The ```python blocks of a README section, in order."""
+    text = (Path(__file__).parents[1] / "README.md").read_text()
+    body = text.split(f"\n## {section}\n", 1)[1].split("\n## ", 1)[0]
+    return re.findall(r"```python\n(.*?)```", body, flags=re.DOTALL)
+
+
+def test_the_readme_snippets_for_other_libraries_run_and_say_what_they_measure() -> None:
+    """Issue 16, points 4 and 6: the README's snippets, as written, in one namespace; then what they claim."""
+    snippets = readme_snippets("Using it with other libraries")
+    assert len(snippets) == 3
+    namespace: dict[str, Any] = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        for snippet in snippets:
+            exec(snippet, namespace)  # the README's own code
+    assert namespace["rollout"]["next", "agent", "reward"].shape == (50, 6, 1)
+    train_env, eval_env = namespace["train_env"], namespace["eval_env"]
+    assert np.array_equal(eval_env.obs_rms.var, train_env.obs_rms.var)  # synchronised at the last evaluation
+    # evaluate_policy scored the three agents of one team-episode: replay it and sum each slot's rewards
+    scores, lengths = namespace["scores"], namespace["lengths"]
+    env, model = make_formation_vec_env("ch4-individual", n_envs=1, seed=0, max_steps=5), namespace["model"]
+    observations, returns = env.reset(), np.zeros(env.num_envs)
+    for _ in range(5):
+        observations, rewards, dones, infos = env.step(model.predict(observations, deterministic=True)[0])
+        returns += rewards
+    assert dones.all() and list(lengths) == [5, 5, 5]
+    assert np.allclose(scores, returns)  # agent-episodes: one score per agent
+    assert "episode" in infos[0] and "episode" not in infos[1]  # the VecEnv's own team-episode record
+    assert infos[0]["episode"]["r"] == pytest.approx(returns.mean())
+    monitored = VecMonitor(make_formation_vec_env("ch4-individual", n_envs=1, seed=0, max_steps=5))
+    monitored.reset()
+    for _ in range(5):
+        _, _, dones, infos = monitored.step(np.zeros((3, 2)))
+    assert all("episode" in info for info in infos)  # VecMonitor: every agent an episode
