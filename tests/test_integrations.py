@@ -89,7 +89,7 @@ def readme_snippets(section: str) -> list[str]:
 def test_the_readme_snippets_for_other_libraries_run_and_say_what_they_measure() -> None:
     """Issue 16, points 4 and 6: the README's snippets, as written, in one namespace; then what they claim."""
     snippets = readme_snippets("Using it with other libraries")
-    assert len(snippets) == 3
+    assert len(snippets) == 4
     namespace: dict[str, Any] = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
@@ -114,3 +114,5 @@ def test_the_readme_snippets_for_other_libraries_run_and_say_what_they_measure()
     for _ in range(5):
         _, _, dones, infos = monitored.step(np.zeros((3, 2)))
     assert all("episode" in info for info in infos)  # VecMonitor: every agent an episode
+    # SuperSuit: 2 copies of a 3-agent team, one PPO iteration of 16 steps in each of the 6 slots
+    assert namespace["venv"].num_envs == 6 and namespace["ss_model"].num_timesteps == 16 * 6
