@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup run test lint format bench clean pretrained
+.PHONY: setup run test test-integrations lint format bench clean pretrained
 
 setup: $(STAMP)
 
@@ -48,6 +48,21 @@ lint: setup
 
 test: lint
 	$(BIN)/python -m pytest -n 2 --durations=15 tests
+
+# RLlib with one shared policy and SB3's VecVideoRecorder (README "Using it with other libraries"): their pins clash
+# with the main environment's, so they get an environment of their own, and only their tests run there.
+INT_VENV := .venv-integrations
+INT_BIN := $(INT_VENV)/bin
+
+$(INT_VENV)/.installed: pyproject.toml
+	test -x $(INT_BIN)/python || $(PYTHON) -m venv $(INT_VENV)
+	$(INT_BIN)/python -m pip install --quiet --upgrade pip
+	$(INT_BIN)/python -m pip install --quiet torch==2.13.0
+	$(INT_BIN)/python -m pip install --quiet -e '.[integrations]'
+	touch $(INT_VENV)/.installed
+
+test-integrations: $(INT_VENV)/.installed
+	$(INT_BIN)/python -m pytest -m integrations tests/test_integrations.py
 
 format: setup
 	$(BIN)/ruff format src tests benchmarks
