@@ -1,56 +1,78 @@
-"""Environment throughput: agent-steps per second of ``FormationEnv`` against the bare Pymunk step, in one run.
+"""Environment throughput: agent-steps per second of the VecEnv's batched stepping against team-by-team stepping and
+the bare Pymunk step, in one run.
 
-Random actions, curriculum stage 3, n = 6 (ch5-bearing), 90-ray lidar on. Prints medians over repeats:
-- one env on one core (the issue's target: >= 40,000 agent-steps/s);
-- a batch of envs stepped in one process, and the same batch split over two worker processes (both cores);
-- the bare Pymunk ``space.step`` of the same team (sub-steps included), so our overhead is a printed ratio.
+ch5-bearing at stage 3, random actions, 90-ray lidar. Prints medians over repeats of:
+- team by team: ``FormationEnv.step_array`` for one team after another with the VecEnv's bookkeeping (episode sums,
+  terminal observations, resets), as ``FormationVecEnv`` stepped before batching (the reference of the ratios);
+- ``FormationVecEnv`` (batched: ``FormationBatch``) with every team in this process, and with 2 worker processes;
+- one ``FormationEnv`` alone, and the bare Pymunk ``space.step`` of one team (sub-steps included).
 
-Usage: ``python benchmarks/env_throughput.py [--steps 3000] [--repeats 5] [--batch 8]``
+Targets (issue 17): with 14 teams of 6, at least 150,000 agent-steps/s on 2 cores, and the batched VecEnv at least
+2.5x team-by-team stepping on one core.
+
+Usage: ``python benchmarks/env_throughput.py [--steps 1000] [--repeats 5] [--teams 14]``
 """
 
 from __future__ import annotations
 
 import argparse
-import multiprocessing
 import statistics
 import time
 
 import numpy as np
 
 from sb3_formation import FormationConfig, FormationEnv
+from sb3_formation.env.episodes import EpisodeStatistics
 from sb3_formation.env.world import World
+from sb3_formation.sb3.vec_env import FormationVecEnv
 
 CONFIG = FormationConfig.preset("ch5-bearing", stage=3)
 
 
-def _actions(env: FormationEnv, steps: int, seed: int) -> list[dict[str, np.ndarray]]:
-    rng = np.random.default_rng(seed)
-    return [{agent: rng.uniform(-1.0, 1.0, 2) for agent in env.possible_agents} for _ in range(steps)]
-
-
-def env_seconds_per_step(n_envs: int, steps: int, seed: int = 0, barrier: object | None = None) -> float:
-    """Wall time (s) per team-step of ``n_envs`` envs stepped in turn with pre-drawn random actions.
-
-    :param barrier: a ``multiprocessing.Barrier`` to wait on after warming up, so that parallel workers time together
-    """
-    envs = [FormationEnv(CONFIG) for _ in range(n_envs)]
+def team_by_team_seconds(teams: int, steps: int, seed: int) -> float:
+    """Seconds per team-step of ``teams`` envs stepped one after another, with what the VecEnv adds to each team."""
+    envs = [FormationEnv(CONFIG) for _ in range(teams)]
+    sums = [EpisodeStatistics() for _ in envs]
     for index, env in enumerate(envs):
         env.reset(seed=seed + index)
-    actions = _actions(envs[0], steps, seed)
-    envs[0].step(actions[0])  # compile the numba kernels outside the timed loop
-    if barrier is not None:
-        barrier.wait()
+    actions = np.random.default_rng(seed).uniform(-1.0, 1.0, (steps, teams * CONFIG.n_agents, 2))
     start = time.perf_counter()
-    for action in actions:
-        for env in envs:
-            env.step(action)
-            if not env.agents:
-                env.reset()
-    return (time.perf_counter() - start) / (steps * n_envs)
+    for step_actions in actions:
+        observations, rewards, infos = [], [], []
+        for team, (env, episode) in enumerate(zip(envs, sums)):
+            rows = step_actions[team * CONFIG.n_agents : (team + 1) * CONFIG.n_agents]
+            team_observations, team_rewards, terminated, truncated, team_infos = env.step_array(rows)
+            episode.add(team_rewards, team_infos)
+            if terminated or truncated:
+                for info, terminal in zip(team_infos, team_observations):
+                    info["terminal_observation"] = terminal
+                team_infos[0]["formation_episode"] = episode.summary(terminated, env.stage)
+                team_observations = np.stack(list(env.reset()[0].values()))
+                episode.reset()
+            observations.append(team_observations)
+            rewards.append(team_rewards)
+            infos += team_infos
+        np.concatenate(observations), np.concatenate(rewards).astype(np.float32)
+    return (time.perf_counter() - start) / (steps * teams)
 
 
-def pymunk_seconds_per_step(steps: int, seed: int = 0) -> float:
-    """Wall time (s) of Pymunk's own ``space.step`` calls for one team-step (all sub-steps), agents moving at random."""
+def vec_env_seconds(teams: int, steps: int, seed: int, workers: int) -> float:
+    """Seconds per team-step of ``FormationVecEnv`` (after a warm-up step that compiles and starts the workers)."""
+    venv = FormationVecEnv(CONFIG, n_envs=teams, n_workers=workers)
+    venv.seed(seed)
+    venv.reset()
+    actions = np.random.default_rng(seed).uniform(-1.0, 1.0, (steps + 1, venv.num_envs, 2))
+    venv.step(actions[0])
+    start = time.perf_counter()
+    for step_actions in actions[1:]:
+        venv.step(step_actions)
+    elapsed = time.perf_counter() - start
+    venv.close()
+    return elapsed / (steps * teams)
+
+
+def pymunk_seconds(steps: int, seed: int) -> float:
+    """Seconds of Pymunk's own ``space.step`` calls for one team-step (all sub-steps), agents moving at random."""
     env = FormationEnv(CONFIG)
     env.reset(seed=seed)
     world = World(CONFIG, env.scenario)
@@ -67,61 +89,50 @@ def pymunk_seconds_per_step(steps: int, seed: int = 0) -> float:
     return elapsed / steps
 
 
-def _worker(n_envs: int, steps: int, seed: int, barrier: object, results: multiprocessing.Queue) -> None:
-    results.put(env_seconds_per_step(n_envs, steps, seed, barrier))
-
-
-def parallel_seconds_per_step(n_envs: int, steps: int, workers: int) -> float:
-    """Wall time per team-step with ``n_envs`` envs split evenly over ``workers`` processes timed together."""
-    context = multiprocessing.get_context("spawn")
-    barrier, results = context.Barrier(workers), context.Queue()
-    per_worker = n_envs // workers
-    processes = [
-        context.Process(target=_worker, args=(per_worker, steps, 100 * index, barrier, results)) for index in range(workers)
-    ]
-    for process in processes:
-        process.start()
-    per_step = [results.get() for _ in processes]
-    for process in processes:
-        process.join()
-    slowest = max(per_step) * per_worker  # seconds for one step of a worker's whole batch
-    return slowest / (per_worker * workers)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--steps", type=int, default=3000)
+    parser.add_argument("--steps", type=int, default=1000)
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--batch", type=int, default=8)
+    parser.add_argument("--teams", type=int, default=14)
     args = parser.parse_args()
-    n_agents = CONFIG.n_agents
-
-    # one env and the bare Pymunk step are measured back to back in every repeat, so each ratio sees the same machine
-    singles, bares = [], []
+    n, teams, steps = CONFIG.n_agents, args.teams, args.steps
+    team_by_team_seconds(1, 5, 0)  # compile the kernels outside the timings
+    # every measurement once per repeat, interleaved, so that each ratio sees the same machine
+    rows: dict[str, list[float]] = {"team": [], "batched": [], "workers": [], "single": [], "pymunk": []}
     for seed in range(args.repeats):
-        singles.append(env_seconds_per_step(1, args.steps, seed))
-        bares.append(pymunk_seconds_per_step(args.steps, seed))
-    single, bare = statistics.median(singles), statistics.median(bares)
-    ratio = statistics.median(one / other for one, other in zip(singles, bares))
-    batch = statistics.median(
-        env_seconds_per_step(args.batch, args.steps // args.batch * 2, seed) for seed in range(args.repeats)
-    )
-    parallel = statistics.median(
-        parallel_seconds_per_step(args.batch, args.steps // args.batch * 2, workers=2) for _ in range(args.repeats)
-    )
+        rows["team"].append(team_by_team_seconds(teams, steps, seed))
+        rows["batched"].append(vec_env_seconds(teams, steps, seed, workers=1))
+        rows["workers"].append(vec_env_seconds(teams, steps, seed, workers=2))
+        rows["single"].append(team_by_team_seconds(1, steps, seed))
+        rows["pymunk"].append(pymunk_seconds(steps, seed))
+    median = {name: statistics.median(values) for name, values in rows.items()}
 
-    print(f"FormationEnv throughput, ch5-bearing stage 3, n = {n_agents}, {CONFIG.lidar_rays}-ray lidar, random actions")
-    print(f"medians of {args.repeats} repeats of {args.steps} steps")
-    print(f"  one env, one core           : {single * 1e6:8.1f} us/team-step  {n_agents / single:10,.0f} agent-steps/s")
+    def ratio(first: str, second: str) -> float:
+        return statistics.median(a / b for a, b in zip(rows[first], rows[second]))
+
     print(
-        f"  {args.batch} envs, one core           : {batch * 1e6:8.1f} us/team-step  {n_agents / batch:10,.0f} agent-steps/s"
+        f"Environment throughput, ch5-bearing stage 3, {teams} teams of n = {n}, {CONFIG.lidar_rays}-ray lidar, random actions"
     )
-    rate = n_agents / parallel
-    print(f"  {args.batch} envs, 2 worker processes : {parallel * 1e6:8.1f} us/team-step  {rate:10,.0f} agent-steps/s")
-    print(f"  bare Pymunk space.step      : {bare * 1e6:8.1f} us/team-step  ({CONFIG.physics_substeps} sub-steps)")
-    print(f"  ratio env step / bare Pymunk step (median of per-repeat ratios): {ratio:.1f}x")
-    print(f"  ratio 2 workers / one core ({args.batch} envs): {batch / parallel:.2f}x")
-    print(f"  target >= 40,000 agent-steps/s on one core: {'met' if n_agents / single >= 40_000 else 'NOT met'}")
+    print(f"medians of {args.repeats} repeats of {steps} steps")
+    labels = {
+        "team": "team by team, one core",
+        "batched": "FormationVecEnv batched, one core",
+        "workers": "FormationVecEnv batched, 2 workers",
+        "single": "one FormationEnv alone",
+    }
+    for name, label in labels.items():
+        print(f"  {label:36s}: {median[name] * 1e6:7.1f} us/team-step  {n / median[name]:10,.0f} agent-steps/s")
+    print(
+        f"  {'bare Pymunk space.step':36s}: {median['pymunk'] * 1e6:7.1f} us/team-step  ({CONFIG.physics_substeps} sub-steps)"
+    )
+    speedup, workers = ratio("team", "batched"), ratio("batched", "workers")
+    rate = n / median["workers"]
+    print(
+        f"  ratio batched / team by team, one core  : {speedup:.2f}x  (target >= 2.5x: {'met' if speedup >= 2.5 else 'NOT met'})"
+    )
+    print(f"  ratio 2 workers / one core (batched)    : {workers:.2f}x")
+    print(f"  ratio batched team-step / bare Pymunk   : {ratio('batched', 'pymunk'):.1f}x")
+    print(f"  2 workers: {rate:,.0f} agent-steps/s (target >= 150,000: {'met' if rate >= 150_000 else 'NOT met'})")
 
 
 if __name__ == "__main__":

@@ -82,17 +82,39 @@ class EpisodeStatistics:
 
     def summary(self, success: bool, stage: int) -> dict[str, Any]:
         """The episode's means over steps (and over agents), collision totals, success and curriculum stage."""
-        steps = max(self.length, 1)
-        angle, bearing, distance = (error / steps for error in self.errors)
-        return {
-            "success": success,
-            "length": self.length,
-            "return": self.mean_return,
-            "angle_error_deg": float(angle),
-            "bearing_error": float(bearing),
-            "neighbour_distance_error": float(distance),
-            "collisions_obstacle": self.collisions[0],
-            "collisions_agent": self.collisions[1] // 2,  # each touching pair is reported by both agents
-            "reward_terms": {name: value / steps for name, value in zip(REWARD_TERMS, self.terms)},
-            "stage": stage,
-        }
+        return episode_summary(self.length, self.mean_return, self.errors, self.collisions, self.terms, success, stage)
+
+
+def episode_summary(
+    length: int,
+    mean_return: float,
+    errors: Sequence[float],
+    collisions: Sequence[int],
+    terms: Sequence[float],
+    success: bool,
+    stage: int,
+) -> dict[str, Any]:
+    """A team's episode summary from its running sums (see :class:`EpisodeStatistics`).
+
+    :param length: steps of the episode
+    :param mean_return: sum over steps of the team's mean agent reward
+    :param errors: sums over steps of the agents' angle (deg), bearing and neighbour-distance (m) errors over n
+    :param collisions: obstacle and agent contacts summed over agents and steps (an agent pair counted by both)
+    :param terms: sums over steps of every reward term over n, in the order of ``REWARD_TERMS``
+    :param success: the team reached the goal
+    :param stage: curriculum stage
+    """
+    steps = max(length, 1)
+    angle, bearing, distance = (error / steps for error in errors)
+    return {
+        "success": success,
+        "length": length,
+        "return": mean_return,
+        "angle_error_deg": float(angle),
+        "bearing_error": float(bearing),
+        "neighbour_distance_error": float(distance),
+        "collisions_obstacle": collisions[0],
+        "collisions_agent": collisions[1] // 2,  # each touching pair is reported by both agents
+        "reward_terms": {name: value / steps for name, value in zip(REWARD_TERMS, terms)},
+        "stage": stage,
+    }

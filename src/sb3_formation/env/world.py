@@ -15,6 +15,7 @@ import numba
 import numpy as np
 import pymunk
 import pymunk.batch
+from pymunk._chipmunk import lib as chipmunk
 
 from sb3_formation.env.config import COLLISION_BIAS, FormationConfig
 from sb3_formation.env.scenarios import Scenario
@@ -103,6 +104,9 @@ class World:
         self._body_velocities = np.zeros((len(body_ids), 2))  # static bodies keep velocity 0
         self._write_buffer.clear()
         self._write_buffer.set_float_buf(self._body_velocities.ravel())  # Pymunk reads this array's memory
+        # Space.step's Python bookkeeping (new bodies' checks, removed shapes) runs here, once per episode: a step of 0 s
+        # does only that (Chipmunk returns at once), and move() then calls Chipmunk's step directly
+        self.space.step(0.0)
         self.positions = np.array(scenario.agent_positions, dtype=np.float64)
         self.velocities = np.zeros_like(self.positions)
 
@@ -133,13 +137,22 @@ class World:
             obstacles or walls, each agent touched during the step (each pair counted once)
         """
         config = self.config
-        commanded = clamp_speed(self.velocities + forces * (config.dt / config.agent_mass), config.v_max)
+        return self.move(clamp_speed(self.velocities + forces * (config.dt / config.agent_mass), config.v_max))
+
+    def move(self, commanded: np.ndarray) -> tuple[list[int], list[int]]:
+        """The Pymunk part of :meth:`step`: set the agents' velocities and let Pymunk move them over the sub-steps.
+
+        :param commanded: ``(n, 2)`` velocities (m/s) after the forces of the step, already clamped to v_max
+        :return: as :meth:`step`
+        """
+        config = self.config
         self._body_velocities[self._agent_rows] = commanded
         pymunk.batch.set_space_bodies(self.space, _VELOCITY_FIELD, self._write_buffer)
         self._agent_pairs.clear()
         self._obstacle_pairs.clear()
+        space, substep = self.space._space, self._substep
         for _ in range(config.physics_substeps):
-            self.space.step(self._substep)
+            chipmunk.cpSpaceStep(space, substep)  # Space.step without its Python bookkeeping (see place())
         self._read_buffer.clear()
         pymunk.batch.get_space_bodies(self.space, _STATE_FIELDS, self._read_buffer)
         state = np.frombuffer(self._read_buffer.float_buf(), dtype=np.float64).reshape(-1, 4)[self._agent_rows]

@@ -16,8 +16,8 @@ import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
+from sb3_formation.env.batch import FormationBatch
 from sb3_formation.env.config import FormationConfig
-from sb3_formation.env.episodes import EpisodeStatistics
 from sb3_formation.env.formation_env import FormationEnv
 from sb3_formation.utils.processes import WorkerProcess, gather, worker_context
 
@@ -40,86 +40,82 @@ def slot_observations(own: np.ndarray, n_agents: int, team_observations: bool) -
 class TeamBatch:
     """A block of teams stepped in one process: the unit of both the in-process and the worker-process VecEnv.
 
+    The teams step together (:class:`~sb3_formation.env.batch.FormationBatch`); this adds SB3's ``VecEnv``
+    conventions: slots, automatic resets, terminal observations and the team-episode infos.
+
     :param configs: task configuration of each team of this block
     :param team_observations: each slot also sees its whole team's observations (for a team critic)
     :param render_mode: render mode of the teams' envs
     """
 
     def __init__(self, configs: Sequence[FormationConfig], team_observations: bool, render_mode: str | None) -> None:
-        self.envs = [FormationEnv(config, render_mode=render_mode) for config in configs]
+        self.batch = FormationBatch([FormationEnv(config, render_mode=render_mode) for config in configs])
+        self.envs = self.batch.envs
         self.team_observations = team_observations
-        self.statistics = [EpisodeStatistics() for _ in configs]
         self.start_time = time.time()
 
-    def _slot_observations(self, own: np.ndarray) -> np.ndarray:
-        return slot_observations(own, len(own), self.team_observations)
+    def _slot_observations(self, own: np.ndarray, n_agents: int) -> np.ndarray:
+        return slot_observations(own, n_agents, self.team_observations)
 
     def reset(self, seeds: Sequence[int | None], options: Sequence[dict[str, Any]]) -> np.ndarray:
-        """Reset every team; team j with ``seeds[j]`` and ``options[j]``. :return: ``(n_teams * n, obs_dim)``"""
-        observations = []
-        for env, statistics, seed, team_options in zip(self.envs, self.statistics, seeds, options):
-            team_observation, _ = env.reset(seed=seed, options=team_options or None)
-            statistics.reset()
-            observations.append(self._slot_observations(np.stack(list(team_observation.values()))))
-        return np.concatenate(observations)
+        """Reset every team; team j with ``seeds[j]`` and ``options[j]``. :return: ``(slots, obs_dim)``"""
+        return np.concatenate(
+            [
+                self._slot_observations(self.batch.reset_team(team, seed, team_options or None), len(env.possible_agents))
+                for team, (env, seed, team_options) in enumerate(zip(self.envs, seeds, options))
+            ]
+        )
 
-    def step(self, actions: np.ndarray, first_team: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict[str, Any]]]:
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict[str, Any]]]:
         """Step every team with its agents' rows of ``actions``; teams that end are reset at once.
 
-        :param actions: ``(slots, 2)`` actions, each team's agents one after the other
-        :param first_team: global index of this block's first team (for error messages)
+        :param actions: ``(slots, 2)`` finite actions (checked by the VecEnv), each team's agents one after the other
         :return: observations, rewards, dones and infos of every slot, in SB3's ``VecEnv`` conventions
         """
-        observations, rewards, dones, infos = [], [], [], []
-        start = 0
-        for team, (env, statistics) in enumerate(zip(self.envs, self.statistics)):
-            n_agents = env.config.n_agents
-            team_actions, start = actions[start : start + n_agents], start + n_agents
-            try:
-                result = env.step_array(team_actions)
-            except ValueError as error:
-                raise ValueError(f"team {first_team + team}: {error}") from error
-            team_observations, agent_rewards, terminated, truncated, slot_infos = result
-            statistics.add(agent_rewards, slot_infos)
-            slot_observations = self._slot_observations(team_observations)
-            done = terminated or truncated
-            if done:
-                for info, terminal_observation in zip(slot_infos, slot_observations):
-                    info["terminal_observation"] = terminal_observation
-                    info["TimeLimit.truncated"] = truncated and not terminated
-                summary = statistics.summary(success=terminated, stage=env.stage)
-                slot_infos[0]["episode"] = {
-                    "r": summary["return"],
-                    "l": summary["length"],
-                    "t": round(time.time() - self.start_time, 6),
-                }
-                slot_infos[0]["is_success"] = terminated
-                slot_infos[0]["formation_episode"] = summary
-                reset_observation, _ = env.reset()
-                statistics.reset()
-                slot_observations = self._slot_observations(np.stack(list(reset_observation.values())))
-            observations.append(slot_observations)
-            rewards.append(agent_rewards)
-            dones.append(np.full(n_agents, done))
-            infos.extend(slot_infos)
-        return np.concatenate(observations), np.concatenate(rewards), np.concatenate(dones), infos
+        batch = self.batch
+        observations, rewards, terminated, truncated, infos = batch.step(np.minimum(np.maximum(actions, -1.0), 1.0))
+        observations = self._slot_observations(observations, int(batch.starts[1])) if self.team_observations else observations
+        ended = terminated | truncated
+        for team in np.flatnonzero(ended).tolist():
+            rows = batch.team_rows(team)
+            success, timed_out = bool(terminated[team]), bool(truncated[team])
+            for info, terminal_observation in zip(infos[rows], observations[rows].copy()):  # rows get the reset's
+                info["terminal_observation"] = terminal_observation
+                info["TimeLimit.truncated"] = timed_out and not success
+            summary = batch.episode_summary(team, success)
+            first = infos[rows.start]
+            first["episode"] = {"r": summary["return"], "l": summary["length"], "t": round(time.time() - self.start_time, 6)}
+            first["is_success"] = success
+            first["formation_episode"] = summary
+            observations[rows] = self._slot_observations(batch.reset_team(team), rows.stop - rows.start)
+        return observations, rewards, np.repeat(ended, np.diff(batch.starts)), infos
 
     def get_attr(self, name: str, teams: Iterable[int]) -> list[Any]:
         """Attribute ``name`` of each of ``teams`` (indices within this block)."""
-        return [getattr(self.envs[team], name) for team in teams]
+        return [getattr(self._synced(team), name) for team in teams]
 
     def set_attr(self, name: str, teams: Iterable[int], value: Any) -> None:
         """Set attribute ``name`` of each of ``teams``."""
         for team in teams:
-            setattr(self.envs[team], name, value)
+            setattr(self._synced(team), name, value)
+            self.batch.load(team)
 
     def env_method(self, name: str, teams: Iterable[int], args: tuple, kwargs: dict[str, Any]) -> list[Any]:
         """Call method ``name`` of each of ``teams``."""
-        return [getattr(self.envs[team], name)(*args, **kwargs) for team in teams]
+        results = []
+        for team in teams:
+            results.append(getattr(self._synced(team), name)(*args, **kwargs))
+            self.batch.load(team)
+        return results
+
+    def _synced(self, team: int) -> FormationEnv:
+        """A team's env, with the batch's state of it written back."""
+        self.batch.sync(team)
+        return self.envs[team]
 
     def get_images(self) -> list[np.ndarray]:
         """One ``rgb_array`` frame per team."""
-        return [env.render() for env in self.envs]
+        return [self._synced(team).render() for team in range(len(self.envs))]
 
     def close(self) -> None:
         """Close every team's env."""
@@ -287,8 +283,7 @@ class FormationVecEnv(VecEnv):
     def step_wait(self) -> VecEnvStepReturn:
         starts = self._team_starts
         arguments = {
-            block: (self._actions[starts[teams[0]] : starts[teams[-1] + 1]], teams[0])
-            for block, teams in enumerate(self._team_blocks)
+            block: (self._actions[starts[teams[0]] : starts[teams[-1] + 1]],) for block, teams in enumerate(self._team_blocks)
         }
         results = self._run("step", arguments)
         observations, rewards, dones, infos = zip(*(results[block] for block in range(len(self._batches))))
