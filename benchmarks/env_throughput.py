@@ -127,9 +127,8 @@ def main() -> None:
     )
     speedup, workers = ratio("team", "batched"), ratio("batched", "workers")
     rate = n / median["workers"]
-    print(
-        f"  ratio batched / team by team, one core  : {speedup:.2f}x  (target >= 2.5x: {'met' if speedup >= 2.5 else 'NOT met'})"
-    )
+    verdict = "met" if speedup >= 2.5 else "NOT met"
+    print(f"  ratio batched / team by team, one core  : {speedup:.2f}x  (target >= 2.5x: {verdict})")
     print(f"  ratio 2 workers / one core (batched)    : {workers:.2f}x")
     print(f"  ratio batched team-step / bare Pymunk   : {ratio('batched', 'pymunk'):.1f}x")
     print(f"  2 workers: {rate:,.0f} agent-steps/s (target >= 150,000: {'met' if rate >= 150_000 else 'NOT met'})")

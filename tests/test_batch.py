@@ -35,7 +35,8 @@ def test_batched_teams_match_the_single_team_env_bit_for_bit(preset: str) -> Non
     ends = contacts = 0
     for _ in range(60):
         actions = np.clip(wide_actions(rng, int(batch.starts[-1])), -1.0, 1.0)
-        observations, rewards, terminated, truncated, infos = batch.step(actions)
+        observations, rewards, terminated, truncated, values = batch.step(actions)
+        infos = batch.infos(values, terminated)
         expected = [reference.step_array(actions[batch.team_rows(team)]) for team, reference in enumerate(references)]
         for team, (reference, outcome) in enumerate(zip(references, expected)):
             statistics[team].add(outcome[1], outcome[4])

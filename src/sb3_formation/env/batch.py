@@ -217,7 +217,7 @@ class FormationBatch:
 
         :param actions: ``(agents, 2)`` finite actions, clipped to [-1, 1], every team's agents one after the other
         :return: observations ``(agents, dim)`` float32, rewards ``(agents,)``, terminated and truncated ``(teams,)``,
-            and every agent's info, as :meth:`FormationEnv.step_array` gives them team by team
+            as :meth:`FormationEnv.step_array` gives them team by team, and the agents' info values (see :meth:`infos`)
         """
         if not self.live.all():
             raise RuntimeError(f"step() on ended teams {np.flatnonzero(~self.live).tolist()}; reset them first")
@@ -327,8 +327,7 @@ class FormationBatch:
             self.episode_collisions,
             self.episode_terms,
         )
-        infos = self._infos(info_values, success)
-        return observations, rewards, success, truncated, infos
+        return observations, rewards, success, truncated, info_values
 
     def _combine(self, terms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Eqs 26 / 32 / 42 for every agent, and every team's mean reward, with numpy's own sums of one team at a time.
@@ -350,13 +349,26 @@ class FormationBatch:
             rewards[rows], team_means[teams] = group.reshape(-1), group.mean(axis=1)
         return rewards, team_means
 
-    def _infos(self, values: np.ndarray, success: np.ndarray) -> list[dict[str, Any]]:
-        """Every agent's info dict from the compiled step's values (floats), contacts (ints) and success (bools)."""
-        columns = values.T.tolist()
-        contacts = self.contacts.T.tolist()
-        success = np.repeat(success, np.diff(self.starts)).tolist()
-        columns = [*columns[:5], contacts[1], contacts[0], success, *columns[5:]]  # in the order of INFO_KEYS
-        return [dict(zip(INFO_KEYS, row)) for row in zip(*columns)]
+    def infos(self, values: np.ndarray, terminated: np.ndarray) -> list[dict[str, Any]]:
+        """Every agent's info dict after :meth:`step` (as :meth:`FormationEnv.step_array` gives them).
+
+        :param values: the info values :meth:`step` returned
+        :param terminated: the teams' success, as :meth:`step` returned it
+        """
+        return agent_infos(values, self.contacts, np.repeat(terminated, np.diff(self.starts)))
+
+
+def agent_infos(values: np.ndarray, contacts: np.ndarray, success: np.ndarray) -> list[dict[str, Any]]:
+    """Agents' info dicts, keys in the order of :data:`INFO_KEYS`, from the arrays of :meth:`FormationBatch.step`.
+
+    :param values: ``(agents, 14)`` floats: the five errors and distances of :data:`INFO_KEYS`, then the reward terms
+    :param contacts: ``(agents, 2)`` ints: other agents, then obstacles or walls, touched in the step
+    :param success: ``(agents,)`` bools: the agent's team reached the goal
+    """
+    columns = values.T.tolist()
+    touched = contacts.T.tolist()
+    columns = [*columns[:5], touched[1], touched[0], success.tolist(), *columns[5:]]
+    return [dict(zip(INFO_KEYS, row)) for row in zip(*columns)]
 
 
 # Compiled kernels: each loops over the teams and calls, for each, the very kernels FormationEnv calls for one team ----

@@ -9,14 +9,14 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import gymnasium
 import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
-from sb3_formation.env.batch import FormationBatch
+from sb3_formation.env.batch import FormationBatch, agent_infos
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.formation_env import FormationEnv
 from sb3_formation.utils.processes import WorkerProcess, gather, worker_context
@@ -35,6 +35,29 @@ def slot_observations(own: np.ndarray, n_agents: int, team_observations: bool) -
         return own
     teams = own.reshape(-1, n_agents * own.shape[-1])
     return np.hstack([own, np.repeat(teams, n_agents, axis=0)])
+
+
+class TeamEpisode(NamedTuple):
+    """A team's episode that ended in a step: what the infos of its slots get."""
+
+    first_slot: int  #: within the block
+    terminal_observations: np.ndarray
+    timed_out: bool
+    success: bool
+    episode: dict[str, float]  #: SB3's record: team return, length, time
+    summary: dict[str, Any]  #: ``formation_episode``
+
+
+class BlockStep(NamedTuple):
+    """One step of a block of teams, as arrays (:meth:`TeamBatch.step`)."""
+
+    observations: np.ndarray
+    rewards: np.ndarray
+    dones: np.ndarray
+    info_values: np.ndarray
+    contacts: np.ndarray
+    success: np.ndarray  #: per slot
+    episodes: list[TeamEpisode]
 
 
 class TeamBatch:
@@ -66,29 +89,30 @@ class TeamBatch:
             ]
         )
 
-    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict[str, Any]]]:
+    def step(self, actions: np.ndarray) -> BlockStep:
         """Step every team with its agents' rows of ``actions``; teams that end are reset at once.
 
         :param actions: ``(slots, 2)`` finite actions (checked by the VecEnv), each team's agents one after the other
-        :return: observations, rewards, dones and infos of every slot, in SB3's ``VecEnv`` conventions
+        :return: the block's arrays; the VecEnv builds the info dicts from them in its own process (pickling dicts
+            between processes would cost more than the step)
         """
         batch = self.batch
-        observations, rewards, terminated, truncated, infos = batch.step(np.minimum(np.maximum(actions, -1.0), 1.0))
+        observations, rewards, terminated, truncated, values = batch.step(np.minimum(np.maximum(actions, -1.0), 1.0))
+        contacts = batch.contacts.copy()  # before the resets below clear the ended teams' rows
         observations = self._slot_observations(observations, int(batch.starts[1])) if self.team_observations else observations
         ended = terminated | truncated
+        episodes = []
         for team in np.flatnonzero(ended).tolist():
             rows = batch.team_rows(team)
-            success, timed_out = bool(terminated[team]), bool(truncated[team])
-            for info, terminal_observation in zip(infos[rows], observations[rows].copy()):  # rows get the reset's
-                info["terminal_observation"] = terminal_observation
-                info["TimeLimit.truncated"] = timed_out and not success
+            success = bool(terminated[team])
             summary = batch.episode_summary(team, success)
-            first = infos[rows.start]
-            first["episode"] = {"r": summary["return"], "l": summary["length"], "t": round(time.time() - self.start_time, 6)}
-            first["is_success"] = success
-            first["formation_episode"] = summary
+            record = {"r": summary["return"], "l": summary["length"], "t": round(time.time() - self.start_time, 6)}
+            terminal = observations[rows].copy()  # the rows get the reset's observations
+            episodes.append(TeamEpisode(rows.start, terminal, bool(truncated[team]) and not success, success, record, summary))
             observations[rows] = self._slot_observations(batch.reset_team(team), rows.stop - rows.start)
-        return observations, rewards, np.repeat(ended, np.diff(batch.starts)), infos
+        sizes = np.diff(batch.starts)
+        dones, success = np.repeat(ended, sizes), np.repeat(terminated, sizes)
+        return BlockStep(observations, rewards, dones, values, contacts, success, episodes)
 
     def get_attr(self, name: str, teams: Iterable[int]) -> list[Any]:
         """Attribute ``name`` of each of ``teams`` (indices within this block)."""
@@ -286,13 +310,23 @@ class FormationVecEnv(VecEnv):
             block: (self._actions[starts[teams[0]] : starts[teams[-1] + 1]],) for block, teams in enumerate(self._team_blocks)
         }
         results = self._run("step", arguments)
-        observations, rewards, dones, infos = zip(*(results[block] for block in range(len(self._batches))))
-        return (
-            np.concatenate(observations),
-            np.concatenate(rewards).astype(np.float32),
-            np.concatenate(dones),
-            [info for block_infos in infos for info in block_infos],
-        )
+        steps = [results[block] for block in range(len(self._batches))]
+        if len(steps) == 1:
+            step = steps[0]
+        else:
+            step = BlockStep(
+                *(np.concatenate([getattr(block, field) for block in steps]) for field in BlockStep._fields[:-1]), []
+            )
+        infos = agent_infos(step.info_values, step.contacts, step.success)
+        for block, block_step in zip(self._team_blocks, steps):
+            first = int(starts[block[0]])
+            for ended in block_step.episodes:
+                slot = first + ended.first_slot
+                for offset, terminal in enumerate(ended.terminal_observations):
+                    infos[slot + offset]["terminal_observation"] = terminal
+                    infos[slot + offset]["TimeLimit.truncated"] = ended.timed_out
+                infos[slot].update(episode=ended.episode, is_success=ended.success, formation_episode=ended.summary)
+        return step.observations, step.rewards.astype(np.float32), step.dones, infos
 
     def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
         slots = list(self._get_indices(indices))
