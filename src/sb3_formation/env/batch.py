@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from itertools import chain
 from typing import Any
 
 import numba
@@ -60,7 +61,8 @@ class FormationBatch:
         for env in self.envs:
             if env.config.replace(n_agents=config.n_agents) != config:
                 raise ValueError("the teams of a FormationBatch must share one task (they may differ in n_agents only)")
-        sizes = np.array([env.config.n_agents for env in self.envs])
+        #: team sizes, and the first row of each team (and the number of rows, last)
+        self.sizes = sizes = np.array([env.config.n_agents for env in self.envs])
         self.starts = np.concatenate([[0], np.cumsum(sizes)])
         n_teams, n_slots = len(sizes), int(self.starts[-1])
         rays, dim = config.lidar_rays, self.envs[0].observation_space("agent_0").shape[0]
@@ -226,14 +228,13 @@ class FormationBatch:
         previous_velocities = self.velocities
         previous_goal_distances = self.goal_distances
         commanded = clamp_speed(self.velocities + (actions * config.force_max) * (config.dt / config.agent_mass), config.v_max)
-        self.velocities = np.empty_like(previous_velocities)
-        contacts = self.contacts
-        for team, env in enumerate(self.envs):
-            start, end = starts[team], starts[team + 1]
-            world = env.world
-            contacts[start:end, 0], contacts[start:end, 1] = world.move(commanded[start:end])
-            self.positions[start:end] = world.positions
-            self.velocities[start:end] = world.velocities
+        worlds = [env.world for env in self.envs]
+        moved = [world.move(commanded[starts[team] : starts[team + 1]]) for team, world in enumerate(worlds)]
+        self.positions = np.concatenate([world.positions for world in worlds])
+        self.velocities = np.concatenate([world.velocities for world in worlds])
+        # (agents, obstacles) touched by each agent in the step
+        agents, obstacles = (list(chain.from_iterable(kind)) for kind in zip(*moved))
+        self.contacts = contacts = np.array([agents, obstacles], dtype=np.int64).T
         self.step_counts += 1
         np.subtract(self.goals, self.centroids, out=self.previous_offsets)
         nearest_agent, nearest_obstacle = _measure_teams(
@@ -355,7 +356,7 @@ class FormationBatch:
         :param values: the info values :meth:`step` returned
         :param terminated: the teams' success, as :meth:`step` returned it
         """
-        return agent_infos(values, self.contacts, np.repeat(terminated, np.diff(self.starts)))
+        return agent_infos(values, self.contacts, np.repeat(terminated, self.sizes))
 
 
 def agent_infos(values: np.ndarray, contacts: np.ndarray, success: np.ndarray) -> list[dict[str, Any]]:

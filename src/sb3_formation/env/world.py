@@ -44,6 +44,20 @@ def clamp_speed(velocities: np.ndarray, v_max: float) -> np.ndarray:  # pragma: 
     return clamped
 
 
+@numba.njit(cache=True)
+def split_state(state: np.ndarray, v_max: float) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Positions and velocities from Pymunk's ``(n, 4)`` rows (x, y, v_x, v_y), the velocities clamped to ``v_max``:
+    contacts never add speed beyond numerical noise, but the bound is a promise, so what Pymunk returns is clamped too.
+
+    :return: two new ``(n, 2)`` arrays (m, m/s)
+    """
+    positions, velocities = np.empty((state.shape[0], 2)), np.empty((state.shape[0], 2))
+    for index in range(state.shape[0]):
+        positions[index, 0], positions[index, 1] = state[index, 0], state[index, 1]
+        velocities[index, 0], velocities[index, 1] = state[index, 2], state[index, 3]
+    return positions, clamp_speed(velocities, v_max)
+
+
 class World:
     """One team's Pymunk space, built from a :class:`Scenario`; :meth:`place` puts the next episode's in the same space.
 
@@ -156,10 +170,7 @@ class World:
         self._read_buffer.clear()
         pymunk.batch.get_space_bodies(self.space, _STATE_FIELDS, self._read_buffer)
         state = np.frombuffer(self._read_buffer.float_buf(), dtype=np.float64).reshape(-1, 4)[self._agent_rows]
-        self.positions = np.ascontiguousarray(state[:, :2])
-        resolved = np.ascontiguousarray(state[:, 2:])
-        # contacts never add speed beyond numerical noise, but the bound is a promise: clamp what Pymunk returns too
-        self.velocities = clamp_speed(resolved, config.v_max)
+        self.positions, self.velocities = split_state(state, config.v_max)
         agent_contacts = [0] * config.n_agents
         for first, second in self._agent_pairs:
             agent_contacts[first] += 1

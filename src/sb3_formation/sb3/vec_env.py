@@ -110,8 +110,7 @@ class TeamBatch:
             terminal = observations[rows].copy()  # the rows get the reset's observations
             episodes.append(TeamEpisode(rows.start, terminal, bool(truncated[team]) and not success, success, record, summary))
             observations[rows] = self._slot_observations(batch.reset_team(team), rows.stop - rows.start)
-        sizes = np.diff(batch.starts)
-        dones, success = np.repeat(ended, sizes), np.repeat(terminated, sizes)
+        dones, success = np.repeat(ended, batch.sizes), np.repeat(terminated, batch.sizes)
         return BlockStep(observations, rewards, dones, values, contacts, success, episodes)
 
     def get_attr(self, name: str, teams: Iterable[int]) -> list[Any]:
