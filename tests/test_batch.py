@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from sb3_formation import FormationConfig, FormationEnv
-from sb3_formation.env.batch import INFO_KEYS, FormationBatch
+from sb3_formation.env.batch import FormationBatch
+from sb3_formation.env.config import INFO_KEYS
 from sb3_formation.env.episodes import EpisodeStatistics
 from sb3_formation.sb3.vec_env import FormationVecEnv, slot_observations
 

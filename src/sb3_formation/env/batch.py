@@ -21,7 +21,7 @@ from typing import Any
 import numba
 import numpy as np
 
-from sb3_formation.env.config import REWARD_INFO_KEYS, REWARD_TERMS
+from sb3_formation.env.config import INFO_KEYS, REWARD_TERMS
 from sb3_formation.env.episodes import episode_summary
 from sb3_formation.env.formation_env import FormationEnv
 from sb3_formation.env.geometry import FormationState, _measure
@@ -30,18 +30,6 @@ from sb3_formation.env.rewards import _reward_terms, nearest_gaps
 from sb3_formation.env.sensors import lidar_ranges
 from sb3_formation.env.world import clamp_speed
 
-#: Keys of every agent's info, in the order :class:`FormationEnv` writes them.
-INFO_KEYS: tuple[str, ...] = (
-    "angle_error_deg",
-    "bearing_error",
-    "neighbour_distance_error",
-    "centroid_distance",
-    "goal_distance",
-    "collisions_obstacle",
-    "collisions_agent",
-    "success",
-    *REWARD_INFO_KEYS,
-)
 _N_TERMS = len(REWARD_TERMS)
 
 

@@ -33,6 +33,18 @@ REWARD_TERMS: tuple[str, ...] = ("time", "angle", "bearing", "dist", "centroid",
 #: Keys of the reward terms in an agent's step infos, ``reward_<term>``: flat, so that every client library (TorchRL's
 #: ``PettingZooWrapper`` stacks each info value as a tensor) takes them.
 REWARD_INFO_KEYS: tuple[str, ...] = tuple(f"reward_{term}" for term in REWARD_TERMS)
+#: Keys of an agent's step infos, in the order the env writes them (``FormationEnv``'s class docstring, "Info").
+INFO_KEYS: tuple[str, ...] = (
+    "angle_error_deg",
+    "bearing_error",
+    "neighbour_distance_error",
+    "centroid_distance",
+    "goal_distance",
+    "collisions_obstacle",
+    "collisions_agent",
+    "success",
+    *REWARD_INFO_KEYS,
+)
 
 #: Names of the curriculum placement layouts (see :mod:`sb3_formation.scenarios`).
 LAYOUTS: tuple[str, ...] = ("ch4", "ch5")

@@ -10,7 +10,7 @@ import numpy as np
 from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
-from sb3_formation.env.config import REWARD_INFO_KEYS, REWARD_TERMS, FormationConfig
+from sb3_formation.env.config import INFO_KEYS, REWARD_TERMS, FormationConfig
 from sb3_formation.env.geometry import FormationState, measure_formation, reference_bearings, ring_neighbours
 from sb3_formation.env.observations import build_observations, observation_fields, observation_layout
 from sb3_formation.env.rendering import HumanWindow, render_frame
@@ -366,18 +366,8 @@ class FormationEnv(ParallelEnv):
             terms.T.tolist(),
         )
         return [
-            {
-                "angle_error_deg": angle,
-                "bearing_error": bearing,
-                "neighbour_distance_error": distance,
-                "centroid_distance": centroid,
-                "goal_distance": self.goal_distance,
-                "collisions_obstacle": obstacle_contact,
-                "collisions_agent": agent_contact,
-                "success": success,
-                **dict(zip(REWARD_INFO_KEYS, agent_terms)),
-            }
-            for angle, bearing, distance, centroid, obstacle_contact, agent_contact, agent_terms in rows
+            dict(zip(INFO_KEYS, (angle, bearing, distance, centroid, self.goal_distance, obstacle, agent, success, *terms)))
+            for angle, bearing, distance, centroid, obstacle, agent, terms in rows
         ]
 
     def _agent_errors(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
