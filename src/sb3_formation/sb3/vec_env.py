@@ -99,7 +99,7 @@ class TeamBatch:
         batch = self.batch
         observations, rewards, terminated, truncated, values = batch.step(np.minimum(np.maximum(actions, -1.0), 1.0))
         contacts = batch.contacts.copy()  # before the resets below clear the ended teams' rows
-        observations = self._slot_observations(observations, int(batch.starts[1])) if self.team_observations else observations
+        observations = self._slot_observations(observations, int(batch.sizes[0]))  # team critics: teams of one size
         ended = terminated | truncated
         episodes = []
         for team in np.flatnonzero(ended).tolist():
