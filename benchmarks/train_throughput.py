@@ -1,11 +1,20 @@
-"""Training throughput of the thesis PPO set-up: agent-steps per second, split into rollout collection and training.
+"""Training throughput of PPO set-ups: agent-steps per second, split into rollout collection and training, against a
+reference measured in the same run: the bare gradient work of an iteration.
 
-ch5-bearing, n = 6, the thesis's 14 teams (84 agent slots), PPO with the thesis's settings and networks (n_steps 128,
-batch 512, 10 epochs). Each iteration collects 128 x 84 = 10,752 agent-steps, then trains on them. Prints medians
-over the timed iterations (after one warm-up iteration) for the MLP policy (chapter 4's networks) and the recurrent
-ones of chapter 5 (GRU, LSTM), with one worker process (``--workers 1,2`` adds more).
+ch5-bearing, 14 teams of n = 6 (84 agent slots), each set-up's networks and PPO settings, its training env (observation
+and reward normalisation as in ``sb3-formation train``) and the per-step callback training runs (formation metrics):
+- ``fast``: the fast recipe (``fast-ch5-bearing``: two [256, 256] MLPs, 256 steps per rollout, 5 epochs of 2048);
+- ``thesis-mlp``: the thesis's settings (``ch5-bearing``: 128 steps, 10 epochs of 512) with chapter 4's MLP networks;
+- ``thesis-gru``, ``thesis-lstm``: the same with chapter 5's recurrent networks.
 
-Usage: ``python benchmarks/train_throughput.py [--iterations 4] [--workers 1] [--policies mlp,gru,lstm]``
+The reference (the forward, backward and Adam step of the same networks on as many minibatches, without PPO's losses,
+buffers or bookkeeping) gives this machine's ceiling for an iteration; the ratio of the whole loop's throughput to that
+ceiling is the figure to compare across machines. Prints medians over the timed iterations (after one warm-up).
+
+Targets (issue 17): fast recipe: rollout at most 20 % of an iteration, at least 12,000 agent-steps/s and at least 80 %
+of the ceiling; thesis set-up with the MLP: at least 85 % of the ceiling.
+
+Usage: ``python benchmarks/train_throughput.py [--iterations 5] [--workers 1,2] [--recipes fast,thesis-mlp]``
 """
 
 from __future__ import annotations
@@ -18,9 +27,20 @@ import torch as th
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 
-from sb3_formation import load_setup, make_formation_vec_env
 from sb3_formation.experiment.runs import algorithm_for
+from sb3_formation.experiment.settings import TrainSettings
+from sb3_formation.experiment.setups import with_schedules
+from sb3_formation.experiment.training import make_training_env
+from sb3_formation.sb3.callbacks import FormationMetricsCallback
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
+
+#: recipe -> (set-up, recurrent cell or None for the MLP)
+RECIPES = {
+    "fast": ("fast-ch5-bearing", None),
+    "thesis-mlp": ("ch5-bearing", None),
+    "thesis-gru": ("ch5-bearing", "gru"),
+    "thesis-lstm": ("ch5-bearing", "lstm"),
+}
 
 
 class PhaseTimer(BaseCallback):
@@ -50,18 +70,17 @@ class PhaseTimer(BaseCallback):
         return True
 
 
-def measure(workers: int, iterations: int, policy: str, preset: str = "ch5-bearing") -> tuple[float, float, float, int]:
-    """Median rollout, training and gradient-floor seconds per iteration, and agent-steps per iteration.
-
-    :param policy: ``"mlp"``, ``"gru"`` or ``"lstm"``
-    """
-    setup = load_setup(preset)
-    env = make_formation_vec_env(preset, n_envs=setup.teams, seed=0, n_workers=workers)
-    kwargs = setup.ppo_kwargs(recurrent=policy != "mlp", cell=None if policy == "mlp" else policy)
-    model = algorithm_for(kwargs["policy"])(env=env, seed=0, device="cpu", **kwargs)
+def measure(recipe: str, workers: int, iterations: int) -> tuple[float, float, float, int]:
+    """Median rollout, training and reference seconds per iteration, and agent-steps per iteration, of ``recipe``."""
+    preset, cell = RECIPES[recipe]
+    recurrent = {"recurrent": cell is not None, **({"cell": cell} if cell else {})}
+    settings = TrainSettings(preset=preset, n_envs=14, workers=workers, seed=0, device="cpu", **recurrent)
+    env = make_training_env(settings, stage=3)
+    kwargs = settings.ppo_kwargs()
+    model = algorithm_for(kwargs["policy"])(env=env, seed=0, device="cpu", **with_schedules(kwargs))
     timer = PhaseTimer()
     steps = model.n_steps * env.num_envs
-    model.learn((iterations + 1) * steps, callback=timer)
+    model.learn((iterations + 1) * steps, callback=[FormationMetricsCallback(), timer])
     env.close()
     floor = statistics.median(gradient_floor(model) for _ in range(iterations))
     return statistics.median(timer.rollouts[1:]), statistics.median(timer.trainings[1:]), floor, steps
@@ -95,31 +114,30 @@ def gradient_floor(model: PPO) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--iterations", type=int, default=4)
-    parser.add_argument("--workers", default="1")
-    parser.add_argument("--policies", default="mlp,gru,lstm")
+    parser.add_argument("--iterations", type=int, default=5)
+    parser.add_argument("--workers", default="1,2", help="processes stepping the teams, comma-separated")
+    parser.add_argument("--recipes", default="fast,thesis-mlp", help=f"comma-separated: {', '.join(RECIPES)}")
     args = parser.parse_args()
-    print(f"PPO throughput, ch5-bearing, n = 6, 14 teams, thesis networks and settings; torch threads {th.get_num_threads()}")
+    print(f"PPO throughput, ch5-bearing, 14 teams of n = 6; torch threads {th.get_num_threads()}")
     print(f"medians of {args.iterations} iterations after one warm-up")
-    throughput: dict[str, float] = {}
-    for policy in args.policies.split(","):
+    for recipe in args.recipes.split(","):
         for workers in (int(value) for value in args.workers.split(",")):
-            rollout, training, floor, steps = measure(workers, args.iterations, policy)
+            rollout, training, floor, steps = measure(recipe, workers, args.iterations)
             total = rollout + training
-            throughput.setdefault(policy, steps / total)
+            share, ceiling = rollout / total, floor / total
             print(
-                f"  {policy:<4} workers={workers}: rollout {rollout:5.2f} s + training {training:5.2f} s per iteration of "
-                f"{steps} agent-steps -> {steps / total:,.0f} agent-steps/s; rollout share {rollout / total:.0%}"
+                f"  {recipe:<11} workers={workers}: rollout {rollout:5.2f} s + training {training:5.2f} s per iteration of "
+                f"{steps} agent-steps -> {steps / total:,.0f} agent-steps/s; rollout share {share:.0%}"
             )
             print(
-                f"             reference, bare gradient work of an iteration {floor:5.2f} s: training / reference "
-                f"{training / floor:.2f}x; the whole loop at this machine's gradient speed could reach at most "
-                f"{steps / floor:,.0f} agent-steps/s"
+                f"{'':14}reference {floor:5.2f} s (ceiling {steps / floor:,.0f} agent-steps/s): training / reference "
+                f"{training / floor:.2f}x, throughput / ceiling {ceiling:.0%}"
             )
-    if "mlp" in throughput:
-        for policy in throughput.keys() - {"mlp"}:
-            print(f"  {policy} / mlp throughput: {throughput[policy] / throughput['mlp']:.2f}x")
-    print("  targets: >= 2,000 agent-steps/s overall, rollout < 20 % of an iteration")
+            if recipe == "fast":
+                verdict = "met" if share <= 0.2 and steps / total >= 12_000 and ceiling >= 0.8 else "NOT met"
+                print(f"{'':14}target rollout <= 20 %, >= 12,000 agent-steps/s, >= 80 % of the ceiling: {verdict}")
+            if recipe == "thesis-mlp":
+                print(f"{'':14}target >= 85 % of the ceiling: {'met' if ceiling >= 0.85 else 'NOT met'}")
 
 
 if __name__ == "__main__":

@@ -88,11 +88,11 @@ def reference_vec_step(envs: list[FormationEnv], statistics: list[EpisodeStatist
     return np.concatenate(observations), np.concatenate(rewards).astype(np.float32), np.concatenate(dones), infos
 
 
-@pytest.mark.parametrize("workers", [1, 2])
+@pytest.mark.parametrize("workers", [1, 2, 3])
 def test_the_vec_env_matches_team_by_team_stepping(workers: int) -> None:
-    """Teams of sizes 3 to 16 in one ``FormationVecEnv`` (in this process, or in 2 workers) against the same teams
-    stepped one by one: observations, rewards, dones and infos (terminal observations and team-episode records) agree,
-    also after the curriculum changes the stage of some teams."""
+    """Teams of sizes 3 to 16 in one ``FormationVecEnv`` (in this process, or split between it and 1 or 2 worker
+    processes) against the same teams stepped one by one: observations, rewards, dones and infos (terminal
+    observations and team-episode records) agree, also after the curriculum changes the stage of some teams."""
     config = FormationConfig.preset("ch5-bearing", stage=3, max_steps=25)
     venv = FormationVecEnv(config, n_envs=len(SIZES), n_workers=workers, team_sizes=SIZES, start_method="fork")
     venv.seed(3)

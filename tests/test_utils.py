@@ -9,11 +9,12 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from sb3_formation.utils import files
 from sb3_formation.utils.files import FILE_MODE, atomic_directory, atomic_path, atomic_write, restore_directory
-from sb3_formation.utils.processes import WorkerProcess, gather
+from sb3_formation.utils.processes import SharedArrays, WorkerProcess, gather
 
 
 @pytest.fixture
@@ -294,3 +295,75 @@ def test_gather_waits_for_the_slow_workers_and_raises_the_first_error() -> None:
     finally:
         for worker in workers:
             worker.close(timeout=1)
+
+
+class Squarer:
+    """A worker object that works on shared arrays: squares ``inputs`` into ``squares`` and counts in ``counts``."""
+
+    def __init__(self, shared: SharedArrays) -> None:
+        self.shared = shared
+
+    def square(self) -> int:
+        self.shared["squares"][...] = self.shared["inputs"] ** 2
+        self.shared["counts"][0] += 1
+        return int(self.shared["counts"][0])
+
+    def close(self) -> None:
+        self.shared.close()
+
+
+def test_shared_arrays_reach_a_worker_by_name_and_are_freed_by_their_maker() -> None:
+    layout = {"inputs": ((3, 2), np.float64), "counts": ((1,), np.int64), "squares": ((3, 2), np.float32)}
+    shared = SharedArrays(layout)
+    assert {key: (array.shape, array.dtype) for key, array in shared.arrays.items()} == {
+        "inputs": ((3, 2), np.float64),
+        "counts": ((1,), np.int64),
+        "squares": ((3, 2), np.float32),
+    }
+    worker = WorkerProcess(Squarer, (shared,), "squarer", spin=0.05)
+    try:
+        shared["inputs"][...] = [[1.0, -2.0], [0.5, 3.0], [10.0, 0.0]]
+        assert worker.call("square") == 1
+        assert shared["squares"].tolist() == [[1.0, 4.0], [0.25, 9.0], [100.0, 0.0]]
+        shared["inputs"][1] = [4.0, 5.0]  # the worker reads what the parent writes now
+        assert worker.call("square") == 2
+        assert shared["squares"][1].tolist() == [16.0, 25.0] and shared["inputs"][1].tolist() == [4.0, 5.0]
+    finally:
+        worker.close()
+    name = shared._memory.name
+    attached = SharedArrays(layout, name)  # a second view, as a worker has: closing it leaves the block
+    attached.close()
+    reader = SharedArrays(layout, name)
+    assert reader["counts"][0] == 2
+    squares = shared["squares"]
+    shared.close()
+    with pytest.raises(FileNotFoundError):
+        SharedArrays(layout, name)
+    assert squares[1].tolist() == [16.0, 25.0] and reader["counts"][0] == 2  # views in use keep the memory mapped
+    del squares
+    reader.close()
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process so far (Linux ``/proc``)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads CPU times from /proc")
+def test_a_spinning_worker_polls_for_calls_then_sleeps() -> None:
+    worker = WorkerProcess(Counter, (0,), "spinner", spin=0.3)
+    try:
+        assert [worker.call("add", 1) for _ in range(50)] == list(range(1, 51))
+        worker.send("add", 1)
+        assert gather([worker], spin=0.3) == [51]
+        before = cpu_seconds(worker.process.pid)
+        time.sleep(0.5)
+        spun = cpu_seconds(worker.process.pid) - before
+        assert 0.1 < spun < 0.45  # it polled for about 0.3 s of the 0.5 s, busy on a core
+        before = cpu_seconds(worker.process.pid)
+        time.sleep(0.5)
+        assert cpu_seconds(worker.process.pid) - before < 0.05  # then it slept
+        assert worker.call("add", 1) == 52  # and a call wakes it
+    finally:
+        worker.close()

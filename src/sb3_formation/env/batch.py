@@ -31,6 +31,9 @@ from sb3_formation.env.sensors import lidar_ranges
 from sb3_formation.env.world import clamp_speed
 
 _N_TERMS = len(REWARD_TERMS)
+#: columns of the info values :meth:`FormationBatch.step` returns: the five errors and distances of :data:`INFO_KEYS`,
+#: then the reward terms (:func:`agent_infos` adds the contacts and success)
+INFO_VALUES = 5 + _N_TERMS
 
 
 class FormationBatch:
@@ -350,7 +353,7 @@ class FormationBatch:
 def agent_infos(values: np.ndarray, contacts: np.ndarray, success: np.ndarray) -> list[dict[str, Any]]:
     """Agents' info dicts, keys in the order of :data:`INFO_KEYS`, from the arrays of :meth:`FormationBatch.step`.
 
-    :param values: ``(agents, 14)`` floats: the five errors and distances of :data:`INFO_KEYS`, then the reward terms
+    :param values: ``(agents, INFO_VALUES)`` floats: the five errors and distances of :data:`INFO_KEYS`, then the reward terms
     :param contacts: ``(agents, 2)`` ints: other agents, then obstacles or walls, touched in the step
     :param success: ``(agents,)`` bools: the agent's team reached the goal
     """

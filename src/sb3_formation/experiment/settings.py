@@ -145,7 +145,7 @@ class TrainSettings:
     :param preset: set-up name (``sb3-formation presets``) or the path of a set-up YAML file
     :param iterations: PPO iterations of curriculum stages 1, 2, 3
     :param n_envs: parallel teams
-    :param workers: worker processes stepping the teams
+    :param workers: processes stepping the teams, this one included (the others are worker processes)
     :param seed: seed of PPO and of the teams' scenario generators
     :param device: torch device for PPO (``"auto"``, ``"cpu"``, ``"cuda"``)
     :param logdir: folder in which run folders are made
@@ -182,7 +182,9 @@ class TrainSettings:
         metadata=option("PPO iterations of stages 1,2,3 (default: the set-up's)", type=stage_iterations, metavar="A,B,C"),
     )
     n_envs: int | None = field(default=None, metadata=option("parallel teams (default: the set-up's)", type=positive_int))
-    workers: int = field(default=1, metadata=option("worker processes stepping the teams (default 1)", type=positive_int))
+    workers: int = field(
+        default=1, metadata=option("processes stepping the teams, this one included (default 1)", type=positive_int)
+    )
     seed: int = field(default=0, metadata=option("seed of PPO and of the scenarios (default 0)", type=seed_value))
     device: str = field(default="auto", metadata=option("torch device: auto, cpu, cuda (default auto)"))
     logdir: str = field(default="runs", metadata=option("folder for run folders (default runs/)"))

@@ -16,10 +16,14 @@ import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
-from sb3_formation.env.batch import FormationBatch, agent_infos
+from sb3_formation.env.batch import INFO_VALUES, FormationBatch, agent_infos
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.formation_env import FormationEnv
-from sb3_formation.utils.processes import WorkerProcess, gather, worker_context
+from sb3_formation.utils.processes import SharedArrays, WorkerProcess, gather, worker_context
+
+#: seconds a worker process polls for the next step before it sleeps (waking it would cost more than a step), and the
+#: VecEnv for a worker's reply; the steps of a rollout follow each other well within it, training phases do not
+WORKER_SPIN = 0.02
 
 
 def slot_observations(own: np.ndarray, n_agents: int, team_observations: bool) -> np.ndarray:
@@ -49,7 +53,7 @@ class TeamEpisode(NamedTuple):
 
 
 class BlockStep(NamedTuple):
-    """One step of a block of teams, as arrays (:meth:`TeamBatch.step`)."""
+    """One step of a block of teams, as arrays (:meth:`TeamBatch.step`), then the block's ended episodes."""
 
     observations: np.ndarray
     rewards: np.ndarray
@@ -58,6 +62,10 @@ class BlockStep(NamedTuple):
     contacts: np.ndarray
     success: np.ndarray  #: per slot
     episodes: list[TeamEpisode]
+
+
+#: the :class:`BlockStep` fields that are arrays with a row per slot
+ARRAY_FIELDS = BlockStep._fields[:-1]
 
 
 class TeamBatch:
@@ -69,12 +77,21 @@ class TeamBatch:
     :param configs: task configuration of each team of this block
     :param team_observations: each slot also sees its whole team's observations (for a team critic)
     :param render_mode: render mode of the teams' envs
+    :param shared: the block's ``actions`` and :data:`ARRAY_FIELDS` arrays in shared memory, for
+        :meth:`step_shared` (in a worker process)
     """
 
-    def __init__(self, configs: Sequence[FormationConfig], team_observations: bool, render_mode: str | None) -> None:
+    def __init__(
+        self,
+        configs: Sequence[FormationConfig],
+        team_observations: bool,
+        render_mode: str | None,
+        shared: SharedArrays | None = None,
+    ) -> None:
         self.batch = FormationBatch([FormationEnv(config, render_mode=render_mode) for config in configs])
         self.envs = self.batch.envs
         self.team_observations = team_observations
+        self.shared = shared
         self.start_time = time.time()
 
     def _slot_observations(self, own: np.ndarray, n_agents: int) -> np.ndarray:
@@ -113,6 +130,14 @@ class TeamBatch:
         dones, success = np.repeat(ended, batch.sizes), np.repeat(terminated, batch.sizes)
         return BlockStep(observations, rewards, dones, values, contacts, success, episodes)
 
+    def step_shared(self) -> list[TeamEpisode]:
+        """:meth:`step` with the actions read from ``shared`` and the arrays written to it: only the ended episodes
+        (few, and rarely any) go through the worker's pipe."""
+        step = self.step(self.shared["actions"])
+        for field in ARRAY_FIELDS:
+            self.shared[field][...] = getattr(step, field)
+        return step.episodes
+
     def get_attr(self, name: str, teams: Iterable[int]) -> list[Any]:
         """Attribute ``name`` of each of ``teams`` (indices within this block)."""
         return [getattr(self._synced(team), name) for team in teams]
@@ -141,9 +166,11 @@ class TeamBatch:
         return [self._synced(team).render() for team in range(len(self.envs))]
 
     def close(self) -> None:
-        """Close every team's env."""
+        """Close every team's env (and this process's view of the shared arrays)."""
         for env in self.envs:
             env.close()
+        if self.shared is not None:
+            self.shared.close()
 
 
 class FormationVecEnv(VecEnv):
@@ -163,13 +190,15 @@ class FormationVecEnv(VecEnv):
     - Episode statistics are counted once per team: the info of the team's first slot carries ``episode``
       (``r`` = return averaged over the team's agents, ``l`` = length), ``is_success`` and ``formation_episode``
       (means over the episode of the formation errors and reward terms, collision totals, success, stage).
-    - With ``n_workers > 1`` the teams are split into contiguous blocks stepped in worker processes; each team is
-      independent, so the same seed gives the same rollouts for any ``n_workers``.
+    - With ``n_workers > 1`` the teams are split into ``n_workers`` contiguous blocks: this process steps the first,
+      one worker process each of the others, all at once; actions and results go through shared memory, and the
+      workers poll for the next step for :data:`WORKER_SPIN` seconds before they sleep. Each team is independent, so
+      the same seed gives the same rollouts for any ``n_workers``.
 
     :param config: task configuration of every team
     :param n_envs: number of teams
     :param team_observations: give every slot its whole team's observations (for a team critic)
-    :param n_workers: worker processes (1: step every team in this process)
+    :param n_workers: processes stepping the teams, this one included (1: every team in this process)
     :param render_mode: ``None`` or ``"rgb_array"``; ``render()`` tiles the teams' frames
     :param start_method: multiprocessing start method for the workers (default: ``forkserver`` where available)
     :param team_sizes: team sizes (each >= 3) taken in turn: team j has ``team_sizes[j % len(team_sizes)]`` agents
@@ -216,13 +245,32 @@ class FormationVecEnv(VecEnv):
         arguments = [
             ([self.team_configs[team] for team in block], team_observations, render_mode) for block in self._team_blocks
         ]
-        if n_workers == 1:
-            self._batches: list[TeamBatch | WorkerProcess] = [TeamBatch(*arguments[0])]
-        else:
+        #: the first block's teams, stepped in this process; the others' in worker processes
+        self._batches: list[TeamBatch | WorkerProcess] = [TeamBatch(*arguments[0])]
+        #: per worker block: its actions and step arrays in shared memory
+        self._shared: dict[int, SharedArrays] = {}
+        if n_workers > 1:
             context = worker_context(start_method)
-            self._batches = [WorkerProcess(TeamBatch, block, "FormationVecEnv worker", context) for block in arguments]
+            for block, block_arguments in enumerate(arguments[1:], start=1):
+                slots = sum(team_config.n_agents for team_config in block_arguments[0])
+                self._shared[block] = shared = SharedArrays(self._step_layout(slots, observation_space.shape[0]))
+                worker = WorkerProcess(TeamBatch, (*block_arguments, shared), "FormationVecEnv worker", context, WORKER_SPIN)
+                self._batches.append(worker)
         self._actions: np.ndarray | None = None
         super().__init__(int(self._team_starts[-1]), observation_space, probe.action_space(probe.possible_agents[0]))
+
+    @staticmethod
+    def _step_layout(slots: int, observation_dim: int) -> dict[str, tuple[tuple[int, ...], Any]]:
+        """Shapes and dtypes of a block's actions and :class:`BlockStep` arrays, for ``slots`` slots."""
+        return {
+            "actions": ((slots, 2), np.float64),
+            "observations": ((slots, observation_dim), np.float32),
+            "rewards": ((slots,), np.float64),
+            "dones": ((slots,), bool),
+            "info_values": ((slots, INFO_VALUES), np.float64),
+            "contacts": ((slots, 2), np.int64),
+            "success": ((slots,), bool),
+        }
 
     # Slot and team bookkeeping -----------------------------------------------------------------------------------
 
@@ -243,15 +291,22 @@ class FormationVecEnv(VecEnv):
                     grouped.setdefault(block, []).append(team - block_teams[0])
         return list(grouped.items())
 
-    def _run(self, command: str, arguments: dict[int, tuple]) -> dict[int, Any]:
-        """Call ``command`` on the blocks in ``arguments`` (block -> arguments), in the workers all in parallel."""
-        if self.n_workers == 1:
-            return {
-                block: getattr(self._batches[block], command)(*block_arguments) for block, block_arguments in arguments.items()
-            }
-        for block, block_arguments in arguments.items():
-            self._batches[block].send(command, *block_arguments)
-        return dict(zip(arguments, gather([self._batches[block] for block in arguments])))
+    def _run(self, command: str, arguments: dict[int, tuple], worker_command: str | None = None) -> dict[int, Any]:
+        """Call ``command`` on the blocks in ``arguments`` (block -> arguments), the workers' while this process runs
+        its own block's.
+
+        :param worker_command: the workers' command instead of ``command``
+        """
+        workers = [block for block in arguments if block > 0]
+        for block in workers:
+            self._batches[block].send(worker_command or command, *arguments[block])
+        results = {}
+        try:
+            if 0 in arguments:
+                results[0] = getattr(self._batches[0], command)(*arguments[0])
+        finally:  # read the workers' replies even after an error here, so none is left in a pipe
+            results.update(zip(workers, gather([self._batches[block] for block in workers], spin=WORKER_SPIN)))
+        return results
 
     def _call_teams(self, command: str, teams: list[int], *data: Any) -> dict[int, Any]:
         """Run ``command(data[0], local_teams, *data[1:])`` on the blocks holding ``teams``; return team -> result."""
@@ -305,17 +360,17 @@ class FormationVecEnv(VecEnv):
 
     def step_wait(self) -> VecEnvStepReturn:
         starts = self._team_starts
-        arguments = {
-            block: (self._actions[starts[teams[0]] : starts[teams[-1] + 1]],) for block, teams in enumerate(self._team_blocks)
-        }
-        results = self._run("step", arguments)
-        steps = [results[block] for block in range(len(self._batches))]
+        actions = [self._actions[starts[teams[0]] : starts[teams[-1] + 1]] for teams in self._team_blocks]
+        for block, shared in self._shared.items():
+            shared["actions"][...] = actions[block]
+        results = self._run("step", {0: (actions[0],), **{block: () for block in self._shared}}, "step_shared")
+        steps = [results[0]] + [
+            BlockStep(*(shared[field] for field in ARRAY_FIELDS), results[block]) for block, shared in self._shared.items()
+        ]
         if len(steps) == 1:
             step = steps[0]
-        else:
-            step = BlockStep(
-                *(np.concatenate([getattr(block, field) for block in steps]) for field in BlockStep._fields[:-1]), []
-            )
+        else:  # copies the shared arrays, which the next step overwrites
+            step = BlockStep(*(np.concatenate([getattr(block, field) for block in steps]) for field in ARRAY_FIELDS), [])
         infos = agent_infos(step.info_values, step.contacts, step.success)
         for block, block_step in zip(self._team_blocks, steps):
             first = int(starts[block[0]])
@@ -353,6 +408,8 @@ class FormationVecEnv(VecEnv):
     def close(self) -> None:
         for batch in self._batches:
             batch.close()
+        for shared in self._shared.values():
+            shared.close()
 
 
 def make_formation_vec_env(
@@ -375,7 +432,7 @@ def make_formation_vec_env(
     :param n_agents: team size (default: the preset's)
     :param stage: curriculum stage (default: the preset's, 1)
     :param seed: seed of the teams' scenario generators (each team gets ``seed`` + its first slot); ``None``: random
-    :param n_workers: worker processes stepping the teams
+    :param n_workers: processes stepping the teams, this one included
     :param normalize: wrap in :class:`~sb3_formation.normalization.ScaleNormalizeVecEnv`
     :param team_critic: give every slot its team's observations (default: when the preset uses the team reward)
     :param render_mode: ``None`` or ``"rgb_array"``

@@ -4,17 +4,27 @@ Used by the VecEnv (a block of teams per worker) and by evaluation (a share of t
 with ``forkserver`` where available (``spawn`` elsewhere), so scripts that start them need the usual
 ``if __name__ == "__main__":`` guard. Workers ignore Ctrl-C: the parent decides how to stop and closes them. A worker
 that dies is named in the error with its process id and exit code.
+
+Waking a process that sleeps on a pipe costs hundreds of microseconds on a busy machine, more than a VecEnv step of a
+block of teams. A worker made with ``spin`` > 0 therefore polls its pipe for that long after each call before it
+sleeps, and :func:`gather` with ``spin`` polls for the replies: calls that follow each other closely (the steps of a
+rollout) never wait for a wake-up, and a worker left alone (during training) sleeps after ``spin`` seconds.
+:class:`SharedArrays` carries the arrays of such calls, so the pipe carries only a few bytes.
 """
 
 from __future__ import annotations
 
 import multiprocessing
+import os
 import signal
+import time
 from collections.abc import Callable, Sequence
+from multiprocessing import shared_memory
 from multiprocessing.connection import Connection, wait
 from typing import Any
 
 import cloudpickle
+import numpy as np
 
 #: Reply kinds sent by a worker.
 _OK, _ERROR, _PROGRESS = "ok", "error", "progress"
@@ -27,14 +37,29 @@ def worker_context(start_method: str | None = None) -> multiprocessing.context.B
     return multiprocessing.get_context(start_method)
 
 
-def _serve(remote: Connection, parent_remote: Connection, payload: bytes) -> None:  # pragma: no cover - subprocess
-    """The worker's loop: build the object, then answer ``(method, args, progress)`` calls until ``close``."""
+def _ready(remotes: list[Connection], spin: float) -> list[Connection]:
+    """The connections of ``remotes`` that have something to read, once one has: poll them for up to ``spin``
+    seconds, then sleep on them."""
+    if spin > 0.0:
+        deadline = time.perf_counter() + spin
+        while time.perf_counter() < deadline:
+            ready = wait(remotes, 0.0)
+            if ready:
+                return ready
+            os.sched_yield()  # let a process that has work run on this core
+    return wait(remotes)
+
+
+def _serve(remote: Connection, parent_remote: Connection, payload: bytes, spin: float) -> None:  # pragma: no cover
+    """The worker's loop (in the subprocess): build the object, then answer ``(method, args, progress)`` calls until
+    ``close``, polling ``spin`` seconds for each call before sleeping."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     parent_remote.close()
     try:
         factory, arguments = cloudpickle.loads(payload)
         target = factory(*arguments)
         while True:
+            _ready([remote], spin)
             method, arguments, progress = remote.recv()
             if method is None:
                 getattr(target, "close", lambda: None)()
@@ -73,6 +98,8 @@ class WorkerProcess:
     :param arguments: its positional arguments
     :param name: what the worker is, for error messages
     :param context: multiprocessing context (default: :func:`worker_context`)
+    :param spin: seconds the worker polls for its next call before it sleeps (0: sleep at once); worth it only for
+        calls that follow each other within that time, as it keeps a core busy meanwhile
     """
 
     def __init__(
@@ -81,12 +108,13 @@ class WorkerProcess:
         arguments: Sequence[Any] = (),
         name: str = "worker",
         context: multiprocessing.context.BaseContext | None = None,
+        spin: float = 0.0,
     ) -> None:
         context = context or worker_context()
         self.name = name
         self.remote, work_remote = context.Pipe()
         payload = cloudpickle.dumps((factory, tuple(arguments)))
-        self.process = context.Process(target=_serve, args=(work_remote, self.remote, payload), daemon=True)
+        self.process = context.Process(target=_serve, args=(work_remote, self.remote, payload, spin), daemon=True)
         self.process.start()
         work_remote.close()
 
@@ -138,7 +166,10 @@ class WorkerProcess:
 
 
 def gather(
-    workers: Sequence[WorkerProcess], on_progress: Callable[[int, Any], None] | None = None, fail_fast: bool = False
+    workers: Sequence[WorkerProcess],
+    on_progress: Callable[[int, Any], None] | None = None,
+    fail_fast: bool = False,
+    spin: float = 0.0,
 ) -> list[Any]:
     """The results of every worker's current call (started with :meth:`WorkerProcess.send`), read as they arrive.
 
@@ -146,13 +177,14 @@ def gather(
     :param on_progress: called with (worker index, item) for each item a method reports
     :param fail_fast: on the first error terminate the workers still busy and raise it at once; otherwise every reply
         is read before the first error is raised, so no stale reply is left in a pipe of a worker that is kept
+    :param spin: seconds to poll for each reply before sleeping on the pipes
     :raises RuntimeError: a worker died (its pid and exit code are named)
     """
     pending = {worker.remote: index for index, worker in enumerate(workers)}
     results: list[Any] = [None] * len(workers)
     errors: list[BaseException] = []
     while pending:
-        for remote in wait(list(pending)):
+        for remote in _ready(list(pending), spin):
             index = pending[remote]
             try:
                 kind, value = remote.recv()
@@ -174,3 +206,51 @@ def gather(
     if errors:
         raise errors[0]
     return results
+
+
+class SharedArrays:
+    """Named numpy arrays in one block of shared memory (``multiprocessing.shared_memory``), made by one process and
+    attached in others: pickling one (e.g. as an argument of a :class:`WorkerProcess`) sends only the block's name and
+    layout, and unpickling attaches to the same memory.
+
+    The maker of the block frees it in :meth:`close`; every process should call it once done. Worker processes share
+    their parent's resource tracker, so attaching in a worker adds no second owner.
+
+    :param layout: each array's name -> (shape, dtype)
+    :param name: name of an existing block to attach to (default: make a new block)
+    """
+
+    _ALIGNMENT = 64  #: bytes: each array starts on its own cache line
+
+    def __init__(self, layout: dict[str, tuple[tuple[int, ...], Any]], name: str | None = None) -> None:
+        self.layout = {key: (tuple(map(int, shape)), np.dtype(dtype).str) for key, (shape, dtype) in layout.items()}
+        offsets, end = {}, 0
+        for key, (shape, dtype) in self.layout.items():
+            offsets[key] = end
+            end += -(-int(np.prod(shape)) * np.dtype(dtype).itemsize // self._ALIGNMENT) * self._ALIGNMENT
+        self._owner = name is None
+        self._memory = shared_memory.SharedMemory(name=name, create=self._owner, size=max(end, 1) if self._owner else 0)
+        # frombuffer views hold the block's buffer, so the block stays mapped while any view lives
+        self.arrays = {
+            key: np.frombuffer(self._memory.buf, dtype, int(np.prod(shape)), offsets[key]).reshape(shape)
+            for key, (shape, dtype) in self.layout.items()
+        }
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        return self.arrays[key]
+
+    def __reduce__(self) -> tuple[type, tuple]:
+        return SharedArrays, (self.layout, self._memory.name)
+
+    def close(self) -> None:
+        """Drop this process's view of the block; its maker also frees it (the memory goes once no array of it is
+        left in any process)."""
+        if not self.arrays:
+            return
+        self.arrays = {}
+        try:
+            self._memory.close()
+        except BufferError:  # an array of the block is still in use here: the mapping goes with it
+            pass
+        if self._owner:
+            self._memory.unlink()
