@@ -256,6 +256,49 @@ def test_resets_reuse_one_space_so_memory_stays_flat() -> None:
         gc.enable()
     assert after - before <= 1  # the env's own space (none before the first reset)
     space, obstacles = env.world.space, len(env.obstacles)
-    assert len(space.shapes) == 4 + obstacles + 6 and len(space.bodies) == 1 + 6  # walls, obstacles, agents
+    assert len(space.shapes) == 4 + obstacles + 6 and len(space.bodies) == 4 + obstacles + 6  # walls, obstacles, agents
     env.reset(seed=7)
     assert env.world.space is space
+
+
+def callback_contacts(world: World) -> set[tuple[tuple[str, int], tuple[str, int]]]:
+    """The pairs (sorted ``(kind, index)``: kind ``"agent"`` or ``"obstacle"``) that Pymunk's ``pre_solve`` callback
+    reports touching, filled as ``world`` steps (the caller empties it before each step)."""
+    roles = {shape: ("agent", index) for index, body in enumerate(world.agent_bodies) for shape in body.shapes}
+    roles |= {shape: ("obstacle", index) for index, body in enumerate(world._obstacle_bodies) for shape in body.shapes}
+    pairs: set[tuple[tuple[str, int], tuple[str, int]]] = set()
+
+    def record(arbiter: pymunk.Arbiter, space: pymunk.Space, data: object) -> None:
+        first, second = sorted(roles[shape] for shape in arbiter.shapes)
+        pairs.add((first, second))
+
+    world.space.on_collision(None, None, pre_solve=record)
+    return pairs
+
+
+def test_contacts_match_pymunk_collision_callbacks() -> None:
+    """The contact counts read from Pymunk's arbiters after each sub-step against an independent route: Pymunk's own
+    ``pre_solve`` collision callbacks (called for every touching pair in every sub-step), on the same spaces, over
+    crowded stage-3 episodes whose agents press on each other, the obstacles and the walls."""
+    config = FormationConfig.preset("ch5-bearing", stage=3, n_agents=8)
+    rng = np.random.default_rng(5)
+    touching = 0
+    for seed in range(6):
+        env = FormationEnv(config)
+        env.reset(seed=seed)
+        pairs = callback_contacts(env.world)
+        for step in range(150):
+            if step % 30 == 0:  # a new push every 30 steps: into the walls, obstacles and each other
+                direction = rng.uniform(-1.0, 1.0, (config.n_agents, 2))
+            pairs.clear()
+            agents, obstacles = env.world.step(direction * config.force_max)
+            expected_agents, expected_obstacles = [0] * config.n_agents, [0] * config.n_agents
+            for (_, first), (kind, second) in pairs:
+                if kind == "agent":  # two agents ("agent" < "obstacle")
+                    expected_agents[first] += 1
+                    expected_agents[second] += 1
+                else:
+                    expected_obstacles[first] += 1
+            assert (agents, obstacles) == (expected_agents, expected_obstacles), (seed, step)
+            touching += sum(agents) + sum(obstacles)
+    assert touching > 500  # the episodes were crowded enough to test something

@@ -4,7 +4,10 @@ Agents are dynamic circles that do not rotate; obstacles are static circles; the
 walls. Each environment step applies the agents' forces as the second-order integrator of eq. 19 (semi-implicit
 Euler, as Pymunk itself integrates): v <- v + F / m * dt, then the speed is clamped to v_max, then Pymunk moves the
 bodies over ``config.physics_substeps`` sub-steps and resolves contacts (inelastic, frictionless). Contacts are counted
-once per pair per environment step.
+once per pair per environment step: after each sub-step the space's touching pairs are read in one call of Pymunk's
+batch API (every obstacle and wall hangs on its own static body, so a pair of bodies names the obstacle), not through
+a Python collision callback per contact and sub-step, which cost more than the rest of a step when agents press on
+walls.
 """
 
 from __future__ import annotations
@@ -20,12 +23,14 @@ from pymunk._chipmunk import lib as chipmunk
 from sb3_formation.env.config import COLLISION_BIAS, FormationConfig
 from sb3_formation.env.scenarios import Scenario
 
-AGENT_COLLISION_TYPE = 1
-OBSTACLE_COLLISION_TYPE = 2  #: obstacles and walls
 WALL_THICKNESS = 1.0  #: m; the walls' inner faces lie exactly on the world's border
 COLLISION_SLOP = 1e-3  #: m; Pymunk's allowed overlap (its default 0.1 is for pixel units)
 _STATE_FIELDS = pymunk.batch.BodyFields.POSITION | pymunk.batch.BodyFields.VELOCITY
 _VELOCITY_FIELD = pymunk.batch.BodyFields.VELOCITY
+#: what is read of each of the space's arbiters (pairs of shapes whose bounding boxes met lately): its two bodies' ids
+#: and its number of contact points in the last sub-step (0 for a pair no longer touching)
+_ARBITER_FIELDS = pymunk.batch.ArbiterFields.BODY_A_ID | pymunk.batch.ArbiterFields.BODY_B_ID
+_ARBITER_FIELDS |= pymunk.batch.ArbiterFields.CONTACT_COUNT
 
 
 @numba.njit(cache=True)
@@ -58,6 +63,42 @@ def split_state(state: np.ndarray, v_max: float) -> tuple[np.ndarray, np.ndarray
     return positions, clamp_speed(velocities, v_max)
 
 
+@numba.njit(cache=True)
+def count_contacts(
+    arbiters: np.ndarray, body_ids: np.ndarray, body_roles: np.ndarray, n_agents: int, n_obstacles: int
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """How many other agents, and how many obstacles or walls, each agent touched, each pair counted once.
+
+    :param arbiters: ``(k, 3)`` rows (body a id, body b id, contact points) read after each sub-step of a step
+    :param body_ids: the space's body ids, sorted
+    :param body_roles: for each of ``body_ids``: the agent's index, or ``-1 - i`` for obstacle or wall i
+    :return: two ``(n_agents,)`` int arrays
+    """
+    agent_pairs = np.zeros((n_agents, n_agents), dtype=np.bool_)
+    obstacle_pairs = np.zeros((n_agents, n_obstacles), dtype=np.bool_)
+    for row in range(arbiters.shape[0]):
+        if arbiters[row, 2] == 0:
+            continue
+        first = body_roles[np.searchsorted(body_ids, arbiters[row, 0])]
+        second = body_roles[np.searchsorted(body_ids, arbiters[row, 1])]
+        if first >= 0 and second >= 0:
+            agent_pairs[min(first, second), max(first, second)] = True
+        elif first >= 0:
+            obstacle_pairs[first, -1 - second] = True
+        elif second >= 0:
+            obstacle_pairs[second, -1 - first] = True
+    agents = np.zeros(n_agents, dtype=np.int64)
+    for first in range(n_agents):
+        for second in range(first + 1, n_agents):
+            if agent_pairs[first, second]:
+                agents[first] += 1
+                agents[second] += 1
+    obstacles = np.zeros(n_agents, dtype=np.int64)
+    for agent in range(n_agents):
+        obstacles[agent] = obstacle_pairs[agent].sum()
+    return agents, obstacles
+
+
 class World:
     """One team's Pymunk space, built from a :class:`Scenario`; :meth:`place` puts the next episode's in the same space.
 
@@ -71,13 +112,17 @@ class World:
         self.space.collision_slop = COLLISION_SLOP
         self.space.collision_bias = COLLISION_BIAS  # the substeps of the config are chosen for it
         self.space.iterations = 20  # keeps a column of 16 agents pressed on a wall within 1 cm
-        self._agent_pairs: set[tuple[int, int]] = set()
-        self._obstacle_pairs: set[tuple[int, int]] = set()
-        self.space.on_collision(AGENT_COLLISION_TYPE, AGENT_COLLISION_TYPE, pre_solve=self._record_agent_contact)
-        self.space.on_collision(AGENT_COLLISION_TYPE, OBSTACLE_COLLISION_TYPE, pre_solve=self._record_obstacle_contact)
         # Pymunk's batch API reads and writes every body of the space at once, in the space's own order
         self._read_buffer = pymunk.batch.Buffer()
         self._write_buffer = pymunk.batch.Buffer()
+        # and reads the arbiters: one call per sub-step (the function get_space_arbiters calls, with its arguments
+        # made once), appending to one buffer over a step
+        self._arbiter_buffer = pymunk.batch.Buffer()
+        self._arbiter_query = pymunk.batch.ffi.new("pmBatchedData *")
+        self._arbiter_query.fields = _ARBITER_FIELDS.value
+        self._arbiter_query.floatArray = self._arbiter_buffer._float_arr
+        self._arbiter_query.intArray = self._arbiter_buffer._int_arr
+        self._arbiter_iterator = pymunk.batch.ffi.addressof(pymunk.batch.lib, "pmSpaceArbiterIteratorFuncBatched")
         self._substep = config.dt / config.physics_substeps
         self.place(scenario)
 
@@ -91,24 +136,23 @@ class World:
         """
         config = self.config
         self.space.remove(*self.space.shapes, *self.space.bodies)
-        # the walls and obstacles hang on a static body of this episode (the space's own would keep every old shape)
-        self._static_body = pymunk.Body(body_type=pymunk.Body.STATIC)
-        self.space.add(self._static_body)
-        self.agent_bodies: list[pymunk.Body] = []
-        self._agent_of_shape: dict[pymunk.Shape, int] = {}
-        self._obstacle_of_shape: dict[pymunk.Shape, int] = {}
+        # each wall and obstacle hangs on a static body of its own, of this episode (the space's own static body would
+        # keep every old shape); a contact's pair of bodies then names the obstacle
+        self._obstacle_bodies: list[pymunk.Body] = []
         self._add_walls()
         for x, y, radius in scenario.obstacles:
-            shape = pymunk.Circle(self._static_body, float(radius), (float(x), float(y)))
-            self._add_obstacle_shape(shape)
-        for index, (x, y) in enumerate(scenario.agent_positions):
+            self._add_obstacle(pymunk.Circle(None, float(radius), (float(x), float(y))))
+        self.agent_bodies: list[pymunk.Body] = []
+        for x, y in scenario.agent_positions:
             body = pymunk.Body(config.agent_mass, float("inf"))
             body.position = (float(x), float(y))
-            shape = pymunk.Circle(body, config.agent_radius)
-            shape.collision_type = AGENT_COLLISION_TYPE
-            self.space.add(body, shape)
+            self.space.add(body, pymunk.Circle(body, config.agent_radius))
             self.agent_bodies.append(body)
-            self._agent_of_shape[shape] = index
+        ids = [body.id for body in self.agent_bodies] + [body.id for body in self._obstacle_bodies]
+        roles = list(range(len(self.agent_bodies))) + [-1 - index for index in range(len(self._obstacle_bodies))]
+        order = np.argsort(ids)
+        self._body_ids = np.array(ids, dtype=np.uintp)[order]
+        self._body_roles = np.array(roles, dtype=np.int64)[order]
         self._read_buffer.clear()
         pymunk.batch.get_space_bodies(self.space, pymunk.batch.BodyFields.BODY_ID, self._read_buffer)
         body_ids = list(np.frombuffer(self._read_buffer.int_buf(), dtype=np.uintp))
@@ -128,20 +172,13 @@ class World:
         width, height, half = self.config.world_width, self.config.world_height, WALL_THICKNESS / 2
         corners = [(-half, -half), (width + half, -half), (width + half, height + half), (-half, height + half)]
         for start, end in zip(corners, corners[1:] + corners[:1]):
-            self._add_obstacle_shape(pymunk.Segment(self._static_body, start, end, half))
+            self._add_obstacle(pymunk.Segment(None, start, end, half))
 
-    def _add_obstacle_shape(self, shape: pymunk.Shape) -> None:
-        shape.collision_type = OBSTACLE_COLLISION_TYPE
-        self._obstacle_of_shape[shape] = len(self._obstacle_of_shape)
-        self.space.add(shape)
-
-    def _record_agent_contact(self, arbiter: pymunk.Arbiter, space: pymunk.Space, data: object) -> None:
-        first, second = (self._agent_of_shape[shape] for shape in arbiter.shapes)
-        self._agent_pairs.add((min(first, second), max(first, second)))
-
-    def _record_obstacle_contact(self, arbiter: pymunk.Arbiter, space: pymunk.Space, data: object) -> None:
-        agent_shape, obstacle_shape = arbiter.shapes
-        self._obstacle_pairs.add((self._agent_of_shape[agent_shape], self._obstacle_of_shape[obstacle_shape]))
+    def _add_obstacle(self, shape: pymunk.Shape) -> None:
+        """Add a wall or obstacle's ``shape`` (made without a body) on a static body of its own."""
+        shape.body = body = pymunk.Body(body_type=pymunk.Body.STATIC)
+        self.space.add(body, shape)
+        self._obstacle_bodies.append(body)
 
     def step(self, forces: np.ndarray) -> tuple[list[int], list[int]]:
         """Advance one environment step of ``config.dt`` seconds under ``forces``.
@@ -162,20 +199,19 @@ class World:
         config = self.config
         self._body_velocities[self._agent_rows] = commanded
         pymunk.batch.set_space_bodies(self.space, _VELOCITY_FIELD, self._write_buffer)
-        self._agent_pairs.clear()
-        self._obstacle_pairs.clear()
-        space, substep = self.space._space, self._substep
+        space, substep, arbiters = self.space._space, self._substep, self._arbiter_buffer
+        arbiters.clear()
         for _ in range(config.physics_substeps):
             chipmunk.cpSpaceStep(space, substep)  # Space.step without its Python bookkeeping (see place())
+            chipmunk.cpSpaceEachCachedArbiter(space, self._arbiter_iterator, self._arbiter_query)
         self._read_buffer.clear()
         pymunk.batch.get_space_bodies(self.space, _STATE_FIELDS, self._read_buffer)
         state = np.frombuffer(self._read_buffer.float_buf(), dtype=np.float64).reshape(-1, 4)[self._agent_rows]
         self.positions, self.velocities = split_state(state, config.v_max)
-        agent_contacts = [0] * config.n_agents
-        for first, second in self._agent_pairs:
-            agent_contacts[first] += 1
-            agent_contacts[second] += 1
-        obstacle_contacts = [0] * config.n_agents
-        for agent, _ in self._obstacle_pairs:
-            obstacle_contacts[agent] += 1
-        return agent_contacts, obstacle_contacts
+        if arbiters._int_arr.num == 0:  # no pair of shapes near each other
+            return [0] * config.n_agents, [0] * config.n_agents
+        records = np.frombuffer(arbiters.int_buf(), dtype=np.uintp).reshape(-1, 3)
+        agents, obstacles = count_contacts(
+            records, self._body_ids, self._body_roles, config.n_agents, len(self._obstacle_bodies)
+        )
+        return agents.tolist(), obstacles.tolist()
