@@ -2,7 +2,8 @@
 reference measured in the same run: the bare gradient work of an iteration.
 
 ch5-bearing, 14 teams of n = 6 (84 agent slots), each set-up's networks and PPO settings, its training env (observation
-and reward normalisation as in ``sb3-formation train``) and the per-step callback training runs (formation metrics):
+and reward normalisation as in ``sb3-formation train``) and the callbacks training runs at every step (formation
+metrics; beside worker processes, torch's threads kept to the other cores):
 - ``fast``: the fast recipe (``fast-ch5-bearing``: two [256, 256] MLPs, 256 steps per rollout, 5 epochs of 2048);
 - ``thesis-mlp``: the thesis's settings (``ch5-bearing``: 128 steps, 10 epochs of 512) with chapter 4's MLP networks;
 - ``thesis-gru``, ``thesis-lstm``: the same with chapter 5's recurrent networks.
@@ -30,8 +31,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from sb3_formation.experiment.runs import algorithm_for
 from sb3_formation.experiment.settings import TrainSettings
 from sb3_formation.experiment.setups import with_schedules
-from sb3_formation.experiment.training import make_training_env
-from sb3_formation.sb3.callbacks import FormationMetricsCallback
+from sb3_formation.experiment.training import make_training_env, rollout_callbacks
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
 
 #: recipe -> (set-up, recurrent cell or None for the MLP)
@@ -80,7 +80,7 @@ def measure(recipe: str, workers: int, iterations: int) -> tuple[float, float, f
     model = algorithm_for(kwargs["policy"])(env=env, seed=0, device="cpu", **with_schedules(kwargs))
     timer = PhaseTimer()
     steps = model.n_steps * env.num_envs
-    model.learn((iterations + 1) * steps, callback=[FormationMetricsCallback(), timer])
+    model.learn((iterations + 1) * steps, callback=[*rollout_callbacks(settings), timer])
     env.close()
     floor = statistics.median(gradient_floor(model) for _ in range(iterations))
     return statistics.median(timer.rollouts[1:]), statistics.median(timer.trainings[1:]), floor, steps

@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import torch as th
 from issue_names import EPISODE_SCALARS
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
@@ -21,6 +22,7 @@ from tensorboard_events import read_hparams
 from sb3_formation import REWARD_TERMS, FormationPolicy, make_formation_vec_env
 from sb3_formation.sb3.callbacks import (
     HPARAM_METRICS,
+    CollectionThreadsCallback,
     CurriculumCallback,
     FormationMetricsCallback,
     ProgressBarCallback,
@@ -522,3 +524,33 @@ def test_progress_bar_runs_through_a_short_learn(capsys: pytest.CaptureFixture[s
     err = capsys.readouterr().err
     assert "5/5" in err and "stage 3" in err and "agent-steps/s" in err and "success 0%" in err
     assert bar.bar.n == 5
+
+
+class ThreadProbe(BaseCallback):
+    """Records torch's thread count at every step; stops the rollout at step ``stop_at`` if given."""
+
+    def __init__(self, stop_at: int | None = None) -> None:
+        super().__init__()
+        self.threads: list[int] = []
+        self.stop_at = stop_at
+
+    def _on_step(self) -> bool:
+        self.threads.append(th.get_num_threads())
+        return self.stop_at is None or len(self.threads) < self.stop_at
+
+
+def test_collection_threads_hold_during_rollouts_only() -> None:
+    previous = th.get_num_threads()
+    th.set_num_threads(2)
+    env = make_formation_vec_env("ch5-bearing", n_envs=2, seed=0, n_workers=2)
+    try:
+        model = PPO("MlpPolicy", env, n_steps=4, batch_size=24, n_epochs=1, seed=0, device="cpu")
+        probe = ThreadProbe()
+        model.learn(2 * 4 * env.num_envs, callback=[CollectionThreadsCallback(1), probe])
+        assert probe.threads == [1] * 8 and th.get_num_threads() == 2  # training and afterwards: torch's own 2
+        stopped = ThreadProbe(stop_at=3)
+        model.learn(4 * env.num_envs, callback=[CollectionThreadsCallback(1), stopped])
+        assert stopped.threads == [1, 1, 1] and th.get_num_threads() == 2  # a rollout stopped by a callback too
+    finally:
+        env.close()
+        th.set_num_threads(previous)

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch as th
 import yaml
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
@@ -43,6 +44,7 @@ from sb3_formation.experiment.runs import (
 from sb3_formation.experiment.settings import TrainSettings, load_settings
 from sb3_formation.experiment.setups import residual_base, residual_policy, with_schedules
 from sb3_formation.sb3.callbacks import (
+    CollectionThreadsCallback,
     CurriculumCallback,
     FormationMetricsCallback,
     ProgressBarCallback,
@@ -404,6 +406,15 @@ def make_curriculum(settings: TrainSettings, clock: TrainingClock) -> Curriculum
     )
 
 
+def rollout_callbacks(settings: TrainSettings) -> list[BaseCallback]:
+    """A run's callbacks that act at every step of a rollout: its formation metrics and, beside worker processes
+    (which poll on their cores while a rollout runs), torch's thread count kept to the other cores."""
+    callbacks: list[BaseCallback] = [FormationMetricsCallback(settings.to_dict())]
+    if settings.workers > 1:
+        callbacks.append(CollectionThreadsCallback(max(1, th.get_num_threads() - (settings.workers - 1))))
+    return callbacks
+
+
 def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: CurriculumCallback, clock: TrainingClock) -> None:
     folder = run_dir / "tensorboard"
     folder.mkdir(exist_ok=True)
@@ -412,7 +423,7 @@ def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: Curri
     model.set_logger(Logger(str(folder), [TensorBoardOutputFormat(str(folder)), CSVOutputFormat(str(folder / csv_name))]))
     budget = TimeBudgetCallback(clock)
     checkpoint = CheckpointCallback(run_dir, curriculum, clock, settings.checkpoint_every)
-    callbacks: list[BaseCallback] = [curriculum, FormationMetricsCallback(settings.to_dict()), budget, checkpoint]
+    callbacks: list[BaseCallback] = [curriculum, *rollout_callbacks(settings), budget, checkpoint]
     imitation = settings.setup().imitation_settings()
     if imitation is not None and imitation.critic_warmup > 0:
         callbacks.append(FrozenActorCallback(imitation.critic_warmup, curriculum))
