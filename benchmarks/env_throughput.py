@@ -4,11 +4,12 @@ the bare Pymunk step, in one run.
 ch5-bearing at stage 3, random actions, 90-ray lidar. Prints medians over repeats of:
 - team by team: ``FormationEnv.step_array`` for one team after another with the VecEnv's bookkeeping (episode sums,
   terminal observations, resets), as ``FormationVecEnv`` stepped before batching (the reference of the ratios);
-- ``FormationVecEnv`` (batched: ``FormationBatch``) with every team in this process, and with 2 worker processes;
+- ``FormationVecEnv`` (batched: ``FormationBatch``) with every team in this process, and with ``n_workers=2`` (half the
+  teams in this process, half in a worker process, through shared memory);
 - one ``FormationEnv`` alone, and the bare Pymunk ``space.step`` of one team (sub-steps included).
 
-Targets (issue 17): with 14 teams of 6, at least 150,000 agent-steps/s on 2 cores, and the batched VecEnv at least
-2.5x team-by-team stepping on one core.
+Targets (issue 17): with 14 teams of 6, at least 150,000 agent-steps/s on 2 cores (with 2 processes), and the batched
+VecEnv at least 2.5x team-by-team stepping on one core.
 
 Usage: ``python benchmarks/env_throughput.py [--steps 1000] [--repeats 5] [--teams 14]``
 """
@@ -117,7 +118,7 @@ def main() -> None:
     labels = {
         "team": "team by team, one core",
         "batched": "FormationVecEnv batched, one core",
-        "workers": "FormationVecEnv batched, 2 workers",
+        "workers": "FormationVecEnv batched, 2 processes",
         "single": "one FormationEnv alone",
     }
     for name, label in labels.items():
@@ -129,9 +130,9 @@ def main() -> None:
     rate = n / median["workers"]
     verdict = "met" if speedup >= 2.5 else "NOT met"
     print(f"  ratio batched / team by team, one core  : {speedup:.2f}x  (target >= 2.5x: {verdict})")
-    print(f"  ratio 2 workers / one core (batched)    : {workers:.2f}x")
+    print(f"  ratio 2 processes / one (batched)       : {workers:.2f}x")
     print(f"  ratio batched team-step / bare Pymunk   : {ratio('batched', 'pymunk'):.1f}x")
-    print(f"  2 workers: {rate:,.0f} agent-steps/s (target >= 150,000: {'met' if rate >= 150_000 else 'NOT met'})")
+    print(f"  2 processes: {rate:,.0f} agent-steps/s (target >= 150,000: {'met' if rate >= 150_000 else 'NOT met'})")
 
 
 if __name__ == "__main__":

@@ -302,3 +302,22 @@ def test_contacts_match_pymunk_collision_callbacks() -> None:
             assert (agents, obstacles) == (expected_agents, expected_obstacles), (seed, step)
             touching += sum(agents) + sum(obstacles)
     assert touching > 500  # the episodes were crowded enough to test something
+
+
+@pytest.mark.parametrize("n_agents", [3, 7, 16])
+def test_positions_and_velocities_are_pymunks_own(n_agents: int) -> None:
+    """The state read through Pymunk's batch API into the world's own array, against Pymunk's body attributes, over
+    episodes of several sizes; Pymunk never moves that array (it would reallocate it if it ran out of room)."""
+    config = FormationConfig.preset("ch5-bearing", stage=3, n_agents=n_agents)
+    env = FormationEnv(config)
+    rng = np.random.default_rng(n_agents)
+    for seed in range(3):
+        env.reset(seed=seed)
+        world = env.world
+        for _ in range(40):
+            world.step(rng.uniform(-1.0, 1.0, (n_agents, 2)) * config.force_max)
+            assert world.positions.tolist() == [list(body.position) for body in world.agent_bodies]
+            velocities = np.array([list(body.velocity) for body in world.agent_bodies])
+            assert world.velocities.tolist() == clamp_speed(velocities, config.v_max).tolist()  # clamped as promised
+            buffer = world._read_buffer._float_arr.arr
+            assert int(pymunk.batch.ffi.cast("uintptr_t", buffer)) == world._body_states.ctypes.data

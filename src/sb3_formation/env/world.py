@@ -13,6 +13,7 @@ walls.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numba
 import numpy as np
@@ -31,6 +32,12 @@ _VELOCITY_FIELD = pymunk.batch.BodyFields.VELOCITY
 #: and its number of contact points in the last sub-step (0 for a pair no longer touching)
 _ARBITER_FIELDS = pymunk.batch.ArbiterFields.BODY_A_ID | pymunk.batch.ArbiterFields.BODY_B_ID
 _ARBITER_FIELDS |= pymunk.batch.ArbiterFields.CONTACT_COUNT
+# The C iterators behind pymunk.batch's functions, called directly with queries made once per world: the Python
+# wrappers build a query on every call, which cost more than the physics of a step
+_GET_BODIES = pymunk.batch.ffi.addressof(pymunk.batch.lib, "pmSpaceBodyGetIteratorFuncBatched")
+_SET_BODIES = pymunk.batch.ffi.addressof(pymunk.batch.lib, "pmSpaceBodySetIteratorFuncBatched")
+_GET_ARBITERS = pymunk.batch.ffi.addressof(pymunk.batch.lib, "pmSpaceArbiterIteratorFuncBatched")
+_SPARE_VALUES = 8  #: values past the end of a world's state array (see World.place)
 
 
 @numba.njit(cache=True)
@@ -112,17 +119,12 @@ class World:
         self.space.collision_slop = COLLISION_SLOP
         self.space.collision_bias = COLLISION_BIAS  # the substeps of the config are chosen for it
         self.space.iterations = 20  # keeps a column of 16 agents pressed on a wall within 1 cm
-        # Pymunk's batch API reads and writes every body of the space at once, in the space's own order
-        self._read_buffer = pymunk.batch.Buffer()
-        self._write_buffer = pymunk.batch.Buffer()
-        # and reads the arbiters: one call per sub-step (the function get_space_arbiters calls, with its arguments
-        # made once), appending to one buffer over a step
-        self._arbiter_buffer = pymunk.batch.Buffer()
-        self._arbiter_query = pymunk.batch.ffi.new("pmBatchedData *")
-        self._arbiter_query.fields = _ARBITER_FIELDS.value
-        self._arbiter_query.floatArray = self._arbiter_buffer._float_arr
-        self._arbiter_query.intArray = self._arbiter_buffer._int_arr
-        self._arbiter_iterator = pymunk.batch.ffi.addressof(pymunk.batch.lib, "pmSpaceArbiterIteratorFuncBatched")
+        # Pymunk's batch API reads and writes every body of the space at once, in the space's own order, from and to
+        # numpy arrays of this world (their memory is the buffers'); it reads the arbiters once per sub-step,
+        # appending to one buffer over a step
+        self._read_buffer, self._read = self._buffer_and_query(_STATE_FIELDS)
+        self._write_buffer, self._write = self._buffer_and_query(_VELOCITY_FIELD)
+        self._arbiter_buffer, self._arbiter_query = self._buffer_and_query(_ARBITER_FIELDS)
         self._substep = config.dt / config.physics_substeps
         self.place(scenario)
 
@@ -153,20 +155,33 @@ class World:
         order = np.argsort(ids)
         self._body_ids = np.array(ids, dtype=np.uintp)[order]
         self._body_roles = np.array(roles, dtype=np.int64)[order]
-        self._read_buffer.clear()
-        pymunk.batch.get_space_bodies(self.space, pymunk.batch.BodyFields.BODY_ID, self._read_buffer)
-        body_ids = list(np.frombuffer(self._read_buffer.int_buf(), dtype=np.uintp))
+        ids = pymunk.batch.Buffer()
+        pymunk.batch.get_space_bodies(self.space, pymunk.batch.BodyFields.BODY_ID, ids)
+        body_ids = list(np.frombuffer(ids.int_buf(), dtype=np.uintp))
         rows = [body_ids.index(body.id) for body in self.agent_bodies]
         contiguous = rows == list(range(rows[0], rows[0] + len(rows)))
         self._agent_rows = slice(rows[0], rows[0] + len(rows)) if contiguous else np.array(rows)
         self._body_velocities = np.zeros((len(body_ids), 2))  # static bodies keep velocity 0
-        self._write_buffer.clear()
         self._write_buffer.set_float_buf(self._body_velocities.ravel())  # Pymunk reads this array's memory
+        # Pymunk writes x, y, v_x, v_y of every body into this array's memory; it would reallocate it (as if it were
+        # its own) when fewer than 3 values are left free after a body's velocity, hence the spare room
+        states = np.zeros(4 * len(body_ids) + _SPARE_VALUES)
+        self._read_buffer.set_float_buf(states)
+        self._body_states = states[: 4 * len(body_ids)].reshape(-1, 4)
         # Space.step's Python bookkeeping (new bodies' checks, removed shapes) runs here, once per episode: a step of 0 s
         # does only that (Chipmunk returns at once), and move() then calls Chipmunk's step directly
         self.space.step(0.0)
         self.positions = np.array(scenario.agent_positions, dtype=np.float64)
         self.velocities = np.zeros_like(self.positions)
+
+    @staticmethod
+    def _buffer_and_query(fields: pymunk.batch.BodyFields | pymunk.batch.ArbiterFields) -> tuple[pymunk.batch.Buffer, Any]:
+        """A Pymunk batch buffer and the C query (``pmBatchedData``) that reads or writes ``fields`` through it."""
+        buffer = pymunk.batch.Buffer()
+        query = pymunk.batch.ffi.new("pmBatchedData *")
+        query.fields = fields.value
+        query.floatArray, query.intArray = buffer._float_arr, buffer._int_arr
+        return buffer, query
 
     def _add_walls(self) -> None:
         width, height, half = self.config.world_width, self.config.world_height, WALL_THICKNESS / 2
@@ -198,19 +213,19 @@ class World:
         """
         config = self.config
         self._body_velocities[self._agent_rows] = commanded
-        pymunk.batch.set_space_bodies(self.space, _VELOCITY_FIELD, self._write_buffer)
-        space, substep, arbiters = self.space._space, self._substep, self._arbiter_buffer
-        arbiters.clear()
+        space, substep, arbiters = self.space._space, self._substep, self._arbiter_buffer._int_arr
+        self._write_buffer._float_arr.num = 0  # the position Pymunk reads from
+        chipmunk.cpSpaceEachBody(space, _SET_BODIES, self._write)
+        arbiters.num = 0
         for _ in range(config.physics_substeps):
             chipmunk.cpSpaceStep(space, substep)  # Space.step without its Python bookkeeping (see place())
-            chipmunk.cpSpaceEachCachedArbiter(space, self._arbiter_iterator, self._arbiter_query)
-        self._read_buffer.clear()
-        pymunk.batch.get_space_bodies(self.space, _STATE_FIELDS, self._read_buffer)
-        state = np.frombuffer(self._read_buffer.float_buf(), dtype=np.float64).reshape(-1, 4)[self._agent_rows]
-        self.positions, self.velocities = split_state(state, config.v_max)
-        if arbiters._int_arr.num == 0:  # no pair of shapes near each other
+            chipmunk.cpSpaceEachCachedArbiter(space, _GET_ARBITERS, self._arbiter_query)
+        self._read_buffer._float_arr.num = 0  # the position Pymunk writes to
+        chipmunk.cpSpaceEachBody(space, _GET_BODIES, self._read)
+        self.positions, self.velocities = split_state(self._body_states[self._agent_rows], config.v_max)
+        if arbiters.num == 0:  # no pair of shapes near each other
             return [0] * config.n_agents, [0] * config.n_agents
-        records = np.frombuffer(arbiters.int_buf(), dtype=np.uintp).reshape(-1, 3)
+        records = np.frombuffer(self._arbiter_buffer.int_buf(), dtype=np.uintp).reshape(-1, 3)
         agents, obstacles = count_contacts(
             records, self._body_ids, self._body_roles, config.n_agents, len(self._obstacle_bodies)
         )
