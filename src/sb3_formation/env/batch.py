@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from itertools import chain
 from typing import Any
 
 import numba
@@ -28,7 +27,7 @@ from sb3_formation.env.geometry import FormationState, _measure
 from sb3_formation.env.observations import _fill_observations
 from sb3_formation.env.rewards import _reward_terms, nearest_gaps
 from sb3_formation.env.sensors import lidar_ranges
-from sb3_formation.env.world import clamp_speed
+from sb3_formation.env.world import clamp_speed, split_state
 
 _N_TERMS = len(REWARD_TERMS)
 #: columns of the info values :meth:`FormationBatch.step` returns: the five errors and distances of :data:`INFO_KEYS`,
@@ -176,6 +175,7 @@ class FormationBatch:
         env.previous_actions = self.previous_actions[rows].copy()
         env.previous_rewards = self.previous_rewards[rows].copy()
         env._contacts = (self.contacts[rows, 0].tolist(), self.contacts[rows, 1].tolist())
+        env.world.positions, env.world.velocities = self.positions[rows].copy(), self.velocities[rows].copy()
         env._lidar = (self.lidar[0, rows].copy(), self.lidar[1, rows].copy())
         env.formation = FormationState(
             centroid=self.centroids[team].copy(),
@@ -220,12 +220,14 @@ class FormationBatch:
         previous_goal_distances = self.goal_distances
         commanded = clamp_speed(self.velocities + (actions * config.force_max) * (config.dt / config.agent_mass), config.v_max)
         worlds = [env.world for env in self.envs]
-        moved = [world.move(commanded[starts[team] : starts[team + 1]]) for team, world in enumerate(worlds)]
-        self.positions = np.concatenate([world.positions for world in worlds])
-        self.velocities = np.concatenate([world.velocities for world in worlds])
-        # (agents, obstacles) touched by each agent in the step
-        agents, obstacles = (list(chain.from_iterable(kind)) for kind in zip(*moved))
-        self.contacts = contacts = np.array([agents, obstacles], dtype=np.int64).T
+        moved = [world.advance(commanded[starts[team] : starts[team + 1]]) for team, world in enumerate(worlds)]
+        # the worlds' positions and velocities are written back in sync()
+        self.positions, self.velocities = split_state(np.concatenate([world.agent_states for world in worlds]), config.v_max)
+        # (agents, obstacles or walls) touched by each agent in the step
+        self.contacts = contacts = np.zeros((len(actions), 2), dtype=np.int64)
+        for team, touched in enumerate(moved):
+            if touched is not None:
+                contacts[starts[team] : starts[team + 1]] = np.transpose(touched)
         self.step_counts += 1
         np.subtract(self.goals, self.centroids, out=self.previous_offsets)
         nearest_agent, nearest_obstacle = _measure_teams(

@@ -211,6 +211,18 @@ class World:
         :param commanded: ``(n, 2)`` velocities (m/s) after the forces of the step, already clamped to v_max
         :return: as :meth:`step`
         """
+        contacts = self.advance(commanded)
+        self.positions, self.velocities = split_state(self.agent_states, self.config.v_max)
+        if contacts is None:
+            return [0] * self.config.n_agents, [0] * self.config.n_agents
+        return contacts[0].tolist(), contacts[1].tolist()
+
+    def advance(self, commanded: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """:meth:`move` without updating ``positions`` and ``velocities``: Pymunk's new state is in
+        :attr:`agent_states` (for a caller that splits the states of many worlds at once).
+
+        :return: ``None`` when no agent touched anything, else the contact counts of :meth:`step` as two int arrays
+        """
         config = self.config
         self._body_velocities[self._agent_rows] = commanded
         space, substep, arbiters = self.space._space, self._substep, self._arbiter_buffer._int_arr
@@ -222,11 +234,12 @@ class World:
             chipmunk.cpSpaceEachCachedArbiter(space, _GET_ARBITERS, self._arbiter_query)
         self._read_buffer._float_arr.num = 0  # the position Pymunk writes to
         chipmunk.cpSpaceEachBody(space, _GET_BODIES, self._read)
-        self.positions, self.velocities = split_state(self._body_states[self._agent_rows], config.v_max)
         if arbiters.num == 0:  # no pair of shapes near each other
-            return [0] * config.n_agents, [0] * config.n_agents
+            return None
         records = np.frombuffer(self._arbiter_buffer.int_buf(), dtype=np.uintp).reshape(-1, 3)
-        agents, obstacles = count_contacts(
-            records, self._body_ids, self._body_roles, config.n_agents, len(self._obstacle_bodies)
-        )
-        return agents.tolist(), obstacles.tolist()
+        return count_contacts(records, self._body_ids, self._body_roles, config.n_agents, len(self._obstacle_bodies))
+
+    @property
+    def agent_states(self) -> np.ndarray:
+        """``(n, 4)`` rows x, y, v_x, v_y (m, m/s) of the agents as Pymunk left them (speeds not clamped); a view."""
+        return self._body_states[self._agent_rows]
