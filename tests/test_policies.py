@@ -11,9 +11,11 @@ import pytest
 import torch as th
 from gymnasium import spaces
 from stable_baselines3 import PPO
+from stable_baselines3.common.distributions import DiagGaussianDistribution
 from stable_baselines3.common.vec_env import DummyVecEnv
 from torch import nn
 
+from sb3_formation.sb3.networks import gaussian_actions
 from sb3_formation.sb3.policies import FormationPolicy, TeamCriticExtractor
 
 D = 5  # length of one agent's observation in the dummy envs
@@ -272,3 +274,19 @@ def test_rejects_sde_and_discrete_actions() -> None:
     box = spaces.Box(-1.0, 1.0, (D,), dtype=np.float32)
     with pytest.raises(ValueError, match="Box action space"):
         FormationPolicy(box, spaces.Discrete(3), lambda _: 1e-3)
+
+
+def test_gaussian_actions_is_sb3s_gaussian_without_argument_checks() -> None:
+    mean, log_std = th.tensor([[0.25, -0.5], [0.0, 1.0]]), th.tensor([-0.5, 0.3])
+    ours = gaussian_actions(DiagGaussianDistribution(2), mean, log_std)
+    sb3 = DiagGaussianDistribution(2).proba_distribution(mean, log_std)
+    assert th.equal(ours.distribution.scale, sb3.distribution.scale) and th.equal(ours.distribution.mean, mean)
+    th.manual_seed(3)
+    sampled = ours.sample()
+    th.manual_seed(3)
+    assert th.equal(sampled, sb3.sample())  # the same draws
+    assert th.equal(ours.log_prob(sampled), sb3.log_prob(sampled)) and th.equal(ours.entropy(), sb3.entropy())
+    nan_mean = th.tensor([[float("nan"), 0.0]])
+    with pytest.raises(ValueError, match="loc"):
+        DiagGaussianDistribution(2).proba_distribution(nan_mean, log_std)  # torch's checks, which SB3 keeps
+    assert th.isnan(gaussian_actions(DiagGaussianDistribution(2), nan_mean, log_std).mode()).any()  # left to the VecEnv

@@ -1,4 +1,5 @@
-"""Building blocks shared by the MLP and the recurrent policies: dense stacks, argument checks, the optimiser default."""
+"""Building blocks shared by the MLP and the recurrent policies: dense stacks, argument checks, the optimiser default
+and the action distribution."""
 
 from __future__ import annotations
 
@@ -7,7 +8,9 @@ from typing import Any
 
 import torch as th
 from gymnasium import spaces
+from stable_baselines3.common.distributions import DiagGaussianDistribution
 from torch import nn
+from torch.distributions import Normal
 
 
 def mlp(input_dim: int, widths: list[int], activation_fn: type[nn.Module]) -> tuple[nn.Sequential, int]:
@@ -54,3 +57,19 @@ def default_optimizer_kwargs(
     if optimizer_class is th.optim.Adam and optimizer_kwargs is None:
         return {"eps": 1e-5, "fused": True}
     return optimizer_kwargs
+
+
+def gaussian_actions(
+    distribution: DiagGaussianDistribution, mean_actions: th.Tensor, log_std: th.Tensor
+) -> DiagGaussianDistribution:
+    """SB3's ``DiagGaussianDistribution.proba_distribution`` (the same Gaussian, bit for bit) without torch's argument
+    checks, which cost about 90 us of a rollout step's 500 us forward pass for 84 slots (measured 2026-11-25). A
+    non-finite mean then reaches the VecEnv, which refuses the action, naming the team and agent.
+
+    :param distribution: the policy's action distribution
+    :param mean_actions: ``(batch, action_dim)`` means
+    :param log_std: ``(action_dim,)`` log standard deviations
+    :return: ``distribution``, set to the Gaussian
+    """
+    distribution.distribution = Normal(mean_actions, th.ones_like(mean_actions) * log_std.exp(), validate_args=False)
+    return distribution

@@ -27,7 +27,7 @@ from stable_baselines3.common.type_aliases import Schedule
 from stable_baselines3.common.utils import get_device
 from torch import nn
 
-from sb3_formation.sb3.networks import check_action_distribution, default_optimizer_kwargs, mlp
+from sb3_formation.sb3.networks import check_action_distribution, default_optimizer_kwargs, gaussian_actions, mlp
 
 #: Layer widths as SB3 writes them: a list shared by actor and critic, or ``dict(pi=[...], vf=[...])``.
 NetArch = list[int] | dict[str, list[int]]
@@ -217,4 +217,4 @@ class FormationPolicy(ActorCriticPolicy):
     def _get_action_dist_from_latent(self, latent_pi: th.Tensor) -> Distribution:
         """Gaussian with mean ``action_scale * tanh(action_net(latent_pi))`` and the (fixed or learned) ``log_std``."""
         mean_actions = self.action_scale * th.tanh(self.action_net(latent_pi))
-        return self.action_dist.proba_distribution(mean_actions, self.log_std)
+        return gaussian_actions(self.action_dist, mean_actions, self.log_std)

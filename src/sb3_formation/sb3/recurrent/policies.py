@@ -13,7 +13,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
-from sb3_formation.sb3.networks import check_action_distribution, default_optimizer_kwargs, mlp
+from sb3_formation.sb3.networks import check_action_distribution, default_optimizer_kwargs, gaussian_actions, mlp
 from sb3_formation.sb3.policies import DEFAULT_SIGMA
 
 #: Recurrent cell types.
@@ -187,7 +187,7 @@ class RecurrentFormationPolicy(BasePolicy):
 
     def _distribution(self, actor_output: th.Tensor) -> DiagGaussianDistribution:
         mean = self.action_scale * th.tanh(self.action_net(actor_output))
-        return self.action_dist.proba_distribution(mean, self.log_std)
+        return gaussian_actions(self.action_dist, mean, self.log_std)
 
     def forward(
         self, obs: th.Tensor, states: RecurrentStates, episode_starts: th.Tensor, deterministic: bool = False
