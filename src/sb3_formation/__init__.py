@@ -2,7 +2,7 @@
 
 The package is layered; each layer imports only from the layers below it (``tests/test_layers.py`` checks it):
 
-- :mod:`sb3_formation.utils`: atomic files and worker processes (standard library only);
+- :mod:`sb3_formation.utils`: atomic files, worker processes and shared arrays (standard library, numpy, PyYAML);
 - :mod:`sb3_formation.env`: the task (config, geometry, world, sensors, observations, rewards, scenarios, the PettingZoo
   env, rendering); numpy, numba, Pymunk and Pillow only, no torch;
 - :mod:`sb3_formation.controllers`: the policy seam (anything that acts) and hand-written controllers; no torch;

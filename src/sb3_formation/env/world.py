@@ -155,9 +155,9 @@ class World:
         order = np.argsort(ids)
         self._body_ids = np.array(ids, dtype=np.uintp)[order]
         self._body_roles = np.array(roles, dtype=np.int64)[order]
-        ids = pymunk.batch.Buffer()
-        pymunk.batch.get_space_bodies(self.space, pymunk.batch.BodyFields.BODY_ID, ids)
-        body_ids = list(np.frombuffer(ids.int_buf(), dtype=np.uintp))
+        id_buffer = pymunk.batch.Buffer()
+        pymunk.batch.get_space_bodies(self.space, pymunk.batch.BodyFields.BODY_ID, id_buffer)
+        body_ids = list(np.frombuffer(id_buffer.int_buf(), dtype=np.uintp))  # in the space's order
         rows = [body_ids.index(body.id) for body in self.agent_bodies]
         contiguous = rows == list(range(rows[0], rows[0] + len(rows)))
         self._agent_rows = slice(rows[0], rows[0] + len(rows)) if contiguous else np.array(rows)

@@ -1,2 +1,2 @@
 """Helpers with no knowledge of the task: atomic files and folder locks, YAML as users write it, and worker processes
-(standard library, numpy and PyYAML only)."""
+with shared arrays (standard library, numpy and PyYAML only)."""
