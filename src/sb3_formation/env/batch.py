@@ -23,7 +23,7 @@ import numpy as np
 from sb3_formation.env.config import INFO_KEYS, REWARD_TERMS
 from sb3_formation.env.episodes import episode_summary
 from sb3_formation.env.formation_env import FormationEnv
-from sb3_formation.env.geometry import FormationState, _measure
+from sb3_formation.env.geometry import FormationState, _measure, agent_errors
 from sb3_formation.env.observations import _fill_observations
 from sb3_formation.env.rewards import _reward_terms, nearest_gaps
 from sb3_formation.env.sensors import lidar_ranges
@@ -80,8 +80,12 @@ class FormationBatch:
         self.contacts = np.zeros((n_slots, 2), dtype=np.int64)  # agents, obstacles touched in the last step
         self.lidar = np.zeros((2, n_slots, rays))
         self.goals = np.zeros((n_teams, 2))
-        self.obstacles = np.zeros((n_teams, 0, 3))
-        self.obstacle_counts = np.zeros(n_teams, dtype=np.int64)
+        # every team's lidar layout (Lidar.layout: its obstacles then its agents as circles, who sees which, channels),
+        # padded to the widest team's; the obstacles' circles are also what the rewards' nearest gaps measure
+        self._lidar_circles = np.zeros((n_teams, 0, 3))
+        self._lidar_visible = np.zeros((n_slots, 0), dtype=bool)
+        self._lidar_channels = np.zeros((n_teams, 0), dtype=np.int64)
+        self._lidar_counts = np.zeros(n_teams, dtype=np.int64)
         self.step_counts = np.zeros(n_teams, dtype=np.int64)
         self.goal_distances = np.zeros(n_teams)
         self.previous_offsets = np.zeros((n_teams, 2))  # c_g^v one step earlier
@@ -141,13 +145,14 @@ class FormationBatch:
         self.contacts[rows, 0], self.contacts[rows, 1] = env._contacts
         self.lidar[:, rows] = env._lidar
         self.goals[team] = env.goal
-        obstacles = np.asarray(env.obstacles, dtype=np.float64).reshape(-1, 3)
-        if len(obstacles) > self.obstacles.shape[1]:
-            grown = np.zeros((self.n_teams, len(obstacles), 3))
-            grown[:, : self.obstacles.shape[1]] = self.obstacles
-            self.obstacles = grown
-        self.obstacles[team, : len(obstacles)] = obstacles
-        self.obstacle_counts[team] = len(obstacles)
+        circles, visible, channels = env.lidar.layout
+        self._lidar_circles = _widened(self._lidar_circles, len(channels))
+        self._lidar_visible = _widened(self._lidar_visible, len(channels))
+        self._lidar_channels = _widened(self._lidar_channels, len(channels))
+        self._lidar_circles[team, : len(channels)] = circles
+        self._lidar_visible[rows, : len(channels)] = visible
+        self._lidar_channels[team, : len(channels)] = channels
+        self._lidar_counts[team] = len(channels)
         self.step_counts[team] = env.step_count
         self.goal_distances[team] = env.goal_distance
         self.previous_offsets[team] = env._previous_centroid_goal_offset
@@ -238,8 +243,8 @@ class FormationBatch:
             self._beta_ref,
             config.d_ref,
             config.agent_radius,
-            self.obstacles,
-            self.obstacle_counts,
+            self._lidar_circles,
+            self._lidar_counts,
             config.world_width,
             config.world_height,
             self.centroids,
@@ -300,8 +305,10 @@ class FormationBatch:
             self._reference,
             config.observe_reference_bearings,
             self._directions,
-            self.obstacles,
-            self.obstacle_counts,
+            self._lidar_circles,
+            self._lidar_visible,
+            self._lidar_channels,
+            self._lidar_counts,
             config.agent_radius,
             config.world_width,
             config.world_height,
@@ -365,6 +372,15 @@ def agent_infos(values: np.ndarray, contacts: np.ndarray, success: np.ndarray) -
     return [dict(zip(INFO_KEYS, row)) for row in zip(*columns)]
 
 
+def _widened(array: np.ndarray, size: int) -> np.ndarray:
+    """``array``, or a copy with its second axis grown to ``size`` (the new entries zero)."""
+    if array.shape[1] >= size:
+        return array
+    grown = np.zeros((array.shape[0], size, *array.shape[2:]), dtype=array.dtype)
+    grown[:, : array.shape[1]] = array
+    return grown
+
+
 # Compiled kernels: each loops over the teams and calls, for each, the very kernels FormationEnv calls for one team ----
 
 
@@ -377,8 +393,8 @@ def _measure_teams(
     beta_ref: np.ndarray,
     d_ref: float,
     agent_radius: float,
-    obstacles: np.ndarray,
-    obstacle_counts: np.ndarray,
+    circles: np.ndarray,
+    circle_counts: np.ndarray,
     width: float,
     height: float,
     centroids: np.ndarray,
@@ -415,9 +431,8 @@ def _measure_teams(
             for slot in range(neighbour_distance.shape[1]):
                 in_range = in_range and neighbour_distance[agent, slot] <= d_ref
         range_flags[team] = in_range
-        agent_gap, obstacle_gap = nearest_gaps(
-            team_positions, agent_radius, obstacles[team, : obstacle_counts[team]], width, height
-        )
+        obstacles = circles[team, : circle_counts[team] - (end - start)]  # the lidar's circles: obstacles, then agents
+        agent_gap, obstacle_gap = nearest_gaps(team_positions, agent_radius, obstacles, width, height)
         nearest_agent[start:end] = agent_gap
         nearest_obstacle[start:end] = obstacle_gap
     return nearest_agent, nearest_obstacle
@@ -489,8 +504,10 @@ def _observe_teams(
     reference: np.ndarray,
     observe_reference: bool,
     directions: np.ndarray,
-    obstacles: np.ndarray,
-    obstacle_counts: np.ndarray,
+    lidar_circles: np.ndarray,
+    lidar_visible: np.ndarray,
+    lidar_channels: np.ndarray,
+    lidar_counts: np.ndarray,
     agent_radius: float,
     width: float,
     height: float,
@@ -518,21 +535,20 @@ def _observe_teams(
     dim = out.shape[1]
     for team in range(starts.shape[0] - 1):
         start, end = starts[team], starts[team + 1]
-        n_agents, n_obstacles = end - start, obstacle_counts[team]
-        # the lidar's circles: obstacles, then the agents (FormationEnv's Lidar.set_obstacles and scan)
-        circles = np.zeros((n_obstacles + n_agents, 3))
-        circles[:n_obstacles] = obstacles[team, :n_obstacles]
-        circles[n_obstacles:, :2] = positions[start:end]
-        circles[n_obstacles:, 2] = agent_radius
-        visible = np.ones((n_agents, n_obstacles + n_agents), dtype=np.bool_)
-        channels = np.zeros(n_obstacles + n_agents, dtype=np.int64)
-        channels[n_obstacles:] = 1
-        for agent in range(n_agents):
-            visible[agent, n_obstacles + agent] = False
-            for slot in range(neighbours.shape[1]):
-                visible[agent, n_obstacles + neighbours[start + agent, slot]] = False
+        n_agents, n_circles = end - start, lidar_counts[team]
+        # the team's Lidar.scan: the agents' circles (the last ones) take the agents' positions
+        circles = lidar_circles[team, :n_circles]
+        circles[n_circles - n_agents :, :2] = positions[start:end]
         ranges = lidar_ranges(
-            positions[start:end], agent_radius, directions, circles, visible, channels, width, height, lidar_range
+            positions[start:end],
+            agent_radius,
+            directions,
+            circles,
+            lidar_visible[start:end, :n_circles],
+            lidar_channels[team, :n_circles],
+            width,
+            height,
+            lidar_range,
         )
         ranges /= lidar_range
         lidar[:, start:end] = ranges
@@ -565,19 +581,19 @@ def _observe_teams(
         # info values and the episode's running sums (EpisodeStatistics.add: agent by agent, each over n)
         episode_lengths[team] += 1
         episode_returns[team] += team_means[team]
+        angle, bearing, distance = agent_errors(
+            angle_errors[start:end], bearing_errors[start:end], neighbour_distances[start:end], d_ref
+        )
         for agent in range(n_agents):
             row = start + agent
-            angle = abs(angle_errors[row])
-            bearing = 0.5 * (bearing_errors[row, 0] + bearing_errors[row, 1])
-            distance = 0.5 * (max(neighbour_distances[row, 0] - d_ref, 0.0) + max(neighbour_distances[row, 1] - d_ref, 0.0))
-            values[row, 0] = angle
-            values[row, 1] = bearing
-            values[row, 2] = distance
+            values[row, 0] = angle[agent]
+            values[row, 1] = bearing[agent]
+            values[row, 2] = distance[agent]
             values[row, 3] = centroid_distances[row]
             values[row, 4] = goal_distances[team]
-            episode_errors[team, 0] += angle / n_agents
-            episode_errors[team, 1] += bearing / n_agents
-            episode_errors[team, 2] += distance / n_agents
+            episode_errors[team, 0] += angle[agent] / n_agents
+            episode_errors[team, 1] += bearing[agent] / n_agents
+            episode_errors[team, 2] += distance[agent] / n_agents
             episode_collisions[team, 0] += contacts[row, 1]
             episode_collisions[team, 1] += contacts[row, 0]
             for term in range(n_terms):

@@ -11,7 +11,13 @@ from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
 from sb3_formation.env.config import INFO_KEYS, REWARD_TERMS, FormationConfig
-from sb3_formation.env.geometry import FormationState, measure_formation, reference_bearings, ring_neighbours
+from sb3_formation.env.geometry import (
+    FormationState,
+    agent_errors,
+    measure_formation,
+    reference_bearings,
+    ring_neighbours,
+)
 from sb3_formation.env.observations import build_observations, observation_fields, observation_layout
 from sb3_formation.env.rendering import HumanWindow, render_frame
 from sb3_formation.env.rewards import combine_rewards, nearest_gaps, reward_constants, reward_terms
@@ -373,10 +379,8 @@ class FormationEnv(ParallelEnv):
     def _agent_errors(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per agent: abs angle error (deg), mean bearing error and mean positive neighbour-distance error (m)."""
         formation = self.formation
-        return (
-            np.abs(formation.angle_errors_deg),
-            0.5 * formation.bearing_errors.sum(axis=1),
-            0.5 * np.maximum(formation.neighbour_distances - self.config.d_ref, 0.0).sum(axis=1),
+        return agent_errors(
+            formation.angle_errors_deg, formation.bearing_errors, formation.neighbour_distances, self.config.d_ref
         )
 
     # State --------------------------------------------------------------------------------------------------------

@@ -113,6 +113,28 @@ def measure_formation(
 
 
 @numba.njit(cache=True)
+def agent_errors(
+    angle_errors_deg: np.ndarray, bearing_errors: np.ndarray, neighbour_distances: np.ndarray, d_ref: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Per agent, what the infos and episode means report: the absolute angle error (deg), the mean bearing error over
+    its two neighbours, and the mean of their distance errors beyond d^ref (m).
+
+    :param angle_errors_deg: ``(n,)`` signed angle errors (:attr:`FormationState.angle_errors_deg`)
+    :param bearing_errors: ``(n, 2)`` bearing errors
+    :param neighbour_distances: ``(n, 2)`` neighbour distances (m)
+    :param d_ref: reference neighbour distance d^ref (m)
+    """
+    n_agents = angle_errors_deg.shape[0]
+    angle, bearing, distance = np.empty(n_agents), np.empty(n_agents), np.empty(n_agents)
+    for agent in range(n_agents):
+        angle[agent] = abs(angle_errors_deg[agent])
+        bearing[agent] = 0.5 * (bearing_errors[agent, 0] + bearing_errors[agent, 1])
+        beyond = max(neighbour_distances[agent, 0] - d_ref, 0.0) + max(neighbour_distances[agent, 1] - d_ref, 0.0)
+        distance[agent] = 0.5 * beyond
+    return angle, bearing, distance
+
+
+@numba.njit(cache=True)
 def _measure(
     positions: np.ndarray, neighbours: np.ndarray, reference: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover

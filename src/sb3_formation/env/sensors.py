@@ -143,6 +143,12 @@ class Lidar:
         self._visible = np.hstack([np.ones((n_agents, n_obstacles), dtype=bool), self._agent_visibility])
         self._channels = np.r_[np.full(n_obstacles, OBSTACLE_CHANNEL), np.full(n_agents, AGENT_CHANNEL)]
 
+    @property
+    def layout(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What a scan checks: ``(m, 3)`` circles (the obstacles, then the agents, whose centres each scan sets), the
+        ``(n, m)`` circles each agent may see, and the ``(m,)`` channel of every circle."""
+        return self._circles, self._visible, self._channels
+
     def scan(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Readings of every agent's rays, ``(obstacles, agents)``, each ``(n, n_rays)`` in [0, 1] (1 = nothing in range).
 
