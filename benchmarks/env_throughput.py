@@ -6,7 +6,9 @@ ch5-bearing at stage 3, random actions, 90-ray lidar. Prints medians over repeat
   terminal observations, resets), as ``FormationVecEnv`` stepped before batching (the reference of the ratios);
 - ``FormationVecEnv`` (batched: ``FormationBatch``) with every team in this process, and with ``n_workers=2`` (half the
   teams in this process, half in a worker process, through shared memory);
-- one ``FormationEnv`` alone, and the bare Pymunk ``space.step`` of one team (sub-steps included).
+- one ``FormationEnv`` alone, and the bare Pymunk ``space.step`` of one team (sub-steps included);
+- the batched VecEnv with every agent holding one action (pressed on walls, obstacles and each other), with contacts
+  read from Pymunk's arbiters, and with a Python collision callback per contact added (the former way).
 
 Targets (issue 17): with 14 teams of 6, at least 150,000 agent-steps/s on 2 cores (with 2 processes), and the batched
 VecEnv at least 2.5x team-by-team stepping on one core.
@@ -21,6 +23,7 @@ import statistics
 import time
 
 import numpy as np
+import pymunk
 
 from sb3_formation import FormationConfig, FormationEnv
 from sb3_formation.env.episodes import EpisodeStatistics
@@ -57,12 +60,22 @@ def team_by_team_seconds(teams: int, steps: int, seed: int) -> float:
     return (time.perf_counter() - start) / (steps * teams)
 
 
-def vec_env_seconds(teams: int, steps: int, seed: int, workers: int) -> float:
-    """Seconds per team-step of ``FormationVecEnv`` (after a warm-up step that compiles and starts the workers)."""
+def vec_env_seconds(teams: int, steps: int, seed: int, workers: int, pressed: bool = False, callbacks: bool = False) -> float:
+    """Seconds per team-step of ``FormationVecEnv`` (after a warm-up step that compiles and starts the workers).
+
+    :param pressed: every agent holds one random action, so the agents press on the walls, obstacles and each other
+    :param callbacks: also count contacts the way ``World`` did before issue 17: a Python ``pre_solve`` callback per
+        touching pair and sub-step (teams in this process only)
+    """
     venv = FormationVecEnv(CONFIG, n_envs=teams, n_workers=workers)
     venv.seed(seed)
     venv.reset()
     actions = np.random.default_rng(seed).uniform(-1.0, 1.0, (steps + 1, venv.num_envs, 2))
+    if pressed:
+        actions[:] = actions[0]
+    if callbacks:
+        for env in venv._batches[0].envs:
+            env.world.space.on_collision(None, None, pre_solve=_record_contact)
     venv.step(actions[0])
     start = time.perf_counter()
     for step_actions in actions[1:]:
@@ -70,6 +83,15 @@ def vec_env_seconds(teams: int, steps: int, seed: int, workers: int) -> float:
     elapsed = time.perf_counter() - start
     venv.close()
     return elapsed / (steps * teams)
+
+
+_PAIRS: set[tuple[int, int]] = set()
+
+
+def _record_contact(arbiter: pymunk.Arbiter, space: pymunk.Space, data: object) -> None:
+    """The former contact count's work per touching pair and sub-step: the two shapes, as a pair in a set."""
+    first, second = sorted(id(shape) for shape in arbiter.shapes)
+    _PAIRS.add((first, second))
 
 
 def pymunk_seconds(steps: int, seed: int) -> float:
@@ -99,13 +121,17 @@ def main() -> None:
     n, teams, steps = CONFIG.n_agents, args.teams, args.steps
     team_by_team_seconds(1, 5, 0)  # compile the kernels outside the timings
     # every measurement once per repeat, interleaved, so that each ratio sees the same machine
-    rows: dict[str, list[float]] = {"team": [], "batched": [], "workers": [], "single": [], "pymunk": []}
+    rows: dict[str, list[float]] = {
+        name: [] for name in ("team", "batched", "workers", "single", "pymunk", "pressed", "callbacks")
+    }
     for seed in range(args.repeats):
         rows["team"].append(team_by_team_seconds(teams, steps, seed))
         rows["batched"].append(vec_env_seconds(teams, steps, seed, workers=1))
         rows["workers"].append(vec_env_seconds(teams, steps, seed, workers=2))
         rows["single"].append(team_by_team_seconds(1, steps, seed))
         rows["pymunk"].append(pymunk_seconds(steps, seed))
+        rows["pressed"].append(vec_env_seconds(teams, steps, seed, workers=1, pressed=True))
+        rows["callbacks"].append(vec_env_seconds(teams, steps, seed, workers=1, pressed=True, callbacks=True))
     median = {name: statistics.median(values) for name, values in rows.items()}
 
     def ratio(first: str, second: str) -> float:
@@ -133,6 +159,12 @@ def main() -> None:
     print(f"  ratio 2 processes / one (batched)       : {workers:.2f}x")
     print(f"  ratio batched team-step / bare Pymunk   : {ratio('batched', 'pymunk'):.1f}x")
     print(f"  2 processes: {rate:,.0f} agent-steps/s (target >= 150,000: {'met' if rate >= 150_000 else 'NOT met'})")
+    print("Agents pressed on walls, obstacles and each other (each holds one random action), batched, one core:")
+    print(f"  contacts from Pymunk's arbiters         : {median['pressed'] * 1e6:7.1f} us/team-step")
+    print(
+        f"  plus a Python callback per contact      : {median['callbacks'] * 1e6:7.1f} us/team-step  "
+        f"({ratio('callbacks', 'pressed'):.2f}x; how contacts were counted before issue 17)"
+    )
 
 
 if __name__ == "__main__":

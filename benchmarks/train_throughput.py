@@ -70,14 +70,20 @@ class PhaseTimer(BaseCallback):
         return True
 
 
-def measure(recipe: str, workers: int, iterations: int) -> tuple[float, float, float, int]:
-    """Median rollout, training and reference seconds per iteration, and agent-steps per iteration, of ``recipe``."""
+def build(recipe: str, workers: int) -> tuple[PPO, TrainSettings]:
+    """``recipe``'s model on its training env (stage 3, 14 teams, seed 0), as ``sb3-formation train`` makes them."""
     preset, cell = RECIPES[recipe]
     recurrent = {"recurrent": cell is not None, **({"cell": cell} if cell else {})}
     settings = TrainSettings(preset=preset, n_envs=14, workers=workers, seed=0, device="cpu", **recurrent)
     env = make_training_env(settings, stage=3)
     kwargs = settings.ppo_kwargs()
-    model = algorithm_for(kwargs["policy"])(env=env, seed=0, device="cpu", **with_schedules(kwargs))
+    return algorithm_for(kwargs["policy"])(env=env, seed=0, device="cpu", **with_schedules(kwargs)), settings
+
+
+def measure(recipe: str, workers: int, iterations: int) -> tuple[float, float, float, int]:
+    """Median rollout, training and reference seconds per iteration, and agent-steps per iteration, of ``recipe``."""
+    model, settings = build(recipe, workers)
+    env = model.get_env()
     timer = PhaseTimer()
     steps = model.n_steps * env.num_envs
     model.learn((iterations + 1) * steps, callback=[*rollout_callbacks(settings), timer])

@@ -6,8 +6,8 @@ Euler, as Pymunk itself integrates): v <- v + F / m * dt, then the speed is clam
 bodies over ``config.physics_substeps`` sub-steps and resolves contacts (inelastic, frictionless). Contacts are counted
 once per pair per environment step: after each sub-step the space's touching pairs are read in one call of Pymunk's
 batch API (every obstacle and wall hangs on its own static body, so a pair of bodies names the obstacle), not through
-a Python collision callback per contact and sub-step, which cost more than the rest of a step when agents press on
-walls.
+a Python collision callback per contact and sub-step, which made a step 1.7x as long when agents press on walls
+(``benchmarks/env_throughput.py``).
 """
 
 from __future__ import annotations

@@ -346,8 +346,8 @@ class CollectionThreadsCallback(BaseCallback):
     """Torch's thread count while rollouts are collected: ``threads`` then, torch's own again for training.
 
     The worker processes of a :class:`~sb3_formation.sb3.vec_env.FormationVecEnv` poll for the next step on their
-    cores during a rollout; torch threads there would fight them (measured on 2 cores with one worker: a fast-recipe
-    rollout took 0.76 to 1.03 s with torch's 2 threads, 0.39 s with 1).
+    cores during a rollout; torch threads there would fight them (``benchmarks/rollout_breakdown.py`` on 2 cores with
+    one worker, 2026-11-25: a fast-recipe rollout took 0.89 s with torch's 2 threads, 0.38 s with 1).
 
     :param threads: torch threads during collection
     """
