@@ -20,9 +20,9 @@ from typing import Any
 import numba
 import numpy as np
 
-from sb3_formation.env.config import INFO_KEYS, REWARD_TERMS
+from sb3_formation.env.config import REWARD_TERMS
 from sb3_formation.env.episodes import episode_summary
-from sb3_formation.env.formation_env import FormationEnv
+from sb3_formation.env.formation_env import FormationEnv, agent_infos
 from sb3_formation.env.geometry import FormationState, _measure, agent_errors
 from sb3_formation.env.observations import _fill_observations
 from sb3_formation.env.rewards import _reward_terms, nearest_gaps
@@ -357,19 +357,6 @@ class FormationBatch:
         :param terminated: the teams' success, as :meth:`step` returned it
         """
         return agent_infos(values, self.contacts, np.repeat(terminated, self.sizes))
-
-
-def agent_infos(values: np.ndarray, contacts: np.ndarray, success: np.ndarray) -> list[dict[str, Any]]:
-    """Agents' info dicts, keys in the order of :data:`INFO_KEYS`, from the arrays of :meth:`FormationBatch.step`.
-
-    :param values: ``(agents, INFO_VALUES)`` floats: the five errors and distances of :data:`INFO_KEYS`, then the reward terms
-    :param contacts: ``(agents, 2)`` ints: other agents, then obstacles or walls, touched in the step
-    :param success: ``(agents,)`` bools: the agent's team reached the goal
-    """
-    columns = values.T.tolist()
-    touched = contacts.T.tolist()
-    columns = [*columns[:5], touched[1], touched[0], success.tolist(), *columns[5:]]
-    return [dict(zip(INFO_KEYS, row)) for row in zip(*columns)]
 
 
 def _widened(array: np.ndarray, size: int) -> np.ndarray:

@@ -364,17 +364,12 @@ class FormationEnv(ParallelEnv):
         self, agent_contacts: list[int], obstacle_contacts: list[int], terms: np.ndarray, success: bool
     ) -> list[dict[str, Any]]:
         """Every agent's info, in agent order."""
-        rows = zip(
-            *(errors.tolist() for errors in self._agent_errors()),
-            self.formation.centroid_distances.tolist(),
-            obstacle_contacts,
-            agent_contacts,
-            terms.T.tolist(),
+        n_agents = self.config.n_agents
+        values = np.column_stack(
+            [*self._agent_errors(), self.formation.centroid_distances, np.full(n_agents, self.goal_distance), terms.T]
         )
-        return [
-            dict(zip(INFO_KEYS, (angle, bearing, distance, centroid, self.goal_distance, obstacle, agent, success, *terms)))
-            for angle, bearing, distance, centroid, obstacle, agent, terms in rows
-        ]
+        contacts = np.column_stack([agent_contacts, obstacle_contacts])
+        return agent_infos(values, contacts, np.full(n_agents, success))
 
     def _agent_errors(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per agent: abs angle error (deg), mean bearing error and mean positive neighbour-distance error (m)."""
@@ -443,3 +438,17 @@ class FormationEnv(ParallelEnv):
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+
+
+def agent_infos(values: np.ndarray, contacts: np.ndarray, success: np.ndarray) -> list[dict[str, Any]]:
+    """Agents' info dicts, keys in the order of :data:`INFO_KEYS` (one team's, or many teams' stacked).
+
+    :param values: ``(agents, 5 + terms)`` floats: the five errors and distances of :data:`INFO_KEYS`, then the reward
+        terms
+    :param contacts: ``(agents, 2)`` ints: other agents, then obstacles or walls, touched in the step
+    :param success: ``(agents,)`` bools: the agent's team reached the goal
+    """
+    columns = values.T.tolist()
+    touched = contacts.T.tolist()
+    columns = [*columns[:5], touched[1], touched[0], success.tolist(), *columns[5:]]
+    return [dict(zip(INFO_KEYS, row)) for row in zip(*columns)]

@@ -16,9 +16,9 @@ import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
-from sb3_formation.env.batch import INFO_VALUES, FormationBatch, agent_infos
+from sb3_formation.env.batch import INFO_VALUES, FormationBatch
 from sb3_formation.env.config import FormationConfig
-from sb3_formation.env.formation_env import FormationEnv
+from sb3_formation.env.formation_env import FormationEnv, agent_infos
 from sb3_formation.utils.processes import SharedArrays, WorkerProcess, gather, worker_context
 
 #: seconds a worker process polls for the next step before it sleeps (waking it would cost more than a step), and the
