@@ -5,8 +5,7 @@ Stable-Baselines3 and no plotting code.
 """
 
 from sb3_formation.env.config import PRESETS, REWARD_TERMS, FormationConfig
-from sb3_formation.env.episodes import EpisodeStatistics
 from sb3_formation.env.formation_env import FormationEnv
 from sb3_formation.env.scenarios import PlacementError, Scenario
 
-__all__ = ["PRESETS", "REWARD_TERMS", "EpisodeStatistics", "FormationConfig", "FormationEnv", "PlacementError", "Scenario"]
+__all__ = ["PRESETS", "REWARD_TERMS", "FormationConfig", "FormationEnv", "PlacementError", "Scenario"]

@@ -1,5 +1,5 @@
-"""Episode metrics: their names (one list for TensorBoard, evaluation summaries, tables and figures) and the running
-statistics that turn a team's steps into its episode summary."""
+"""Episode metrics: their names (one list for TensorBoard, evaluation summaries, tables and figures), and a team's
+episode summary from the running sums of its steps."""
 
 from __future__ import annotations
 
@@ -7,9 +7,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
-from sb3_formation.env.config import REWARD_INFO_KEYS, REWARD_TERMS
+from sb3_formation.env.config import REWARD_TERMS
 
 
 @dataclass(frozen=True)
@@ -51,40 +49,6 @@ EPISODE_METRICS: dict[str, Metric] = {
 SUCCESS_RATE_TAG = "episode/success_rate"
 
 
-class EpisodeStatistics:
-    """Running sums of one team's episode, turned into the team's episode summary when it ends."""
-
-    def __init__(self) -> None:
-        self.reset()
-
-    def reset(self) -> None:
-        """Start a new episode."""
-        self.length = 0
-        self.mean_return = 0.0
-        self.errors = [0.0, 0.0, 0.0]
-        self.collisions = [0, 0]
-        self.terms = [0.0] * len(REWARD_TERMS)
-
-    def add(self, rewards: np.ndarray, infos: Sequence[dict[str, Any]]) -> None:
-        """Add one step: the team's rewards and per-agent infos (plain Python sums: a handful of agents per call)."""
-        n_agents = len(infos)
-        self.length += 1
-        self.mean_return += float(rewards.mean())
-        errors, collisions, terms = self.errors, self.collisions, self.terms
-        for info in infos:
-            errors[0] += info["angle_error_deg"] / n_agents
-            errors[1] += info["bearing_error"] / n_agents
-            errors[2] += info["neighbour_distance_error"] / n_agents
-            collisions[0] += info["collisions_obstacle"]
-            collisions[1] += info["collisions_agent"]
-            for index, key in enumerate(REWARD_INFO_KEYS):
-                terms[index] += info[key] / n_agents
-
-    def summary(self, success: bool, stage: int) -> dict[str, Any]:
-        """The episode's means over steps (and over agents), collision totals, success and curriculum stage."""
-        return episode_summary(self.length, self.mean_return, self.errors, self.collisions, self.terms, success, stage)
-
-
 def episode_summary(
     length: int,
     mean_return: float,
@@ -94,7 +58,7 @@ def episode_summary(
     success: bool,
     stage: int,
 ) -> dict[str, Any]:
-    """A team's episode summary from its running sums (see :class:`EpisodeStatistics`).
+    """A team's episode summary from its running sums (the engine keeps them: ``FormationEngine.episode_summary``).
 
     :param length: steps of the episode
     :param mean_return: sum over steps of the team's mean agent reward

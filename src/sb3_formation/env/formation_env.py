@@ -1,27 +1,20 @@
-"""``FormationEnv``: one team of agents as a PettingZoo ``ParallelEnv``."""
+"""``FormationEnv``: one team of agents as a PettingZoo ``ParallelEnv``, a view of one team of a
+:class:`~sb3_formation.env.engine.FormationEngine`."""
 
 from __future__ import annotations
 
-import math
 from typing import Any, ClassVar
 
 import gymnasium
 import numpy as np
-from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
-from sb3_formation.env.config import INFO_KEYS, REWARD_TERMS, FormationConfig
-from sb3_formation.env.geometry import (
-    FormationState,
-    agent_errors,
-    measure_formation,
-    reference_bearings,
-    ring_neighbours,
-)
-from sb3_formation.env.observations import build_observations, observation_fields, observation_layout
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.engine import FormationEngine
+from sb3_formation.env.geometry import reference_bearings, ring_neighbours
+from sb3_formation.env.observations import observation_layout
 from sb3_formation.env.rendering import HumanWindow, render_frame
-from sb3_formation.env.rewards import combine_rewards, nearest_gaps, reward_constants, reward_terms
-from sb3_formation.env.scenarios import Scenario, check_world_fits, sample_scenario
+from sb3_formation.env.scenarios import Scenario
 from sb3_formation.env.sensors import Lidar
 from sb3_formation.env.state import TeamState, state_fields, state_layout, state_vector
 from sb3_formation.env.world import World
@@ -113,9 +106,18 @@ class FormationEnv(ParallelEnv):
     scenario of the current curriculum stage is drawn from the env's own generator. Other keys are ignored, as
     Gymnasium environments do.
 
+    ## The engine behind it
+
+    The env keeps no episode state of its own: it is a view of one team of a
+    :class:`~sb3_formation.env.engine.FormationEngine` (by default an engine of this one team), which resets and steps
+    it. A ``FormationVecEnv`` holds one such view per team of its engines, for ``get_attr`` and ``env_method``; those
+    views are stepped by the VecEnv, not through ``step``.
+
     :param config: task configuration; default ``FormationConfig()``
     :param render_mode: ``None``, ``"rgb_array"`` or ``"human"`` (a window; needs the ``human`` extra, pygame)
     :param render_lidar: draw the lidar rays in renderings
+    :param engine: the engine whose team this env shows (default: a new engine of one team of ``config``)
+    :param team: the team of ``engine``
     """
 
     metadata: ClassVar[dict[str, Any]] = {
@@ -125,18 +127,28 @@ class FormationEnv(ParallelEnv):
         "is_parallelizable": True,
     }
 
-    def __init__(self, config: FormationConfig | None = None, render_mode: str | None = None, render_lidar: bool = False):
+    def __init__(
+        self,
+        config: FormationConfig | None = None,
+        render_mode: str | None = None,
+        render_lidar: bool = False,
+        *,
+        engine: FormationEngine | None = None,
+        team: int = 0,
+    ):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             modes = self.metadata["render_modes"]
             raise ValueError(f"render_mode={render_mode!r} is not supported; use one of {modes} or None")
-        self.config = config if config is not None else FormationConfig()
-        check_world_fits(self.config)
+        if engine is None:
+            engine = FormationEngine([config if config is not None else FormationConfig()])
+        elif config is not None and config != engine.configs[team]:
+            raise ValueError(f"config differs from team {team}'s of the engine; give one or the other")
+        self.engine, self.team = engine, team
+        self.config = config = engine.configs[team]
         self.render_mode = render_mode
         self.render_lidar = render_lidar
-        n_agents = self.config.n_agents
-        self.possible_agents: list[AgentID] = [f"agent_{index}" for index in range(n_agents)]
-        self.agents: list[AgentID] = []
-        fields = observation_fields(self.config)
+        self.possible_agents: list[AgentID] = [f"agent_{index}" for index in range(config.n_agents)]
+        fields = engine.observation_fields
         self.observation_layout: dict[str, slice] = observation_layout(fields)
         low = np.concatenate([field.low for field in fields]).astype(np.float32)
         high = np.concatenate([field.high for field in fields]).astype(np.float32)
@@ -144,22 +156,10 @@ class FormationEnv(ParallelEnv):
         action_space = gymnasium.spaces.Box(-1.0, 1.0, (2,), dtype=np.float32)
         self.observation_spaces = dict.fromkeys(self.possible_agents, observation_space)
         self.action_spaces = dict.fromkeys(self.possible_agents, action_space)
-        self._observation_buffer = np.empty((n_agents, observation_space.shape[0]), dtype=np.float32)
         #: True for the 0/1 flag entries of the observation (left alone by normalisation)
         self.binary_observation_mask = np.concatenate([np.full(field.size, field.binary) for field in fields])
-        self.neighbours = ring_neighbours(n_agents)
-        self.reference_bearings = reference_bearings(n_agents)
-        config = self.config
-        self.lidar = Lidar(
-            config.lidar_rays,
-            config.lidar_range,
-            config.agent_radius,
-            config.world_width,
-            config.world_height,
-            self.neighbours,
-        )
-        self._reward_constants = reward_constants(config)
-        self.set_stage(self.config.stage)
+        self.neighbours = ring_neighbours(config.n_agents)
+        self.reference_bearings = reference_bearings(config.n_agents)
         fields = state_fields(config)
         #: PettingZoo's global state space: the fields of :func:`~sb3_formation.env.state.state_fields`, in order
         self.state_space = gymnasium.spaces.Box(
@@ -169,20 +169,7 @@ class FormationEnv(ParallelEnv):
         )
         #: field name -> slice of ``state()``
         self.state_layout: dict[str, slice] = state_layout(config)
-        self.np_random, self.np_random_seed = seeding.np_random()
-        # The episode's state; every attribute exists from here on, and is set for the episode by reset()
-        self.scenario: Scenario | None = None
-        self.world: World | None = None
-        self.goal = np.zeros(2)
-        self.obstacles = np.zeros((0, 3))
-        self.step_count = 0
-        self.previous_actions = np.zeros((n_agents, 2))
-        self.previous_rewards = np.zeros(n_agents)
-        self.formation: FormationState | None = None
-        self.goal_distance = math.nan
-        self._previous_centroid_goal_offset = np.zeros(2)
-        self._contacts: tuple[list[int], list[int]] = ([0] * n_agents, [0] * n_agents)  # agent, obstacle: last step
-        self._lidar: tuple[np.ndarray, np.ndarray] | None = None
+        self._rows = engine.team_rows(team)
         self._renderer: Any = None
 
     def observation_space(self, agent: AgentID) -> gymnasium.spaces.Box:
@@ -191,47 +178,78 @@ class FormationEnv(ParallelEnv):
     def action_space(self, agent: AgentID) -> gymnasium.spaces.Box:
         return self.action_spaces[agent]
 
+    # The team's state, as the engine holds it ---------------------------------------------------------------------
+
+    @property
+    def agents(self) -> list[AgentID]:
+        """The live agents: all of them during an episode, none after it ended (or before the first reset)."""
+        return list(self.possible_agents) if self.engine.live[self.team] else []
+
+    @property
+    def stage(self) -> int:
+        """The curriculum stage (1, 2 or 3); setting it is :meth:`set_stage`."""
+        return int(self.engine.stages[self.team])
+
+    @stage.setter
+    def stage(self, stage: int) -> None:
+        self.set_stage(stage)
+
     def set_stage(self, stage: int) -> None:
         """Switch the curriculum stage (1, 2 or 3); takes effect for rewards at once and for placements at the next reset."""
-        coefficients = self.config.reward_coefficients(stage)  # validates the stage
-        self.stage = int(stage)
-        self._coefficients = np.array([coefficients[name] for name in REWARD_TERMS])
+        self.engine.set_stage(self.team, stage)
+
+    @property
+    def np_random(self) -> np.random.Generator:
+        """The team's scenario generator."""
+        return self.engine.generators[self.team]
+
+    @np_random.setter
+    def np_random(self, generator: np.random.Generator) -> None:
+        self.engine.generators[self.team] = generator
+
+    @property
+    def np_random_seed(self) -> int:
+        return self.engine.generator_seeds[self.team]
+
+    @property
+    def scenario(self) -> Scenario | None:
+        """The episode's placements (``None`` before the first reset)."""
+        return self.engine.scenarios[self.team]
+
+    @property
+    def world(self) -> World | None:
+        """The team's Pymunk world (``None`` before the first reset)."""
+        return self.engine.worlds[self.team]
+
+    @property
+    def lidar(self) -> Lidar:
+        """The team's lidar, with the episode's obstacles."""
+        return self.engine.lidars[self.team]
+
+    @property
+    def goal(self) -> np.ndarray:
+        return self.engine.goals[self.team].copy()
+
+    @property
+    def obstacles(self) -> np.ndarray:
+        """``(m, 3)`` obstacle x, y, radius (m) of the episode."""
+        return np.zeros((0, 3)) if self.scenario is None else self.scenario.obstacles
+
+    @property
+    def step_count(self) -> int:
+        """Steps played since the last reset."""
+        return int(self.engine.step_counts[self.team])
 
     # Episode ------------------------------------------------------------------------------------------------------
 
     def reset(
         self, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[AgentID, np.ndarray], dict[AgentID, dict[str, Any]]]:
-        if seed is not None:
-            self.np_random, self.np_random_seed = seeding.np_random(seed)
         scenario = (options or {}).get("scenario")
-        if scenario is None:
-            scenario = sample_scenario(self.config, self.stage, self.np_random)
-        elif not isinstance(scenario, Scenario):
+        if scenario is not None and not isinstance(scenario, Scenario):
             raise TypeError(f"options['scenario'] must be a Scenario, got {type(scenario).__name__}")
-        else:
-            scenario.validate(self.config)
-        n_agents = self.config.n_agents
-        self.scenario = scenario
-        if self.world is None:
-            self.world = World(self.config, scenario)
-        else:
-            self.world.place(scenario)
-        self.goal = scenario.goal
-        self.obstacles = scenario.obstacles
-        self.lidar.set_obstacles(scenario.obstacles)
-        self.agents = list(self.possible_agents)
-        self.step_count = 0
-        self.previous_actions = np.zeros((n_agents, 2))
-        self.previous_rewards = np.zeros(n_agents)
-        self.formation = self._measure()
-        self.goal_distance = self._goal_distance()
-        self._previous_centroid_goal_offset = self.goal - self.formation.centroid
-        zeros = [0] * n_agents
-        self._contacts = (zeros, zeros)
-        terms = np.zeros((len(REWARD_TERMS), n_agents))
-        infos = self._infos(zeros, zeros, terms, success=False)
-        return dict(zip(self.agents, self._observations())), dict(zip(self.agents, infos))
+        observations = self.engine.reset(self.team, seed=seed, scenario=scenario)
+        return dict(zip(self.possible_agents, observations)), dict(zip(self.possible_agents, self.engine.infos(self.team)))
 
     def step(self, actions: dict[AgentID, np.ndarray]) -> tuple[dict, dict, dict, dict, dict]:
         if not self.agents:
@@ -247,7 +265,7 @@ class FormationEnv(ParallelEnv):
         )
 
     def step_array(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool, bool, list[dict[str, Any]]]:
-        """:meth:`step` with arrays in agent order, for vectorised wrappers such as :class:`FormationVecEnv`.
+        """:meth:`step` with arrays in agent order.
 
         :param actions: ``(n, 2)`` actions, row i for agent i (clipped to [-1, 1]; NaN or infinite values raise)
         :return: observations ``(n, dim)``, rewards ``(n,)``, terminated, truncated, and the agents' infos in order
@@ -264,42 +282,22 @@ class FormationEnv(ParallelEnv):
         return self._advance(np.minimum(np.maximum(actions, -1.0), 1.0))
 
     def _advance(self, clipped: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool, bool, list[dict[str, Any]]]:
-        """One step under validated, clipped ``(n, 2)`` actions."""
-        config, world = self.config, self.world
-        previous_velocities = world.velocities
-        previous_goal_distance = self.goal_distance
-        agent_contacts, obstacle_contacts = world.step(clipped * config.force_max)
-        self.step_count += 1
-        self._previous_centroid_goal_offset = self.goal - self.formation.centroid
-        self.formation = self._measure()
-        self.goal_distance = self._goal_distance()
-        nearest_agent, nearest_obstacle = nearest_gaps(
-            world.positions, config.agent_radius, self.obstacles, config.world_width, config.world_height
+        """One step of the team under validated, clipped ``(n, 2)`` actions."""
+        engine = self.engine
+        if engine.n_teams > 1:
+            raise RuntimeError(
+                f"this env is team {self.team} of an engine of {engine.n_teams} teams, which steps them together "
+                "(a FormationVecEnv's): step that, or make a FormationEnv of its own"
+            )
+        step = engine.step(clipped)
+        team = self.team
+        return (
+            step.observations.copy(),
+            step.rewards,
+            bool(step.terminated[team]),
+            bool(step.truncated[team]),
+            engine.infos(team),
         )
-        terms = reward_terms(
-            config,
-            self.step_count,
-            self.formation,
-            previous_goal_distance,
-            self.goal_distance,
-            previous_velocities,
-            world.velocities,
-            self.neighbours,
-            nearest_agent,
-            nearest_obstacle,
-            self._reward_constants,
-        )
-        rewards = combine_rewards(terms, self._coefficients, config.reward_clip)
-        success = self.goal_distance <= config.eta_g
-        truncated = not success and self.step_count >= config.max_steps
-        self.previous_actions = clipped
-        self.previous_rewards = rewards
-        observations = self._observations()
-        infos = self._infos(agent_contacts, obstacle_contacts, terms, success)
-        self._contacts = (agent_contacts, obstacle_contacts)  # lists: arrays only when a state is asked for
-        if success or truncated:
-            self.agents = []
-        return observations, rewards, success, truncated, infos
 
     # Internals ----------------------------------------------------------------------------------------------------
 
@@ -332,52 +330,6 @@ class FormationEnv(ParallelEnv):
                 raise ValueError(f"action of {agent} must have shape (2,), got {action.shape}")
         raise ValueError(f"actions could not be read as one (2,) array per agent: {actions!r}")
 
-    def _goal_distance(self) -> float:
-        """Distance (m) from the centroid to the goal."""
-        return math.hypot(self.goal[0] - self.formation.centroid[0], self.goal[1] - self.formation.centroid[1])
-
-    def _measure(self) -> FormationState:
-        return measure_formation(
-            self.world.positions, self.neighbours, self.reference_bearings, self.config.beta_ref_deg, self.config.d_ref
-        )
-
-    def _observations(self) -> np.ndarray:
-        self._lidar = lidar_obstacles, lidar_agents = self.lidar.scan(self.world.positions)
-        return build_observations(
-            self._observation_buffer,
-            lidar_obstacles,
-            lidar_agents,
-            self.world.positions,
-            self.world.velocities,
-            self.goal,
-            self.formation,
-            self._previous_centroid_goal_offset,
-            self.neighbours,
-            self.config,
-            self.step_count,
-            self.previous_actions,
-            self.previous_rewards,
-            self.reference_bearings,
-        )
-
-    def _infos(
-        self, agent_contacts: list[int], obstacle_contacts: list[int], terms: np.ndarray, success: bool
-    ) -> list[dict[str, Any]]:
-        """Every agent's info, in agent order."""
-        n_agents = self.config.n_agents
-        values = np.column_stack(
-            [*self._agent_errors(), self.formation.centroid_distances, np.full(n_agents, self.goal_distance), terms.T]
-        )
-        contacts = np.column_stack([agent_contacts, obstacle_contacts])
-        return agent_infos(values, contacts, np.full(n_agents, success))
-
-    def _agent_errors(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per agent: abs angle error (deg), mean bearing error and mean positive neighbour-distance error (m)."""
-        formation = self.formation
-        return agent_errors(
-            formation.angle_errors_deg, formation.bearing_errors, formation.neighbour_distances, self.config.d_ref
-        )
-
     # State --------------------------------------------------------------------------------------------------------
 
     def team_state(self) -> TeamState:
@@ -385,25 +337,12 @@ class FormationEnv(ParallelEnv):
         neighbour graph, lidar readings, contacts of the last step, formation errors and the step count."""
         if self.world is None:
             raise RuntimeError("team_state() called before reset()")
-        angle, bearing, distance = self._agent_errors()
-        lidar_obstacles, lidar_agents = self._lidar
-        return TeamState(
-            step=self.step_count,
-            positions=self.world.positions,
-            velocities=self.world.velocities,
-            goal=self.goal,
-            obstacles=self.obstacles,
-            neighbours=self.neighbours,
-            contacts_agent=np.array(self._contacts[0], dtype=np.int64),
-            contacts_obstacle=np.array(self._contacts[1], dtype=np.int64),
-            angle_errors_deg=angle,
-            bearing_errors=bearing,
-            neighbour_distance_errors=distance,
-            centroid=self.formation.centroid,
-            goal_distance=self.goal_distance,
-            lidar_obstacles=lidar_obstacles,
-            lidar_agents=lidar_agents,
-        )
+        return self.engine.team_state(self.team)
+
+    def episode_summary(self) -> dict[str, Any]:
+        """The episode so far: means over its steps of the formation errors and reward terms, collision totals,
+        success and stage (:func:`~sb3_formation.env.episodes.episode_summary`)."""
+        return self.engine.episode_summary(self.team)
 
     def state(self) -> np.ndarray:
         """PettingZoo's global state: a flat float32 vector laid out as ``self.state_layout`` (see
@@ -438,17 +377,3 @@ class FormationEnv(ParallelEnv):
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
-
-
-def agent_infos(values: np.ndarray, contacts: np.ndarray, success: np.ndarray) -> list[dict[str, Any]]:
-    """Agents' info dicts, keys in the order of :data:`INFO_KEYS` (one team's, or many teams' stacked).
-
-    :param values: ``(agents, 5 + terms)`` floats: the five errors and distances of :data:`INFO_KEYS`, then the reward
-        terms
-    :param contacts: ``(agents, 2)`` ints: other agents, then obstacles or walls, touched in the step
-    :param success: ``(agents,)`` bools: the agent's team reached the goal
-    """
-    columns = values.T.tolist()
-    touched = contacts.T.tolist()
-    columns = [*columns[:5], touched[1], touched[0], success.tolist(), *columns[5:]]
-    return [dict(zip(INFO_KEYS, row)) for row in zip(*columns)]

@@ -169,10 +169,9 @@ class World:
         self._read_buffer.set_float_buf(states)
         self._body_states = states[: 4 * len(body_ids)].reshape(-1, 4)
         # Space.step's Python bookkeeping (new bodies' checks, removed shapes) runs here, once per episode: a step of 0 s
-        # does only that (Chipmunk returns at once), and move() then calls Chipmunk's step directly
+        # does only that (Chipmunk returns at once), and advance() then calls Chipmunk's step directly
         self.space.step(0.0)
-        self.positions = np.array(scenario.agent_positions, dtype=np.float64)
-        self.velocities = np.zeros_like(self.positions)
+        self._read_states()
 
     @staticmethod
     def _buffer_and_query(fields: pymunk.batch.BodyFields | pymunk.batch.ArbiterFields) -> tuple[pymunk.batch.Buffer, Any]:
@@ -203,24 +202,15 @@ class World:
             obstacles or walls, each agent touched during the step (each pair counted once)
         """
         config = self.config
-        return self.move(clamp_speed(self.velocities + forces * (config.dt / config.agent_mass), config.v_max))
-
-    def move(self, commanded: np.ndarray) -> tuple[list[int], list[int]]:
-        """The Pymunk part of :meth:`step`: set the agents' velocities and let Pymunk move them over the sub-steps.
-
-        :param commanded: ``(n, 2)`` velocities (m/s) after the forces of the step, already clamped to v_max
-        :return: as :meth:`step`
-        """
-        contacts = self.advance(commanded)
-        self.positions, self.velocities = split_state(self.agent_states, self.config.v_max)
+        contacts = self.advance(clamp_speed(self.velocities + forces * (config.dt / config.agent_mass), config.v_max))
         if contacts is None:
-            return [0] * self.config.n_agents, [0] * self.config.n_agents
+            return [0] * config.n_agents, [0] * config.n_agents
         return contacts[0].tolist(), contacts[1].tolist()
 
     def advance(self, commanded: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """:meth:`move` without updating ``positions`` and ``velocities``: Pymunk's new state is in
-        :attr:`agent_states` (for a caller that splits the states of many worlds at once).
+        """The Pymunk part of :meth:`step`: set the agents' velocities and let Pymunk move them over the sub-steps.
 
+        :param commanded: ``(n, 2)`` velocities (m/s) after the forces of the step, already clamped to v_max
         :return: ``None`` when no agent touched anything, else the contact counts of :meth:`step` as two int arrays
         """
         config = self.config
@@ -232,12 +222,26 @@ class World:
         for _ in range(config.physics_substeps):
             chipmunk.cpSpaceStep(space, substep)  # Space.step without its Python bookkeeping (see place())
             chipmunk.cpSpaceEachCachedArbiter(space, _GET_ARBITERS, self._arbiter_query)
-        self._read_buffer._float_arr.num = 0  # the position Pymunk writes to
-        chipmunk.cpSpaceEachBody(space, _GET_BODIES, self._read)
+        self._read_states()
         if arbiters.num == 0:  # no pair of shapes near each other
             return None
         records = np.frombuffer(self._arbiter_buffer.int_buf(), dtype=np.uintp).reshape(-1, 3)
         return count_contacts(records, self._body_ids, self._body_roles, config.n_agents, len(self._obstacle_bodies))
+
+    def _read_states(self) -> None:
+        """Read every body's position and velocity from Pymunk into :attr:`agent_states`' array."""
+        self._read_buffer._float_arr.num = 0  # the position Pymunk writes to
+        chipmunk.cpSpaceEachBody(self.space._space, _GET_BODIES, self._read)
+
+    @property
+    def positions(self) -> np.ndarray:
+        """``(n, 2)`` agent centres (m), a new array."""
+        return split_state(self.agent_states, self.config.v_max)[0]
+
+    @property
+    def velocities(self) -> np.ndarray:
+        """``(n, 2)`` agent velocities (m/s), clamped to v_max as every step does, a new array."""
+        return split_state(self.agent_states, self.config.v_max)[1]
 
     @property
     def agent_states(self) -> np.ndarray:

@@ -26,14 +26,14 @@ import torch
 from tqdm.auto import tqdm
 
 from sb3_formation.controllers.base import TeamPolicy
+from sb3_formation.env.blocks import BlockStep, EngineBlocks
 from sb3_formation.env.config import REWARD_TERMS, FormationConfig
-from sb3_formation.env.episodes import EPISODE_METRICS, EpisodeStatistics
-from sb3_formation.env.formation_env import FormationEnv
+from sb3_formation.env.episodes import EPISODE_METRICS
 from sb3_formation.env.geometry import ring_neighbours
 from sb3_formation.env.state import TeamState
 from sb3_formation.experiment.targets import default_protocol, evaluation_file, evaluation_folder, load_policy
+from sb3_formation.sb3.callbacks import threads_beside_workers, torch_threads
 from sb3_formation.utils.files import atomic_write
-from sb3_formation.utils.processes import WorkerProcess, gather
 
 #: Columns of ``episodes.csv``, in order (``reward_<term>``: the term's mean per step and agent).
 EPISODE_COLUMNS = (
@@ -47,13 +47,14 @@ EPISODE_COLUMNS = (
     "final_goal_distance",
     *(f"reward_{term}" for term in REWARD_TERMS),
 )
-#: Per-step, per-agent arrays of :class:`Trajectories` -> the :class:`TeamState` field they record.
+#: Per-step, per-agent arrays of :class:`Trajectories` -> where a step's arrays hold them: a column of the info values
+#: or of the contacts
 STEP_RECORDS = {
-    "angle_error_deg": "angle_errors_deg",
-    "bearing_error": "bearing_errors",
-    "neighbour_distance_error": "neighbour_distance_errors",
-    "collisions_obstacle": "contacts_obstacle",
-    "collisions_agent": "contacts_agent",
+    "angle_error_deg": ("info_values", 0),
+    "bearing_error": ("info_values", 1),
+    "neighbour_distance_error": ("info_values", 2),
+    "collisions_obstacle": ("contacts", 1),
+    "collisions_agent": ("contacts", 0),
 }
 SUMMARY_FILE, EPISODES_FILE, TRAJECTORIES_FILE = "summary.json", "episodes.csv", "trajectories.npz"
 
@@ -182,7 +183,8 @@ class Trajectories:
 
 
 class _Recorder:
-    """Collects one episode's per-step records for :class:`Trajectories` from the team's states."""
+    """Collects one episode's per-step records for :class:`Trajectories`: the state after the reset, then each step's
+    arrays."""
 
     def __init__(self, state: TeamState) -> None:
         n_agents = state.n_agents
@@ -194,18 +196,19 @@ class _Recorder:
         self.rows["actions"] = [np.full((n_agents, 2), np.nan)]
         self.rows["goal_distance"] = [np.array(state.goal_distance)]
 
-    def add(self, state: TeamState, actions: np.ndarray) -> None:
-        for name, state_field in STEP_RECORDS.items():
-            self.rows[name].append(getattr(state, state_field).astype(np.float64))
-        self.rows["positions"].append(state.positions)
-        self.rows["velocities"].append(state.velocities)
-        self.rows["actions"].append(np.clip(actions, -1.0, 1.0).astype(np.float64))
-        self.rows["goal_distance"].append(np.array(state.goal_distance))
+    def add(self, step: BlockStep, slots: slice, actions: np.ndarray) -> None:
+        """Add a step: the team's ``slots`` of the step's arrays, and the actions the policy gave."""
+        for name, (array, column) in STEP_RECORDS.items():
+            self.rows[name].append(getattr(step, array)[slots, column].astype(np.float64))
+        self.rows["positions"].append(step.positions[slots].copy())
+        self.rows["velocities"].append(step.velocities[slots].copy())
+        self.rows["actions"].append(np.clip(actions[slots], -1.0, 1.0).astype(np.float64))
+        self.rows["goal_distance"].append(np.array(step.info_values[slots.start, 4]))
 
 
 @dataclass
 class PlayJob:
-    """What one process plays: its episodes, and the policy that acts in them (picklable with cloudpickle).
+    """Episodes to play, and the policy that acts in them.
 
     :param policy: the policy, already fitted to ``config``
     :param config: task configuration of the episodes
@@ -214,7 +217,7 @@ class PlayJob:
     :param n_teams: teams played at once
     :param deterministic: ask the policy for its noise-free actions
     :param record: record every step of the episodes with an index below this
-    :param first_team: global index of this job's first team (episode rows name global teams)
+    :param n_workers: processes stepping the teams, this one included
     """
 
     policy: TeamPolicy
@@ -224,7 +227,7 @@ class PlayJob:
     n_teams: int
     deterministic: bool
     record: int
-    first_team: int = 0
+    n_workers: int = 1
 
 
 def play_episodes(
@@ -232,89 +235,92 @@ def play_episodes(
     on_episode: Callable[[], None] | None = None,
     on_step: Callable[[TeamState, int], None] | None = None,
 ) -> tuple[list[dict[str, Any]], list[tuple[int, _Recorder, bool]]]:
-    """Play ``job.episodes`` on ``job.n_teams`` teams; a team that ends an episode starts the next one left.
+    """Play ``job.episodes`` on ``job.n_teams`` teams; a team that ends an episode starts the next one left (teams in
+    order), and a team left without one is no longer stepped.
 
-    This is the package's one episode loop: evaluation, videos and ``sb3-formation rollout`` all play through it.
+    This is the package's one episode loop: evaluation, videos and ``sb3-formation rollout`` all play through it. The
+    teams are stepped by :class:`~sb3_formation.env.blocks.EngineBlocks` without automatic resets; the policy sees
+    every team's observations in one batch (a team without an episode keeps its last ones).
 
     :param on_episode: called after each episode
-    :param on_step: called with (team state, episode) after each reset and each step
+    :param on_step: called with (team state, episode) after each reset and each step (every team in this process:
+        ``n_workers`` must be 1)
     :return: one row per episode (in the order they ended), and (episode, recorder, success) of recorded episodes
     """
-    config, n_agents = job.config, job.config.n_agents
-    envs = [FormationEnv(config) for _ in range(job.n_teams)]
+    config, n_agents, n_teams = job.config, job.config.n_agents, job.n_teams
+    if on_step is not None and job.n_workers > 1:
+        raise ValueError("on_step reads every team in this process: play with n_workers=1")
+    blocks = EngineBlocks([config] * n_teams, job.n_workers, auto_reset=False)
     queue = list(reversed(job.episodes))
-    current: list[int | None] = [None] * job.n_teams
-    statistics = [EpisodeStatistics() for _ in envs]
-    comm_exceeded = [0] * job.n_teams
-    recorders: list[_Recorder | None] = [None] * job.n_teams
-    episode_starts = np.ones(job.n_teams * n_agents, dtype=bool)
+    current: list[int | None] = [None] * n_teams
+    recorders: list[_Recorder | None] = [None] * n_teams
+    observations = np.zeros((n_teams * n_agents, blocks.local.engine.observation_dim), np.float32)
+    episode_starts = np.ones(n_teams * n_agents, dtype=bool)
     rows: list[dict[str, Any]] = []
     recorded: list[tuple[int, _Recorder, bool]] = []
 
-    def start(team: int) -> np.ndarray | None:
-        if not queue:
-            current[team] = None
-            return None
-        episode = current[team] = queue.pop()
-        env = envs[team]
-        team_observation, _ = env.reset(seed=job.seed + episode)
-        statistics[team].reset()
-        comm_exceeded[team] = 0
-        state = env.team_state()
-        recorders[team] = _Recorder(state) if episode < job.record else None
-        if on_step is not None:
-            on_step(state, episode)
-        return np.stack(list(team_observation.values()))
+    def slots(team: int) -> slice:
+        return slice(team * n_agents, (team + 1) * n_agents)
 
-    first = [start(team) for team in range(job.n_teams)]
-    width = next(o for o in first if o is not None).shape[1]
-    # a team left without an episode (more teams than episodes) holds zeros and is never stepped
-    observations = np.concatenate([np.zeros((n_agents, width), np.float32) if o is None else o for o in first])
-    states = None
-    while any(episode is not None for episode in current):
-        actions, states = job.policy.predict(
-            observations, state=states, episode_start=episode_starts, deterministic=job.deterministic
-        )
-        actions = np.asarray(actions).reshape(job.n_teams * n_agents, 2)
-        episode_starts[:] = False
-        for team, episode in enumerate(current):
-            if episode is None:
-                continue
-            env, block = envs[team], slice(team * n_agents, (team + 1) * n_agents)
-            team_observations, rewards, terminated, truncated, infos = env.step_array(actions[block])
-            statistics[team].add(rewards, infos)
-            state = env.team_state()
-            comm_exceeded[team] += bool((state.neighbour_distances > config.d_comm).any())
-            if recorders[team] is not None:
-                recorders[team].add(state, actions[block])
+    def start(teams: list[int]) -> None:
+        """Give each of ``teams`` the next episode left, in order, and reset them."""
+        for team in teams:
+            current[team] = queue.pop() if queue else None
+        started = [team for team in teams if current[team] is not None]
+        if not started:
+            return
+        reset = blocks.reset(started, [job.seed + current[team] for team in started], [None] * len(started))
+        watched = started if on_step is not None else [team for team in started if current[team] < job.record]
+        states = blocks.call_teams("team_states", watched) if watched else {}
+        for team in started:
+            observations[slots(team)] = reset[team]
+            episode_starts[slots(team)] = True
+            recorders[team] = _Recorder(states[team]) if current[team] < job.record else None
             if on_step is not None:
-                on_step(state, episode)
-            if not (terminated or truncated):
-                observations[block] = team_observations
-                continue
-            summary = statistics[team].summary(success=terminated, stage=env.stage)
-            terms = summary.pop("reward_terms")
-            rows.append(
-                {
-                    "episode": episode,
-                    "seed": job.seed + episode,
-                    "team": job.first_team + team,
-                    **summary,
-                    "comm_exceeded_fraction": comm_exceeded[team] / summary["length"],
-                    "final_goal_distance": state.goal_distance,
-                    **{f"reward_{name}": value for name, value in terms.items()},
-                }
+                on_step(states[team], current[team])
+
+    try:
+        start(list(range(n_teams)))
+        states = None
+        while any(episode is not None for episode in current):
+            playing = [team for team, episode in enumerate(current) if episode is not None]
+            actions, states = job.policy.predict(
+                observations, state=states, episode_start=episode_starts, deterministic=job.deterministic
             )
-            if recorders[team] is not None:
-                recorded.append((episode, recorders[team], terminated))
-            if on_episode is not None:
-                on_episode()
-            following = start(team)
-            if following is not None:
-                observations[block] = following
-                episode_starts[block] = True
-    for env in envs:
-        env.close()
+            actions = blocks.checked_actions(np.asarray(actions).reshape(n_teams * n_agents, 2), playing)
+            episode_starts[:] = False
+            step = blocks.step(actions)
+            for team in playing:
+                if recorders[team] is not None:
+                    recorders[team].add(step, slots(team), actions)
+                if on_step is not None:
+                    on_step(blocks.local.engine.team_state(team), current[team])
+            ended = {episode.team: episode for episode in step.episodes}
+            for team in playing:
+                if team not in ended:
+                    observations[slots(team)] = step.observations[slots(team)]
+                    continue
+                episode = ended[team]
+                summary = dict(episode.summary)
+                terms = summary.pop("reward_terms")
+                rows.append(
+                    {
+                        "episode": current[team],
+                        "seed": job.seed + current[team],
+                        "team": team,
+                        **summary,
+                        "comm_exceeded_fraction": episode.comm_exceeded_steps / summary["length"],
+                        "final_goal_distance": float(step.info_values[episode.first_slot, 4]),
+                        **{f"reward_{name}": value for name, value in terms.items()},
+                    }
+                )
+                if recorders[team] is not None:
+                    recorded.append((current[team], recorders[team], episode.success))
+                if on_episode is not None:
+                    on_episode()
+            start(sorted(ended))
+    finally:
+        blocks.close()
     return rows, recorded
 
 
@@ -355,31 +361,6 @@ def seed_policy(policy: TeamPolicy, seed: int) -> None:
     torch.manual_seed(seed)
     if hasattr(policy, "seed"):
         policy.seed(seed)
-
-
-class _EpisodePlayer:
-    """Plays one :class:`PlayJob` in a worker process (see :func:`_play_in_workers`)."""
-
-    def __init__(self, job: PlayJob) -> None:
-        self.job = job
-
-    def play(self, report: Callable[[Any], None]) -> tuple[list, list]:
-        torch.set_num_threads(1)
-        seed_policy(self.job.policy, self.job.seed + self.job.episodes[0])
-        return play_episodes(self.job, on_episode=lambda: report(None))
-
-
-def _play_in_workers(jobs: list[PlayJob], on_episode: Callable[[], None]) -> tuple[list, list]:
-    """Play each job in its own worker process; the first error ends the evaluation. Gather rows and recordings."""
-    workers = [WorkerProcess(_EpisodePlayer, (job,), "evaluation worker") for job in jobs]
-    try:
-        for worker in workers:
-            worker.send("play", progress=True)
-        results = gather(workers, on_progress=lambda worker, item: on_episode(), fail_fast=True)
-    finally:
-        for worker in workers:
-            worker.close()
-    return [row for rows, _ in results for row in rows], [episode for _, recorded in results for episode in recorded]
 
 
 @dataclass
@@ -482,9 +463,10 @@ def evaluate(
 ) -> EvaluationResult:
     """Play ``episodes`` episodes of ``stage`` with a policy; episode k starts from ``reset(seed=seed + k)``.
 
-    With one worker the episodes are spread over ``n_envs`` teams whose observations go through the policy in one
-    batch; with ``n_workers`` > 1 worker processes, worker w plays episodes w, w + n_workers, ... on its share of the
-    teams. The scenarios depend only on ``seed``; the same (seed, n_envs, n_workers) gives bit-identical results.
+    The episodes are spread over ``n_envs`` teams whose observations go through the policy in one batch; with
+    ``n_workers`` > 1, worker processes step shares of the teams while this process steps the first share and runs the
+    policy. The scenarios depend only on ``seed``; the same (seed, n_envs) gives bit-identical results, whatever
+    ``n_workers``.
 
     :param policy: the policy (a :class:`~sb3_formation.sb3.trained.TrainedPolicy`, a controller, ...)
     :param episodes: number of episodes
@@ -505,28 +487,15 @@ def evaluate(
         raise ValueError(f"record must be >= 0, got {record}")
     config = policy.config.replace(**{**(env_overrides or {}), "stage": stage})
     policy = policy.fit(config)
-    n_workers = min(n_workers, episodes)
-    teams = np.array_split(np.arange(min(n_envs, episodes)), n_workers)
-    jobs = [
-        PlayJob(
-            policy=policy,
-            config=config,
-            seed=seed,
-            episodes=list(range(worker, episodes, n_workers)),
-            n_teams=len(teams[worker]),
-            first_team=int(teams[worker][0]) if len(teams[worker]) else 0,
-            deterministic=deterministic,
-            record=record,
-        )
-        for worker in range(n_workers)
-    ]
-    with tqdm(total=episodes, desc="evaluating", unit="episode", disable=not progress_bar) as bar:
-        if n_workers == 1:
-            with torch.random.fork_rng():
-                seed_policy(policy, seed)
-                rows, recorded = play_episodes(jobs[0], on_episode=lambda: bar.update(1))
-        else:
-            rows, recorded = _play_in_workers(jobs, on_episode=lambda: bar.update(1))
+    n_teams = min(n_envs, episodes)
+    job = PlayJob(policy, config, seed, list(range(episodes)), n_teams, deterministic, record, min(n_workers, n_teams))
+    with (
+        tqdm(total=episodes, desc="evaluating", unit="episode", disable=not progress_bar) as bar,
+        torch.random.fork_rng(),
+        torch_threads(threads_beside_workers(job.n_workers)),
+    ):
+        seed_policy(policy, seed)
+        rows, recorded = play_episodes(job, on_episode=lambda: bar.update(1))
     trajectories = _stack(config, seed, recorded)
     return EvaluationResult(
         episodes=sorted(rows, key=lambda row: row["episode"]),

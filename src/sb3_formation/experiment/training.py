@@ -17,7 +17,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch as th
 import yaml
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
@@ -50,6 +49,7 @@ from sb3_formation.sb3.callbacks import (
     ProgressBarCallback,
     TimeBudgetCallback,
     TrainingClock,
+    threads_beside_workers,
 )
 from sb3_formation.sb3.imitation import FrozenActorCallback, pretrain_actor
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
@@ -411,7 +411,7 @@ def rollout_callbacks(settings: TrainSettings) -> list[BaseCallback]:
     (which poll on their cores while a rollout runs), torch's thread count kept to the other cores."""
     callbacks: list[BaseCallback] = [FormationMetricsCallback(settings.to_dict())]
     if settings.workers > 1:
-        callbacks.append(CollectionThreadsCallback(max(1, th.get_num_threads() - (settings.workers - 1))))
+        callbacks.append(CollectionThreadsCallback(threads_beside_workers(settings.workers)))
     return callbacks
 
 

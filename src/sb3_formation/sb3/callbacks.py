@@ -10,7 +10,8 @@ from __future__ import annotations
 import json
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -340,6 +341,23 @@ class TimeBudgetCallback(BaseCallback):
 
     def _on_training_end(self) -> None:
         self.clock.stop()
+
+
+def threads_beside_workers(workers: int) -> int:
+    """Torch threads for this process while ``workers`` processes (this one included) step teams: one core fewer
+    per worker process, at least one (the workers poll for the next step on their cores)."""
+    return max(1, th.get_num_threads() - (workers - 1))
+
+
+@contextmanager
+def torch_threads(threads: int) -> Iterator[None]:
+    """Run the block with ``threads`` torch threads, then restore torch's count."""
+    before = th.get_num_threads()
+    th.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        th.set_num_threads(before)
 
 
 class CollectionThreadsCallback(BaseCallback):

@@ -15,10 +15,10 @@ from typing import Any
 
 import numpy as np
 
+from sb3_formation.env.blocks import slot_observations
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.observations import observation_fields
 from sb3_formation.sb3.normalization import STATE_KEYS, observation_offset, observation_scale, scale_observations
-from sb3_formation.sb3.vec_env import slot_observations
 
 #: Fields that shape the observation vector: a model only fits envs that agree on them.
 OBSERVATION_SHAPING_FIELDS = ("n_agents", "lidar_rays")

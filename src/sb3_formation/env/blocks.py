@@ -1,0 +1,369 @@
+"""Blocks of teams over processes: what the SB3 ``VecEnv`` and evaluation both step.
+
+An :class:`EngineBlock` is the teams one process steps: a :class:`~sb3_formation.env.engine.FormationEngine` with what
+an episode loop adds to it (the slots' observations, terminal observations, the record of every episode that ends, and,
+with ``auto_reset``, the reset of a team in the step that ends its episode, as a ``VecEnv`` does). :class:`EngineBlocks`
+spreads the teams over processes: this process steps the first block, worker processes the others at the same time;
+actions and step arrays go through shared memory, and only the ended episodes through a worker's pipe. Each team is
+independent, so the same seeds give the same numbers for any number of processes.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable, Sequence
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.engine import INFO_VALUES, FormationEngine
+from sb3_formation.env.formation_env import FormationEnv
+from sb3_formation.env.state import TeamState
+from sb3_formation.utils.processes import SharedArrays, WorkerProcess, gather, worker_context
+
+#: seconds a worker process polls for the next step before it sleeps (waking it would cost more than a step), and the
+#: parent for a worker's reply; the steps of a rollout follow each other well within it, training phases do not
+WORKER_SPIN = 0.02
+
+
+def slot_observations(own: np.ndarray, n_agents: int, team_observations: bool) -> np.ndarray:
+    """The slots' observations from the agents' own ``(teams * n, dim)`` observations (row k: agent ``k % n`` of team
+    ``k // n``).
+
+    :param own: the agents' own observations, whole teams one after the other
+    :param n_agents: team size n
+    :param team_observations: append the whole team's observations (agent 0 first) to every row, for a team critic
+    :return: ``own``, or ``(teams * n, (1 + n) * dim)``
+    """
+    if not team_observations:
+        return own
+    teams = own.reshape(-1, n_agents * own.shape[-1])
+    return np.hstack([own, np.repeat(teams, n_agents, axis=0)])
+
+
+class TeamEpisode(NamedTuple):
+    """A team's episode that ended in a step."""
+
+    team: int  #: within the block (:meth:`EngineBlocks.step`: of all blocks)
+    first_slot: int  #: within the block (:meth:`EngineBlocks.step`: of all blocks)
+    terminal_observations: np.ndarray
+    timed_out: bool
+    success: bool
+    episode: dict[str, float]  #: SB3's record: team return, length, time
+    summary: dict[str, Any]  #: ``formation_episode``
+    comm_exceeded_steps: int  #: steps with a neighbour beyond d_comm
+
+
+class BlockStep(NamedTuple):
+    """One step of a block of teams, as arrays (:meth:`EngineBlock.step`), then the block's ended episodes."""
+
+    observations: np.ndarray
+    rewards: np.ndarray
+    dones: np.ndarray
+    info_values: np.ndarray
+    contacts: np.ndarray
+    success: np.ndarray  #: per slot
+    positions: np.ndarray
+    velocities: np.ndarray
+    episodes: list[TeamEpisode]
+
+
+#: the :class:`BlockStep` fields that are arrays with a row per slot
+ARRAY_FIELDS = BlockStep._fields[:-1]
+
+
+def step_layout(slots: int, observation_dim: int) -> dict[str, tuple[tuple[int, ...], Any]]:
+    """Shapes and dtypes of a block's actions and :class:`BlockStep` arrays, for ``slots`` slots."""
+    return {
+        "actions": ((slots, 2), np.float64),
+        "observations": ((slots, observation_dim), np.float32),
+        "rewards": ((slots,), np.float64),
+        "dones": ((slots,), bool),
+        "info_values": ((slots, INFO_VALUES), np.float64),
+        "contacts": ((slots, 2), np.int64),
+        "success": ((slots,), bool),
+        "positions": ((slots, 2), np.float64),
+        "velocities": ((slots, 2), np.float64),
+    }
+
+
+class EngineBlock:
+    """The teams one process steps: an engine of them, with slots, episode records and (optionally) automatic resets.
+
+    :param configs: task configuration of each team of this block
+    :param team_observations: each slot also sees its whole team's observations (for a team critic)
+    :param auto_reset: reset a team in the step that ends its episode (a ``VecEnv``'s convention); without it, a team
+        that ended waits for :meth:`reset` and is not stepped
+    :param render_mode: render mode of the teams' envs
+    :param shared: the block's ``actions`` and :data:`ARRAY_FIELDS` arrays in shared memory, for
+        :meth:`step_shared` (in a worker process)
+    """
+
+    def __init__(
+        self,
+        configs: Sequence[FormationConfig],
+        team_observations: bool = False,
+        auto_reset: bool = True,
+        render_mode: str | None = None,
+        shared: SharedArrays | None = None,
+    ) -> None:
+        self.engine = engine = FormationEngine(configs)
+        #: one PettingZoo view per team, for attribute and method calls
+        self.envs = [FormationEnv(engine=engine, team=team, render_mode=render_mode) for team in range(engine.n_teams)]
+        self.team_observations = team_observations
+        self.auto_reset = auto_reset
+        self.shared = shared
+        self.start_time = time.time()
+
+    def _slot_observations(self, own: np.ndarray, n_agents: int) -> np.ndarray:
+        return slot_observations(own, n_agents, self.team_observations)
+
+    def reset(
+        self, teams: Sequence[int], seeds: Sequence[int | None], options: Sequence[dict[str, Any] | None]
+    ) -> list[np.ndarray]:
+        """Reset ``teams[j]`` with ``seeds[j]`` and ``options[j]`` (``{"scenario": ...}`` or empty).
+
+        :return: each team's slots' observations, ``(n, obs_dim)``
+        """
+        engine = self.engine
+        return [
+            self._slot_observations(engine.reset(team, seed, (team_options or {}).get("scenario")), int(engine.sizes[team]))
+            for team, seed, team_options in zip(teams, seeds, options)
+        ]
+
+    def step(self, actions: np.ndarray) -> BlockStep:
+        """Step every team in an episode with its agents' rows of ``actions``.
+
+        :param actions: ``(slots, 2)`` finite actions (checked by the caller), each team's agents one after the other
+        :return: the block's arrays (the caller builds info dicts from them: pickling dicts between processes would
+            cost more than the step), and the episodes that ended
+        """
+        engine = self.engine
+        step = engine.step(np.minimum(np.maximum(actions, -1.0), 1.0))
+        observations = self._slot_observations(step.observations, int(engine.sizes[0]))  # team critics: one size
+        ended = step.terminated | step.truncated
+        episodes = []
+        for team in np.flatnonzero(ended).tolist():
+            rows = engine.team_rows(team)
+            success = bool(step.terminated[team])
+            summary = engine.episode_summary(team)
+            record = {"r": summary["return"], "l": summary["length"], "t": round(time.time() - self.start_time, 6)}
+            terminal = observations[rows].copy()  # with auto_reset, the rows get the reset's observations
+            timed_out = bool(step.truncated[team]) and not success
+            comm = int(engine.episode_comm_exceeded[team])
+            episodes.append(TeamEpisode(team, rows.start, terminal, timed_out, success, record, summary, comm))
+            if self.auto_reset:
+                observations[rows] = self._slot_observations(engine.reset(team), rows.stop - rows.start)
+        dones, success = np.repeat(ended, engine.sizes), np.repeat(step.terminated, engine.sizes)
+        arrays = (step.rewards, dones, step.info_values, step.contacts, success, step.positions, step.velocities)
+        return BlockStep(observations, *arrays, episodes)
+
+    def step_shared(self) -> list[TeamEpisode]:
+        """:meth:`step` with the actions read from ``shared`` and the arrays written to it: only the ended episodes
+        (few, and rarely any) go through the worker's pipe."""
+        step = self.step(self.shared["actions"])
+        for field in ARRAY_FIELDS:
+            self.shared[field][...] = getattr(step, field)
+        return step.episodes
+
+    def get_attr(self, name: str, teams: Iterable[int]) -> list[Any]:
+        """Attribute ``name`` of each of ``teams``' envs (indices within this block)."""
+        return [getattr(self.envs[team], name) for team in teams]
+
+    def set_attr(self, name: str, teams: Iterable[int], value: Any) -> None:
+        """Set attribute ``name`` of each of ``teams``' envs."""
+        for team in teams:
+            setattr(self.envs[team], name, value)
+
+    def env_method(self, name: str, teams: Iterable[int], args: tuple, kwargs: dict[str, Any]) -> list[Any]:
+        """Call method ``name`` of each of ``teams``' envs."""
+        return [getattr(self.envs[team], name)(*args, **kwargs) for team in teams]
+
+    def team_states(self, teams: Iterable[int]) -> list[TeamState]:
+        """Snapshots of ``teams`` now."""
+        return [self.engine.team_state(team) for team in teams]
+
+    def get_images(self) -> list[np.ndarray]:
+        """One ``rgb_array`` frame per team."""
+        return [env.render() for env in self.envs]
+
+    def close(self) -> None:
+        """Close every team's env (and this process's view of the shared arrays)."""
+        for env in self.envs:
+            env.close()
+        if self.shared is not None:
+            self.shared.close()
+
+
+class EngineBlocks:
+    """Teams spread over processes, stepped at once: this process steps the first block of teams, ``n_workers - 1``
+    worker processes one block each of the others.
+
+    Teams are numbered over all blocks (block b holds the contiguous teams ``team_blocks[b]``), and so are slots.
+
+    :param configs: task configuration of each team (they may differ in ``n_agents`` only)
+    :param n_workers: processes stepping the teams, this one included
+    :param team_observations: see :class:`EngineBlock`
+    :param auto_reset: see :class:`EngineBlock`
+    :param render_mode: see :class:`EngineBlock`
+    :param start_method: multiprocessing start method for the workers (default: ``forkserver`` where available)
+    """
+
+    def __init__(
+        self,
+        configs: Sequence[FormationConfig],
+        n_workers: int = 1,
+        team_observations: bool = False,
+        auto_reset: bool = True,
+        render_mode: str | None = None,
+        start_method: str | None = None,
+    ) -> None:
+        n_teams = len(configs)
+        if not (isinstance(n_workers, int) and 1 <= n_workers <= n_teams):
+            raise ValueError(f"n_workers must be an integer in [1, the number of teams {n_teams}], got {n_workers!r}")
+        sizes = [config.n_agents for config in configs]
+        #: team j: slots ``team_starts[j]:team_starts[j + 1]``
+        self.team_starts = np.concatenate([[0], np.cumsum(sizes)])
+        #: the teams of each block
+        self.team_blocks = [block.tolist() for block in np.array_split(np.arange(n_teams), n_workers)]
+        local = EngineBlock([configs[team] for team in self.team_blocks[0]], team_observations, auto_reset, render_mode)
+        dim = local.engine.observation_dim * (1 + sizes[0] if team_observations else 1)
+        #: the first block's teams, stepped in this process; the others' in worker processes
+        self.blocks: list[EngineBlock | WorkerProcess] = [local]
+        #: per worker block: its actions and step arrays in shared memory
+        self.shared: dict[int, SharedArrays] = {}
+        try:
+            if n_workers > 1:
+                context = worker_context(start_method)
+            for block, teams in enumerate(self.team_blocks[1:], start=1):
+                self.shared[block] = shared = SharedArrays(step_layout(sum(sizes[team] for team in teams), dim))
+                arguments = ([configs[team] for team in teams], team_observations, auto_reset, render_mode, shared)
+                self.blocks.append(WorkerProcess(EngineBlock, arguments, "engine worker", context, WORKER_SPIN))
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def n_slots(self) -> int:
+        return int(self.team_starts[-1])
+
+    def checked_actions(self, actions: Any, teams: Sequence[int] | None = None) -> np.ndarray:
+        """The slots' actions as an ``(slots, 2)`` float64 array, checked before any team steps.
+
+        :param actions: ``(slots, 2)`` real numbers, one row per slot (or the same flattened, ``(slots * 2,)``)
+        :param teams: the teams whose actions must be finite (default: every team)
+        :raises ValueError: another shape, a value that is not a real number, or one that is not finite (naming its
+            team and agent)
+        """
+        slots = self.n_slots
+        array = np.asarray(actions) if isinstance(actions, (np.ndarray, list, tuple)) else None
+        if array is None or array.dtype.kind not in "iuf":
+            kind = type(actions).__name__ if array is None else f"dtype {array.dtype}"
+            raise ValueError(f"actions must be an array of real numbers of shape ({slots}, 2), got {kind}")
+        if array.shape == (slots * 2,):
+            array = array.reshape(slots, 2)
+        if array.shape != (slots, 2):
+            raise ValueError(f"actions must have shape ({slots}, 2), one row per slot, got {array.shape}")
+        array = array.astype(np.float64)
+        finite = np.isfinite(array).all(axis=1)
+        if teams is not None:
+            finite |= ~np.repeat(np.isin(np.arange(len(self.team_starts) - 1), teams), np.diff(self.team_starts))
+        bad = np.flatnonzero(~finite)
+        if bad.size:
+            slot = int(bad[0])
+            team = int(np.searchsorted(self.team_starts, slot, side="right") - 1)
+            agent = slot - int(self.team_starts[team])
+            raise ValueError(f"team {team}: action of agent_{agent} is not finite: {array[slot].tolist()}")
+        return array
+
+    @property
+    def local(self) -> EngineBlock:
+        """The block this process steps."""
+        return self.blocks[0]
+
+    def _per_block(self, teams: Iterable[int]) -> list[tuple[int, list[int]]]:
+        """Group teams by block: (block, indices within the block), blocks in order of first appearance."""
+        grouped: dict[int, list[int]] = {}
+        for team in teams:
+            for block, block_teams in enumerate(self.team_blocks):
+                if team in block_teams:
+                    grouped.setdefault(block, []).append(team - block_teams[0])
+        return list(grouped.items())
+
+    def run(self, command: str, arguments: dict[int, tuple], worker_command: str | None = None) -> dict[int, Any]:
+        """Call ``command`` on the blocks in ``arguments`` (block -> arguments), the workers' while this process runs
+        its own block's.
+
+        :param worker_command: the workers' command instead of ``command``
+        """
+        workers = [block for block in arguments if block > 0]
+        for block in workers:
+            self.blocks[block].send(worker_command or command, *arguments[block])
+        results = {}
+        try:
+            if 0 in arguments:
+                results[0] = getattr(self.blocks[0], command)(*arguments[0])
+        finally:  # read the workers' replies even after an error here, so none is left in a pipe
+            results.update(zip(workers, gather([self.blocks[block] for block in workers], spin=WORKER_SPIN)))
+        return results
+
+    def call_teams(self, command: str, teams: Iterable[int], *data: Any) -> dict[int, Any]:
+        """Run ``command(data[0], block_teams, *data[1:])`` on the blocks holding ``teams``; return team -> result
+        (``None`` for a command without results).
+
+        With no ``data``, ``command(block_teams)``.
+        """
+        grouped = self._per_block(teams)
+        results = self.run(command, {block: (*data[:1], local, *data[1:]) for block, local in grouped})
+        values: dict[int, Any] = {}
+        for block, local in grouped:
+            block_values = results[block] if results[block] is not None else [None] * len(local)
+            values.update(zip((self.team_blocks[block][0] + team for team in local), block_values))
+        return values
+
+    def reset(
+        self, teams: Sequence[int], seeds: Sequence[int | None], options: Sequence[dict[str, Any] | None]
+    ) -> dict[int, np.ndarray]:
+        """Reset ``teams[j]`` with ``seeds[j]`` and ``options[j]``; return each team's slots' observations."""
+        by_team = {team: (seed, team_options) for team, seed, team_options in zip(teams, seeds, options)}
+        arguments = {}
+        for block, local in self._per_block(teams):
+            first = self.team_blocks[block][0]
+            picked = [by_team[first + team] for team in local]
+            arguments[block] = (local, [seed for seed, _ in picked], [team_options for _, team_options in picked])
+        results = self.run("reset", arguments)
+        return {
+            self.team_blocks[block][0] + team: observations
+            for block, (local, _, _) in arguments.items()
+            for team, observations in zip(local, results[block])
+        }
+
+    def step(self, actions: np.ndarray) -> BlockStep:
+        """Step every block's teams in an episode with their slots' rows of ``actions`` (checked and finite).
+
+        :return: the arrays of every slot, and the ended episodes with their teams and slots numbered over all blocks
+        """
+        starts = self.team_starts
+        rows = [actions[starts[teams[0]] : starts[teams[-1] + 1]] for teams in self.team_blocks]
+        for block, shared in self.shared.items():
+            shared["actions"][...] = rows[block]
+        results = self.run("step", {0: (rows[0],), **{block: () for block in self.shared}}, "step_shared")
+        steps = [results[0]] + [
+            BlockStep(*(shared[field] for field in ARRAY_FIELDS), results[block]) for block, shared in self.shared.items()
+        ]
+        episodes = []
+        for teams, block_step in zip(self.team_blocks, steps):
+            first_team, first_slot = teams[0], int(starts[teams[0]])
+            for ended in block_step.episodes:
+                episodes.append(ended._replace(team=first_team + ended.team, first_slot=first_slot + ended.first_slot))
+        if len(steps) == 1:
+            return steps[0]
+        # copies the shared arrays, which the next step overwrites
+        return BlockStep(*(np.concatenate([getattr(block, field) for block in steps]) for field in ARRAY_FIELDS), episodes)
+
+    def close(self) -> None:
+        for block in self.blocks:
+            block.close()
+        for shared in self.shared.values():
+            shared.close()
