@@ -1,32 +1,37 @@
 """Environment throughput: agent-steps per second of the VecEnv's batched stepping against team-by-team stepping and
-the bare Pymunk step, in one run.
+the bare Pymunk step, in one run; with ``--reference REV``, the same benchmark of another commit right after.
 
 ch5-bearing at stage 3, random actions, 90-ray lidar. Prints medians over repeats of:
-- team by team: ``FormationEnv.step_array`` for one team after another with the VecEnv's bookkeeping (episode sums,
-  terminal observations, resets), as ``FormationVecEnv`` stepped before batching (the reference of the ratios);
-- ``FormationVecEnv`` (batched: ``FormationBatch``) with every team in this process, and with ``n_workers=2`` (half the
+- team by team: ``FormationEnv.step_array`` (each team an engine of its own) for one team after another with the
+  VecEnv's bookkeeping (episode summaries, terminal observations, resets): the reference of the ratios;
+- ``FormationVecEnv`` (one engine of every team) with every team in this process, and with ``n_workers=2`` (half the
   teams in this process, half in a worker process, through shared memory);
 - one ``FormationEnv`` alone, and the bare Pymunk ``space.step`` of one team (sub-steps included);
 - the batched VecEnv with every agent holding one action (pressed on walls, obstacles and each other), with contacts
   read from Pymunk's arbiters, and with a Python collision callback per contact added (the former way).
 
 Targets (issue 17): with 14 teams of 6, at least 150,000 agent-steps/s on 2 cores (with 2 processes), and the batched
-VecEnv at least 2.5x team-by-team stepping on one core.
+VecEnv at least 2.5x team-by-team stepping on one core. Issue 28 (one engine): against the commit before it, one
+``FormationEnv`` at least 0.9x its agent-steps/s and the VecEnv at least 1.0x.
 
-Usage: ``python benchmarks/env_throughput.py [--steps 1000] [--repeats 5] [--teams 14]``
+Usage: ``python benchmarks/env_throughput.py [--steps 1000] [--repeats 5] [--teams 14] [--reference REV]``
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import re
 import statistics
+import subprocess
+import sys
 import time
 
 import numpy as np
 import pymunk
+from reference import cpu_name, reference_checkout
 
 from sb3_formation import FormationConfig, FormationEnv
-from sb3_formation.env.episodes import EpisodeStatistics
 from sb3_formation.env.world import World
 from sb3_formation.sb3.vec_env import FormationVecEnv
 
@@ -36,23 +41,20 @@ CONFIG = FormationConfig.preset("ch5-bearing", stage=3)
 def team_by_team_seconds(teams: int, steps: int, seed: int) -> float:
     """Seconds per team-step of ``teams`` envs stepped one after another, with what the VecEnv adds to each team."""
     envs = [FormationEnv(CONFIG) for _ in range(teams)]
-    sums = [EpisodeStatistics() for _ in envs]
     for index, env in enumerate(envs):
         env.reset(seed=seed + index)
     actions = np.random.default_rng(seed).uniform(-1.0, 1.0, (steps, teams * CONFIG.n_agents, 2))
     start = time.perf_counter()
     for step_actions in actions:
         observations, rewards, infos = [], [], []
-        for team, (env, episode) in enumerate(zip(envs, sums)):
+        for team, env in enumerate(envs):
             rows = step_actions[team * CONFIG.n_agents : (team + 1) * CONFIG.n_agents]
             team_observations, team_rewards, terminated, truncated, team_infos = env.step_array(rows)
-            episode.add(team_rewards, team_infos)
             if terminated or truncated:
                 for info, terminal in zip(team_infos, team_observations):
                     info["terminal_observation"] = terminal
-                team_infos[0]["formation_episode"] = episode.summary(terminated, env.stage)
+                team_infos[0]["formation_episode"] = env.episode_summary()
                 team_observations = np.stack(list(env.reset()[0].values()))
-                episode.reset()
             observations.append(team_observations)
             rewards.append(team_rewards)
             infos += team_infos
@@ -74,7 +76,7 @@ def vec_env_seconds(teams: int, steps: int, seed: int, workers: int, pressed: bo
     if pressed:
         actions[:] = actions[0]
     if callbacks:
-        for env in venv._batches[0].envs:
+        for env in venv.blocks.local.envs:
             env.world.space.on_collision(None, None, pre_solve=_record_contact)
     venv.step(actions[0])
     start = time.perf_counter()
@@ -117,7 +119,9 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=1000)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--teams", type=int, default=14)
+    parser.add_argument("--reference", help="a commit whose own env_throughput.py runs right after, for the ratios")
     args = parser.parse_args()
+    print(f"{time.strftime('%Y-%m-%d')}, {cpu_name()}, {os.cpu_count()} cores")
     n, teams, steps = CONFIG.n_agents, args.teams, args.steps
     team_by_team_seconds(1, 5, 0)  # compile the kernels outside the timings
     # every measurement once per repeat, interleaved, so that each ratio sees the same machine
@@ -165,6 +169,24 @@ def main() -> None:
         f"  plus a Python callback per contact      : {median['callbacks'] * 1e6:7.1f} us/team-step  "
         f"({ratio('callbacks', 'pressed'):.2f}x; how contacts were counted before issue 17)"
     )
+    if args.reference:
+        compare_with_reference(args, {label: median[name] for name, label in labels.items()})
+
+
+def compare_with_reference(args: argparse.Namespace, seconds: dict[str, float]) -> None:
+    """Run the reference commit's own benchmark with the same arguments and print the ratios of the rows both have."""
+    with reference_checkout(args.reference) as tree:
+        command = [sys.executable, str(tree / "benchmarks" / "env_throughput.py")]
+        command += ["--steps", str(args.steps), "--repeats", str(args.repeats), "--teams", str(args.teams)]
+        environment = {**os.environ, "PYTHONPATH": str(tree / "src")}
+        output = subprocess.run(command, env=environment, check=True, capture_output=True, text=True).stdout
+    print(f"Reference {args.reference}, its own benchmark, run right after:")
+    print("".join(f"  | {line}\n" for line in output.splitlines()), end="")
+    reference = {m[1].strip(): float(m[2]) * 1e-6 for m in re.finditer(r"^\s+(.+?):\s+([\d.]+) us/team-step", output, re.M)}
+    print("This checkout's agent-steps/s against the reference's (same rows):")
+    for label, value in seconds.items():
+        if label in reference:
+            print(f"  {label:36s}: {reference[label] / value:.2f}x")
 
 
 if __name__ == "__main__":

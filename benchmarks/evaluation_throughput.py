@@ -15,15 +15,16 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
+from contextlib import ExitStack
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from reference import ROOT, cpu_name, reference_checkout
+
 COMMAND = "import sys; from sb3_formation.cli import main; sys.exit(main())"
 VARIANTS = {"default": [], "--workers 2": ["--workers", "2"]}
 
@@ -37,13 +38,6 @@ def run_evaluation(source: Path, episodes: int, options: list[str], out: Path) -
     return time.perf_counter() - start
 
 
-def cpu_name() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.processor() or "unknown"
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--reference", help="a commit to compare against (default: none, this checkout only)")
@@ -54,41 +48,31 @@ def main() -> None:
         f"{time.strftime('%Y-%m-%d')}, {cpu_name()}, {os.cpu_count()} cores; {args.episodes} episodes, "
         f"medians of {args.repeats} runs"
     )
-    with tempfile.TemporaryDirectory() as folder:
+    with tempfile.TemporaryDirectory() as folder, ExitStack() as stack:
         trees = {"this checkout": ROOT / "src"}
         if args.reference:
-            worktree = Path(folder) / "reference"
-            subprocess.run(
-                ["git", "-C", str(ROOT), "worktree", "add", "--detach", str(worktree), args.reference],
-                check=True,
-                capture_output=True,
-            )
-            trees[f"reference {args.reference}"] = worktree / "src"
-        try:
-            seconds: dict[tuple[str, str], float] = {}
-            for name, source in trees.items():
-                for variant, options in VARIANTS.items():
-                    out = Path(folder) / f"{len(seconds)}"
-                    runs = [run_evaluation(source, args.episodes, options, out) for _ in range(args.repeats)]
-                    seconds[name, variant] = statistics.median(runs)
-                    print(
-                        f"{name:<28} {variant:<12} {seconds[name, variant]:7.1f} s   "
-                        f"({args.episodes / seconds[name, variant]:.2f} episodes/s)",
-                        flush=True,
-                    )
-            episodes = {key: (Path(folder) / f"{index}" / "episodes.csv").read_text() for index, key in enumerate(seconds)}
-            if args.reference:
-                reference = f"reference {args.reference}"
-                for variant in VARIANTS:
-                    ratio = seconds[reference, "default"] / seconds["this checkout", variant]
-                    same = episodes["this checkout", variant] == episodes[reference, "default"]
-                    print(
-                        f"this checkout {variant:<12} is {ratio:.2f}x the reference's default command; "
-                        f"episodes.csv {'identical' if same else 'DIFFERENT'}"
-                    )
-        finally:
-            if args.reference:
-                subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(worktree)], check=False)
+            trees[f"reference {args.reference}"] = stack.enter_context(reference_checkout(args.reference)) / "src"
+        seconds: dict[tuple[str, str], float] = {}
+        for name, source in trees.items():
+            for variant, options in VARIANTS.items():
+                out = Path(folder) / f"{len(seconds)}"
+                runs = [run_evaluation(source, args.episodes, options, out) for _ in range(args.repeats)]
+                seconds[name, variant] = statistics.median(runs)
+                print(
+                    f"{name:<28} {variant:<12} {seconds[name, variant]:7.1f} s   "
+                    f"({args.episodes / seconds[name, variant]:.2f} episodes/s)",
+                    flush=True,
+                )
+        episodes = {key: (Path(folder) / f"{index}" / "episodes.csv").read_text() for index, key in enumerate(seconds)}
+        if args.reference:
+            reference = f"reference {args.reference}"
+            for variant in VARIANTS:
+                ratio = seconds[reference, "default"] / seconds["this checkout", variant]
+                same = episodes["this checkout", variant] == episodes[reference, "default"]
+                print(
+                    f"this checkout {variant:<12} is {ratio:.2f}x the reference's default command; "
+                    f"episodes.csv {'identical' if same else 'DIFFERENT'}"
+                )
 
 
 if __name__ == "__main__":

@@ -46,7 +46,7 @@ def test_rollout_summary_matches_a_manual_episode() -> None:
     assert summary["length"] == 25 and summary["stage"] == 2
     assert summary["return"] == pytest.approx(total)
     assert summary["angle_error_deg"] == pytest.approx(np.mean(angles))
-    assert summary["final_goal_distance"] == pytest.approx(twin.goal_distance)
+    assert summary["final_goal_distance"] == pytest.approx(twin.team_state().goal_distance)
 
 
 def test_bad_input_is_a_clear_error(capsys: pytest.CaptureFixture[str]) -> None:

@@ -6,10 +6,17 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 from engine_goldens import GOLDENS, case_name, cases
 
+from sb3_formation import FormationConfig, FormationEnv
+from sb3_formation.env.blocks import slot_observations
+from sb3_formation.env.engine import FormationEngine
 from sb3_formation.experiment.pretrained import numerics_fingerprint
+from sb3_formation.sb3.vec_env import FormationVecEnv
+
+SIZES = list(range(3, 17))
 
 CASES = dict(cases())
 
@@ -31,3 +38,148 @@ def test_the_engine_reproduces_the_golden_trajectories(name: str) -> None:
     played = CASES[name]()
     first = next((step for step, (a, b) in enumerate(zip(played, expected)) if a != b), None)
     assert first is None and len(played) == len(expected), f"{name}: first different digest at step {first}"
+
+
+def wide_actions(rng: np.random.Generator, slots: int) -> np.ndarray:
+    """Random actions, a third of them beyond [-1, 1], so that agents collide and clipping is exercised."""
+    return rng.normal(0.0, 1.5, (slots, 2))
+
+
+def reference_vec_step(envs: list[FormationEnv], actions: np.ndarray) -> tuple:
+    """A slot-per-agent VecEnv step done team by team, each team an engine of its own (``FormationEnv.step_array``)."""
+    observations, rewards, dones, infos, start = [], [], [], [], 0
+    for env in envs:
+        n_agents = env.config.n_agents
+        team_observations, team_rewards, terminated, truncated, team_infos = env.step_array(
+            np.clip(actions[start : start + n_agents], -1.0, 1.0)
+        )
+        start += n_agents
+        if terminated or truncated:
+            for info, terminal in zip(team_infos, team_observations):
+                info["terminal_observation"] = terminal
+                info["TimeLimit.truncated"] = truncated and not terminated
+            summary = env.episode_summary()
+            team_infos[0].update(episode={"r": summary["return"], "l": summary["length"]}, formation_episode=summary)
+            team_infos[0]["is_success"] = terminated
+            team_observations = np.stack(list(env.reset()[0].values()))
+        observations.append(team_observations)
+        rewards.append(team_rewards)
+        dones.append(np.full(n_agents, terminated or truncated))
+        infos += team_infos
+    return np.concatenate(observations), np.concatenate(rewards).astype(np.float32), np.concatenate(dones), infos
+
+
+@pytest.mark.parametrize("workers", [1, 2, 3])
+def test_a_team_steps_in_a_vec_env_as_it_steps_alone(workers: int) -> None:
+    """Teams of sizes 3 to 16 in one ``FormationVecEnv`` (in this process, or split between it and 1 or 2 worker
+    processes) against the same teams stepped one by one, each an engine of its own: observations, rewards, dones and
+    infos (terminal observations and team-episode records) agree, also after the curriculum changes the stage of some
+    teams. A team's numbers never depend on the other teams of its engine."""
+    config = FormationConfig.preset("ch5-bearing", stage=3, max_steps=25)
+    venv = FormationVecEnv(config, n_envs=len(SIZES), n_workers=workers, team_sizes=SIZES, start_method="fork")
+    venv.seed(3)
+    observations = venv.reset()
+    envs = [FormationEnv(config.replace(n_agents=n)) for n in SIZES]
+    starts = np.concatenate([[0], np.cumsum(SIZES)])
+    expected = np.concatenate([np.stack(list(env.reset(seed=3 + int(start))[0].values())) for env, start in zip(envs, starts)])
+    assert np.array_equal(observations, expected)
+    rng = np.random.default_rng(1)
+    ends = 0
+    for step in range(70):
+        if step == 30:  # as the curriculum callback does it: the new stage's rewards at once
+            venv.env_method("set_stage", 2, indices=[0, int(starts[5])])
+            for team in (0, 5):
+                envs[team].set_stage(2)
+        actions = wide_actions(rng, venv.num_envs)
+        observations, rewards, dones, infos = venv.step(actions)
+        reference = reference_vec_step(envs, actions)
+        assert np.array_equal(observations, reference[0]) and np.array_equal(rewards, reference[1])
+        assert np.array_equal(dones, reference[2])
+        for info, expected_info in zip(infos, reference[3]):
+            if "episode" in info:
+                ends += 1
+                assert info.pop("episode").keys() == {"r", "l", "t"} and info["formation_episode"]["stage"] in (2, 3)
+                expected_info.pop("episode")
+            terminal, expected_terminal = (
+                info.pop("terminal_observation", None),
+                expected_info.pop("terminal_observation", None),
+            )
+            assert (terminal is None) == (expected_terminal is None)
+            assert terminal is None or np.array_equal(terminal, expected_terminal)
+            assert info == expected_info
+    assert ends >= 2 * len(SIZES)
+    assert venv.get_attr("stage", indices=[0, int(starts[1]), int(starts[5])]) == [2, 3, 2]
+    venv.close()
+
+
+def test_team_observations_are_built_from_the_batch() -> None:
+    """With a team critic each slot sees its team's rows after its own, as ``slot_observations`` builds them."""
+    config = FormationConfig.preset("ch4-team", stage=3, max_steps=10)
+    venv = FormationVecEnv(config, n_envs=2, team_observations=True)
+    venv.seed(0)
+    venv.reset()
+    env = FormationEnv(config)
+    env.reset(seed=0)
+    for _ in range(12):
+        observations, _, _, _ = venv.step(np.full((6, 2), 0.3))
+        own = np.stack(list(env.step(dict.fromkeys(env.possible_agents, np.full(2, 0.3)))[0].values()))
+        if not env.agents:
+            own = np.stack(list(env.reset()[0].values()))
+        assert np.array_equal(observations[:3], slot_observations(own, 3, True))
+
+
+def test_teams_not_in_an_episode_are_not_stepped() -> None:
+    """An engine steps only its live teams: a team that ended (or was never reset) keeps its rows as they were, and an
+    engine with no live team steps nothing."""
+    engine = FormationEngine([FormationConfig.preset("ch4-individual", stage=3, max_steps=2)] * 3)
+    engine.reset(0, seed=0)
+    engine.reset(2, seed=2)
+    alone = FormationEnv(FormationConfig.preset("ch4-individual", stage=3, max_steps=2))
+    alone.reset(seed=2)
+    actions = np.full((9, 2), 0.5)
+    first = engine.step(actions)
+    assert not first.observations[3:6].any() and not first.rewards[3:6].any()  # team 1 was never reset
+    assert np.array_equal(first.observations[6:], alone.step_array(actions[6:])[0])
+    engine.reset(1, seed=1)
+    second = engine.step(actions)  # ends teams 0 and 2 (T_s = 2); team 1 plays its first step
+    assert second.truncated.tolist() == [True, False, True] and engine.live.tolist() == [False, True, False]
+    third = engine.step(actions)
+    assert np.array_equal(third.observations[:3], second.observations[:3])  # team 0 ended: its terminal observations
+    assert np.array_equal(third.positions[6:], second.positions[6:]) and third.truncated.tolist() == [False, True, False]
+    nothing = engine.step(actions)
+    assert np.array_equal(nothing.observations, third.observations) and not nothing.rewards.any()
+
+
+def test_returned_arrays_never_change_afterwards() -> None:
+    """A reset copies an array the engine has returned before it writes the reset team's rows."""
+    engine = FormationEngine([FormationConfig.preset("ch5-bearing", max_steps=1)] * 2)
+    engine.reset(0, seed=0)
+    engine.reset(1, seed=1)
+    step = engine.step(np.zeros((12, 2)))
+    kept = [np.copy(array) for array in step]
+    engine.reset(0, seed=5)
+    assert all(np.array_equal(array, copy) for array, copy in zip(step, kept))
+
+
+def test_a_finished_team_is_refused_by_its_pettingzoo_view() -> None:
+    env = FormationEnv(FormationConfig.preset("ch4-individual", max_steps=1))
+    with pytest.raises(RuntimeError, match="before reset"):
+        env.step_array(np.zeros((3, 2)))
+    env.reset(seed=0)
+    env.step_array(np.zeros((3, 2)))
+    with pytest.raises(RuntimeError, match="finished episode"):
+        env.step_array(np.zeros((3, 2)))
+
+
+def test_a_view_of_a_team_of_a_larger_engine_is_stepped_by_its_engine() -> None:
+    engine = FormationEngine([FormationConfig.preset("ch4-individual")] * 2)
+    view = FormationEnv(engine=engine, team=1)
+    view.reset(seed=0)
+    assert view.agents == view.possible_agents and engine.live.tolist() == [False, True]
+    with pytest.raises(RuntimeError, match="team 1 of an engine of 2 teams"):
+        view.step_array(np.zeros((3, 2)))
+
+
+def test_teams_of_another_task_are_refused() -> None:
+    with pytest.raises(ValueError, match="share one task"):
+        FormationEngine([FormationConfig.preset("ch4-individual"), FormationConfig.preset("ch5-bearing")])

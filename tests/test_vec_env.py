@@ -201,8 +201,8 @@ def test_worker_errors_leave_the_other_workers_in_step() -> None:
     assert venv.get_attr("stage") == [2] * 12  # no stale reply of the second worker is read here
     venv.seed(0)
     assert venv.reset().tobytes() == first.tobytes()
-    venv._batches[1].process.kill()
-    venv._batches[1].process.join()
+    venv.blocks.blocks[1].process.kill()
+    venv.blocks.blocks[1].process.join()
     with pytest.raises(RuntimeError, match=r"worker \(pid \d+\) died"):
         venv.step(np.zeros((12, 2)))
     venv.close()
