@@ -102,7 +102,7 @@ def test_preset_carries_table_values(name: str) -> None:
 
 
 def test_ch4_uses_k1_from_table_5_1() -> None:
-    """Chapter 4 uses k_1 but Table 4.1 omits it: it comes from Table 5.1 (design.md)."""
+    """Chapter 4 uses k_1 but Table 4.1 omits it: it comes from Table 5.1 (docs/design.md "Rewards")."""
     assert FormationConfig.preset("ch4-individual").k1 == pytest.approx(-1.1)
     assert FormationConfig.preset("ch4-team").k1 == pytest.approx(-1.1)
 
@@ -298,7 +298,8 @@ EXPECTED_COEFFICIENTS: dict[str, dict[int, dict[str, float]]] = {
     # chapter 4 (eq. 26): phase 1 has no angle requirement, phases 2 and 3 have every term (thesis 4.3)
     "ch4-individual": {1: {**_CH4_ALL, "angle": 0.0}, 2: _CH4_ALL, 3: _CH4_ALL},
     "ch4-team": {1: {**_CH4_ALL, "angle": 0.0}, 2: _CH4_ALL, 3: _CH4_ALL},
-    # chapter 5 (eq. 42): stage 1 no neighbour distance nor shape, stage 2 + distance, stage 3 + shape (design.md)
+    # chapter 5 (eq. 42): stage 1 no neighbour distance nor shape, stage 2 + distance, stage 3 + shape
+    # (docs/design.md "Curriculum placements")
     "ch5-angle": {
         1: {**_CH5_STAGE3, "dist": 0.0, "angle": 0.0, "bearing": 0.0},
         2: {**_CH5_STAGE3, "angle": 0.0, "bearing": 0.0},

@@ -1,4 +1,4 @@
-"""Tests of the recurrent PPO (:mod:`sb3_formation.recurrent`): sequence cutting, sequence minibatches, the GRU/LSTM
+"""Tests of the recurrent PPO (:mod:`sb3_formation.sb3.recurrent`): sequence cutting, sequence minibatches, the GRU/LSTM
 policy against a float64 NumPy re-implementation of its cells, rollouts replayed step by step, save/load, validation.
 """
 

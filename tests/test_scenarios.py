@@ -22,7 +22,7 @@ PRESET_OF_LAYOUT = {"ch4": "ch4-individual", "ch5": "ch5-bearing"}
 N_OF_LAYOUT = {"ch4": 3, "ch5": 6}
 ETA_G = {"ch4": 0.5, "ch5": 0.4}  # Table 4.1 / 5.1
 D_REF = {"ch4": 2.4, "ch5": 1.5}  # Table 4.1 / 5.1
-ETA_C = 1.2  # Table 5.1 (chapter 4 borrows it, design.md)
+ETA_C = 1.2  # Table 5.1 (chapter 4 borrows it, docs/design.md "Rewards")
 R_A = 0.2  # agent radius (thesis 4.3 / 5.3)
 GOAL_X = {"ch4": (4.0, 10.0), "ch5": (4.0, 11.0)}  # {400, 1000} cm / {400, 1100} cm
 GOAL_Y = (2.0, 8.0)  # [200, 800] cm
@@ -93,7 +93,8 @@ def check_formation(positions: np.ndarray, layout: str) -> None:
 
 
 def check_scenario(scenario: Scenario, layout: str, stage: int) -> None:
-    """Every placement rule of thesis 4.3 / 5.3 (design.md "Curriculum"), checked independently of the sampler."""
+    """Every placement rule of thesis 4.3 / 5.3 (docs/design.md "Curriculum placements"), checked independently of the
+    sampler."""
     positions, goal, obstacles = scenario.agent_positions, scenario.goal, scenario.obstacles
     assert goal.shape == (2,)
     gx, gy = goal

@@ -15,6 +15,7 @@ from PIL import Image
 from sb3_formation.env.rendering import render_frame
 from sb3_formation.env.state import TeamState
 from sb3_formation.experiment.evaluation import (
+    EVALUATION_TEAMS,
     SUMMARY_FILE,
     TRAJECTORIES_FILE,
     PlayJob,
@@ -82,8 +83,12 @@ def _add_protocol_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--episodes", type=positive_int, help="episodes (default: the set-up's; thesis: 500 ch. 4, 200 ch. 5)")
     parser.add_argument("--stage", type=int, choices=(1, 2, 3), help="curriculum stage (default: the set-up's, 3)")
     parser.add_argument("--seed", type=seed_value, default=0, help="episode k plays the scenario of seed + k (default 0)")
-    parser.add_argument("--n-envs", type=positive_int, default=8, help="teams played at once (default 8)")
-    parser.add_argument("--workers", type=positive_int, default=1, help="worker processes (default 1)")
+    parser.add_argument(
+        "--n-envs", type=positive_int, default=EVALUATION_TEAMS, help=f"teams played at once (default {EVALUATION_TEAMS})"
+    )
+    parser.add_argument(
+        "--workers", type=positive_int, default=1, help="processes stepping the teams, this one included (default 1)"
+    )
     parser.add_argument("--stochastic", action="store_true", help="sample actions instead of using the mean")
     parser.add_argument("--device", default="auto", help="torch device (default auto)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")

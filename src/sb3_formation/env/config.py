@@ -46,7 +46,7 @@ INFO_KEYS: tuple[str, ...] = (
     *REWARD_INFO_KEYS,
 )
 
-#: Names of the curriculum placement layouts (see :mod:`sb3_formation.scenarios`).
+#: Names of the curriculum placement layouts (see :mod:`sb3_formation.env.scenarios`).
 LAYOUTS: tuple[str, ...] = ("ch4", "ch5")
 
 
@@ -370,7 +370,7 @@ _CH5: dict[str, Any] = {
     "r_j": -1.0,  # Table 5.1
     "d_safe": 0.05,  # Table 5.1
     "layout": "ch5",  # thesis 5.3
-    # stage 1: centroid term only; stage 2: + neighbour distance; stage 3: + shape (design.md)
+    # stage 1: centroid term only; stage 2: + neighbour distance; stage 3: + shape (docs/design.md "Curriculum placements")
     "stage_disabled_terms": (("dist", "angle", "bearing"), ("angle", "bearing"), ()),
 }
 

@@ -29,7 +29,7 @@ from sb3_formation.env.config import INFO_KEYS, REWARD_TERMS, FormationConfig
 from sb3_formation.env.episodes import episode_summary
 from sb3_formation.env.geometry import FormationState, _measure, agent_errors, reference_bearings, ring_neighbours
 from sb3_formation.env.observations import _fill_observations, observation_fields
-from sb3_formation.env.rewards import _reward_terms, nearest_gaps, reward_constants
+from sb3_formation.env.rewards import _reward_terms, combine_rewards, nearest_gaps, reward_constants
 from sb3_formation.env.scenarios import Scenario, check_world_fits, sample_scenario
 from sb3_formation.env.sensors import Lidar, lidar_ranges
 from sb3_formation.env.state import TeamState
@@ -246,17 +246,17 @@ class FormationEngine:
             ended = np.zeros(self.n_teams, dtype=bool)
             return EngineStep(self.observations, np.zeros(len(actions)), ended, ended.copy(), *unchanged)
         everyone = active.size == self.n_teams
+        pick = slice(None) if everyone else active  # the live teams (a slice is cheaper to index with)
         stepped = None if everyone else np.repeat(self.live, self.sizes)  # the rows of the live teams
         config, starts = self.config, self.starts
         previous_velocities = self.velocities
         previous_goal_distances = self.goal_distances
         commanded = clamp_speed(self.velocities + (actions * config.force_max) * (config.dt / config.agent_mass), config.v_max)
-        moved = [(team, self.worlds[team].advance(commanded[starts[team] : starts[team + 1]])) for team in active.tolist()]
-        states = split_state(np.concatenate([self.worlds[team].agent_states for team in active.tolist()]), config.v_max)
-        self.positions, self.velocities = (
-            self._new_rows(self.positions, states[0], stepped),
-            self._new_rows(self.velocities, states[1], stepped),
-        )
+        teams = active.tolist()
+        moved = [(team, self.worlds[team].advance(commanded[starts[team] : starts[team + 1]])) for team in teams]
+        positions, velocities = split_state(np.concatenate([self.worlds[team].agent_states for team in teams]), config.v_max)
+        self.positions = self._new_rows(self.positions, positions, stepped)
+        self.velocities = self._new_rows(self.velocities, velocities, stepped)
         contacts = np.zeros((len(actions), 2), dtype=np.int64) if everyone else self.contacts.copy()
         if stepped is not None:
             contacts[stepped] = 0
@@ -264,11 +264,11 @@ class FormationEngine:
             if touched is not None:
                 contacts[starts[team] : starts[team + 1]] = np.transpose(touched)
         self.contacts = contacts
-        self.step_counts[active] += 1
-        self.previous_offsets[active] = self.goals[active] - self.centroids[active]
+        self.step_counts[pick] += 1
+        self.previous_offsets[pick] = self.goals[pick] - self.centroids[pick]
         nearest_agent, nearest_obstacle = self._measure(active)
         self.goal_distances = goal_distances = self.goal_distances.copy()
-        for team, (x, y) in zip(active.tolist(), (self.goals[active] - self.centroids[active]).tolist()):
+        for team, (x, y) in zip(teams, (self.goals[pick] - self.centroids[pick]).tolist()):
             goal_distances[team] = math.hypot(x, y)  # Python's hypot: numba's and numpy's round otherwise
         terms = _team_terms(
             active,
@@ -292,10 +292,10 @@ class FormationEngine:
         rewards, team_means = self._combine(terms)
         terminated = np.zeros(self.n_teams, dtype=bool)
         truncated = np.zeros(self.n_teams, dtype=bool)
-        terminated[active] = goal_distances[active] <= config.eta_g
-        truncated[active] = ~terminated[active] & (self.step_counts[active] >= config.max_steps)
-        self.success[active] = terminated[active]
-        self.live[active] = ~(terminated | truncated)[active]
+        terminated[pick] = goal_distances[pick] <= config.eta_g
+        truncated[pick] = ~terminated[pick] & (self.step_counts[pick] >= config.max_steps)
+        self.success[pick] = terminated[pick]
+        self.live[pick] = ~(terminated[pick] | truncated[pick])
         self.previous_actions = self._new_rows(self.previous_actions, actions, stepped, select=True)
         self.previous_rewards = self._new_rows(self.previous_rewards, rewards, stepped, select=True)
         observations = np.empty_like(self.observations) if everyone else self.observations.copy()
@@ -406,22 +406,20 @@ class FormationEngine:
         )
 
     def _combine(self, terms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Eqs 26 / 32 / 42 for every agent, and every team's mean reward, with numpy's sums of one team at a time.
+        """Every agent's reward (:func:`~sb3_formation.env.rewards.combine_rewards`, the teams of one size at once)
+        and every team's mean reward.
 
         :param terms: every team's ``(terms, n)`` block, one after the other, flat
         :return: rewards ``(agents,)`` and team means ``(teams,)``
         """
         clip = self.config.reward_clip
         if self._single_size:  # one reshape: each team's block is its (terms, n) matrix
-            n_agents = int(self.starts[1])
-            sums = (self._coefficients[:, None, :] @ terms.reshape(self.n_teams, _N_TERMS, n_agents))[:, 0, :]
-            rewards = np.minimum(np.maximum(sums, -clip), clip)
+            rewards = combine_rewards(terms.reshape(self.n_teams, _N_TERMS, -1), self._coefficients, clip)
             return rewards.reshape(-1), rewards.mean(axis=1)
         rewards, team_means = np.empty(int(self.starts[-1])), np.empty(self.n_teams)
         for n_agents, (teams, rows) in self._groups.items():
             blocks = np.stack([terms[_N_TERMS * self.starts[t] : _N_TERMS * self.starts[t + 1]] for t in teams])
-            sums = (self._coefficients[teams, None, :] @ blocks.reshape(len(teams), _N_TERMS, n_agents))[:, 0, :]
-            group = np.minimum(np.maximum(sums, -clip), clip)
+            group = combine_rewards(blocks.reshape(len(teams), _N_TERMS, n_agents), self._coefficients[teams], clip)
             rewards[rows], team_means[teams] = group.reshape(-1), group.mean(axis=1)
         return rewards, team_means
 

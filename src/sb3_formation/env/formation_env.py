@@ -25,7 +25,7 @@ AgentID = str
 class FormationEnv(ParallelEnv):
     """A team of n holonomic second-order agents that must bring its centroid to a goal, in formation, around obstacles.
 
-    Thesis: chapters 3-5; every interpretation is pinned in ``design.md``. Agents are ``"agent_0"`` ...
+    Thesis: chapters 3-5; every interpretation is pinned in ``docs/design.md``. Agents are ``"agent_0"`` ...
     ``"agent_{n-1}"``; agent_0 is the thesis's agent 1. Agent i's designated neighbours are agents i - 1 and i + 1
     (mod n); the reference shape is the regular n-gon traversed anti-clockwise 0 -> 1 -> ... -> n-1.
 

@@ -1,8 +1,8 @@
 """Formation geometry: ring neighbours, bearings, angles and errors. Pure numpy functions.
 
-Conventions (design.md): agent indices are 0-based (agent 0 is the thesis's agent 1); agent i's designated
-neighbours are ``(i - 1) % n`` (preceding) and ``(i + 1) % n`` (succeeding); bearings are unit vectors in the
-world frame; angles are in degrees.
+Conventions (``docs/design.md`` "Ring topology"): agent indices are 0-based (agent 0 is the thesis's agent 1);
+agent i's designated neighbours are ``(i - 1) % n`` (preceding) and ``(i + 1) % n`` (succeeding); bearings are unit
+vectors in the world frame; angles are in degrees.
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
-"""The per-agent observation of thesis Table 3.1: its fields, their order, honest bounds, and the builder.
+"""The per-agent observation of thesis Table 3.1: its fields, their order, honest bounds, and the compiled filler.
 
-Order (design.md): lidar l, state z, errors e, flags f, then previous action / reward / time step s; with
-``FormationConfig.observe_reference_bearings`` (a departure, for teams of several sizes) the agent's reference bearings
-come last. Raw values in SI units and degrees; normalisation belongs to the SB3 layer.
+Order (``docs/design.md`` "Sensors and observation"): lidar l, state z, errors e, flags f, then previous action /
+reward / time step s; with ``FormationConfig.observe_reference_bearings`` (a departure, for teams of several sizes)
+the agent's reference bearings come last. Raw values in SI units and degrees; normalisation belongs to the SB3 layer.
 """
 
 from __future__ import annotations
@@ -13,7 +13,6 @@ import numba
 import numpy as np
 
 from sb3_formation.env.config import FormationConfig
-from sb3_formation.env.geometry import FormationState
 
 #: Relative slack on velocity bounds: a clamped speed may exceed v_max by a rounding error.
 ROUNDING_SLACK = 1e-9
@@ -94,66 +93,6 @@ def observation_layout(fields: list[ObservationField]) -> dict[str, slice]:
     return layout
 
 
-def build_observations(
-    out: np.ndarray,
-    lidar_obstacles: np.ndarray,
-    lidar_agents: np.ndarray,
-    positions: np.ndarray,
-    velocities: np.ndarray,
-    goal: np.ndarray,
-    formation: FormationState,
-    previous_centroid_goal_offset: np.ndarray,
-    neighbours: np.ndarray,
-    config: FormationConfig,
-    step: int,
-    previous_actions: np.ndarray,
-    previous_rewards: np.ndarray,
-    reference: np.ndarray | None = None,
-) -> np.ndarray:
-    """Every agent's observation, written into ``out`` and returned as a new array, in the order of :func:`observation_fields`.
-
-    :param out: ``(n, dim)`` float32 work array
-    :param lidar_obstacles: ``(n, rays)`` obstacle readings in [0, 1]
-    :param lidar_agents: ``(n, rays)`` agent readings in [0, 1]
-    :param positions: ``(n, 2)`` positions (m)
-    :param velocities: ``(n, 2)`` velocities (m/s)
-    :param goal: ``(2,)`` goal (m)
-    :param formation: the team's formation now
-    :param previous_centroid_goal_offset: ``(2,)`` c_g^v one step earlier (m)
-    :param neighbours: ``(n, 2)`` neighbour indices
-    :param config: task configuration (d_ref, eta_c)
-    :param step: current time step t
-    :param previous_actions: ``(n, 2)`` last clipped actions
-    :param previous_rewards: ``(n,)`` last rewards
-    :param reference: ``(n, 2, 2)`` reference bearings, written last when the config observes them
-    """
-    _fill_observations(
-        out,
-        lidar_obstacles,
-        lidar_agents,
-        positions,
-        velocities,
-        goal,
-        formation.centroid,
-        previous_centroid_goal_offset,
-        formation.neighbour_offsets,
-        formation.neighbour_distances,
-        formation.centroid_distances,
-        formation.angle_errors_deg,
-        formation.orientation_flags,
-        formation.range_flag,
-        neighbours,
-        config.d_ref,
-        config.eta_c,
-        step,
-        previous_actions,
-        previous_rewards,
-    )
-    if config.observe_reference_bearings:
-        out[:, -4:] = reference.reshape(len(out), 4)
-    return out.copy()
-
-
 @numba.njit(cache=True)
 def _fill_observations(
     out: np.ndarray,
@@ -177,7 +116,8 @@ def _fill_observations(
     previous_actions: np.ndarray,
     previous_rewards: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
-    """Compiled core of :func:`build_observations`: one row per agent, fields in the order of :func:`observation_fields`."""
+    """Every agent's observation, written into ``out``: one row per agent, fields in the order of
+    :func:`observation_fields` (the reference bearings, when observed, are written by the caller)."""
     n_rays = lidar_obstacles.shape[1]
     for agent in range(out.shape[0]):
         row = out[agent]

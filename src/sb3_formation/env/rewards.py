@@ -1,7 +1,7 @@
 """Reward terms of eqs 21-42 as pure functions of numpy arrays, and their weighted, clipped sum.
 
 Each term is returned *before* its coefficient, one value per agent. Chapter 4 (eq. 26) and chapter 5 (eq. 42) are
-the same weighted sum with different coefficients (:data:`sb3_formation.config.PRESETS`); chapter 4's ``ref`` term
+the same weighted sum with different coefficients (:data:`sb3_formation.env.config.PRESETS`); chapter 4's ``ref`` term
 (eq. 22) is the ``dist`` term (eq. 36) with m_ref in place of m_dist. With ``team_reward`` every agent receives the
 team average of each per-agent term and the team collision term (eqs 27-32).
 
@@ -19,7 +19,7 @@ import numpy as np
 from sb3_formation.env.config import REWARD_TERMS, FormationConfig
 from sb3_formation.env.geometry import FormationState
 
-#: A velocity slower than this (m/s) has no direction: the move and velocity terms are 0 for it (design.md).
+#: A velocity slower than this (m/s) has no direction: the move and velocity terms are 0 for it (``docs/design.md`` "Rewards").
 STILL_SPEED = 1e-6
 
 #: Row of each term in the ``(len(REWARD_TERMS), n)`` array returned by :func:`reward_terms`.
@@ -181,7 +181,7 @@ def reward_terms(
 
     :param config: task configuration (constants of Tables 4.1 / 5.1, ``team_reward``)
     :param step: step count t + 1 after this step
-    :param formation: formation measured after the step (:func:`~sb3_formation.geometry.measure_formation`)
+    :param formation: formation measured after the step (:func:`~sb3_formation.env.geometry.measure_formation`)
     :param previous_goal_distance: centroid-goal distance (m) before the step
     :param goal_distance: centroid-goal distance (m) after the step
     :param previous_velocities: ``(n, 2)`` velocities (m/s) before the step
@@ -213,10 +213,12 @@ def reward_terms(
 
 
 def combine_rewards(terms: np.ndarray, coefficients: np.ndarray, clip: float) -> np.ndarray:
-    """Eqs 26 / 32 / 42: sum_k K_k * term_k per agent, clipped to [-clip, clip].
+    """Eqs 26 / 32 / 42: sum_k K_k * term_k per agent, clipped to [-clip, clip]; for one team or a stack of teams.
 
-    :param terms: ``(len(REWARD_TERMS), n)`` values before coefficients
-    :param coefficients: ``(len(REWARD_TERMS),)`` coefficients (0 for a term switched off)
+    :param terms: ``(len(REWARD_TERMS), n)`` values before coefficients, or ``(teams, len(REWARD_TERMS), n)``
+    :param coefficients: ``(len(REWARD_TERMS),)`` coefficients (0 for a term switched off), or one row per team
     :param clip: clip bound
+    :return: ``(n,)`` rewards, or ``(teams, n)``
     """
-    return np.minimum(np.maximum(coefficients @ terms, -clip), clip)
+    sums = (coefficients[..., None, :] @ terms)[..., 0, :]
+    return np.minimum(np.maximum(sums, -clip), clip)

@@ -319,7 +319,7 @@ def load_setup(name: str | os.PathLike[str]) -> SetUp:
 
 
 def thesis_setup_for(reward: str | None, n_agents: int | None, team_reward: bool) -> str:
-    """The thesis set-up meant by ``--reward``, ``--agents`` and ``--team-reward`` (design.md: the command line).
+    """The thesis set-up meant by ``--reward``, ``--agents`` and ``--team-reward`` (``docs/design.md``).
 
     bearing -> ch5-bearing; angle with the team reward -> ch4-team; angle with 3 agents (the default) ->
     ch4-individual; angle with more agents -> ch5-angle; no reward given -> ch5-bearing, or ch4-team with the team

@@ -1,4 +1,4 @@
-"""Scale-only observation normalisation (thesis 3.1.4, design.md "Sensors and observation").
+"""Scale-only observation normalisation (thesis 3.1.4; ``docs/design.md`` "Normalisation").
 
 Continuous observation values are divided by a running standard deviation per feature, without subtracting the mean
 (tuned set-ups may subtract it: ``center``), then clipped to [-10, 10] (``clip_obs``); the 0/1 flags are left as they

@@ -27,7 +27,13 @@ from stable_baselines3.common.type_aliases import Schedule
 from stable_baselines3.common.utils import get_device
 from torch import nn
 
-from sb3_formation.sb3.networks import check_action_distribution, default_optimizer_kwargs, gaussian_actions, mlp
+from sb3_formation.sb3.networks import (
+    ModeOnChange,
+    check_action_distribution,
+    default_optimizer_kwargs,
+    gaussian_actions,
+    mlp,
+)
 
 #: Layer widths as SB3 writes them: a list shared by actor and critic, or ``dict(pi=[...], vf=[...])``.
 NetArch = list[int] | dict[str, list[int]]
@@ -111,7 +117,7 @@ class TeamCriticExtractor(nn.Module):
         return self.team_net(self.agent_net(team).mean(dim=-2))
 
 
-class FormationPolicy(ActorCriticPolicy):
+class FormationPolicy(ModeOnChange, ActorCriticPolicy):
     """SB3 actor-critic policy of the thesis (4.1.2, 5.1.2): tanh MLPs, bounded action mean, fixed sigma.
 
     The action distribution is a diagonal Gaussian with mean ``action_scale * tanh(action_net(latent_pi))`` and

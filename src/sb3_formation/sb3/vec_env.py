@@ -184,7 +184,7 @@ def make_formation_vec_env(
     :param stage: curriculum stage (default: the preset's, 1)
     :param seed: seed of the teams' scenario generators (each team gets ``seed`` + its first slot); ``None``: random
     :param n_workers: processes stepping the teams, this one included
-    :param normalize: wrap in :class:`~sb3_formation.normalization.ScaleNormalizeVecEnv`
+    :param normalize: wrap in :class:`~sb3_formation.sb3.normalization.ScaleNormalizeVecEnv`
     :param team_critic: give every slot its team's observations (default: when the preset uses the team reward)
     :param render_mode: ``None`` or ``"rgb_array"``
     :param team_sizes: teams of several sizes, taken in turn (see :class:`FormationVecEnv`); default: ``n_agents``

@@ -300,7 +300,7 @@ def render_episodes(
 ) -> int:
     """Play evaluation episodes on one team and write them, captioned, one after the other to a video file.
 
-    Episode k is played from ``reset(seed=seed + k)`` as in :func:`~sb3_formation.evaluation.evaluate` (sampled
+    Episode k is played from ``reset(seed=seed + k)`` as in :func:`~sb3_formation.experiment.evaluation.evaluate` (sampled
     actions are seeded with ``seed``, as with ``evaluate(..., n_envs=1)``). Of each episode the frames
     after steps 0, ``frame_every``, 2 ``frame_every``, ... and after its last step are kept (see
     :func:`frames_per_episode`); step 0 is the state after the reset.

@@ -13,7 +13,13 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
-from sb3_formation.sb3.networks import check_action_distribution, default_optimizer_kwargs, gaussian_actions, mlp
+from sb3_formation.sb3.networks import (
+    ModeOnChange,
+    check_action_distribution,
+    default_optimizer_kwargs,
+    gaussian_actions,
+    mlp,
+)
 from sb3_formation.sb3.policies import DEFAULT_SIGMA
 
 #: Recurrent cell types.
@@ -89,7 +95,7 @@ class RecurrentHead(nn.Module):
         return self.after(outputs), (final,) if self.cell == "gru" else tuple(final)
 
 
-class RecurrentFormationPolicy(BasePolicy):
+class RecurrentFormationPolicy(ModeOnChange, BasePolicy):
     """Recurrent actor-critic of thesis chapter 5 (figs 5.1 and 5.2) for :class:`RecurrentFormationPPO`.
 
     The actor and the critic each have their own recurrent state. The action distribution is a diagonal Gaussian with
