@@ -35,7 +35,7 @@ from sb3_formation import FormationConfig, FormationEnv
 from sb3_formation.env.world import World
 from sb3_formation.sb3.vec_env import FormationVecEnv
 
-CONFIG = FormationConfig.preset("ch5-bearing", stage=3)
+CONFIG = FormationConfig.task("ch5-bearing", stage=3)
 
 
 def team_by_team_seconds(teams: int, steps: int, seed: int) -> float:

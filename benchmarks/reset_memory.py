@@ -28,7 +28,7 @@ def main() -> None:
     parser.add_argument("--resets", type=int, default=40_000)
     parser.add_argument("--every", type=int, default=5_000)
     args = parser.parse_args()
-    env = FormationEnv(FormationConfig.preset("ch5-bearing", stage=3, max_steps=5))
+    env = FormationEnv(FormationConfig.task("ch5-bearing", stage=3, max_steps=5))
     zero = {agent: np.zeros(2) for agent in env.possible_agents}
     reference = None
     for episode in range(1, args.resets + 1):

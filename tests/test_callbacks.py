@@ -25,7 +25,7 @@ from sb3_formation.sb3.callbacks import (
     CollectionThreadsCallback,
     CurriculumCallback,
     FormationMetricsCallback,
-    ProgressBarCallback,
+    IterationProgressCallback,
     custom_scalars_layout,
     hparam_values,
 )
@@ -513,13 +513,13 @@ def test_metrics_callback_logs_only_the_stage_before_any_episode_ends(tmp_path: 
     assert read_hparams(tmp_path) == {"metrics": list(HPARAM_METRICS), "hparams": {}}
 
 
-# ProgressBarCallback --------------------------------------------------------------------------------------------------
+# IterationProgressCallback --------------------------------------------------------------------------------------------------
 
 
 def test_progress_bar_runs_through_a_short_learn(capsys: pytest.CaptureFixture[str]) -> None:
     model = tiny_ppo(n_envs=1, max_steps=5)
     curriculum = CurriculumCallback((1, 1, 1))
-    bar = ProgressBarCallback(5, curriculum, initial_iteration=2)  # as when resuming after 2 of 5 iterations
+    bar = IterationProgressCallback(5, curriculum, initial_iteration=2)  # as when resuming after 2 of 5 iterations
     learn_iterations(model, 3, [curriculum, bar])
     err = capsys.readouterr().err
     assert "5/5" in err and "stage 3" in err and "agent-steps/s" in err and "success 0%" in err

@@ -96,20 +96,20 @@ def _assert_values(config: FormationConfig, expected: dict[str, Any]) -> None:
 @pytest.mark.parametrize("name", PRESET_NAMES)
 def test_preset_carries_table_values(name: str) -> None:
     """Each preset carries its chapter's table values and the shared team specifications."""
-    config = FormationConfig.preset(name)
+    config = FormationConfig.task(name)
     _assert_values(config, EXPECTED_PRESETS[name])
     _assert_values(config, COMMON)
 
 
 def test_ch4_uses_k1_from_table_5_1() -> None:
     """Chapter 4 uses k_1 but Table 4.1 omits it: it comes from Table 5.1 (docs/design.md "Rewards")."""
-    assert FormationConfig.preset("ch4-individual").k1 == pytest.approx(-1.1)
-    assert FormationConfig.preset("ch4-team").k1 == pytest.approx(-1.1)
+    assert FormationConfig.task("ch4-individual").k1 == pytest.approx(-1.1)
+    assert FormationConfig.task("ch4-team").k1 == pytest.approx(-1.1)
 
 
 def test_only_ch4_team_has_team_reward() -> None:
     """team_reward is True for ch4-team and False for the three others."""
-    flags = {name: FormationConfig.preset(name).team_reward for name in PRESET_NAMES}
+    flags = {name: FormationConfig.task(name).team_reward for name in PRESET_NAMES}
     assert flags == {"ch4-individual": False, "ch4-team": True, "ch5-angle": False, "ch5-bearing": False}
 
 
@@ -119,7 +119,7 @@ def test_only_ch4_team_has_team_reward() -> None:
 )
 def test_beta_ref_of_presets(name: str, beta: float) -> None:
     """beta^f = 60 deg for n = 3 (Table 4.1), beta^ref = 120 deg for n = 6 (Table 5.1)."""
-    assert FormationConfig.preset(name).beta_ref_deg == pytest.approx(beta, abs=1e-12)
+    assert FormationConfig.task(name).beta_ref_deg == pytest.approx(beta, abs=1e-12)
 
 
 @pytest.mark.parametrize(
@@ -133,14 +133,14 @@ def test_beta_ref_of_presets(name: str, beta: float) -> None:
 )
 def test_force_max(overrides: dict[str, Any], expected: float) -> None:
     """force_max is m * v_max / dt unless max_force is set."""
-    config = FormationConfig.preset("ch5-bearing", **overrides)
+    config = FormationConfig.task("ch5-bearing", **overrides)
     assert config.force_max == pytest.approx(expected, rel=1e-12)
 
 
 def test_force_max_default_is_one_sixth_newton() -> None:
     """The thesis numbers give F_max = 1 kg * 0.05 m/s / 0.3 s = 1/6 N for every preset."""
     for name in PRESET_NAMES:
-        assert FormationConfig.preset(name).force_max == pytest.approx(1 / 6, rel=1e-12)
+        assert FormationConfig.task(name).force_max == pytest.approx(1 / 6, rel=1e-12)
 
 
 # n_agents -----------------------------------------------------------------------------------------------------------
@@ -150,7 +150,7 @@ def test_force_max_default_is_one_sixth_newton() -> None:
 @pytest.mark.parametrize(("n_agents", "beta"), [(3, 60.0), (4, 90.0), (5, 108.0), (8, 135.0)])
 def test_any_team_size_with_any_preset(name: str, n_agents: int, beta: float) -> None:
     """n >= 3 works with every preset; beta^ref is the n-gon's interior angle (n - 2) * 180 / n."""
-    config = FormationConfig.preset(name, n_agents=n_agents)
+    config = FormationConfig.task(name, n_agents=n_agents)
     assert config.n_agents == n_agents
     assert config.beta_ref_deg == pytest.approx(beta, abs=1e-12)
     # the starting n-gon fits: sides below d_ref, vertices within eta_c of the centroid, agents not overlapping
@@ -165,7 +165,7 @@ def test_any_team_size_with_any_preset(name: str, n_agents: int, beta: float) ->
 def test_two_agents_rejected(name: str) -> None:
     """n_agents = 2 raises a ValueError naming n_agents and the bound >= 3."""
     with pytest.raises(ValueError, match=r"n_agents") as info:
-        FormationConfig.preset(name, n_agents=2)
+        FormationConfig.task(name, n_agents=2)
     assert ">= 3" in str(info.value)
 
 
@@ -199,7 +199,7 @@ def test_two_agents_rejected_without_preset() -> None:
 def test_invalid_field_named_with_range(overrides: dict[str, Any], field: str, allowed: str) -> None:
     """An invalid value raises a ValueError naming the field and its allowed range."""
     with pytest.raises(ValueError) as info:
-        FormationConfig.preset("ch5-bearing", **overrides)
+        FormationConfig.task("ch5-bearing", **overrides)
     message = str(info.value)
     assert re.search(rf"\b{field}\b", message), message
     assert re.search(allowed, message), message
@@ -209,14 +209,14 @@ def test_invalid_field_named_with_range(overrides: dict[str, Any], field: str, a
 def test_d_comm_must_exceed_d_ref(d_comm: float) -> None:
     """d_comm <= d_ref raises a ValueError naming both."""
     with pytest.raises(ValueError) as info:
-        FormationConfig.preset("ch5-bearing", d_comm=d_comm)
+        FormationConfig.task("ch5-bearing", d_comm=d_comm)
     assert "d_comm" in str(info.value) and "d_ref" in str(info.value)
 
 
 def test_unknown_disabled_term_named() -> None:
     """stage_disabled_terms with an unknown term names the field and the term."""
     with pytest.raises(ValueError) as info:
-        FormationConfig.preset("ch5-bearing", stage_disabled_terms=(("angle", "teleport"), (), ()))
+        FormationConfig.task("ch5-bearing", stage_disabled_terms=(("angle", "teleport"), (), ()))
     message = str(info.value)
     assert "stage_disabled_terms" in message and "teleport" in message
 
@@ -224,13 +224,13 @@ def test_unknown_disabled_term_named() -> None:
 def test_disabled_terms_need_three_stages() -> None:
     """stage_disabled_terms must give one entry per stage."""
     with pytest.raises(ValueError, match="stage_disabled_terms"):
-        FormationConfig.preset("ch5-bearing", stage_disabled_terms=(("angle",), ()))
+        FormationConfig.task("ch5-bearing", stage_disabled_terms=(("angle",), ()))
 
 
 def test_unknown_preset_lists_valid_presets() -> None:
     """preset('nope') raises a ValueError listing the valid presets."""
     with pytest.raises(ValueError) as info:
-        FormationConfig.preset("nope")
+        FormationConfig.task("nope")
     message = str(info.value)
     assert "nope" in message
     for name in PRESET_NAMES:
@@ -240,7 +240,7 @@ def test_unknown_preset_lists_valid_presets() -> None:
 def test_unknown_override_named_with_valid_fields() -> None:
     """preset(name, bogus=1) raises a ValueError naming 'bogus' and listing the valid fields."""
     with pytest.raises(ValueError) as info:
-        FormationConfig.preset("ch5-bearing", bogus=1)
+        FormationConfig.task("ch5-bearing", bogus=1)
     message = str(info.value)
     assert "bogus" in message
     for field in ("n_agents", "v_max", "d_ref", "stage_disabled_terms", "placement_clearance"):
@@ -249,7 +249,7 @@ def test_unknown_override_named_with_valid_fields() -> None:
 
 def test_replace_validates() -> None:
     """replace() applies changes, leaves the original alone and validates like a new config."""
-    config = FormationConfig.preset("ch5-bearing")
+    config = FormationConfig.task("ch5-bearing")
     changed = config.replace(stage=3, n_agents=4)
     assert (changed.stage, changed.n_agents) == (3, 4)
     assert (config.stage, config.n_agents) == (1, 6)
@@ -265,7 +265,7 @@ def test_replace_validates() -> None:
 
 def test_config_is_frozen() -> None:
     """Fields cannot be assigned after construction."""
-    config = FormationConfig.preset("ch4-individual")
+    config = FormationConfig.task("ch4-individual")
     with pytest.raises(dataclasses.FrozenInstanceError):
         config.v_max = 1.0  # type: ignore[misc]
     assert config.v_max == 0.05
@@ -273,9 +273,9 @@ def test_config_is_frozen() -> None:
 
 def test_config_hashable_and_equal_by_value() -> None:
     """Two configs from the same preset are equal; a different stage is not."""
-    first = FormationConfig.preset("ch5-angle")
-    assert first == FormationConfig.preset("ch5-angle")
-    assert hash(first) == hash(FormationConfig.preset("ch5-angle"))
+    first = FormationConfig.task("ch5-angle")
+    assert first == FormationConfig.task("ch5-angle")
+    assert hash(first) == hash(FormationConfig.task("ch5-angle"))
     assert first != first.replace(stage=2)
 
 
@@ -318,7 +318,7 @@ EXPECTED_COEFFICIENTS: dict[str, dict[int, dict[str, float]]] = {
 def test_reward_coefficients_per_stage(name: str, stage: int) -> None:
     """reward_coefficients(stage) gives every term's coefficient with the stage's disabled terms at 0."""
     expected = EXPECTED_COEFFICIENTS[name][stage]
-    coefficients = FormationConfig.preset(name).reward_coefficients(stage)
+    coefficients = FormationConfig.task(name).reward_coefficients(stage)
     assert set(coefficients) == {"time", "angle", "bearing", "dist", "centroid", "goal", "move", "velocity", "coll"}
     assert coefficients == pytest.approx(expected, abs=1e-12)
 
@@ -327,13 +327,13 @@ def test_reward_coefficients_per_stage(name: str, stage: int) -> None:
 @pytest.mark.parametrize("stage", [1, 2, 3])
 def test_reward_coefficients_default_to_config_stage(name: str, stage: int) -> None:
     """Without an argument, reward_coefficients uses config.stage."""
-    config = FormationConfig.preset(name, stage=stage)
+    config = FormationConfig.task(name, stage=stage)
     assert config.reward_coefficients() == pytest.approx(EXPECTED_COEFFICIENTS[name][stage], abs=1e-12)
 
 
 def test_custom_disabled_terms_respected() -> None:
     """A custom stage_disabled_terms switches off exactly the listed terms."""
-    config = FormationConfig.preset("ch5-bearing", stage_disabled_terms=(("goal", "coll"), ("move",), ()))
+    config = FormationConfig.task("ch5-bearing", stage_disabled_terms=(("goal", "coll"), ("move",), ()))
     assert config.reward_coefficients(1)["goal"] == 0.0
     assert config.reward_coefficients(1)["coll"] == 0.0
     assert config.reward_coefficients(1)["dist"] == pytest.approx(1.0)
@@ -343,35 +343,35 @@ def test_custom_disabled_terms_respected() -> None:
 
 
 def test_stage_arguments_are_validated_and_numpy_integers_accepted() -> None:
-    config = FormationConfig.preset("ch5-bearing")
+    config = FormationConfig.task("ch5-bearing")
     for stage in (0, 4, 1.0):
         with pytest.raises(ValueError, match="stage must be 1, 2 or 3"):
             config.reward_coefficients(stage)
-    numpy_sized = FormationConfig.preset("ch5-bearing", n_agents=np.int64(4), stage=np.int64(2))
+    numpy_sized = FormationConfig.task("ch5-bearing", n_agents=np.int64(4), stage=np.int64(2))
     assert numpy_sized.n_agents == 4 and type(numpy_sized.n_agents) is int and type(numpy_sized.stage) is int
 
 
 def test_substeps_keep_overlaps_within_the_tolerance_or_the_config_is_refused() -> None:
     """Issue 15, point 9. A sub-step may move an agent OVERLAP_TOLERANCE * R * min(1 - bias^dt, 0.8) / 2 (m)."""
-    thesis = FormationConfig.preset("ch5-bearing")  # 0.1 * 0.2 m * 0.8 / 2 = 8 mm; 0.05 m/s * 0.3 s = 15 mm: 2 sub-steps
+    thesis = FormationConfig.task("ch5-bearing")  # 0.1 * 0.2 m * 0.8 / 2 = 8 mm; 0.05 m/s * 0.3 s = 15 mm: 2 sub-steps
     assert 1 - COLLISION_BIAS**0.3 > 0.8 and thesis.max_substep_travel == pytest.approx(0.008)
     assert thesis.physics_substeps == 2
-    fast = FormationConfig.preset("ch5-bearing", v_max=1.0)  # 0.3 m / 8 mm = 37.5: 38 sub-steps
+    fast = FormationConfig.task("ch5-bearing", v_max=1.0)  # 0.3 m / 8 mm = 37.5: 38 sub-steps
     assert fast.physics_substeps == 38 and thesis.replace(v_max=1.0) == fast  # chosen again for the copy
-    short = FormationConfig.preset("ch5-bearing", dt=0.1, v_max=0.3)  # 1 - bias^0.1 = 0.469...: 0.03 m / 0.00469 m
+    short = FormationConfig.task("ch5-bearing", dt=0.1, v_max=0.3)  # 1 - bias^0.1 = 0.469...: 0.03 m / 0.00469 m
     assert short.physics_substeps == math.ceil(0.03 / (0.1 * 0.2 * (1 - COLLISION_BIAS**0.1) / 2)) == 7
-    slow = FormationConfig.preset("ch5-bearing", v_max=0.01)  # 3 mm per step: the thesis's 2 sub-steps still
+    slow = FormationConfig.task("ch5-bearing", v_max=0.01)  # 3 mm per step: the thesis's 2 sub-steps still
     assert slow.physics_substeps == 2
-    given = FormationConfig.preset("ch5-bearing", v_max=1.0, physics_substeps=40)
+    given = FormationConfig.task("ch5-bearing", v_max=1.0, physics_substeps=40)
     assert given.physics_substeps == 40 and given.replace(n_agents=4).physics_substeps == 40  # given: kept
     message = r"physics_substeps=20 lets agents move 0\.0150 m per Pymunk sub-step, more than the 0\.0080 m .* >= 38"
     with pytest.raises(ValueError, match=message):
-        FormationConfig.preset("ch5-bearing", v_max=1.0, physics_substeps=20)
+        FormationConfig.task("ch5-bearing", v_max=1.0, physics_substeps=20)
     assert pymunk.Space().collision_bias == COLLISION_BIAS  # the world's bias is Pymunk's default
 
 
 def test_largest_team_that_fits_the_start_formation() -> None:
     # circumradius 0.9 * 1.2 = 1.08 m; side 2 * 1.08 * sin(pi / n): n = 16 -> 0.421 m > 0.4 m; n = 17 -> 0.397 m < 0.4 m
-    assert FormationConfig.preset("ch5-bearing", n_agents=16).start_side_length == pytest.approx(0.421395, abs=1e-6)
+    assert FormationConfig.task("ch5-bearing", n_agents=16).start_side_length == pytest.approx(0.421395, abs=1e-6)
     with pytest.raises(ValueError, match=r"n_agents=17 does not fit.*at most 16"):
-        FormationConfig.preset("ch5-bearing", n_agents=17)
+        FormationConfig.task("ch5-bearing", n_agents=17)

@@ -17,7 +17,7 @@ from sb3_formation.env.sensors import ray_directions
 from sb3_formation.experiment.evaluation import evaluate
 from sb3_formation.experiment.targets import load_policy
 
-CH5 = FormationConfig.preset("ch5-bearing", stage=3)
+CH5 = FormationConfig.task("ch5-bearing", stage=3)
 
 
 def test_repulsion_from_one_lidar_reading() -> None:
@@ -71,7 +71,7 @@ def test_angle_consensus_is_the_apex_of_the_reference_angle() -> None:
 
 
 def test_angle_tasks_use_no_reference_bearings() -> None:
-    angle = ClassicalController(FormationConfig.preset("ch5-angle"))
+    angle = ClassicalController(FormationConfig.task("ch5-angle"))
     assert not angle.bearings and ClassicalController(CH5).bearings
     # a whole reference polygon turned by 40 deg is in formation for the angle law, but not for the bearing law
     turn = math.radians(40)
@@ -174,7 +174,7 @@ def test_goal_attraction_turns_aside_without_progress() -> None:
 def test_flies_teams_of_any_size_in_formation(preset: str, n_agents: int) -> None:
     """From a regular polygon turned by 25 deg (out of the bearing reference) across an empty world to the goal, with
     every interior angle near beta^ref at the end."""
-    config = FormationConfig.preset(preset, n_agents=n_agents, stage=3)
+    config = FormationConfig.task(preset, n_agents=n_agents, stage=3)
     turn = math.radians(25)
     rotation = np.array([[math.cos(turn), math.sin(turn)], [-math.sin(turn), math.cos(turn)]])
     start = reference_polygon(n_agents, config.start_circumradius) @ rotation + np.array([3.0, 5.0])

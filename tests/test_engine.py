@@ -75,7 +75,7 @@ def test_a_team_steps_in_a_vec_env_as_it_steps_alone(workers: int) -> None:
     processes) against the same teams stepped one by one, each an engine of its own: observations, rewards, dones and
     infos (terminal observations and team-episode records) agree, also after the curriculum changes the stage of some
     teams. A team's numbers never depend on the other teams of its engine."""
-    config = FormationConfig.preset("ch5-bearing", stage=3, max_steps=25)
+    config = FormationConfig.task("ch5-bearing", stage=3, max_steps=25)
     venv = FormationVecEnv(config, n_envs=len(SIZES), n_workers=workers, team_sizes=SIZES, start_method="fork")
     venv.seed(3)
     observations = venv.reset()
@@ -114,7 +114,7 @@ def test_a_team_steps_in_a_vec_env_as_it_steps_alone(workers: int) -> None:
 
 def test_team_observations_are_built_from_the_batch() -> None:
     """With a team critic each slot sees its team's rows after its own, as ``slot_observations`` builds them."""
-    config = FormationConfig.preset("ch4-team", stage=3, max_steps=10)
+    config = FormationConfig.task("ch4-team", stage=3, max_steps=10)
     venv = FormationVecEnv(config, n_envs=2, team_observations=True)
     venv.seed(0)
     venv.reset()
@@ -131,10 +131,10 @@ def test_team_observations_are_built_from_the_batch() -> None:
 def test_teams_not_in_an_episode_are_not_stepped() -> None:
     """An engine steps only its live teams: a team that ended (or was never reset) keeps its rows as they were, and an
     engine with no live team steps nothing."""
-    engine = FormationEngine([FormationConfig.preset("ch4-individual", stage=3, max_steps=2)] * 3)
+    engine = FormationEngine([FormationConfig.task("ch4-individual", stage=3, max_steps=2)] * 3)
     engine.reset(0, seed=0)
     engine.reset(2, seed=2)
-    alone = FormationEnv(FormationConfig.preset("ch4-individual", stage=3, max_steps=2))
+    alone = FormationEnv(FormationConfig.task("ch4-individual", stage=3, max_steps=2))
     alone.reset(seed=2)
     actions = np.full((9, 2), 0.5)
     first = engine.step(actions)
@@ -152,7 +152,7 @@ def test_teams_not_in_an_episode_are_not_stepped() -> None:
 
 def test_returned_arrays_never_change_afterwards() -> None:
     """A reset copies an array the engine has returned before it writes the reset team's rows."""
-    engine = FormationEngine([FormationConfig.preset("ch5-bearing", max_steps=1)] * 2)
+    engine = FormationEngine([FormationConfig.task("ch5-bearing", max_steps=1)] * 2)
     engine.reset(0, seed=0)
     engine.reset(1, seed=1)
     step = engine.step(np.zeros((12, 2)))
@@ -162,7 +162,7 @@ def test_returned_arrays_never_change_afterwards() -> None:
 
 
 def test_a_finished_team_is_refused_by_its_pettingzoo_view() -> None:
-    env = FormationEnv(FormationConfig.preset("ch4-individual", max_steps=1))
+    env = FormationEnv(FormationConfig.task("ch4-individual", max_steps=1))
     with pytest.raises(RuntimeError, match="before reset"):
         env.step_array(np.zeros((3, 2)))
     env.reset(seed=0)
@@ -172,7 +172,7 @@ def test_a_finished_team_is_refused_by_its_pettingzoo_view() -> None:
 
 
 def test_a_view_of_a_team_of_a_larger_engine_is_stepped_by_its_engine() -> None:
-    engine = FormationEngine([FormationConfig.preset("ch4-individual")] * 2)
+    engine = FormationEngine([FormationConfig.task("ch4-individual")] * 2)
     view = FormationEnv(engine=engine, team=1)
     view.reset(seed=0)
     assert view.agents == view.possible_agents and engine.live.tolist() == [False, True]
@@ -182,4 +182,4 @@ def test_a_view_of_a_team_of_a_larger_engine_is_stepped_by_its_engine() -> None:
 
 def test_teams_of_another_task_are_refused() -> None:
     with pytest.raises(ValueError, match="share one task"):
-        FormationEngine([FormationConfig.preset("ch4-individual"), FormationConfig.preset("ch5-bearing")])
+        FormationEngine([FormationConfig.task("ch4-individual"), FormationConfig.task("ch5-bearing")])

@@ -26,12 +26,12 @@ def hexagon_scenario(centroid: tuple[float, float], goal: tuple[float, float], s
 @pytest.mark.parametrize("preset", ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing"])
 @pytest.mark.parametrize("n_agents", [3, 4, 6])
 def test_parallel_api(preset: str, n_agents: int) -> None:
-    env = FormationEnv(FormationConfig.preset(preset, n_agents=n_agents, stage=3, max_steps=400))
+    env = FormationEnv(FormationConfig.task(preset, n_agents=n_agents, stage=3, max_steps=400))
     parallel_api_test(env, num_cycles=500)
 
 
 def test_agents_and_spaces() -> None:
-    env = FormationEnv(FormationConfig.preset("ch5-bearing"))
+    env = FormationEnv(FormationConfig.task("ch5-bearing"))
     assert env.possible_agents == [f"agent_{i}" for i in range(6)]
     assert env.observation_space("agent_0") is env.observation_space("agent_5")
     assert env.action_space("agent_0") is env.action_space("agent_3")
@@ -40,7 +40,7 @@ def test_agents_and_spaces() -> None:
 
 
 def test_observation_layout_covers_the_vector_in_order() -> None:
-    env = FormationEnv(FormationConfig.preset("ch5-bearing"))
+    env = FormationEnv(FormationConfig.task("ch5-bearing"))
     layout = env.observation_layout
     assert layout["lidar_obstacles"] == slice(0, 90) and layout["lidar_agents"] == slice(90, 180)
     position = 0
@@ -53,7 +53,7 @@ def test_observation_layout_covers_the_vector_in_order() -> None:
 
 
 def test_reset_observation_values_match_the_scenario() -> None:
-    config = FormationConfig.preset("ch5-bearing", stage=3)
+    config = FormationConfig.task("ch5-bearing", stage=3)
     env = FormationEnv(config)
     scenario = hexagon_scenario((5.0, 5.0), (9.0, 8.0))
     observations, infos = env.reset(seed=0, options={"scenario": scenario})
@@ -83,7 +83,7 @@ def test_reset_observation_values_match_the_scenario() -> None:
 
 
 def test_neighbours_hidden_and_non_neighbours_seen_on_the_agent_channel() -> None:
-    env = FormationEnv(FormationConfig.preset("ch5-bearing", stage=3))
+    env = FormationEnv(FormationConfig.task("ch5-bearing", stage=3))
     observations, _ = env.reset(options={"scenario": hexagon_scenario((5.0, 5.0), (12.0, 5.0))})
     lidar_agents = observations["agent_0"][env.observation_layout["lidar_agents"]]
     # Agent 0 sits at (5, 4). Its neighbours 1 and 5 are 1 m away (they would read (1 - 0.4) / 1.5 = 0.4): hidden.
@@ -97,7 +97,7 @@ def test_neighbours_hidden_and_non_neighbours_seen_on_the_agent_channel() -> Non
 
 
 def test_same_seed_same_500_steps_bit_for_bit() -> None:
-    config = FormationConfig.preset("ch5-bearing", stage=3)
+    config = FormationConfig.task("ch5-bearing", stage=3)
     first, second = FormationEnv(config), FormationEnv(config)
     obs_a, info_a = first.reset(seed=123)
     obs_b, info_b = second.reset(seed=123)
@@ -118,7 +118,7 @@ def test_same_seed_same_500_steps_bit_for_bit() -> None:
 
 
 def test_different_seeds_draw_different_scenarios() -> None:
-    env = FormationEnv(FormationConfig.preset("ch5-bearing", stage=3))
+    env = FormationEnv(FormationConfig.task("ch5-bearing", stage=3))
     goals = set()
     for seed in range(10):
         env.reset(seed=seed)
@@ -131,7 +131,7 @@ def test_different_seeds_draw_different_scenarios() -> None:
 
 
 def test_truncation_at_max_steps_with_r_late() -> None:
-    env = FormationEnv(FormationConfig.preset("ch5-bearing", stage=3, max_steps=5))
+    env = FormationEnv(FormationConfig.task("ch5-bearing", stage=3, max_steps=5))
     env.reset(seed=0)
     rng = np.random.default_rng(0)
     for step in range(1, 6):
@@ -145,7 +145,7 @@ def test_truncation_at_max_steps_with_r_late() -> None:
 
 
 def test_termination_when_the_centroid_reaches_the_goal() -> None:
-    config = FormationConfig.preset("ch5-bearing", stage=3)
+    config = FormationConfig.task("ch5-bearing", stage=3)
     env = FormationEnv(config)
     # centroid (5, 5), goal 0.41 m to the right: one full step right moves the centroid 0.015 m -> 0.395 <= eta_g 0.4
     env.reset(options={"scenario": hexagon_scenario((5.0, 5.0), (5.41, 5.0))})
@@ -164,7 +164,7 @@ def test_reward_is_the_clipped_weighted_sum_of_the_info_terms() -> None:
     weights["coll"] = 0.5
     disabled = {1: {"dist", "angle", "bearing"}, 2: {"angle", "bearing"}, 3: set()}
     for stage in (1, 2, 3):
-        env = FormationEnv(FormationConfig.preset("ch5-bearing", stage=stage))
+        env = FormationEnv(FormationConfig.task("ch5-bearing", stage=stage))
         env.reset(seed=stage)
         rng = np.random.default_rng(stage)
         for _ in range(30):
@@ -176,7 +176,7 @@ def test_reward_is_the_clipped_weighted_sum_of_the_info_terms() -> None:
 
 
 def test_set_stage_switches_reward_gating_and_placement() -> None:
-    env = FormationEnv(FormationConfig.preset("ch4-individual", stage=1))
+    env = FormationEnv(FormationConfig.task("ch4-individual", stage=1))
     env.reset(seed=0)
     assert env.scenario.centroid[0] == pytest.approx(env.scenario.goal[0])  # stage 1: centroid x = goal x
     env.set_stage(3)
@@ -188,7 +188,7 @@ def test_set_stage_switches_reward_gating_and_placement() -> None:
 
 
 def test_actions_are_validated_and_clipped() -> None:
-    config = FormationConfig.preset("ch5-bearing", stage=3)
+    config = FormationConfig.task("ch5-bearing", stage=3)
     env = FormationEnv(config)
     env.reset(seed=0)
     good = {agent: np.zeros(2) for agent in env.agents}
@@ -213,7 +213,7 @@ def test_actions_are_validated_and_clipped() -> None:
 
 
 def test_reset_rejects_bad_scenarios() -> None:
-    env = FormationEnv(FormationConfig.preset("ch5-bearing"))
+    env = FormationEnv(FormationConfig.task("ch5-bearing"))
     with pytest.raises(ValueError, match="agent_0 and agent_1 overlap"):
         env.reset(options={"scenario": Scenario([[5, 5], [5.1, 5], [7, 5], [8, 5], [9, 5], [10, 5]], [12, 5])})
     with pytest.raises(TypeError, match="Scenario"):
@@ -222,7 +222,7 @@ def test_reset_rejects_bad_scenarios() -> None:
 
 
 def test_agent_contacts_are_counted_per_pair_and_penalised() -> None:
-    config = FormationConfig.preset("ch5-bearing", stage=3)
+    config = FormationConfig.task("ch5-bearing", stage=3)
     env = FormationEnv(config)
     positions = [[5.0, 5.0], [5.41, 5.0], [8.0, 8.0], [9.0, 8.0], [10.0, 8.0], [11.0, 8.0]]
     env.reset(options={"scenario": Scenario(positions, [2.0, 2.0])})
@@ -236,7 +236,7 @@ def test_agent_contacts_are_counted_per_pair_and_penalised() -> None:
 
 
 def test_rgb_array_render() -> None:
-    env = FormationEnv(FormationConfig.preset("ch5-bearing", stage=1), render_mode="rgb_array", render_lidar=True)
+    env = FormationEnv(FormationConfig.task("ch5-bearing", stage=1), render_mode="rgb_array", render_lidar=True)
     with pytest.raises(RuntimeError, match="reset"):
         env.render()
     env.reset(seed=0)
@@ -255,10 +255,10 @@ def test_render_mode_is_validated() -> None:
 
 def test_render_takes_the_mode_as_older_wrappers_pass_it() -> None:
     """Issue 16: RLlib's ``ParallelPettingZooEnv.render()`` calls ``par_env.render(self.render_mode)``."""
-    env = FormationEnv(FormationConfig.preset("ch4-individual"), render_mode="rgb_array")
+    env = FormationEnv(FormationConfig.task("ch4-individual"), render_mode="rgb_array")
     env.reset(seed=3)
     assert np.array_equal(env.render("rgb_array"), env.render())
-    unset = FormationEnv(FormationConfig.preset("ch4-individual"))
+    unset = FormationEnv(FormationConfig.task("ch4-individual"))
     unset.reset(seed=3)
     assert np.array_equal(unset.render("rgb_array"), env.render())
     with pytest.raises(ValueError, match="render mode 'video' is not supported"):
@@ -267,7 +267,7 @@ def test_render_takes_the_mode_as_older_wrappers_pass_it() -> None:
 
 def test_every_observation_field_matches_the_state_after_steps() -> None:
     """Each field, read by name, recomputed from positions and velocities with plain numpy."""
-    config = FormationConfig.preset("ch5-angle", stage=3)
+    config = FormationConfig.task("ch5-angle", stage=3)
     env = FormationEnv(config)
     # an irregular hexagon with one side longer than d_ref = 1.5 m, so that flag_range is 0 and errors differ by agent
     positions = [[5.0, 4.0], [6.0, 4.3], [6.4, 5.4], [5.2, 6.0], [4.1, 5.6], [3.9, 4.2]]  # side 3-4: 1.17, 4-5: 1.41
@@ -321,7 +321,7 @@ def test_every_observation_field_matches_the_state_after_steps() -> None:
 
 def test_docstring_observation_table_matches_the_layout() -> None:
     """The thesis-style table in the class docstring lists every field with its true index range."""
-    env = FormationEnv(FormationConfig.preset("ch5-bearing"))
+    env = FormationEnv(FormationConfig.task("ch5-bearing"))
     rows = {}
     for line in FormationEnv.__doc__.splitlines():
         cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
@@ -332,7 +332,7 @@ def test_docstring_observation_table_matches_the_layout() -> None:
 
 
 def test_wall_contact_is_counted_and_penalised() -> None:
-    config = FormationConfig.preset("ch5-bearing", stage=3)
+    config = FormationConfig.task("ch5-bearing", stage=3)
     env = FormationEnv(config)
     positions = [[0.25, 5.0], [3.0, 3.0], [4.0, 3.0], [5.0, 3.0], [6.0, 3.0], [7.0, 3.0]]
     env.reset(options={"scenario": Scenario(positions, [12.0, 8.0])})
@@ -347,7 +347,7 @@ def test_wall_contact_is_counted_and_penalised() -> None:
 
 
 def test_non_numeric_action_names_the_agent() -> None:
-    env = FormationEnv(FormationConfig.preset("ch5-bearing"))
+    env = FormationEnv(FormationConfig.task("ch5-bearing"))
     env.reset(seed=0)
     actions = {agent: np.zeros(2) for agent in env.agents}
     actions["agent_3"] = ["a", 1]
@@ -356,8 +356,8 @@ def test_non_numeric_action_names_the_agent() -> None:
 
 
 def test_reference_bearings_are_observed_last_only_when_asked() -> None:
-    plain = FormationEnv(FormationConfig.preset("ch5-bearing", n_agents=4))
-    env = FormationEnv(FormationConfig.preset("ch5-bearing", n_agents=4, observe_reference_bearings=True))
+    plain = FormationEnv(FormationConfig.task("ch5-bearing", n_agents=4))
+    env = FormationEnv(FormationConfig.task("ch5-bearing", n_agents=4, observe_reference_bearings=True))
     assert "reference_bearings" not in plain.observation_layout and env.observation_layout["reference_bearings"] == slice(
         211, 215
     )

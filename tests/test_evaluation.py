@@ -19,7 +19,6 @@ from stable_baselines3 import PPO
 
 from sb3_formation import FormationConfig, FormationEnv, FormationPolicy, make_formation_vec_env
 from sb3_formation.controllers import Controller
-from sb3_formation.env.episodes import EPISODE_METRICS
 from sb3_formation.experiment.evaluation import (
     EPISODE_COLUMNS,
     Trajectories,
@@ -28,6 +27,7 @@ from sb3_formation.experiment.evaluation import (
     wilson_interval,
 )
 from sb3_formation.experiment.runs import FINAL_MODEL, FINAL_NORMALIZER, load_trained, save_model
+from sb3_formation.sb3.metrics import EPISODE_METRICS
 from sb3_formation.sb3.trained import TrainedPolicy
 
 Z95 = 1.959963984540054

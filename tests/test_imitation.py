@@ -22,7 +22,7 @@ from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.vec_env import FormationVecEnv
 
-CONFIG = FormationConfig.preset("ch5-bearing", stage=3, max_steps=60)
+CONFIG = FormationConfig.task("ch5-bearing", stage=3, max_steps=60)
 
 
 def tiny_imitation_setup(tmp_path: Path, **imitation: object) -> Path:

@@ -19,10 +19,10 @@ from sb3_formation import FormationConfig, FormationEnv, make_formation_vec_env
 from sb3_formation.env.config import REWARD_INFO_KEYS
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 
-PRESETS = ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing"]
+TASKS = ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing"]
 
 
-@pytest.mark.parametrize("preset", PRESETS)
+@pytest.mark.parametrize("preset", TASKS)
 def test_torchrl_wraps_checks_and_rolls_out_every_preset(preset: str) -> None:
     """README "Using it with other libraries": TorchRL's ``PettingZooWrapper`` builds, ``check_env_specs`` passes and
     a 50-step rollout runs; the flat reward terms arrive as one tensor each."""
@@ -31,10 +31,10 @@ def test_torchrl_wraps_checks_and_rolls_out_every_preset(preset: str) -> None:
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # TorchRL names the PettingZoo version it was tested with
-        env = PettingZooWrapper(FormationEnv(FormationConfig.preset(preset, stage=3)), categorical_actions=False, seed=0)
+        env = PettingZooWrapper(FormationEnv(FormationConfig.task(preset, stage=3)), categorical_actions=False, seed=0)
     check_env_specs(env)
     rollout = env.rollout(50)
-    n_agents = FormationConfig.preset(preset).n_agents
+    n_agents = FormationConfig.task(preset).n_agents
     assert rollout.batch_size == torch.Size([50])
     assert rollout["next", "agent", "reward"].shape == (50, n_agents, 1)
     info = rollout["next", "agent", "info"]
@@ -145,7 +145,7 @@ def test_the_readme_snippets_for_rllib_and_video_recording_run(tmp_path: Path, m
     assert sampled["num_env_steps_sampled_lifetime"] == 600
     assert sampled["num_agent_steps_sampled_lifetime"] == {f"agent_{i}": 600 for i in range(6)}
     assert set(namespace["result"]["learners"]) == {"shared", "__all_modules__"}  # one shared module, updated
-    wrapped = ParallelPettingZooEnv(FormationEnv(FormationConfig.preset("ch5-bearing", stage=3), render_mode="rgb_array"))
+    wrapped = ParallelPettingZooEnv(FormationEnv(FormationConfig.task("ch5-bearing", stage=3), render_mode="rgb_array"))
     wrapped.reset(seed=0)
     frame = wrapped.render()
     assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3

@@ -88,6 +88,17 @@ def test_each_layer_imports_only_from_the_layers_below() -> None:
             "import stable_baselines3\n",
             "controllers/random.py: layer 'controllers' imports stable_baselines3",
         ),
+        ("env/engine.py", "import torch as th\n", "env/engine.py: layer 'env' imports torch"),
+        (
+            "env/blocks.py",
+            "from sb3_formation.sb3.vec_env import FormationVecEnv\n",
+            "env/blocks.py: layer 'env' imports sb3_formation.sb3.vec_env from the higher layer 'sb3'",
+        ),
+        (
+            "utils/checks.py",
+            "from sb3_formation.env.config import FormationConfig\n",
+            "utils/checks.py: layer 'utils' imports sb3_formation.env.config from the higher layer 'env'",
+        ),
     ],
 )
 def test_the_rule_catches_a_forbidden_import(module: str, added: str, expected: str) -> None:
@@ -109,7 +120,7 @@ def test_public_names_stay_importable_lazily() -> None:
     code = (
         "import sys, sb3_formation\n"
         "assert 'torch' not in sys.modules\n"
-        "from sb3_formation import FormationConfig, FormationEnv, Scenario, PRESETS, REWARD_TERMS, TeamState\n"
+        "from sb3_formation import FormationConfig, FormationEnv, Scenario, TASKS, REWARD_TERMS, TeamState\n"
         "assert 'torch' not in sys.modules\n"
         "from sb3_formation import FormationPolicy, FormationVecEnv, ScaleNormalizeVecEnv, make_formation_vec_env\n"
         "from sb3_formation import load_policy, load_setup\n"

@@ -38,7 +38,7 @@ AGENT_HITS = ((0, 4, 0), (0, 4, 2))  # a touching pair, counted by both agents
 def make_trajectories() -> Trajectories:
     """Two hand-made episodes of three agents: agent i at (2 + i + 0.5 t + k, 3 + 0.25 t + 0.3 i (i mod 2)) in episode k;
     angle error 10 t + i (deg), neighbour-distance error 0.1 t (i + 1) (m)."""
-    config = FormationConfig.preset("ch4-individual")
+    config = FormationConfig.task("ch4-individual")
     n_agents, rows = config.n_agents, max(LENGTHS) + 1
     positions = np.full((2, rows, n_agents, 2), np.nan)
     angle = np.full((2, rows, n_agents), np.nan)

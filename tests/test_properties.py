@@ -13,12 +13,12 @@ from sb3_formation import FormationConfig, FormationEnv
 from sb3_formation.env.config import OVERLAP_TOLERANCE
 from sb3_formation.env.scenarios import check_world_fits
 
-PRESETS = ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing"]
+TASKS = ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing"]
 
 
 @settings(max_examples=30, deadline=None)
 @given(
-    preset=st.sampled_from(PRESETS),
+    preset=st.sampled_from(TASKS),
     n_agents=st.integers(3, 8),
     stage=st.integers(1, 3),
     seed=st.integers(0, 2**31 - 1),
@@ -26,7 +26,7 @@ PRESETS = ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing"]
 )
 def test_physics_and_observations_stay_in_bounds(preset: str, n_agents: int, stage: int, seed: int, hold: int) -> None:
     """Random pushes held for ``hold`` steps drive agents into walls, obstacles and each other."""
-    config = FormationConfig.preset(preset, n_agents=n_agents, stage=stage)
+    config = FormationConfig.task(preset, n_agents=n_agents, stage=stage)
     env = FormationEnv(config)
     observations, _ = env.reset(seed=seed)
     space = env.observation_space("agent_0")
@@ -60,8 +60,8 @@ def configs(draw: st.DrawFn) -> FormationConfig:
     agents of 0.3 m, are drawn again)."""
     world = draw(st.sampled_from([(15.0, 10.0), (12.0, 8.0), (24.0, 16.0)]))
     try:
-        config = FormationConfig.preset(
-            draw(st.sampled_from(PRESETS)),
+        config = FormationConfig.task(
+            draw(st.sampled_from(TASKS)),
             n_agents=draw(st.integers(3, 16)),
             agent_radius=draw(st.floats(0.1, 0.3)),
             agent_mass=draw(st.floats(0.2, 5.0)),

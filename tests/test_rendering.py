@@ -10,7 +10,7 @@ from sb3_formation.env.rendering import AGENT_COLOURS, GOAL, OBSTACLE, PIXELS_PE
 
 
 def test_frame_shows_obstacles_goal_agents_and_lidar() -> None:
-    env = FormationEnv(FormationConfig.preset("ch4-individual", stage=3))
+    env = FormationEnv(FormationConfig.task("ch4-individual", stage=3))
     env.reset(seed=2)
     frame = render_frame(env.team_state(), env.config)
     height = frame.shape[0]
@@ -32,7 +32,7 @@ def test_frame_shows_obstacles_goal_agents_and_lidar() -> None:
 def test_human_mode_draws_into_a_window(monkeypatch: pytest.MonkeyPatch) -> None:
     pygame = pytest.importorskip("pygame")
     monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
-    env = FormationEnv(FormationConfig.preset("ch5-bearing", stage=1), render_mode="human")
+    env = FormationEnv(FormationConfig.task("ch5-bearing", stage=1), render_mode="human")
     env.reset(seed=0)
     assert env.render() is None
     surface = pygame.display.get_surface()

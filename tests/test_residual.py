@@ -21,7 +21,7 @@ from sb3_formation.experiment.targets import load_policy
 from sb3_formation.sb3.residual import ResidualVecEnv
 from sb3_formation.sb3.vec_env import FormationVecEnv
 
-CH5 = FormationConfig.preset("ch5-bearing", stage=3)
+CH5 = FormationConfig.task("ch5-bearing", stage=3)
 
 
 class ConstantPolicy:

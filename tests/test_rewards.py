@@ -186,7 +186,7 @@ def mirrored_hexagon(radius: float) -> np.ndarray:
 
 def ch5_terms(step: int, radius: float = 1.6) -> np.ndarray:
     """reward_terms of ch5-bearing on the mirrored hexagon, 0.015 m of goal progress and the velocities above."""
-    config = FormationConfig.preset("ch5-bearing")
+    config = FormationConfig.task("ch5-bearing")
     neighbours = ring_neighbours(6)
     formation = measure_formation(mirrored_hexagon(radius), neighbours, reference_bearings(6), 120.0, config.d_ref)
     return reward_terms(config, step, formation, 5.0, 4.985, V_T, V_T1, neighbours, NEAREST_AGENT, NEAREST_OBSTACLE)
@@ -217,7 +217,7 @@ def test_reward_terms_individual_ch5() -> None:
 
 def test_reward_terms_small_regular_hexagon() -> None:
     """A regular hexagon of circumradius 1 (side 1 <= 1.5, all within eta_c): no shape or distance error, r_c each."""
-    config = FormationConfig.preset("ch5-bearing")
+    config = FormationConfig.task("ch5-bearing")
     neighbours = ring_neighbours(6)
     formation = measure_formation(reference_polygon(6, 1.0) + 5.0, neighbours, reference_bearings(6), 120.0, 1.5)
     terms = reward_terms(config, 3, formation, 5.0, 5.0, V_T, V_T1, neighbours, NEAREST_AGENT, NEAREST_OBSTACLE)
@@ -237,7 +237,7 @@ def ch4_team_terms(
     nearest_agent: list[float], nearest_obstacle: list[float], goal_distance: float = 0.5, team: bool = True
 ) -> np.ndarray:
     """reward_terms of ch4-team (n = 3) on the right triangle (0,0), (2,0), (0,2) shifted to (5,5)."""
-    config = FormationConfig.preset("ch4-team" if team else "ch4-individual")
+    config = FormationConfig.task("ch4-team" if team else "ch4-individual")
     neighbours = ring_neighbours(3)
     positions = np.array([[0.0, 0.0], [2.0, 0.0], [0.0, 2.0]]) + 5.0
     formation = measure_formation(positions, neighbours, reference_bearings(3), 60.0, config.d_ref)
@@ -335,7 +335,7 @@ def test_combine_rewards_weighted_sum() -> None:
     Agent 1: -10 + 0.3 * -0.5 + -5 + 0.5 * -5 = -17.65 -> clipped to -10.
     Agent 2: 0.5 * 4 + 0.01 = 2.01.
     """
-    weights = coefficient_vector(FormationConfig.preset("ch5-bearing").reward_coefficients(3))
+    weights = coefficient_vector(FormationConfig.task("ch5-bearing").reward_coefficients(3))
     columns = {
         "time": [0.0, -10.0, 0.0],
         "angle": [-1.0, 0.0, 0.0],

@@ -38,7 +38,7 @@ STAGE3_RADII = {"ch4": [0.5, 0.5, 0.8], "ch5": [0.8, 0.8]}  # 80, 50, 50 cm / 80
 
 
 def _config(layout: str) -> FormationConfig:
-    return FormationConfig.preset(PRESET_OF_LAYOUT[layout])
+    return FormationConfig.task(PRESET_OF_LAYOUT[layout])
 
 
 def _in(value: float, bounds: tuple[float, float]) -> bool:
@@ -285,7 +285,7 @@ def test_overlapping_first_draws_are_redrawn() -> None:
 
 # Scenario validation ------------------------------------------------------------------------------------------------
 
-CH4 = FormationConfig.preset("ch4-individual")  # n = 3, R_a = 0.2 m, world 15 m x 10 m
+CH4 = FormationConfig.task("ch4-individual")  # n = 3, R_a = 0.2 m, world 15 m x 10 m
 
 
 def test_valid_hand_made_scenario_passes() -> None:
@@ -398,7 +398,7 @@ def test_scenario_arrays_read_only() -> None:
 
 
 def test_unknown_stage_is_rejected() -> None:
-    config = FormationConfig.preset("ch5-bearing")
+    config = FormationConfig.task("ch5-bearing")
     for stage in (0, 4):
         with pytest.raises(ValueError, match="stage must be 1, 2 or 3"):
             sample_scenario(config, stage, np.random.default_rng(0))
@@ -411,7 +411,7 @@ def test_the_curriculum_scales_to_the_world_and_refuses_one_too_small() -> None:
     large = thesis.fitted(30.0, 20.0)  # twice as wide and high: every position doubles, radii stay
     assert large.goal_x == pytest.approx((8.0, 22.0)) and large.start_y == pytest.approx((4.0, 16.0))
     assert np.allclose(large.stage1_obstacle_x, ((8.0, 15.0), (15.0, 22.0))) and large.stage3_radii == (0.8, 0.8)
-    config = FormationConfig.preset("ch5-bearing", world_width=10.0, world_height=7.0, stage=3)
+    config = FormationConfig.task("ch5-bearing", world_width=10.0, world_height=7.0, stage=3)
     env = FormationEnv(config)
     space = env.observation_space("agent_0")
     for stage in (1, 2, 3):
@@ -424,7 +424,7 @@ def test_the_curriculum_scales_to_the_world_and_refuses_one_too_small() -> None:
             assert all(space.contains(observation) for observation in observations.values())
     # 8 m x 6 m: the stage-3 start (4/15 of 8 m, 2/10 of 6 m) = (2.13, 1.20) m is 1.20 m from the bottom wall; the
     # six agents' start circle reaches formation_scale * min(eta_c, d_ref / (2 sin 30 deg)) + agent_radius from it
-    small = FormationConfig.preset("ch5-bearing", world_width=8.0, world_height=6.0)
+    small = FormationConfig.task("ch5-bearing", world_width=8.0, world_height=6.0)
     reach = small.formation_scale * min(small.eta_c, small.d_ref) + small.agent_radius
     message = f"a team starting at (2.13, 1.20) m needs {reach:.2f} m to every wall, has 1.20 m"
     with pytest.raises(ValueError, match=re.escape(message)):

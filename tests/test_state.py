@@ -25,7 +25,7 @@ SQUARE = Scenario(
 
 
 def square_env(**overrides: object) -> FormationEnv:
-    return FormationEnv(FormationConfig.preset("ch5-bearing", n_agents=4, **overrides), render_mode="rgb_array")
+    return FormationEnv(FormationConfig.task("ch5-bearing", n_agents=4, **overrides), render_mode="rgb_array")
 
 
 def test_every_attribute_exists_from_init() -> None:
@@ -121,7 +121,7 @@ def test_team_state_copies_the_arrays_it_is_given() -> None:
 
 
 def test_neighbour_distances_of_a_triangle() -> None:
-    env = FormationEnv(FormationConfig.preset("ch4-individual"))
+    env = FormationEnv(FormationConfig.task("ch4-individual"))
     triangle = Scenario(agent_positions=[[2.0, 2.0], [5.0, 2.0], [2.0, 6.0]], goal=[8.0, 5.0])
     env.reset(seed=0, options={"scenario": triangle})
     # sides 3, 5 (the 3-4-5 hypotenuse) and 4; agent 0's neighbours are agent 2 (4 m) and agent 1 (3 m)
@@ -148,7 +148,7 @@ def test_global_state_vector_reads_back_field_by_field() -> None:
 def test_state_has_room_for_every_curriculum_stage() -> None:
     """Stage 1-2 place the most obstacles: 3 large and 1 small (thesis 4.3, 5.3)."""
     for preset in ("ch4-individual", "ch5-bearing"):
-        config = FormationConfig.preset(preset)
+        config = FormationConfig.task(preset)
         assert state_obstacle_slots(config) == 4
         env = FormationEnv(config)
         for stage in (1, 2, 3):
@@ -165,7 +165,7 @@ def test_state_has_room_for_every_curriculum_stage() -> None:
 
 def test_pettingzoo_state_test() -> None:
     """PettingZoo's own state checks, through its AEC conversion (a whole truncated episode) and the parallel API."""
-    config = FormationConfig.preset("ch5-bearing", n_agents=4, stage=3, max_steps=40)
+    config = FormationConfig.task("ch5-bearing", n_agents=4, stage=3, max_steps=40)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # state_test only warns about most problems: make them failures
         state_test(parallel_to_aec(FormationEnv(config)), FormationEnv(config), num_cycles=50)

@@ -26,7 +26,7 @@ def rollout(venv: FormationVecEnv, steps: int, seed: int) -> list[tuple]:
 
 
 def test_slot_k_is_agent_k_mod_n_of_team_k_div_n() -> None:
-    config = FormationConfig.preset("ch5-bearing", stage=3)
+    config = FormationConfig.task("ch5-bearing", stage=3)
     venv = FormationVecEnv(config, n_envs=3)
     venv.seed(40)
     observations = venv.reset()
@@ -48,7 +48,7 @@ def test_slot_k_is_agent_k_mod_n_of_team_k_div_n() -> None:
 
 
 def test_time_out_gives_terminal_observation_and_truncated_flag() -> None:
-    config = FormationConfig.preset("ch4-individual", stage=2, max_steps=5)
+    config = FormationConfig.task("ch4-individual", stage=2, max_steps=5)
     venv = FormationVecEnv(config, n_envs=2)
     venv.seed(1)
     venv.reset()
@@ -70,7 +70,7 @@ def test_time_out_gives_terminal_observation_and_truncated_flag() -> None:
 
 
 def test_goal_reached_terminates_without_truncated_flag() -> None:
-    config = FormationConfig.preset("ch5-bearing", stage=3)
+    config = FormationConfig.task("ch5-bearing", stage=3)
     venv = FormationVecEnv(config, n_envs=2)
     scenario = Scenario(hexagon((5.0, 5.0)), (5.41, 5.0))  # one step of +x brings the centroid within eta_g
     venv.set_options([{"scenario": scenario}] * N_AGENTS + [{}] * N_AGENTS)
@@ -86,7 +86,7 @@ def test_goal_reached_terminates_without_truncated_flag() -> None:
 
 
 def test_same_seed_same_rollout_and_workers_match_one_process() -> None:
-    config = FormationConfig.preset("ch5-angle", stage=1, max_steps=40)
+    config = FormationConfig.task("ch5-angle", stage=1, max_steps=40)
     results = []
     for workers in (1, 1, 2):
         venv = FormationVecEnv(config, n_envs=3, n_workers=workers)
@@ -101,7 +101,7 @@ def test_same_seed_same_rollout_and_workers_match_one_process() -> None:
 
 
 def test_env_method_and_set_attr_reach_the_teams_of_the_slots() -> None:
-    venv = FormationVecEnv(FormationConfig.preset("ch5-bearing", stage=1), n_envs=3)
+    venv = FormationVecEnv(FormationConfig.task("ch5-bearing", stage=1), n_envs=3)
     assert venv.get_attr("stage") == [1] * 18
     venv.env_method("set_stage", 3, indices=[7])  # slot 7 is agent 1 of team 1
     assert venv.get_attr("stage") == [1] * 6 + [3] * 6 + [1] * 6
@@ -113,7 +113,7 @@ def test_env_method_and_set_attr_reach_the_teams_of_the_slots() -> None:
 
 
 def test_episode_statistics_are_counted_once_per_team() -> None:
-    venv = FormationVecEnv(FormationConfig.preset("ch5-bearing", stage=3, max_steps=4), n_envs=3)
+    venv = FormationVecEnv(FormationConfig.task("ch5-bearing", stage=3, max_steps=4), n_envs=3)
     venv.seed(0)
     venv.reset()
     episodes = []
@@ -125,7 +125,7 @@ def test_episode_statistics_are_counted_once_per_team() -> None:
 
 
 def test_episode_summary_matches_the_steps() -> None:
-    config = FormationConfig.preset("ch4-individual", stage=3, max_steps=6)
+    config = FormationConfig.task("ch4-individual", stage=3, max_steps=6)
     venv = FormationVecEnv(config, n_envs=1)
     venv.seed(3)
     venv.reset()
@@ -142,7 +142,7 @@ def test_episode_summary_matches_the_steps() -> None:
 
 
 def test_team_observations_hold_the_whole_team() -> None:
-    config = FormationConfig.preset("ch4-team")
+    config = FormationConfig.task("ch4-team")
     venv = FormationVecEnv(config, n_envs=2, team_observations=True)
     observations = venv.reset()
     assert observations.shape == (6, 211 * 4)
@@ -153,7 +153,7 @@ def test_team_observations_hold_the_whole_team() -> None:
 
 
 def test_render_tiles_the_teams() -> None:
-    venv = FormationVecEnv(FormationConfig.preset("ch5-bearing"), n_envs=2, render_mode="rgb_array")
+    venv = FormationVecEnv(FormationConfig.task("ch5-bearing"), n_envs=2, render_mode="rgb_array")
     venv.reset()
     frames = venv.get_images()
     assert len(frames) == 2 and frames[0].shape == (600, 900, 3)
@@ -162,7 +162,7 @@ def test_render_tiles_the_teams() -> None:
 
 
 def test_bad_actions_and_arguments_name_the_problem() -> None:
-    venv = FormationVecEnv(FormationConfig.preset("ch5-bearing"), n_envs=2)
+    venv = FormationVecEnv(FormationConfig.task("ch5-bearing"), n_envs=2)
     venv.reset()
     actions = np.zeros((12, 2))
     actions[8, 1] = np.nan  # slot 8 = agent 2 of team 1
@@ -180,18 +180,18 @@ def test_bad_actions_and_arguments_name_the_problem() -> None:
             venv.step(bad)
     assert venv.get_attr("step_count", [0])[0] == 0
     flat = np.linspace(-1, 1, 24)
-    twin = FormationVecEnv(FormationConfig.preset("ch5-bearing"), n_envs=2)
+    twin = FormationVecEnv(FormationConfig.task("ch5-bearing"), n_envs=2)
     venv.seed(3), twin.seed(3)
     venv.reset(), twin.reset()
     assert venv.step(flat)[0].tobytes() == twin.step(flat.reshape(12, 2))[0].tobytes()  # the documented flat form
     with pytest.raises(ValueError, match="n_workers"):
-        FormationVecEnv(FormationConfig.preset("ch5-bearing"), n_envs=2, n_workers=3)
+        FormationVecEnv(FormationConfig.task("ch5-bearing"), n_envs=2, n_workers=3)
     with pytest.raises(ValueError, match="n_envs"):
-        FormationVecEnv(FormationConfig.preset("ch5-bearing"), n_envs=0)
+        FormationVecEnv(FormationConfig.task("ch5-bearing"), n_envs=0)
 
 
 def test_worker_errors_leave_the_other_workers_in_step() -> None:
-    venv = FormationVecEnv(FormationConfig.preset("ch5-bearing", stage=2), n_envs=2, n_workers=2)
+    venv = FormationVecEnv(FormationConfig.task("ch5-bearing", stage=2), n_envs=2, n_workers=2)
     venv.seed(0)
     first = venv.reset()
     actions = np.zeros((12, 2))
@@ -210,7 +210,7 @@ def test_worker_errors_leave_the_other_workers_in_step() -> None:
 
 
 def test_teams_of_several_sizes_share_one_rollout_each_team_as_its_own_env() -> None:
-    config = FormationConfig.preset("ch5-bearing", stage=3, observe_reference_bearings=True)
+    config = FormationConfig.task("ch5-bearing", stage=3, observe_reference_bearings=True)
     venv = FormationVecEnv(config, n_envs=3, team_sizes=[3, 5])  # sizes in turn: 3, 5, 3
     assert venv.num_envs == 11 and [venv.team_slots(team) for team in range(3)] == [slice(0, 3), slice(3, 8), slice(8, 11)]
     venv.seed(40)
@@ -234,7 +234,7 @@ def test_teams_of_several_sizes_share_one_rollout_each_team_as_its_own_env() -> 
 
 
 def test_teams_of_several_sizes_refuse_a_team_critic_and_bad_sizes() -> None:
-    config = FormationConfig.preset("ch5-bearing")
+    config = FormationConfig.task("ch5-bearing")
     with pytest.raises(ValueError, match=r"team critic\) need teams of one size, got team_sizes \[3, 4\]"):
         FormationVecEnv(config, n_envs=2, team_sizes=[3, 4], team_observations=True)
     with pytest.raises(ValueError, match="n_agents=2 is invalid"):

@@ -14,7 +14,7 @@ from sb3_formation.env.formation_env import FormationEnv
 from sb3_formation.env.scenarios import Scenario
 from sb3_formation.env.world import World, clamp_speed
 
-CONFIG = FormationConfig.preset("ch4-individual")  # n = 3, R_a = 0.2 m, m = 1 kg, v_max = 0.05 m/s, dt = 0.3 s
+CONFIG = FormationConfig.task("ch4-individual")  # n = 3, R_a = 0.2 m, m = 1 kg, v_max = 0.05 m/s, dt = 0.3 s
 V_MAX, DT, R_A = 0.05, 0.3, 0.2
 F_MAX = 1.0 * 0.05 / 0.3  # m * v_max / dt = 1/6 N
 STEP = V_MAX * DT  # 0.015 m: distance covered in one step at v_max
@@ -241,7 +241,7 @@ def test_resets_reuse_one_space_so_memory_stays_flat() -> None:
     """Issue 15, point 10: a Pymunk space is freed only by the cyclic garbage collector, so a new space per episode
     let thousands wait (memory grew by ~90 MiB). Every episode reuses the env's one space, holding only its own
     walls, obstacles and agents."""
-    env = FormationEnv(FormationConfig.preset("ch5-bearing", stage=3, max_steps=2))
+    env = FormationEnv(FormationConfig.task("ch5-bearing", stage=3, max_steps=2))
     zero = {agent: np.zeros(2) for agent in env.possible_agents}
     gc.collect()
     gc.disable()  # nothing is collected: what the resets leave alive stays countable
@@ -280,7 +280,7 @@ def test_contacts_match_pymunk_collision_callbacks() -> None:
     """The contact counts read from Pymunk's arbiters after each sub-step against an independent route: Pymunk's own
     ``pre_solve`` collision callbacks (called for every touching pair in every sub-step), on the same spaces, over
     crowded stage-3 episodes whose agents press on each other, the obstacles and the walls."""
-    config = FormationConfig.preset("ch5-bearing", stage=3, n_agents=8)
+    config = FormationConfig.task("ch5-bearing", stage=3, n_agents=8)
     rng = np.random.default_rng(5)
     touching = 0
     for seed in range(6):
@@ -308,7 +308,7 @@ def test_contacts_match_pymunk_collision_callbacks() -> None:
 def test_positions_and_velocities_are_pymunks_own(n_agents: int) -> None:
     """The state read through Pymunk's batch API into the world's own array, against Pymunk's body attributes, over
     episodes of several sizes; Pymunk never moves that array (it would reallocate it if it ran out of room)."""
-    config = FormationConfig.preset("ch5-bearing", stage=3, n_agents=n_agents)
+    config = FormationConfig.task("ch5-bearing", stage=3, n_agents=n_agents)
     env = FormationEnv(config)
     rng = np.random.default_rng(n_agents)
     for seed in range(3):

@@ -33,6 +33,7 @@ from sb3_formation.controllers.base import Controller
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.geometry import reference_bearings
 from sb3_formation.env.sensors import ray_directions
+from sb3_formation.utils.checks import is_number
 
 #: Smallest surface gap (m) used in a 1/s repulsion, so touching bodies push hard but finitely.
 MIN_GAP = 0.01
@@ -67,8 +68,7 @@ class ClassicalGains:
             if name == "use_bearings":
                 valid, allowed = isinstance(value, bool), "true or false"
             else:
-                number = isinstance(value, (int, float)) and not isinstance(value, bool)
-                valid, allowed = number and math.isfinite(value) and value >= 0, "a finite number >= 0"
+                valid, allowed = is_number(value) and value >= 0, "a finite number >= 0"
             if not valid:
                 raise ValueError(f"ClassicalGains.{name}={value!r} is invalid: it must be {allowed}")
 

@@ -8,13 +8,13 @@ in evaluation (:class:`ResidualPolicy`).
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
 
 from sb3_formation.controllers.base import Controller, TeamPolicy
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.utils.checks import is_number
 
 
 def check_residual_scale(scale: Any) -> float:
@@ -22,7 +22,7 @@ def check_residual_scale(scale: Any) -> float:
 
     :raises ValueError: it is not
     """
-    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (math.isfinite(scale) and 0 < scale <= 2):
+    if not (is_number(scale) and 0 < scale <= 2):
         raise ValueError(f"the residual scale must be a number in (0, 2] (a fraction of F_max), got {scale!r}")
     return float(scale)
 

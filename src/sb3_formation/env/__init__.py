@@ -4,8 +4,14 @@ This layer needs numpy, numba, Pymunk, Gymnasium, PettingZoo and Pillow only: im
 Stable-Baselines3 and no plotting code.
 """
 
-from sb3_formation.env.config import PRESETS, REWARD_TERMS, FormationConfig
+from sb3_formation.env.config import REWARD_TERMS, TASKS, FormationConfig
 from sb3_formation.env.formation_env import FormationEnv
 from sb3_formation.env.scenarios import PlacementError, Scenario
 
-__all__ = ["PRESETS", "REWARD_TERMS", "FormationConfig", "FormationEnv", "PlacementError", "Scenario"]
+__all__ = ["REWARD_TERMS", "TASKS", "FormationConfig", "FormationEnv", "PlacementError", "Scenario"]
+
+
+def __getattr__(name: str) -> object:
+    from sb3_formation.env import config
+
+    return config.__getattr__(name)  # old names (PRESETS) warn there

@@ -1,20 +1,20 @@
-"""Every parameter of the formation task in one frozen dataclass, and the thesis presets.
+"""Every parameter of the formation task in one frozen dataclass, and the thesis's tasks.
 
 Units are SI throughout: metres, seconds, kilograms, degrees only where the name says ``_deg``.
-The four thesis set-ups are data (:data:`PRESETS`), not code branches: a new preset is a new entry.
+The four thesis tasks are data (:data:`TASKS`), not code branches: a new task is a new entry. (A *task* is what the
+agents must do and how it is rewarded; a *recipe*, in the experiment layer, is how a policy is trained on a task.)
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-import numbers
 from dataclasses import dataclass
 from typing import Any, Literal
 
-import numpy as np
-
 from sb3_formation.env.geometry import interior_angle_deg
+from sb3_formation.utils.checks import is_integer, is_number, is_real
+from sb3_formation.utils.deprecation import warn_renamed
 
 #: Deepest overlap allowed between two agents, or an agent and an obstacle or a wall, as a fraction of the agent
 #: radius (2 cm for the thesis's 20 cm agents). :attr:`FormationConfig.substeps_needed` keeps it.
@@ -158,24 +158,24 @@ class FormationConfig:
             "m_ang_deg m_dist reward_clip"
         ).split()
         for name in positive:
-            _check(name, getattr(self, name), "a finite number > 0", lambda v: _is_real(v) and math.isfinite(v) and v > 0)
+            _check(name, getattr(self, name), "a finite number > 0", lambda v: is_number(v) and v > 0)
         for name in "r_c r_reached r_late k1 r_o r_j".split() + [f"k_{t}" for t in REWARD_TERMS]:
-            _check(name, getattr(self, name), "a finite number", lambda v: _is_real(v) and math.isfinite(v))
-        _check("d_safe", self.d_safe, "a finite number >= 0", lambda v: _is_real(v) and math.isfinite(v) and v >= 0)
+            _check(name, getattr(self, name), "a finite number", lambda v: is_number(v))
+        _check("d_safe", self.d_safe, "a finite number >= 0", lambda v: is_number(v) and v >= 0)
         clearance = self.placement_clearance
-        _check("placement_clearance", clearance, "a number >= 0", lambda v: _is_real(v) and math.isfinite(v) and v >= 0)
+        _check("placement_clearance", clearance, "a number >= 0", lambda v: is_number(v) and v >= 0)
         force = self.max_force
-        _check("max_force", force, "None or a number > 0", lambda v: v is None or (_is_real(v) and math.isfinite(v) and v > 0))
-        _check("n_agents", self.n_agents, "an integer >= 3", lambda v: _is_int(v) and v >= 3)
+        _check("max_force", force, "None or a number > 0", lambda v: v is None or (is_number(v) and v > 0))
+        _check("n_agents", self.n_agents, "an integer >= 3", lambda v: is_integer(v) and v >= 3)
         for name in ("lidar_rays", "max_steps", "max_placement_tries"):
-            _check(name, getattr(self, name), "an integer >= 1", lambda v: _is_int(v) and v >= 1)
+            _check(name, getattr(self, name), "an integer >= 1", lambda v: is_integer(v) and v >= 1)
         substeps = self.physics_substeps
-        _check("physics_substeps", substeps, "None or an integer >= 1", lambda v: v is None or (_is_int(v) and v >= 1))
-        _check("stage", self.stage, "1, 2 or 3", lambda v: _is_int(v) and v in (1, 2, 3))
+        _check("physics_substeps", substeps, "None or an integer >= 1", lambda v: v is None or (is_integer(v) and v >= 1))
+        _check("stage", self.stage, "1, 2 or 3", lambda v: is_integer(v) and v in (1, 2, 3))
         for name in ("n_agents", "lidar_rays", "max_steps", "max_placement_tries", "stage"):
             object.__setattr__(self, name, int(getattr(self, name)))  # numpy integers become plain ints
         object.__setattr__(self, "physics_substeps", self.substeps_needed if substeps is None else int(substeps))
-        _check("formation_scale", self.formation_scale, "in (0, 1)", lambda v: _is_real(v) and 0 < v < 1)
+        _check("formation_scale", self.formation_scale, "in (0, 1)", lambda v: is_real(v) and 0 < v < 1)
         _check("layout", self.layout, f"one of {LAYOUTS}", lambda v: v in LAYOUTS)
         for name in ("team_reward", "observe_reference_bearings"):
             _check(name, getattr(self, name), "True or False", lambda v: isinstance(v, bool))
@@ -266,18 +266,24 @@ class FormationConfig:
         return tuple(f.name for f in dataclasses.fields(cls))
 
     @classmethod
-    def preset(cls, name: str, **overrides: Any) -> FormationConfig:
-        """The configuration of thesis set-up ``name`` (see :data:`PRESETS`), with ``overrides`` applied.
+    def task(cls, name: str, **overrides: Any) -> FormationConfig:
+        """The configuration of the thesis task ``name`` (see :data:`TASKS`), with ``overrides`` applied.
 
         :param name: ``"ch4-individual"``, ``"ch4-team"``, ``"ch5-angle"`` or ``"ch5-bearing"``
-        :param overrides: field values replacing the preset's
+        :param overrides: field values replacing the task's
         """
-        if name not in PRESETS:
-            raise ValueError(f"unknown preset {name!r}; valid presets: {sorted(PRESETS)}")
+        if name not in TASKS:
+            raise ValueError(f"unknown task {name!r}; valid tasks: {sorted(TASKS)}")
         unknown = sorted(set(overrides) - set(cls.field_names()))
         if unknown:
             raise ValueError(f"unknown FormationConfig field(s) {unknown}; valid fields: {list(cls.field_names())}")
-        return cls(**{**PRESETS[name], **overrides})
+        return cls(**{**TASKS[name], **overrides})
+
+    @classmethod
+    def preset(cls, name: str, **overrides: Any) -> FormationConfig:
+        """Deprecated spelling of :meth:`task`."""
+        warn_renamed("FormationConfig.preset", "FormationConfig.task")
+        return cls.task(name, **overrides)
 
     def replace(self, **changes: Any) -> FormationConfig:
         """A copy with ``changes`` applied (validated like a new config). Sub-steps that were chosen for this config
@@ -290,17 +296,8 @@ class FormationConfig:
         return dataclasses.replace(self, **changes)
 
 
-def _is_int(value: Any) -> bool:
-    return isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
-
-
-def _is_real(value: Any) -> bool:
-    """A real number; not a bool (YAML's ``true`` is not 1 m/s)."""
-    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
-
-
 def _check_stage(stage: Any) -> None:
-    if not (_is_int(stage) and stage in (1, 2, 3)):
+    if not (is_integer(stage) and stage in (1, 2, 3)):
         raise ValueError(f"stage must be 1, 2 or 3, got {stage!r}")
 
 
@@ -313,7 +310,7 @@ def _check(name: str, value: Any, allowed: str, ok: Any) -> None:
         raise ValueError(f"FormationConfig.{name}={value!r} is invalid: it must be {allowed}")
 
 
-# Thesis presets ------------------------------------------------------------------------------------------------
+# Thesis tasks --------------------------------------------------------------------------------------------------
 
 #: Chapter 4 (angle reward, n = 3): Table 4.1. Chapter 4 uses but does not list k_1, eta_c, r_c and r_late;
 #: they come from Table 5.1 (k_1 = -1.1, eta_c = 1.2 m; r_c and r_late are inactive since eq. 26 has no
@@ -374,10 +371,17 @@ _CH5: dict[str, Any] = {
     "stage_disabled_terms": (("dist", "angle", "bearing"), ("angle", "bearing"), ()),
 }
 
-#: The four thesis set-ups. Any ``n_agents`` >= 3 may be combined with any of them.
-PRESETS: dict[str, dict[str, Any]] = {
+#: The four thesis tasks. Any ``n_agents`` >= 3 may be combined with any of them.
+TASKS: dict[str, dict[str, Any]] = {
     "ch4-individual": {**_CH4, "team_reward": False},  # thesis 4.1.1, Policy 1
     "ch4-team": {**_CH4, "team_reward": True},  # thesis 4.1.1 (team), Policy 2
     "ch5-angle": {**_CH5, "k_angle": 0.3, "k_bearing": 0.0},  # thesis 5.3, Policy 1
     "ch5-bearing": {**_CH5, "k_angle": 0.0, "k_bearing": 0.3},  # thesis 5.3, Policy 2
 }
+
+
+def __getattr__(name: str) -> Any:
+    if name == "PRESETS":  # the old name of TASKS
+        warn_renamed("sb3_formation.env.config.PRESETS", "TASKS")
+        return TASKS
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -132,6 +132,7 @@ class FormationEngine:
         self.previous_offsets = np.zeros((n_teams, 2))  # c_g^v one step earlier
         #: teams in an episode (reset and not ended since)
         self.live = np.zeros(n_teams, dtype=bool)
+        self._every_team, self._every_team_list = np.arange(n_teams), list(range(n_teams))
         #: teams whose centroid reached the goal in their last step
         self.success = np.zeros(n_teams, dtype=bool)
         # the formation now (FormationState's fields, stacked)
@@ -240,19 +241,21 @@ class FormationEngine:
         :param actions: ``(agents, 2)`` finite actions within [-1, 1] (the views check and clip them), every team's
             agents one after the other; the rows of teams that are not live are ignored
         """
-        active = np.flatnonzero(self.live)
-        if active.size == 0:  # nothing to step (a block of an evaluation whose episodes are all played)
-            unchanged = (self.info_values, self.contacts, self.positions, self.velocities)
-            ended = np.zeros(self.n_teams, dtype=bool)
-            return EngineStep(self.observations, np.zeros(len(actions)), ended, ended.copy(), *unchanged)
-        everyone = active.size == self.n_teams
-        pick = slice(None) if everyone else active  # the live teams (a slice is cheaper to index with)
-        stepped = None if everyone else np.repeat(self.live, self.sizes)  # the rows of the live teams
+        everyone = bool(self.live.all())
+        if everyone:  # as in every VecEnv step: no team to leave out
+            active, teams, pick, stepped = self._every_team, self._every_team_list, slice(None), None
+        else:
+            active = np.flatnonzero(self.live)
+            if active.size == 0:  # nothing to step (a block of an evaluation whose episodes are all played)
+                unchanged = (self.info_values, self.contacts, self.positions, self.velocities)
+                ended = np.zeros(self.n_teams, dtype=bool)
+                return EngineStep(self.observations, np.zeros(len(actions)), ended, ended.copy(), *unchanged)
+            teams, pick = active.tolist(), active
+            stepped = np.repeat(self.live, self.sizes)  # the rows of the live teams
         config, starts = self.config, self.starts
         previous_velocities = self.velocities
         previous_goal_distances = self.goal_distances
         commanded = clamp_speed(self.velocities + (actions * config.force_max) * (config.dt / config.agent_mass), config.v_max)
-        teams = active.tolist()
         moved = [(team, self.worlds[team].advance(commanded[starts[team] : starts[team + 1]])) for team in teams]
         positions, velocities = split_state(np.concatenate([self.worlds[team].agent_states for team in teams]), config.v_max)
         self.positions = self._new_rows(self.positions, positions, stepped)
@@ -266,11 +269,13 @@ class FormationEngine:
         self.contacts = contacts
         self.step_counts[pick] += 1
         self.previous_offsets[pick] = self.goals[pick] - self.centroids[pick]
-        nearest_agent, nearest_obstacle = self._measure(active)
+        nearest_agent, nearest_obstacle = self._measure(active)  # rows of other teams: undefined
         self.goal_distances = goal_distances = self.goal_distances.copy()
         for team, (x, y) in zip(teams, (self.goals[pick] - self.centroids[pick]).tolist()):
             goal_distances[team] = math.hypot(x, y)  # Python's hypot: numba's and numpy's round otherwise
-        terms = _team_terms(
+        terms = np.empty(_N_TERMS * len(actions)) if everyone else np.zeros(_N_TERMS * len(actions))
+        _team_terms(
+            terms,
             active,
             starts,
             self.step_counts,
@@ -290,12 +295,13 @@ class FormationEngine:
             config.team_reward,
         )
         rewards, team_means = self._combine(terms)
-        terminated = np.zeros(self.n_teams, dtype=bool)
-        truncated = np.zeros(self.n_teams, dtype=bool)
-        terminated[pick] = goal_distances[pick] <= config.eta_g
-        truncated[pick] = ~terminated[pick] & (self.step_counts[pick] >= config.max_steps)
+        terminated = goal_distances <= config.eta_g
+        truncated = ~terminated & (self.step_counts >= config.max_steps)
+        if not everyone:  # teams that were not stepped did not end now
+            terminated &= self.live
+            truncated &= self.live
         self.success[pick] = terminated[pick]
-        self.live[pick] = ~(terminated[pick] | truncated[pick])
+        self.live = self.live & ~(terminated | truncated)
         self.previous_actions = self._new_rows(self.previous_actions, actions, stepped, select=True)
         self.previous_rewards = self._new_rows(self.previous_rewards, rewards, stepped, select=True)
         observations = np.empty_like(self.observations) if everyone else self.observations.copy()
@@ -536,9 +542,9 @@ def _measure_teams(
     range_flags: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
     """The formation (``_measure``, flags) and nearest gaps of the ``active`` teams, into the given arrays; returns the
-    nearest gaps (rows of other teams: infinite)."""
+    nearest gaps (rows of other teams: undefined)."""
     n_slots = positions.shape[0]
-    nearest_agent, nearest_obstacle = np.full(n_slots, np.inf), np.full(n_slots, np.inf)
+    nearest_agent, nearest_obstacle = np.empty(n_slots), np.empty(n_slots)
     for team in active:
         start, end = starts[team], starts[team + 1]
         team_positions = positions[start:end]
@@ -568,6 +574,7 @@ def _measure_teams(
 
 @numba.njit(cache=True)
 def _team_terms(
+    terms: np.ndarray,
     active: np.ndarray,
     starts: np.ndarray,
     step_counts: np.ndarray,
@@ -585,11 +592,10 @@ def _team_terms(
     constants: np.ndarray,
     max_steps: int,
     team_reward: bool,
-) -> np.ndarray:  # pragma: no cover - compiled
-    """The reward terms of the ``active`` teams: each team's ``(terms, n)`` block of ``_reward_terms``, the blocks one
-    after the other, flat (other teams' blocks: 0)."""
+) -> None:  # pragma: no cover - compiled
+    """The reward terms of the ``active`` teams into ``terms``: each team's ``(terms, n)`` block of ``_reward_terms``,
+    the blocks one after the other, flat (other teams' blocks are left as they are)."""
     n_terms = _N_TERMS
-    terms = np.zeros(n_terms * velocities.shape[0])
     for team in active:
         start, end = starts[team], starts[team + 1]
         block = _reward_terms(
@@ -610,7 +616,6 @@ def _team_terms(
             team_reward,
         )
         terms[n_terms * start : n_terms * end] = block.ravel()
-    return terms
 
 
 @numba.njit(cache=True)

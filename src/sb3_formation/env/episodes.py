@@ -1,52 +1,12 @@
-"""Episode metrics: their names (one list for TensorBoard, evaluation summaries, tables and figures), and a team's
-episode summary from the running sums of its steps."""
+"""A team's episode summary from the running sums of its steps (how each metric is shown, titled and logged is
+:mod:`sb3_formation.sb3.metrics`)."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 from sb3_formation.env.config import REWARD_TERMS
-
-
-@dataclass(frozen=True)
-class Metric:
-    """One per-episode metric.
-
-    :param label: table heading, with the unit
-    :param title: short title of its chart
-    :param axis: axis label of its chart, with the unit
-    :param tensorboard: its TensorBoard tag during training (``None``: evaluation only)
-    :param in_table: a column of comparison tables
-    """
-
-    label: str
-    title: str
-    axis: str
-    tensorboard: str | None
-    in_table: bool = True
-
-
-#: Every per-episode metric, by its key in episode summaries (``formation_episode`` infos, ``episodes.csv``, the means
-#: of ``summary.json``). Errors are means over the episode's steps of the means over agents; collisions are totals.
-EPISODE_METRICS: dict[str, Metric] = {
-    "angle_error_deg": Metric("angle error (deg)", "angle error", "angle error (deg)", "formation/angle_error_deg"),
-    "bearing_error": Metric("bearing error", "bearing error", "bearing error", "formation/bearing_error"),
-    "neighbour_distance_error": Metric(
-        "distance error (m)", "neighbour-distance error", "distance error (m)", "formation/neighbour_distance_error"
-    ),
-    "length": Metric("steps", "episode length", "steps", "episode/length"),
-    "collisions_obstacle": Metric(
-        "obstacle collisions", "obstacle collisions", "collisions per episode", "episode/collisions_obstacle"
-    ),
-    "collisions_agent": Metric("agent collisions", "agent collisions", "collisions per episode", "episode/collisions_agent"),
-    "comm_exceeded_fraction": Metric(
-        "beyond communication range", "beyond communication range", "fraction of steps", None, in_table=False
-    ),
-}
-#: TensorBoard tag of the rolling success rate during training.
-SUCCESS_RATE_TAG = "episode/success_rate"
 
 
 def episode_summary(

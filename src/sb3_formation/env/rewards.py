@@ -1,7 +1,7 @@
 """Reward terms of eqs 21-42 as pure functions of numpy arrays, and their weighted, clipped sum.
 
 Each term is returned *before* its coefficient, one value per agent. Chapter 4 (eq. 26) and chapter 5 (eq. 42) are
-the same weighted sum with different coefficients (:data:`sb3_formation.env.config.PRESETS`); chapter 4's ``ref`` term
+the same weighted sum with different coefficients (:data:`sb3_formation.env.config.TASKS`); chapter 4's ``ref`` term
 (eq. 22) is the ``dist`` term (eq. 36) with m_ref in place of m_dist. With ``team_reward`` every agent receives the
 team average of each per-agent term and the team collision term (eqs 27-32).
 

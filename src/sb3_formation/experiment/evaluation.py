@@ -28,11 +28,11 @@ from tqdm.auto import tqdm
 from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.env.blocks import BlockStep, EngineBlocks
 from sb3_formation.env.config import REWARD_TERMS, FormationConfig
-from sb3_formation.env.episodes import EPISODE_METRICS
 from sb3_formation.env.geometry import ring_neighbours
 from sb3_formation.env.state import TeamState
 from sb3_formation.experiment.targets import default_protocol, evaluation_file, evaluation_folder, load_policy
 from sb3_formation.sb3.callbacks import threads_beside_workers, torch_threads
+from sb3_formation.sb3.metrics import EPISODE_METRICS
 from sb3_formation.utils.files import atomic_write
 
 #: Columns of ``episodes.csv``, in order (``reward_<term>``: the term's mean per step and agent).

@@ -19,7 +19,8 @@ from typing import Any
 import torch
 
 from sb3_formation.env.config import FormationConfig
-from sb3_formation.experiment.setups import DEFAULT_SETUP, SetUp, is_count, load_setup, with_schedules
+from sb3_formation.experiment.setups import DEFAULT_SETUP, SetUp, load_setup, with_schedules
+from sb3_formation.utils.checks import is_count, is_number
 from sb3_formation.utils.yaml_files import read_yaml
 
 #: Keys of a run's ``evaluation:`` settings (arguments of :func:`~sb3_formation.experiment.evaluation.evaluate`).
@@ -120,11 +121,6 @@ def check_device(device: Any) -> None:
         raise ValueError(f"device {device!r}: torch sees no CUDA GPU on this machine; use --device auto or cpu")
     if kind not in (None, "cpu", "cuda"):
         raise ValueError(f"device must be auto, cpu, cuda or cuda:<index>, got {device!r}")
-
-
-def is_number(value: Any) -> bool:
-    """A finite real number (not a bool)."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def check_seed(name: str, value: Any) -> None:

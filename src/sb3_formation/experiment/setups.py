@@ -1,6 +1,6 @@
 """Set-ups: a whole training recipe as one record of data.
 
-A set-up names the task (an environment preset of :data:`~sb3_formation.env.config.PRESETS` and field overrides), the
+A set-up names the task (an environment preset of :data:`~sb3_formation.env.config.TASKS` and field overrides), the
 policy (MLP or recurrent, its cell, a team critic, sigma, action scale, other policy keyword arguments), the PPO
 settings, the curriculum (iterations per stage, success threshold), the number of parallel teams and the evaluation
 protocol. The thesis's four set-ups are YAML files shipped in this package (``sb3_formation/experiment/setups/``), each
@@ -10,7 +10,6 @@ as a set-up by giving its path instead of a name.
 
 from __future__ import annotations
 
-import math
 import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -22,10 +21,11 @@ from stable_baselines3.common.utils import LinearSchedule
 from sb3_formation.controllers import CONTROLLERS
 from sb3_formation.controllers.base import Controller, TeamPolicy
 from sb3_formation.controllers.residual import ResidualPolicy, check_residual_scale
-from sb3_formation.env.config import PRESETS, FormationConfig
+from sb3_formation.env.config import TASKS, FormationConfig
 from sb3_formation.sb3.imitation import ImitationSettings
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import CELLS, RecurrentFormationPolicy
+from sb3_formation.utils.checks import is_count, is_number
 from sb3_formation.utils.yaml_files import read_yaml
 
 #: The folder of the shipped set-ups, one ``<name>.yaml`` each.
@@ -82,8 +82,8 @@ class SetUp:
 
     def __post_init__(self) -> None:
         where = f"set-up {self.name!r}"
-        if self.env.get("preset") not in PRESETS:
-            raise ValueError(f"{where}: env: preset must be one of {sorted(PRESETS)}, got {self.env.get('preset')!r}")
+        if self.env.get("preset") not in TASKS:
+            raise ValueError(f"{where}: env: preset must be one of {sorted(TASKS)}, got {self.env.get('preset')!r}")
         self.config()  # validates the env overrides
         iterations = self.curriculum.get("iterations")
         valid = isinstance(iterations, (list, tuple)) and len(iterations) == 3 and all(is_count(i) for i in iterations)
@@ -186,7 +186,7 @@ class SetUp:
         env = {name: value for name, value in self.env.items() if name != "preset"}
         if "stage_disabled_terms" in env:
             env["stage_disabled_terms"] = tuple(tuple(terms) for terms in env["stage_disabled_terms"])
-        return FormationConfig.preset(self.env["preset"], **{**env, **overrides})
+        return FormationConfig.task(self.env["preset"], **{**env, **overrides})
 
     def ppo_kwargs(
         self, config: FormationConfig | None = None, recurrent: bool | None = None, cell: str | None = None
@@ -275,9 +275,9 @@ def schedule(value: Any, where: str = "schedule") -> float | Schedule:
     """
     if isinstance(value, dict) and set(value) == {"start", "end"}:
         start, end = (value[key] for key in ("start", "end"))
-        if all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0 for v in (start, end)):
+        if all(is_number(v) and v > 0 for v in (start, end)):
             return LinearSchedule(float(start), float(end), 1.0)
-    elif isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0:
+    elif is_number(value) and value > 0:
         return float(value)
     raise ValueError(f"{where} must be a number > 0 or {{start: a, end: b}} with numbers > 0, got {value!r}")
 
@@ -288,11 +288,6 @@ def with_schedules(kwargs: dict[str, Any]) -> dict[str, Any]:
     return {
         name: schedule(value, name) if name in scheduled and value is not None else value for name, value in kwargs.items()
     }
-
-
-def is_count(value: Any) -> bool:
-    """Whether ``value`` is an integer >= 0 (not a bool)."""
-    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
 
 
 def setup_names() -> list[str]:

@@ -21,11 +21,11 @@ from typing import Any
 
 import numpy as np
 
-from sb3_formation.env.episodes import EPISODE_METRICS
 from sb3_formation.experiment.evaluation import SUMMARY_FILE, TABLE_METRICS, evaluate_target, table_number
 from sb3_formation.experiment.runs import FINAL_MODEL
 from sb3_formation.experiment.settings import TrainSettings, read_settings_file
 from sb3_formation.experiment.training import resume, train
+from sb3_formation.sb3.metrics import EPISODE_METRICS
 from sb3_formation.utils.files import atomic_write
 
 

@@ -46,7 +46,7 @@ from sb3_formation.sb3.callbacks import (
     CollectionThreadsCallback,
     CurriculumCallback,
     FormationMetricsCallback,
-    ProgressBarCallback,
+    IterationProgressCallback,
     TimeBudgetCallback,
     TrainingClock,
     threads_beside_workers,
@@ -61,7 +61,7 @@ from sb3_formation.utils.files import LOCK_FILE, atomic_directory, atomic_write,
 # Models and checkpoints ----------------------------------------------------------------------------------------
 
 
-class CheckpointCallback(BaseCallback):
+class RunCheckpointCallback(BaseCallback):
     """Write a checkpoint every ``every`` iterations, and stop training cleanly when a stop is requested.
 
     A checkpoint is a folder ``checkpoints/iteration_<k>`` written atomically (see :func:`atomic_directory`) after the
@@ -205,7 +205,7 @@ class TrainingStopped(Exception):
 
 
 @contextmanager
-def stop_on_signals(checkpoint: CheckpointCallback) -> Iterator[None]:
+def stop_on_signals(checkpoint: RunCheckpointCallback) -> Iterator[None]:
     """While active, SIGINT (Ctrl-C) and SIGTERM ask training to stop after the current step (then it checkpoints)."""
 
     def request_stop(signum: int, frame: Any) -> None:
@@ -422,7 +422,7 @@ def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: Curri
     csv_name = "progress.csv" if curriculum.iteration == 0 else f"progress_from_iteration_{curriculum.iteration}.csv"
     model.set_logger(Logger(str(folder), [TensorBoardOutputFormat(str(folder)), CSVOutputFormat(str(folder / csv_name))]))
     budget = TimeBudgetCallback(clock)
-    checkpoint = CheckpointCallback(run_dir, curriculum, clock, settings.checkpoint_every)
+    checkpoint = RunCheckpointCallback(run_dir, curriculum, clock, settings.checkpoint_every)
     callbacks: list[BaseCallback] = [curriculum, *rollout_callbacks(settings), budget, checkpoint]
     imitation = settings.setup().imitation_settings()
     if imitation is not None and imitation.critic_warmup > 0:
@@ -434,7 +434,7 @@ def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: Curri
         callbacks.append(periodic)
     total = curriculum.total_iterations
     if settings.progress_bar:
-        callbacks.append(ProgressBarCallback(total, curriculum, curriculum.iteration))
+        callbacks.append(IterationProgressCallback(total, curriculum, curriculum.iteration))
     steps_per_iteration = model.n_steps * model.get_env().num_envs
     # an open-ended curriculum (total None) trains until the time budget ends it
     remaining = sys.maxsize // 2 if total is None else (total - curriculum.iteration) * steps_per_iteration

@@ -21,7 +21,7 @@ from stable_baselines3.common.logger import HParam, TensorBoardOutputFormat
 from stable_baselines3.common.utils import FloatSchedule
 
 from sb3_formation.env.config import REWARD_TERMS
-from sb3_formation.env.episodes import EPISODE_METRICS, SUCCESS_RATE_TAG
+from sb3_formation.sb3.metrics import EPISODE_METRICS, SUCCESS_RATE_TAG
 
 #: Per team-episode metrics logged during training: TensorBoard tag -> key of the VecEnv's ``formation_episode`` summary.
 TENSORBOARD_METRICS: dict[str, str] = {
@@ -391,7 +391,7 @@ class CollectionThreadsCallback(BaseCallback):
         return True
 
 
-class ProgressBarCallback(BaseCallback):
+class IterationProgressCallback(BaseCallback):
     """A tqdm progress bar over PPO iterations showing stage, steps per second and the rolling success rate.
 
     :param total_iterations: iterations of the whole run (``None``: unknown, e.g. under a time budget)

@@ -11,7 +11,6 @@ iterations, while the critic learns the values of the pretrained actor.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,6 +22,7 @@ from stable_baselines3.common.vec_env import unwrap_vec_wrapper
 
 from sb3_formation.controllers.base import Controller
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
+from sb3_formation.utils.checks import is_count, is_integer, is_number
 
 
 @dataclass(frozen=True)
@@ -47,12 +47,12 @@ class ImitationSettings:
     def __post_init__(self) -> None:
         for name in ("rounds", "steps", "epochs", "batch_size"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            if not (is_integer(value) and value >= 1):
                 raise ValueError(f"imitation: {name} must be an integer >= 1, got {value!r}")
-        if isinstance(self.critic_warmup, bool) or not isinstance(self.critic_warmup, int) or self.critic_warmup < 0:
+        if not is_count(self.critic_warmup):
             raise ValueError(f"imitation: critic_warmup must be an integer >= 0, got {self.critic_warmup!r}")
         rate = self.learning_rate
-        if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not (math.isfinite(rate) and rate > 0):
+        if not (is_number(rate) and rate > 0):
             raise ValueError(f"imitation: learning_rate must be a number > 0, got {rate!r}")
 
 

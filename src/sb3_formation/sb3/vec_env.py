@@ -19,6 +19,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvO
 from sb3_formation.env.blocks import EngineBlocks
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.engine import agent_infos
+from sb3_formation.utils.deprecation import warn_renamed
 
 
 class FormationVecEnv(VecEnv):
@@ -164,7 +165,7 @@ class FormationVecEnv(VecEnv):
 
 
 def make_formation_vec_env(
-    preset: str = "ch5-bearing",
+    task: str = "ch5-bearing",
     n_envs: int = 1,
     n_agents: int | None = None,
     stage: int | None = None,
@@ -174,30 +175,36 @@ def make_formation_vec_env(
     team_critic: bool | None = None,
     render_mode: str | None = None,
     team_sizes: Sequence[int] | None = None,
+    preset: str | None = None,
     **config_overrides: Any,
 ) -> VecEnv:
-    """The one call a notebook needs: ``n_envs`` teams of a thesis preset as an SB3 ``VecEnv``, one slot per agent.
+    """The one call a notebook needs: ``n_envs`` teams of a thesis task as an SB3 ``VecEnv``, one slot per agent.
 
-    :param preset: ``"ch4-individual"``, ``"ch4-team"``, ``"ch5-angle"`` or ``"ch5-bearing"``
+    :param task: ``"ch4-individual"``, ``"ch4-team"``, ``"ch5-angle"`` or ``"ch5-bearing"``
+        (:data:`~sb3_formation.env.config.TASKS`)
     :param n_envs: number of teams (the thesis trained 12 in chapter 4 and 14 in chapter 5: see the set-ups)
-    :param n_agents: team size (default: the preset's)
-    :param stage: curriculum stage (default: the preset's, 1)
+    :param n_agents: team size (default: the task's)
+    :param stage: curriculum stage (default: the task's, 1)
     :param seed: seed of the teams' scenario generators (each team gets ``seed`` + its first slot); ``None``: random
     :param n_workers: processes stepping the teams, this one included
     :param normalize: wrap in :class:`~sb3_formation.sb3.normalization.ScaleNormalizeVecEnv`
-    :param team_critic: give every slot its team's observations (default: when the preset uses the team reward)
+    :param team_critic: give every slot its team's observations (default: when the task uses the team reward)
     :param render_mode: ``None`` or ``"rgb_array"``
     :param team_sizes: teams of several sizes, taken in turn (see :class:`FormationVecEnv`); default: ``n_agents``
+    :param preset: deprecated spelling of ``task``
     :param config_overrides: further :class:`FormationConfig` fields
     """
     from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 
+    if preset is not None:
+        warn_renamed("make_formation_vec_env(preset=...)", "make_formation_vec_env(task=...)")
+        task = preset
     overrides = dict(config_overrides)
     if n_agents is not None:
         overrides["n_agents"] = n_agents
     if stage is not None:
         overrides["stage"] = stage
-    config = FormationConfig.preset(preset, **overrides)
+    config = FormationConfig.task(task, **overrides)
     team_observations = config.team_reward if team_critic is None else team_critic
     venv = FormationVecEnv(
         config,
