@@ -32,7 +32,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from sb3_formation.experiment.evaluation import evaluate_target, table_number
+from sb3_formation.experiment.evaluation import evaluate_target
+from sb3_formation.experiment.reports import table_number
 from sb3_formation.experiment.settings import TrainSettings
 from sb3_formation.experiment.training import train
 from sb3_formation.viz.plots import save_figure

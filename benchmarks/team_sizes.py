@@ -17,7 +17,8 @@ from __future__ import annotations
 import argparse
 import time
 
-from sb3_formation.experiment.evaluation import evaluate, table_number
+from sb3_formation.experiment.evaluation import evaluate
+from sb3_formation.experiment.reports import table_number
 from sb3_formation.experiment.targets import load_policy
 
 

@@ -15,7 +15,8 @@ from PIL import Image
 from sb3_formation import FormationConfig, FormationEnv
 from sb3_formation.cli import main
 from sb3_formation.controllers import RandomController
-from sb3_formation.experiment.evaluation import PlayJob, Trajectories, play_episodes
+from sb3_formation.experiment.rollouts import PlayJob, play_episodes
+from sb3_formation.experiment.trajectories import Trajectories
 
 
 def test_rollout_prints_episodes_and_saves_the_final_frame(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

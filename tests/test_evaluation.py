@@ -19,14 +19,11 @@ from stable_baselines3 import PPO
 
 from sb3_formation import FormationConfig, FormationEnv, FormationPolicy, make_formation_vec_env
 from sb3_formation.controllers import Controller
-from sb3_formation.experiment.evaluation import (
-    EPISODE_COLUMNS,
-    Trajectories,
-    comparison_table,
-    evaluate,
-    wilson_interval,
-)
+from sb3_formation.experiment.evaluation import EPISODE_COLUMNS, evaluate
+from sb3_formation.experiment.reports import comparison_table
 from sb3_formation.experiment.runs import FINAL_MODEL, FINAL_NORMALIZER, load_trained, save_model
+from sb3_formation.experiment.statistics import wilson_interval
+from sb3_formation.experiment.trajectories import Trajectories
 from sb3_formation.sb3.metrics import EPISODE_METRICS
 from sb3_formation.sb3.trained import TrainedPolicy
 

@@ -16,8 +16,9 @@ from matplotlib.patches import Circle, Polygon
 from PIL import Image
 
 from sb3_formation.env.config import FormationConfig
-from sb3_formation.experiment.evaluation import EvaluationResult, Trajectories
+from sb3_formation.experiment.evaluation import EvaluationResult
 from sb3_formation.experiment.settings import TrainSettings
+from sb3_formation.experiment.trajectories import Trajectories
 from sb3_formation.viz.plots import (
     formation_steps,
     load_training_curves,

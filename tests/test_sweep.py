@@ -17,9 +17,9 @@ import pytest
 import yaml
 
 from sb3_formation.cli import main
-from sb3_formation.experiment.evaluation import wilson_interval
 from sb3_formation.experiment.runs import FINAL_MODEL
 from sb3_formation.experiment.setups import load_setup
+from sb3_formation.experiment.statistics import wilson_interval
 from sb3_formation.experiment.sweep import aggregate, load_experiment, sweep
 from sb3_formation.sb3.metrics import EPISODE_METRICS
 from sb3_formation.viz.plots import save_sweep_curves

@@ -13,8 +13,9 @@ from sb3_formation import FormationEnv, load_policy
 from sb3_formation.cli import main
 from sb3_formation.controllers import RandomController, TeamPolicy
 from sb3_formation.env.rendering import render_frame
-from sb3_formation.experiment.evaluation import Trajectories, evaluate
+from sb3_formation.experiment.evaluation import evaluate
 from sb3_formation.experiment.targets import evaluation_folder, target_kind
+from sb3_formation.experiment.trajectories import Trajectories
 
 QUICK = ["--episodes", "2", "--n-envs", "2", "--no-progress"]
 

@@ -20,7 +20,8 @@ from stable_baselines3.common.save_util import load_from_zip_file
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 from tensorboard_events import read_hparams
 
-from sb3_formation.cli import build_parser, main, train_settings
+from sb3_formation.cli import build_parser, main
+from sb3_formation.cli.train import settings_of as train_settings
 from sb3_formation.experiment.runs import FINAL_MODEL, STATE_FILE, latest_checkpoint, load_trained
 from sb3_formation.experiment.settings import TrainSettings, layered_settings, reduce_to_overrides
 from sb3_formation.experiment.setups import load_setup, thesis_setup_for

@@ -21,7 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from sb3_formation.experiment.evaluation import SUMMARY_FILE, TABLE_METRICS, evaluate_target, table_number
+from sb3_formation.experiment.evaluation import SUMMARY_FILE, evaluate_target
+from sb3_formation.experiment.reports import TABLE_METRICS, table_number
 from sb3_formation.experiment.runs import FINAL_MODEL
 from sb3_formation.experiment.settings import TrainSettings, read_settings_file
 from sb3_formation.experiment.training import resume, train

@@ -25,7 +25,7 @@ from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.rendering import render_frame
 from sb3_formation.env.state import TeamState
-from sb3_formation.experiment.evaluation import PlayJob, play_episodes, seed_policy
+from sb3_formation.experiment.rollouts import PlayJob, play_episodes, seed_policy
 from sb3_formation.utils.files import replace_with, temporary_beside
 
 #: File suffixes :class:`VideoWriter` can write.

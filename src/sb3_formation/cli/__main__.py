@@ -1,0 +1,7 @@
+"""``python -m sb3_formation.cli``."""
+
+import sys
+
+from sb3_formation.cli import main
+
+sys.exit(main())

@@ -1,0 +1,99 @@
+"""What several subcommands share: help texts, the evaluation protocol's options, printing a summary."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+from pathlib import Path
+
+from sb3_formation.experiment.evaluation import EVALUATION_TEAMS, evaluate_target
+from sb3_formation.experiment.settings import positive_int, seed_value
+from sb3_formation.experiment.setups import DEFAULT_SETUP
+from sb3_formation.experiment.targets import evaluation_folder, target_kind
+
+
+def indices(text: str) -> list[int]:
+    """Comma-separated integers >= 0 (episode indices, seeds)."""
+    try:
+        values = [int(part) for part in text.split(",")]
+    except ValueError:
+        values = []
+    if not values or min(values) < 0:
+        raise argparse.ArgumentTypeError(f"expected episode indices such as 0,2,5, got {text!r}")
+    return values
+
+
+TARGET_HELP = (
+    "a run folder, a model .zip (normaliser beside it), controller:<name> (e.g. controller:classical) or "
+    "pretrained:<name> (a shipped policy: sb3-formation pretrained)"
+)
+PRESET_HELP = (
+    f"set-up of a controller: target (default {DEFAULT_SETUP}); trained models act in the task they were trained in "
+    "(pretrained: refuses another)"
+)
+
+
+def add_protocol_arguments(parser: argparse.ArgumentParser) -> None:
+    """The evaluation protocol's options, shared by ``evaluate`` and ``compare``."""
+    parser.add_argument("--episodes", type=positive_int, help="episodes (default: the set-up's; thesis: 500 ch. 4, 200 ch. 5)")
+    parser.add_argument("--stage", type=int, choices=(1, 2, 3), help="curriculum stage (default: the set-up's, 3)")
+    parser.add_argument("--seed", type=seed_value, default=0, help="episode k plays the scenario of seed + k (default 0)")
+    parser.add_argument(
+        "--n-envs", type=positive_int, default=EVALUATION_TEAMS, help=f"teams played at once (default {EVALUATION_TEAMS})"
+    )
+    parser.add_argument(
+        "--workers", type=positive_int, default=1, help="processes stepping the teams, this one included (default 1)"
+    )
+    parser.add_argument("--stochastic", action="store_true", help="sample actions instead of using the mean")
+    parser.add_argument("--device", default="auto", help="torch device (default auto)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--preset", help=PRESET_HELP)
+
+
+def run_folder(target: str | Path) -> Path:
+    """The folder of a run (or of a model file)."""
+    target = Path(target)
+    return target if target.is_dir() else target.parent
+
+
+def print_summary(summary: dict) -> None:
+    """An evaluation summary: the success rate with its interval, then each metric's mean and std."""
+    low, high = summary["success_rate_ci95"]
+    print(
+        f"{summary['episodes']} episodes (stage {summary['stage']}, seed {summary['seed']}): success rate "
+        f"{summary['success_rate']:.1%} (95% CI {low:.1%} - {high:.1%})"
+    )
+    successful, everything = summary["successful_episodes"], summary["all_episodes"]
+    print(f"  {'mean ± std over':<26}{'successful episodes':>24}{'all episodes':>24}")
+    for name, statistics in everything.items():
+        mine = successful[name]
+        cell = "-" if mine["mean"] is None else f"{mine['mean']:.3f} ± {mine['std']:.3f}"
+        print(f"  {name:<26}{cell:>24}{statistics['mean']:>15.3f} ± {statistics['std']:.3f}")
+
+
+def evaluate_with_protocol(args: argparse.Namespace, target: str, episodes: int | None, out: Path | None = None) -> dict:
+    """Evaluate one target with the protocol options of ``args``, save its files, and return its summary."""
+    protocol = {
+        "episodes": episodes,
+        "stage": args.stage,
+        "seed": args.seed,
+        "n_envs": args.n_envs,
+        "workers": min(args.workers, args.n_envs),
+        "deterministic": not args.stochastic,
+        "record": getattr(args, "trajectories", 5),
+        "env_overrides": {} if getattr(args, "agents", None) is None else {"n_agents": args.agents},
+    }
+    out = out or evaluation_folder(target, args.preset)
+    result = evaluate_target(target, protocol, args.preset, device=args.device, progress_bar=not args.no_progress, out=out)
+    print(f"{target}: evaluation written to {out}")
+    return result.summary
+
+
+def target_labels(text: str | None, targets: Sequence[str | Path]) -> list[str]:
+    """One label per target: from ``--labels`` (comma-separated), else the run folder's name or the target itself."""
+    if text is None:
+        return [str(target) if target_kind(target) else run_folder(target).name for target in targets]
+    labels = [label.strip() for label in text.split(",")]
+    if len(labels) != len(targets):
+        raise ValueError(f"--labels gives {len(labels)} labels for {len(targets)} runs")
+    return labels

@@ -1,0 +1,67 @@
+"""``sb3-formation compare``: several policies on the same seeds."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from sb3_formation.cli.common import add_protocol_arguments, evaluate_with_protocol, target_labels
+from sb3_formation.experiment.evaluation import SUMMARY_FILE, stored_summary
+from sb3_formation.experiment.reports import comparison_table
+from sb3_formation.experiment.targets import default_protocol, evaluation_file, load_policy, target_kind
+from sb3_formation.utils.files import atomic_write
+from sb3_formation.viz.plots import plot_evaluation_bars, save_figure
+
+
+def add_parser(commands: argparse._SubParsersAction) -> None:
+    """Add the ``compare`` subcommand to ``commands``."""
+    parser = commands.add_parser(
+        "compare",
+        help="evaluate several runs on the same seeds; print a Markdown table and draw the bar chart",
+        description="Evaluate every run on the same fixed-seed episodes (reusing its eval/ when it holds the same "
+        "protocol for the same model file), print a Markdown table and write the evaluation bar chart.",
+    )
+    parser.add_argument("targets", nargs="+", help="run folders, model .zip files or <kind>:<name> targets")
+    add_protocol_arguments(parser)
+    parser.add_argument("--labels", help="comma-separated label per run (default: the run folder names)")
+    parser.add_argument("--over", choices=("successful", "all"), default="successful", help="episodes for the means")
+    parser.add_argument("--out", type=Path, default=Path("compare.png"), help="bar chart file (default compare.png)")
+    parser.add_argument("--table", type=Path, help="also write the Markdown table to this file")
+    parser.add_argument("--force", action="store_true", help="evaluate again even if eval/ matches")
+
+
+def run(args: argparse.Namespace) -> int:
+    """``sb3-formation compare TARGET...``: every policy on the same seeds, a Markdown table and the bar chart."""
+    labels = target_labels(args.labels, args.targets)
+    if len(set(labels)) != len(labels):
+        raise ValueError(f"labels must differ, got {labels}")
+    # --preset is the set-up of the controller: targets; runs and models act in the task they were trained in
+    presets = [args.preset if target_kind(target) else None for target in args.targets]
+    for target, preset in zip(args.targets, presets):  # every target loads before any is evaluated (and written to)
+        load_policy(target, preset, args.device)
+    protocols = [default_protocol(target, args.preset) for target in args.targets]
+    protocol = {
+        # the set-ups' protocol (the larger one if they differ, e.g. chapter 4's 500 episodes and chapter 5's 200)
+        "episodes": args.episodes or max((p["episodes"] for p in protocols if "episodes" in p), default=None),
+        "stage": args.stage or max((p.get("stage", 3) for p in protocols), default=3),
+    }
+    if protocol["episodes"] is None:
+        raise ValueError(
+            "none of the targets belongs to a run folder whose set-up gives the number of episodes: give --episodes"
+        )
+    summaries = {}
+    for label, target, preset in zip(labels, args.targets, presets):
+        own = argparse.Namespace(**{**vars(args), "preset": preset})
+        wanted = {**protocol, "seed": args.seed, "deterministic": not args.stochastic}
+        summary = None if args.force else stored_summary(target, wanted, own.preset)
+        if summary is not None:
+            print(f"{target}: reusing {evaluation_file(target, SUMMARY_FILE, own.preset)}")
+        own.stage = protocol["stage"]
+        summaries[label] = summary or evaluate_with_protocol(own, target, protocol["episodes"])
+    table = comparison_table(summaries, over=args.over)
+    print(table)
+    if args.table is not None:
+        atomic_write(args.table, table + "\n")
+        print(f"table written to {args.table}")
+    print(f"figure written to {save_figure(plot_evaluation_bars(summaries, over=args.over), args.out)}")
+    return 0

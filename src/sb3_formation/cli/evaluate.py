@@ -1,0 +1,34 @@
+"""``sb3-formation evaluate``: evaluate a policy on fixed-seed episodes."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from sb3_formation.cli.common import TARGET_HELP, add_protocol_arguments, evaluate_with_protocol, print_summary
+
+
+def add_parser(commands: argparse._SubParsersAction) -> None:
+    """Add the ``evaluate`` subcommand to ``commands``."""
+    parser = commands.add_parser(
+        "evaluate",
+        help="evaluate a trained policy: success rate with a 95%% interval, errors, episodes.csv, trajectories",
+        description="Play fixed-seed episodes (episode k from seed + k) with a trained policy and write "
+        "summary.json (success rate with a 95%% Wilson interval; mean and std of errors, steps and collisions), "
+        "episodes.csv (one row per episode) and trajectories.npz (every step of the first episodes).",
+    )
+    parser.add_argument("target", help=TARGET_HELP)
+    add_protocol_arguments(parser)
+    parser.add_argument("--agents", type=int, help="team size (default: the model's; another only for one trained on several)")
+    parser.add_argument(
+        "--trajectories", type=int, default=5, metavar="K", help="record every step of the first K episodes (default 5)"
+    )
+    parser.add_argument("--out", type=Path, help="folder for the files (default: <run>/eval)")
+
+
+def run(args: argparse.Namespace) -> int:
+    """``sb3-formation evaluate``: success rate with a Wilson interval, errors, episode table and trajectories."""
+    if args.trajectories < 0:
+        raise ValueError(f"--trajectories must be >= 0, got {args.trajectories}")
+    print_summary(evaluate_with_protocol(args, args.target, args.episodes, args.out))
+    return 0

@@ -1,0 +1,96 @@
+"""``sb3-formation plot``: thesis-style figures."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from sb3_formation.cli.common import indices, target_labels
+from sb3_formation.experiment.evaluation import TRAJECTORIES_FILE, load_summary
+from sb3_formation.experiment.settings import load_settings, positive_int
+from sb3_formation.experiment.setups import DEFAULT_SETUP
+from sb3_formation.experiment.targets import evaluation_file
+from sb3_formation.experiment.trajectories import Trajectories
+from sb3_formation.viz.plots import (
+    FIGURES,
+    plot_error_curves,
+    plot_evaluation_bars,
+    plot_training_curves,
+    plot_trajectory,
+    save_figure,
+)
+
+
+def add_parser(commands: argparse._SubParsersAction) -> None:
+    """Add the ``plot`` subcommand to ``commands``."""
+    parser = commands.add_parser(
+        "plot",
+        help="draw thesis-style figures: trajectories, errors, bars, training",
+        description="trajectories: paths, obstacles, goal and formation of recorded evaluation episodes (one file per "
+        "episode); errors: mean angle and distance error against the step; bars: evaluation errors of one or several "
+        "runs side by side; training: episode reward and success rate against the iteration, mean and std over runs.",
+    )
+    parser.add_argument("figure", help=f"one of {', '.join(FIGURES)}")
+    parser.add_argument("targets", nargs="+", help="run folders, <kind>:<name> targets, or eval folders / files")
+    parser.add_argument("--out", type=Path, help="figure file; .png (default), .svg or .pdf")
+    parser.add_argument("--episodes", type=indices, help="recorded episodes to draw, e.g. 0,2 (default: all recorded)")
+    parser.add_argument("--every", type=positive_int, default=25, help="steps between formation outlines (default 25)")
+    parser.add_argument("--labels", help="comma-separated label per run (runs with the same label are seeds of one curve)")
+    parser.add_argument("--window", type=positive_int, default=100, help="rolling-mean window in iterations (default 100)")
+    parser.add_argument("--over", choices=("successful", "all"), default="successful", help="episodes for the bar means")
+    parser.add_argument("--preset", help="set-up of controller: targets (default: " + DEFAULT_SETUP + ")")
+
+
+def run(args: argparse.Namespace) -> int:
+    """``sb3-formation plot FIGURE TARGET...``: one of the thesis-style figures, as PNG, SVG or PDF."""
+    if args.figure not in FIGURES:
+        raise ValueError(f"unknown figure {args.figure!r}: choose one of {', '.join(FIGURES)}")
+    if args.figure in ("trajectories", "errors"):
+        if len(args.targets) != 1:
+            raise ValueError(f"{args.figure} draws one evaluation; got {len(args.targets)} targets")
+        path = evaluation_file(args.targets[0], TRAJECTORIES_FILE, args.preset)
+        trajectories = Trajectories.load(path)
+        indices = _recordedindices(trajectories, args.episodes)
+        default = path.parent / "figures" / ("trajectory.png" if args.figure == "trajectories" else "errors.png")
+        out = args.out or default
+        if args.figure == "errors":
+            written = [save_figure(plot_error_curves(trajectories, indices), out)]
+        else:
+            written = [
+                save_figure(
+                    plot_trajectory(trajectories, index, every=args.every),
+                    out.with_name(f"{out.stem}_{int(trajectories.episodes[index]):03d}{out.suffix or '.png'}"),
+                )
+                for index in indices
+            ]
+    elif args.figure == "bars":
+        labels = target_labels(args.labels, args.targets)
+        summaries = dict(zip(labels, (load_summary(target, args.preset) for target in args.targets)))
+        written = [save_figure(plot_evaluation_bars(summaries, over=args.over), args.out or Path("evaluation_bars.png"))]
+    else:
+        labels = target_labels(args.labels, args.targets) if args.labels else [_setup_label(t) for t in args.targets]
+        groups: dict[str, list[Path]] = {}
+        for label, target in zip(labels, args.targets):
+            groups.setdefault(label, []).append(target)
+        figure = plot_training_curves(groups, window=args.window)
+        written = [save_figure(figure, args.out or Path("training_curves.png"))]
+    for path in written:
+        print(f"figure written to {path}")
+    return 0
+
+
+def _recordedindices(trajectories: Trajectories, episodes: list[int] | None) -> list[int]:
+    """Positions in ``trajectories`` of the requested evaluation episodes (all recorded ones by default)."""
+    recorded = trajectories.episodes.tolist()
+    if episodes is None:
+        return list(range(len(recorded)))
+    missing = [episode for episode in episodes if episode not in recorded]
+    if missing:
+        raise ValueError(f"episodes {missing} were not recorded; recorded episodes: {recorded}")
+    return [recorded.index(episode) for episode in episodes]
+
+
+def _setup_label(run_dir: Path) -> str:
+    """A training-curve label naming a run's set-up (preset and team size), so seeds of one set-up share it."""
+    settings = load_settings(run_dir)
+    return f"{settings.preset} ({settings.config().n_agents} agents)"

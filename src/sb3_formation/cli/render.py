@@ -1,0 +1,55 @@
+"""``sb3-formation render``: videos of evaluation episodes."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from sb3_formation.cli.common import PRESET_HELP, TARGET_HELP
+from sb3_formation.experiment.settings import positive_int, seed_value
+from sb3_formation.experiment.targets import evaluation_folder, load_policy
+from sb3_formation.viz.video import render_episodes
+
+
+def add_parser(commands: argparse._SubParsersAction) -> None:
+    """Add the ``render`` subcommand to ``commands``."""
+    parser = commands.add_parser(
+        "render",
+        help="write an MP4 or GIF of evaluation episodes",
+        description="Play evaluation episodes with a trained policy and write them as a video, with the step, "
+        "success and current errors drawn on each frame. The format follows --out: .mp4 or .gif.",
+    )
+    parser.add_argument("target", help=TARGET_HELP)
+    parser.add_argument("--preset", help=PRESET_HELP)
+    parser.add_argument("--episodes", type=positive_int, default=1, help="episodes (default 1)")
+    parser.add_argument("--out", type=Path, help="video file, .mp4 or .gif (default: <run>/eval/episodes.mp4)")
+    parser.add_argument("--stage", type=int, choices=(1, 2, 3), default=3, help="curriculum stage (default 3)")
+    parser.add_argument("--seed", type=seed_value, default=0, help="episode k plays the scenario of seed + k (default 0)")
+    parser.add_argument("--fps", type=positive_int, default=20, help="frames per second (default 20)")
+    parser.add_argument("--frame-every", type=positive_int, default=1, help="keep every k-th step as a frame")
+    parser.add_argument("--max-steps", type=positive_int, help="cut episodes at this many steps (default: the model's)")
+    parser.add_argument("--agents", type=int, help="team size (default: the model's; another only for one trained on several)")
+    parser.add_argument("--stochastic", action="store_true", help="sample actions instead of using the mean")
+    parser.add_argument("--device", default="auto", help="torch device (default auto)")
+
+
+def run(args: argparse.Namespace) -> int:
+    """``sb3-formation render``: a video of evaluation episodes."""
+    policy = load_policy(args.target, args.preset, device=args.device)
+    out = args.out or evaluation_folder(args.target, args.preset) / "episodes.mp4"
+    frames = render_episodes(
+        policy,
+        out,
+        episodes=args.episodes,
+        stage=args.stage,
+        seed=args.seed,
+        deterministic=not args.stochastic,
+        fps=args.fps,
+        frame_every=args.frame_every,
+        env_overrides={
+            name: value for name, value in (("max_steps", args.max_steps), ("n_agents", args.agents)) if value is not None
+        },
+        progress_bar=True,
+    )
+    print(f"{frames} frames written to {out}")
+    return 0

@@ -1,0 +1,48 @@
+"""``sb3-formation sweep``: seeds of an experiment on Ray."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from sb3_formation.cli.common import indices
+from sb3_formation.experiment.settings import positive_int
+from sb3_formation.viz.plots import save_sweep_curves
+
+
+def add_parser(commands: argparse._SubParsersAction) -> None:
+    """Add the ``sweep`` subcommand to ``commands``."""
+    parser = commands.add_parser(
+        "sweep",
+        help="train and evaluate every seed of an experiment on Ray, then aggregate over the seeds",
+        description="Run every seed of an experiment YAML as a Ray task (this machine, or a cluster with --address); "
+        "each writes <logdir>/<experiment>/seed_<s>/, a normal run folder. Finished trials are skipped and "
+        "interrupted ones resumed when the sweep is started again. Needs pip install 'sb3-formation[ray]'.",
+    )
+    parser.add_argument("experiment", type=Path, help="experiment YAML, e.g. experiments/quick-ch5-bearing.yaml")
+    parser.add_argument("--seeds", type=indices, help="comma-separated seeds (default: the experiment's)")
+    parser.add_argument("--address", help="address of a running Ray cluster (default: start Ray on this machine)")
+    parser.add_argument("--max-concurrent", type=positive_int, help="trials at once (default: one per CPU)")
+    parser.add_argument("--logdir", help="folder for the experiment's folder (default: the experiment's logdir)")
+
+
+def run(args: argparse.Namespace) -> int:
+    """``sb3-formation sweep``: every (configuration x seed) trial on Ray; exit code 1 if a trial failed."""
+    try:
+        from sb3_formation.experiment.sweep import sweep
+    except ImportError as error:  # pragma: no cover - without the extra
+        raise ValueError(f"sweep needs Ray: pip install 'sb3-formation[ray]' ({error})") from error
+    options = {"seeds": args.seeds, "address": args.address, "max_concurrent": args.max_concurrent, "logdir": args.logdir}
+    try:
+        result = sweep(args.experiment, **options)
+    except KeyboardInterrupt:
+        print("sb3-formation: sweep interrupted; run the same command again to finish it", file=sys.stderr)
+        return 130
+    for seed, error in result.failed.items():
+        print(f"sb3-formation: trial seed {seed} failed: {error}", file=sys.stderr)
+    curves = save_sweep_curves(result)
+    if curves is not None:
+        print(f"training curves: {curves}")
+    print(f"sweep folder: {result.folder}")
+    return 1 if result.failed else 0

@@ -1,0 +1,148 @@
+"""Playing episodes: the package's one episode loop, with any policy, on the stepping engine.
+
+Evaluation, videos and ``sb3-formation rollout`` all play through :func:`play_episodes`. Episode k of a job with seed
+s is played from ``reset(seed=s + k)``, so every policy played with the same seed meets the same scenarios (start,
+goal, obstacles) whatever the number of teams or processes. The policy is any
+:class:`~sb3_formation.controllers.base.TeamPolicy` (a trained model with its normaliser, a controller): it gets the
+env's raw observations and decides itself what to do with them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from sb3_formation.controllers.base import TeamPolicy
+from sb3_formation.env.blocks import EngineBlocks
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.state import TeamState
+from sb3_formation.experiment.trajectories import EpisodeRecorder
+
+
+@dataclass
+class PlayJob:
+    """Episodes to play, and the policy that acts in them.
+
+    :param policy: the policy, already fitted to ``config``
+    :param config: task configuration of the episodes
+    :param seed: episode k is played from ``reset(seed=seed + k)``
+    :param episodes: the episode indices to play
+    :param n_teams: teams played at once
+    :param deterministic: ask the policy for its noise-free actions
+    :param record: record every step of the episodes with an index below this
+    :param n_workers: processes stepping the teams, this one included
+    """
+
+    policy: TeamPolicy
+    config: FormationConfig
+    seed: int
+    episodes: list[int]
+    n_teams: int
+    deterministic: bool
+    record: int
+    n_workers: int = 1
+
+
+def play_episodes(
+    job: PlayJob,
+    on_episode: Callable[[], None] | None = None,
+    on_step: Callable[[TeamState, int], None] | None = None,
+) -> tuple[list[dict[str, Any]], list[tuple[int, EpisodeRecorder, bool]]]:
+    """Play ``job.episodes`` on ``job.n_teams`` teams; a team that ends an episode starts the next one left (teams in
+    order), and a team left without one is no longer stepped.
+
+    This is the package's one episode loop: evaluation, videos and ``sb3-formation rollout`` all play through it. The
+    teams are stepped by :class:`~sb3_formation.env.blocks.EngineBlocks` without automatic resets; the policy sees
+    every team's observations in one batch (a team without an episode keeps its last ones).
+
+    :param on_episode: called after each episode
+    :param on_step: called with (team state, episode) after each reset and each step (every team in this process:
+        ``n_workers`` must be 1)
+    :return: one row per episode (in the order they ended), and (episode, recorder, success) of recorded episodes
+    """
+    config, n_agents, n_teams = job.config, job.config.n_agents, job.n_teams
+    if on_step is not None and job.n_workers > 1:
+        raise ValueError("on_step reads every team in this process: play with n_workers=1")
+    blocks = EngineBlocks([config] * n_teams, job.n_workers, auto_reset=False)
+    queue = list(reversed(job.episodes))
+    current: list[int | None] = [None] * n_teams
+    recorders: list[EpisodeRecorder | None] = [None] * n_teams
+    observations = np.zeros((n_teams * n_agents, blocks.local.engine.observation_dim), np.float32)
+    episode_starts = np.ones(n_teams * n_agents, dtype=bool)
+    rows: list[dict[str, Any]] = []
+    recorded: list[tuple[int, EpisodeRecorder, bool]] = []
+
+    def slots(team: int) -> slice:
+        return slice(team * n_agents, (team + 1) * n_agents)
+
+    def start(teams: list[int]) -> None:
+        """Give each of ``teams`` the next episode left, in order, and reset them."""
+        for team in teams:
+            current[team] = queue.pop() if queue else None
+        started = [team for team in teams if current[team] is not None]
+        if not started:
+            return
+        reset = blocks.reset(started, [job.seed + current[team] for team in started], [None] * len(started))
+        watched = started if on_step is not None else [team for team in started if current[team] < job.record]
+        states = blocks.call_teams("team_states", watched) if watched else {}
+        for team in started:
+            observations[slots(team)] = reset[team]
+            episode_starts[slots(team)] = True
+            recorders[team] = EpisodeRecorder(states[team]) if current[team] < job.record else None
+            if on_step is not None:
+                on_step(states[team], current[team])
+
+    try:
+        start(list(range(n_teams)))
+        states = None
+        while any(episode is not None for episode in current):
+            playing = [team for team, episode in enumerate(current) if episode is not None]
+            actions, states = job.policy.predict(
+                observations, state=states, episode_start=episode_starts, deterministic=job.deterministic
+            )
+            actions = blocks.checked_actions(np.asarray(actions).reshape(n_teams * n_agents, 2), playing)
+            episode_starts[:] = False
+            step = blocks.step(actions)
+            for team in playing:
+                if recorders[team] is not None:
+                    recorders[team].add(step, slots(team), actions)
+                if on_step is not None:
+                    on_step(blocks.local.engine.team_state(team), current[team])
+            ended = {episode.team: episode for episode in step.episodes}
+            for team in playing:
+                if team not in ended:
+                    observations[slots(team)] = step.observations[slots(team)]
+                    continue
+                episode = ended[team]
+                summary = dict(episode.summary)
+                terms = summary.pop("reward_terms")
+                rows.append(
+                    {
+                        "episode": current[team],
+                        "seed": job.seed + current[team],
+                        "team": team,
+                        **summary,
+                        "comm_exceeded_fraction": episode.comm_exceeded_steps / summary["length"],
+                        "final_goal_distance": float(step.info_values[episode.first_slot, 4]),
+                        **{f"reward_{name}": value for name, value in terms.items()},
+                    }
+                )
+                if recorders[team] is not None:
+                    recorded.append((current[team], recorders[team], episode.success))
+                if on_episode is not None:
+                    on_episode()
+            start(sorted(ended))
+    finally:
+        blocks.close()
+    return rows, recorded
+
+
+def seed_policy(policy: TeamPolicy, seed: int) -> None:
+    """Seed what a policy samples from: torch's generator (SB3 policies sample with it) and the policy's own ``seed``."""
+    torch.manual_seed(seed)
+    if hasattr(policy, "seed"):
+        policy.seed(seed)
