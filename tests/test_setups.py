@@ -1,5 +1,5 @@
-"""Set-ups as data: the shipped thesis set-ups, a new set-up added as one file, and training that the redesign into
-layers left bit for bit as it was."""
+"""Set-ups as data: the shipped thesis set-ups, a new set-up added as one file, and training that gives the recorded
+parameters."""
 
 from __future__ import annotations
 
@@ -134,7 +134,7 @@ def parameter_fingerprint(model_zip: Path) -> tuple[str, dict[str, list[float]]]
 
 @pytest.mark.slow
 @pytest.mark.parametrize("case", ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing", "ch5-bearing-mlp"])
-def test_thesis_setups_train_as_before_the_redesign(case: str, tmp_path: Path, one_torch_thread: None) -> None:
+def test_thesis_setups_train_into_the_recorded_parameters(case: str, tmp_path: Path, one_torch_thread: None) -> None:
     """Three iterations (one per curriculum stage, two teams, seed 0) of every thesis set-up against parameters recorded
     before the package was split into layers (``tests/data/thesis_training_reference.json``, written by the same
     command on the code of commit b5de348, with one torch thread). On the machine that recorded them the SHA-256 of the

@@ -95,10 +95,7 @@ def normalize_rewards(env: VecEnv, gamma: float, path: Path | None = None) -> Ve
     if path is not None:
         if not path.is_file():
             raise FileNotFoundError(f"the reward normaliser statistics are missing: expected {path}")
-        data = read_arrays(path, "a reward normaliser file")
-        missing = [key for key in REWARD_STATE_KEYS if key not in data]
-        if missing:
-            raise ValueError(f"{path} is not a reward normaliser file: it lacks {missing}")
+        data = read_arrays(path, "a reward normaliser file", REWARD_STATE_KEYS)
         statistics = RunningMeanStd(shape=())
         statistics.mean, statistics.var = (np.asarray(data[key]) for key in REWARD_STATE_KEYS[:2])
         statistics.count = float(data[REWARD_STATE_KEYS[2]])

@@ -317,10 +317,7 @@ class ScaleNormalizeVecEnv(VecNormalize):
         path = Path(load_path)
         if not path.is_file():
             raise FileNotFoundError(f"no saved normalisation statistics at {str(path)!r}")
-        state = read_arrays(path, "a ScaleNormalizeVecEnv file")
-        missing = [key for key in STATE_KEYS if key not in state]
-        if missing:
-            raise ValueError(f"{str(path)!r} is not a ScaleNormalizeVecEnv file: it lacks {missing}")
+        state = read_arrays(path, "a ScaleNormalizeVecEnv file", STATE_KEYS)
         wrapper = ScaleNormalizeVecEnv(
             venv,
             int(state["agent_obs_dim"]) if agent_obs_dim is None else agent_obs_dim,

@@ -11,7 +11,7 @@ import secrets
 import shutil
 import tempfile
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -123,22 +123,27 @@ def restore_directory(target: Path) -> bool:
     return False
 
 
-def read_arrays(path: Path, what: str) -> dict[str, np.ndarray]:
+def read_arrays(path: Path, what: str, keys: Collection[str] = ()) -> dict[str, np.ndarray]:
     """Every array of the ``.npz`` file at ``path``.
 
     :param path: the file
     :param what: what the file should be, for the message (e.g. ``"a normaliser file"``)
+    :param keys: arrays the file must hold
     :raises FileNotFoundError: no file at ``path``
-    :raises ValueError: the file is empty, cut short or not a ``.npz`` file
+    :raises ValueError: the file is empty, cut short, not a ``.npz`` file, or lacks one of ``keys``
     """
     if not path.is_file():
         raise FileNotFoundError(f"no file {path} ({what})")
     try:
         with np.load(path, allow_pickle=False) as data:
-            return {key: data[key] for key in data.files}
+            arrays = {key: data[key] for key in data.files}
     except (zipfile.BadZipFile, EOFError, ValueError, OSError) as error:
         reason = str(error) or type(error).__name__
         raise ValueError(f"{path} is not {what} (empty or damaged: {reason})") from None
+    missing = [key for key in keys if key not in arrays]
+    if missing:
+        raise ValueError(f"{path} is not {what}: it lacks {missing}")
+    return arrays
 
 
 def fsync_directory(folder: Path, files: bool = True) -> None:

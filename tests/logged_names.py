@@ -1,8 +1,8 @@
-"""Names the issues fix, written down once for the tests that check them (not read from the package)."""
+"""Names the training metrics must have, written down once for the tests that check them (not read from the package)."""
 
 from sb3_formation import REWARD_TERMS
 
-#: Per team-episode scalars the training issue asks FormationMetricsCallback to log (besides curriculum/stage).
+#: Per team-episode scalars FormationMetricsCallback must log (besides curriculum/stage).
 EPISODE_SCALARS = [
     "formation/angle_error_deg",
     "formation/bearing_error",
