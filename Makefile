@@ -27,7 +27,7 @@ run: setup
 	$(BIN)/sb3-formation plot trajectories $(DEMO) --out $(DEMO)/trajectory.png
 	$(BIN)/sb3-formation render pretrained:ch5-bearing --frame-every 6 --fps 25 --out $(DEMO)/episode.gif
 	@echo "Shipped policy: summary $(DEMO)/summary.json, figure $(DEMO)/trajectory_000.png, video $(DEMO)/episode.gif"
-	$(BIN)/sb3-formation train --preset fast-ch5-bearing --steps 1300000 --eval-every 1000 --seed 0 --logdir $(RUN_LOGDIR)
+	$(BIN)/sb3-formation train --recipe fast-ch5-bearing --steps 1300000 --eval-every 1000 --seed 0 --logdir $(RUN_LOGDIR)
 	$(BIN)/sb3-formation evaluate "$$(ls -td $(RUN_LOGDIR)/*/ | head -n 1)" --episodes 20 --n-envs 10 --seed 0
 	@echo "Training curves: tensorboard --logdir runs   (tensorboard is in $(BIN)/)"
 

@@ -11,7 +11,7 @@ deterministic actions). It prints:
 - time to success: wall-clock and agent-steps until the periodic evaluation first reached 50 %, 80 % and 90 %;
 - a figure of the periodic success rate against wall-clock, per set-up and seed (``--out``).
 
-``--controllers classical`` adds a row per controller and thesis task (``--controller-presets``), evaluated on the
+``--controllers classical`` adds a row per controller and thesis task (``--controller-recipes``), evaluated on the
 same protocol and seeds (its wall time is the evaluation's; it trains nothing).
 
 A thesis set-up trained on the same budget keeps its curriculum's proportions (stages 1, 2 and 3 get 20, 20 and 60 %
@@ -51,7 +51,7 @@ def run(setup: str, seed: int, budget: Budget, eval_every: int, logdir: Path) ->
     """
     kind, amount = budget  # a curriculum is spread over either budget in its proportions
     settings = TrainSettings(
-        preset=setup, seed=seed, eval_every=eval_every, progress_bar=False, logdir=str(logdir), **{kind: amount}
+        recipe=setup, seed=seed, eval_every=eval_every, progress_bar=False, logdir=str(logdir), **{kind: amount}
     )
     run_dir = logdir / f"{Path(setup).stem}_s{seed}"  # a set-up file: its name without folder and suffix
     started = time.perf_counter()
@@ -75,7 +75,7 @@ def main() -> None:
     parser.add_argument("--setups", default="fast-ch5-bearing", help="comma-separated set-ups (may be empty)")
     parser.add_argument("--controllers", default="", help="comma-separated controllers to evaluate beside the set-ups")
     parser.add_argument(
-        "--controller-presets", default=",".join(THESIS_RESULTS), help="comma-separated set-ups the controllers act in"
+        "--controller-recipes", default=",".join(THESIS_RESULTS), help="comma-separated recipes the controllers act in"
     )
     parser.add_argument("--seeds", default="0,1,2", help="comma-separated seeds")
     budgets = parser.add_mutually_exclusive_group()
@@ -99,12 +99,12 @@ def main() -> None:
             rows.append((setup, seed, summary, seconds, steps))
             print(f"{setup} seed {seed}: {summary['success_rate']:.1%} after {seconds / 60:.1f} min", flush=True)
     for name in filter(None, args.controllers.split(",")):
-        for preset in args.controller_presets.split(","):
+        for recipe in args.controller_recipes.split(","):
             started = time.perf_counter()
-            out = args.logdir / f"controller-{name}_{Path(preset).stem}"
-            summary = evaluate_target(f"controller:{name}", protocol, preset=preset, out=out).summary
-            rows.append((f"controller:{name} on {preset}", None, summary, time.perf_counter() - started, None))
-            print(f"controller:{name} on {preset}: {summary['success_rate']:.1%}", flush=True)
+            out = args.logdir / f"controller-{name}_{Path(recipe).stem}"
+            summary = evaluate_target(f"controller:{name}", protocol, recipe=recipe, out=out).summary
+            rows.append((f"controller:{name} on {recipe}", None, summary, time.perf_counter() - started, None))
+            print(f"controller:{name} on {recipe}: {summary['success_rate']:.1%}", flush=True)
     print_tables(rows, curves, budget)
     if curves:
         draw(curves, args.out)

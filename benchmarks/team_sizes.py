@@ -31,7 +31,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     targets = "controller:classical,pretrained:mixed-ch5-bearing,pretrained:ch5-bearing"
     parser.add_argument("--targets", default=targets, help="comma-separated")
-    parser.add_argument("--preset", default="ch5-bearing", help="the set-up controller targets act in")
+    parser.add_argument("--recipe", default="ch5-bearing", help="the recipe controller targets act in")
     parser.add_argument("--sizes", default="3,4,5,6,7,8,9,10", help="comma-separated team sizes")
     parser.add_argument("--episodes", type=int, default=200, help="stage-3 episodes per size (thesis 5.4: 200)")
     parser.add_argument("--n-envs", type=int, default=8, help="teams played at once")
@@ -41,7 +41,7 @@ def main() -> None:
     header += "| wall (min) |"
     rows, rates = [header, "|---|---:|---|---:|---:|---:|---:|---:|---:|"], {}
     for target in targets:
-        policy = load_policy(target, preset=args.preset if target.startswith("controller:") else None, device="cpu")
+        policy = load_policy(target, recipe=args.recipe if target.startswith("controller:") else None, device="cpu")
         sizes_trained = trained_sizes(policy)
         for n in sizes:
             started = time.perf_counter()

@@ -1,4 +1,4 @@
-"""Test-session set-up: one torch thread per pytest-xdist worker.
+"""Test-session recipe: one torch thread per pytest-xdist worker.
 
 With ``pytest -n 2`` on 2 cores, two workers that each run torch's default of one thread per core oversubscribe the
 machine, and torch's spinning threads then slow training down many times over (measured: the stage-1 learning test

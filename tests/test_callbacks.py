@@ -411,7 +411,7 @@ class EpisodeRecorder(BaseCallback):
 
 METRIC_TAGS = EPISODE_SCALARS
 HYPERPARAMETERS = {
-    "preset": "ch5-bearing",
+    "recipe": "ch5-bearing",
     "n_steps": N_STEPS,
     "iterations": [3, 0, 0],
     "success_threshold": None,
@@ -472,7 +472,7 @@ def test_settings_go_to_the_hparams_tab_with_the_success_rate_and_errors_as_metr
     assert metrics_run.hparams["metrics"] == list(HPARAM_METRICS)
     assert {"episode/success_rate", "formation/angle_error_deg", "formation/bearing_error"} <= set(HPARAM_METRICS)
     assert metrics_run.hparams["hparams"] == {
-        "preset": "ch5-bearing",
+        "recipe": "ch5-bearing",
         "n_steps": float(N_STEPS),
         "iterations": "[3, 0, 0]",
         "ppo/learning_rate": 0.0003,

@@ -21,7 +21,7 @@ from sb3_formation.experiment.trajectories import Trajectories
 
 def test_rollout_prints_episodes_and_saves_the_final_frame(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "frames" / "final.png"
-    arguments = ["rollout", "--preset", "ch4-team", "--episodes", "2", "--max-steps", "40", "--seed", "3", "--json"]
+    arguments = ["rollout", "--recipe", "ch4-team", "--episodes", "2", "--max-steps", "40", "--seed", "3", "--json"]
     assert main([*arguments, "--out", str(tmp_path / "first.png")]) == 0
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
     assert [line["episode"] for line in lines] == [0, 1]
@@ -57,8 +57,8 @@ def test_bad_input_is_a_clear_error(capsys: pytest.CaptureFixture[str]) -> None:
         main(["rollout", "--bogus"])
     assert exit_info.value.code == 2
     assert "--bogus" in capsys.readouterr().err
-    assert main(["rollout", "--preset", "ch9"]) == 2
-    assert "unknown preset 'ch9'" in capsys.readouterr().err
+    assert main(["rollout", "--recipe", "ch9"]) == 2
+    assert "unknown recipe 'ch9'" in capsys.readouterr().err
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")

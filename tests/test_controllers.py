@@ -143,7 +143,7 @@ def test_acts_from_the_observation_alone() -> None:
 
 def test_evaluate_matches_playing_by_hand() -> None:
     config = CH5.replace(max_steps=300)
-    policy = load_policy("controller:classical", preset="ch5-bearing")
+    policy = load_policy("controller:classical", recipe="ch5-bearing")
     result = evaluate(policy, 3, stage=3, seed=7, n_envs=2, env_overrides={"max_steps": 300}, record=0)
     for row in result.episodes:
         env = FormationEnv(config)

@@ -13,9 +13,9 @@ from stable_baselines3 import PPO
 
 from sb3_formation.controllers import ClassicalController
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.experiment.recipes import RECIPES_FOLDER, Recipe, load_recipe
 from sb3_formation.experiment.runs import load_trained
 from sb3_formation.experiment.settings import TrainSettings
-from sb3_formation.experiment.setups import SETUPS_FOLDER, SetUp, load_setup
 from sb3_formation.experiment.training import IMITATION_FILE, resume, train
 from sb3_formation.sb3.imitation import ImitationSettings, actor_parameters, pretrain_actor
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
@@ -26,11 +26,11 @@ CONFIG = FormationConfig.task("ch5-bearing", stage=3, max_steps=60)
 
 
 def tiny_imitation_setup(tmp_path: Path, **imitation: object) -> Path:
-    values = yaml.safe_load((SETUPS_FOLDER / "imitate-ch5-bearing.yaml").read_text())
+    values = yaml.safe_load((RECIPES_FOLDER / "imitate-ch5-bearing.yaml").read_text())
     values["policy"]["net_arch"] = {"pi": [16], "vf": [16]}
     values["ppo"] |= {"n_steps": 16, "batch_size": 64, "n_epochs": 2}
     values["imitation"] |= {"rounds": 2, "steps": 20, "epochs": 2, "batch_size": 64, "critic_warmup": 2, **imitation}
-    values["teams"] = 2
+    values["n_envs"] = 2
     values["training"] |= {"steps": 4 * 16 * 12, "eval_every": None}
     path = tmp_path / "imitate.yaml"
     path.write_text(yaml.safe_dump(values))
@@ -42,7 +42,7 @@ def test_the_actor_is_frozen_while_the_critic_warms_up(tmp_path: Path) -> None:
     snapshots = []
 
     def run(iterations: int) -> dict[str, torch.Tensor]:
-        settings = TrainSettings(preset=str(setup), steps=iterations * 16 * 12, env={"max_steps": 40}, progress_bar=False)
+        settings = TrainSettings(recipe=str(setup), steps=iterations * 16 * 12, env={"max_steps": 40}, progress_bar=False)
         folder = train(settings, command="test", run_dir=tmp_path / f"run{iterations}")
         snapshots.append(json.loads((folder / IMITATION_FILE).read_text()))
         return {name: value.clone() for name, value in load_trained(folder).policy.state_dict().items()}
@@ -57,7 +57,7 @@ def test_the_actor_is_frozen_while_the_critic_warms_up(tmp_path: Path) -> None:
 
 
 def test_a_run_killed_before_its_first_checkpoint_is_trained_again_on_resume(tmp_path: Path) -> None:
-    settings = TrainSettings(preset=str(tiny_imitation_setup(tmp_path)), steps=16 * 12, progress_bar=False)
+    settings = TrainSettings(recipe=str(tiny_imitation_setup(tmp_path)), steps=16 * 12, progress_bar=False)
     first = train(settings, command="test", run_dir=tmp_path / "first")
     killed = tmp_path / "killed"  # what a kill during pretraining leaves: settings and command, no checkpoint
     killed.mkdir()
@@ -73,16 +73,18 @@ def test_a_run_killed_before_its_first_checkpoint_is_trained_again_on_resume(tmp
 
 
 def test_imitation_setups_are_checked() -> None:
-    setup = load_setup("imitate-ch5-bearing")
+    setup = load_recipe("imitate-ch5-bearing")
     controller, settings = setup.teacher(setup.config()), setup.imitation_settings()
     assert isinstance(controller, ClassicalController) and settings.rounds == 4 and settings.critic_warmup == 10
-    values = {key: getattr(setup, key) for key in ("description", "env", "policy", "ppo", "curriculum", "teams", "evaluation")}
+    values = {
+        key: getattr(setup, key) for key in ("description", "env", "policy", "ppo", "curriculum", "n_envs", "evaluation")
+    }
     with pytest.raises(ValueError, match="unknown: \\['round'\\]"):
-        SetUp("bad", **values, imitation={"controller": "classical", "round": 3})
+        Recipe("bad", **values, imitation={"controller": "classical", "round": 3})
     with pytest.raises(ValueError, match="imitation: rounds must be an integer >= 1, got 0"):
-        SetUp("bad", **values, imitation={"controller": "classical", "rounds": 0})
+        Recipe("bad", **values, imitation={"controller": "classical", "rounds": 0})
     with pytest.raises(ValueError, match="not recurrent, not residual"):
-        SetUp("bad", **{**values, "policy": {**setup.policy, "recurrent": True}}, imitation={"controller": "classical"})
+        Recipe("bad", **{**values, "policy": {**setup.policy, "recurrent": True}}, imitation={"controller": "classical"})
 
 
 def test_the_actor_parameters_are_the_actor_layers_its_head_and_a_learned_log_std() -> None:

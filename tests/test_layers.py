@@ -123,7 +123,7 @@ def test_public_names_stay_importable_lazily() -> None:
         "from sb3_formation import FormationConfig, FormationEnv, Scenario, TASKS, REWARD_TERMS, TeamState\n"
         "assert 'torch' not in sys.modules\n"
         "from sb3_formation import FormationPolicy, FormationVecEnv, ScaleNormalizeVecEnv, make_formation_vec_env\n"
-        "from sb3_formation import load_policy, load_setup\n"
+        "from sb3_formation import load_policy, load_recipe\n"
         "assert 'torch' in sys.modules\n"
         "assert set(sb3_formation.__all__) <= set(dir(sb3_formation))\n"
     )

@@ -1,4 +1,4 @@
-"""Learning checks: a fast set-up learns the stage-3 task far sooner than the thesis set-up; the recurrent PPO learns a
+"""Learning checks: a fast recipe learns the stage-3 task far sooner than the thesis recipe; the recurrent PPO learns a
 memory task that the MLP policy cannot."""
 
 from __future__ import annotations
@@ -21,27 +21,27 @@ from sb3_formation.experiment.training import train
 from sb3_formation.sb3.recurrent import RecurrentFormationPPO
 
 #: The chapter-5 bearing task (Table 5.1, thesis 5.3) in a world that learns in minutes: 3 agents, four times the
-#: thesis's v_max (6 cm per step, 3 cm per sub-step < R_a) and 400-step episodes. Both set-ups train on it.
+#: thesis's v_max (6 cm per step, 3 cm per sub-step < R_a) and 400-step episodes. Both recipes train on it.
 SMALL_WORLD = {"n_agents": 3, "v_max": 0.2, "max_steps": 400}
-BUDGET = 600_000  # agent-steps of each set-up: 98 fast iterations, 196 thesis iterations (8 teams)
+BUDGET = 600_000  # agent-steps of each recipe: 98 fast iterations, 196 thesis iterations (8 teams)
 
 
 @pytest.mark.slow
 def test_the_fast_setup_beats_the_thesis_setup_on_the_same_steps_budget(tmp_path: Path, one_torch_thread: None) -> None:
-    """fast-ch5-bearing against the thesis's ch5-bearing set-up (its 20 / 20 / 60 % curriculum over the budget; the MLP
+    """fast-ch5-bearing against the thesis's ch5-bearing recipe (its 20 / 20 / 60 % curriculum over the budget; the MLP
     policy, since the recurrent one costs 4x per step), same seed, budget and 40 deterministic stage-3 episodes. Measured
     with one torch thread: fast 87.5 %, thesis 0 %, 12 minutes in all."""
     common = {"steps": BUDGET, "n_envs": 8, "seed": 0, "progress_bar": False, "env": SMALL_WORLD, "logdir": str(tmp_path)}
-    fast = TrainSettings(preset="fast-ch5-bearing", **common)
-    thesis = TrainSettings(preset="ch5-bearing", recurrent=False, **common)
+    fast = TrainSettings(recipe="fast-ch5-bearing", **common)
+    thesis = TrainSettings(recipe="ch5-bearing", recurrent=False, **common)
     assert thesis.resolved_iterations() == (39, 39, 118) and fast.resolved_iterations() == (0, 0, 98)
     rates = {}
     for settings in (fast, thesis):
         trained = load_trained(train(settings, command="test"))
         assert trained.model.num_timesteps >= BUDGET
-        rates[settings.preset] = evaluate(trained, episodes=40, stage=3, seed=0).summary["success_rate"]
+        rates[settings.recipe] = evaluate(trained, episodes=40, stage=3, seed=0).summary["success_rate"]
     # measured 87.5 points apart; 20 points leave room for another CPU's rounding, which moves one seed's result as much
-    # as another seed does (the fast set-up's seeds 1 and 2 reached 25 % and 42.5 %)
+    # as another seed does (the fast recipe's seeds 1 and 2 reached 25 % and 42.5 %)
     assert rates["fast-ch5-bearing"] >= rates["ch5-bearing"] + 0.2, rates
 
 

@@ -263,7 +263,7 @@ N_STEPS, N_ENVS = 4, 2  # with ch4-individual's three agents: 24 steps per itera
 def write_run(folder: Path, seed: int, rewards: dict[int, float], success: dict[int, float], start: float = 1000.0) -> Path:
     """A run folder with config.yaml (as ``train`` writes it) and TensorBoard events at step = iteration x 24."""
     settings = TrainSettings.from_dict(
-        {"preset": "ch4-individual", "seed": seed, "n_envs": N_ENVS, "ppo": {"n_steps": N_STEPS}}
+        {"recipe": "ch4-individual", "seed": seed, "n_envs": N_ENVS, "ppo": {"n_steps": N_STEPS}}
     )
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "config.yaml").write_text(yaml.safe_dump(settings.to_dict(), sort_keys=False))

@@ -27,26 +27,26 @@ from sb3_formation.experiment.pretrained import (
     pretrained_folder,
     pretrained_names,
 )
+from sb3_formation.experiment.recipes import RECIPES_FOLDER, load_recipe
 from sb3_formation.experiment.runs import FINAL_MODEL, latest_checkpoint
-from sb3_formation.experiment.setups import SETUPS_FOLDER, load_setup
 
 THESIS_TASKS = ("ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing")
 
 
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A finished run of a shrunken residual-ch5-bearing set-up, with a 3-episode evaluation protocol."""
+    """A finished run of a shrunken residual-ch5-bearing recipe, with a 3-episode evaluation protocol."""
     folder = tmp_path_factory.mktemp("pretrained")
-    values = yaml.safe_load((SETUPS_FOLDER / "residual-ch5-bearing.yaml").read_text())
+    values = yaml.safe_load((RECIPES_FOLDER / "residual-ch5-bearing.yaml").read_text())
     values["policy"]["net_arch"] = {"pi": [16], "vf": [16]}
     values["ppo"] |= {"n_steps": 16, "batch_size": 64, "n_epochs": 2}
-    values["teams"] = 2
+    values["n_envs"] = 2
     values["training"] |= {"steps": 2 * 16 * 12, "eval_every": 100}
     values["evaluation"] = {"episodes": 3, "stage": 3}
     setup = folder / "tiny.yaml"
     setup.write_text(yaml.safe_dump(values))
     run = folder / "run"
-    assert main(["train", "--preset", str(setup), "--env", "max_steps=60", "--run-dir", str(run), "--no-progress"]) == 0
+    assert main(["train", "--recipe", str(setup), "--env", "max_steps=60", "--run-dir", str(run), "--no-progress"]) == 0
     return run
 
 
@@ -98,8 +98,8 @@ def test_the_four_thesis_tasks_ship_a_policy_trained_for_their_task() -> None:
     assert set(THESIS_TASKS) <= set(pretrained_names())
     for task in THESIS_TASKS:
         card = pretrained_card(task)
-        assert load_setup(card["setup"]).config() == load_setup(task).config()
-        assert card["summary"]["episodes"] == load_setup(task).evaluation["episodes"]
+        assert load_recipe(card["setup"]).config() == load_recipe(task).config()
+        assert card["summary"]["episodes"] == load_recipe(task).evaluation["episodes"]
         assert card["summary"]["stage"] == 3 and card["summary"]["seed"] == 0 and card["summary"]["deterministic"]
         # the stored evaluation is of the shipped file, and its rate is that of its stored episodes
         folder = pretrained_folder(task)
@@ -113,25 +113,25 @@ def test_the_four_thesis_tasks_ship_a_policy_trained_for_their_task() -> None:
 
 
 def test_a_shipped_policy_refuses_another_task_or_team_size() -> None:
-    policy = load_pretrained("ch5-bearing", preset="ch5-bearing")  # its own task, named by the thesis preset
+    policy = load_pretrained("ch5-bearing", recipe="ch5-bearing")  # its own task, named by its recipe
     assert policy.config.n_agents == 6
     with pytest.raises(
-        ValueError, match=r"pretrained:ch5-bearing was not trained for preset ch4-team: n_agents=3 \(trained with 6\)"
+        ValueError, match=r"pretrained:ch5-bearing was not trained for recipe ch4-team: n_agents=3 \(trained with 6\)"
     ):
-        load_pretrained("ch5-bearing", preset="ch4-team")
+        load_pretrained("ch5-bearing", recipe="ch4-team")
     with pytest.raises(ValueError, match=r"k_angle=0\.3 \(trained with 0\.0\); k_bearing=0\.0 \(trained with 0\.3\)"):
-        load_policy("pretrained:ch5-bearing", preset="ch5-angle")
+        load_policy("pretrained:ch5-bearing", recipe="ch5-angle")
     with pytest.raises(ValueError, match="n_agents=6 in the model, 4 in the env"):
         evaluate(policy, episodes=1, env_overrides={"n_agents": 4})
 
 
 def test_the_policy_trained_on_several_team_sizes_takes_any_size_but_no_other_task() -> None:
     assert pretrained_card("mixed-ch5-bearing")["team_sizes"] == [3, 4, 5, 6, 7, 8]
-    policy = load_pretrained("mixed-ch5-bearing", preset="mixed-ch5-bearing")
+    policy = load_pretrained("mixed-ch5-bearing", recipe="mixed-ch5-bearing")
     result = evaluate(policy, episodes=1, n_envs=1, env_overrides={"n_agents": 10, "max_steps": 5}, record=0)
     assert result.n_agents == 10 and result.episodes[0]["length"] == 5  # a size it never saw
     with pytest.raises(ValueError, match=r"observe_reference_bearings=False \(trained with True\)"):
-        load_pretrained("mixed-ch5-bearing", preset="ch5-bearing")  # the thesis observation lacks the bearings
+        load_pretrained("mixed-ch5-bearing", recipe="ch5-bearing")  # the thesis observation lacks the bearings
 
 
 @pytest.mark.slow
@@ -194,10 +194,10 @@ def test_pretrained_targets_work_with_every_command(tmp_path: Path, monkeypatch:
     assert main(["render", "pretrained:ch5-bearing", "--max-steps", "5", "--out", "shipped.gif"]) == 0
     assert (tmp_path / "shipped.gif").stat().st_size > 1_000
     table = ["--table", "table.md", "--out", "bars.png"]
-    assert main(["compare", "pretrained:ch5-bearing", "controller:classical", "--preset", "ch5-bearing", *quick, *table]) == 0
+    assert main(["compare", "pretrained:ch5-bearing", "controller:classical", "--recipe", "ch5-bearing", *quick, *table]) == 0
     assert "| pretrained:ch5-bearing | 2 |" in (tmp_path / "table.md").read_text()
-    assert main(["evaluate", "pretrained:ch5-bearing", "--preset", "ch4-team", *quick]) == 2
-    rows = np.stack(list(FormationEnv(load_setup("ch5-bearing").config(stage=3)).reset(seed=2)[0].values()))
+    assert main(["evaluate", "pretrained:ch5-bearing", "--recipe", "ch4-team", *quick]) == 2
+    rows = np.stack(list(FormationEnv(load_recipe("ch5-bearing").config(stage=3)).reset(seed=2)[0].values()))
     assert np.isfinite(load_policy("pretrained:ch5-bearing").predict(rows)[0]).all()
 
 

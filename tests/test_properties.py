@@ -18,7 +18,7 @@ TASKS = ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing"]
 
 @settings(max_examples=30, deadline=None)
 @given(
-    preset=st.sampled_from(TASKS),
+    recipe=st.sampled_from(TASKS),
     n_agents=st.integers(3, 8),
     stage=st.integers(1, 3),
     seed=st.integers(0, 2**31 - 1),

@@ -16,7 +16,7 @@ from sb3_formation.controllers.residual import ResidualPolicy, add_correction
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.formation_env import FormationEnv
 from sb3_formation.experiment.evaluation import evaluate
-from sb3_formation.experiment.setups import SETUPS_FOLDER, SetUp, load_setup
+from sb3_formation.experiment.recipes import RECIPES_FOLDER, Recipe, load_recipe
 from sb3_formation.experiment.targets import load_policy
 from sb3_formation.sb3.residual import ResidualVecEnv
 from sb3_formation.sb3.vec_env import FormationVecEnv
@@ -97,18 +97,18 @@ def test_in_teams_of_several_sizes_each_team_gets_the_controller_of_its_size() -
 
 def test_a_residual_setup_trains_saves_and_loads_as_a_residual_policy(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)  # compare writes the controller's evaluation under evaluations/
-    values = yaml.safe_load((SETUPS_FOLDER / "residual-ch5-bearing.yaml").read_text())
+    values = yaml.safe_load((RECIPES_FOLDER / "residual-ch5-bearing.yaml").read_text())
     values["policy"]["net_arch"] = {"pi": [16], "vf": [16]}
     values["ppo"] |= {"n_steps": 16, "batch_size": 64, "n_epochs": 2}
-    values["teams"] = 2
+    values["n_envs"] = 2
     values["training"] |= {"steps": 2 * 16 * 12, "eval_every": 1, "eval_episodes": 2}
     setup = tmp_path / "residual.yaml"
     setup.write_text(yaml.safe_dump(values))
     run = tmp_path / "run"
-    assert main(["train", "--preset", str(setup), "--env", "max_steps=40", "--run-dir", str(run), "--no-progress"]) == 0
-    # compare takes runs and controllers together: --preset is the controllers' set-up
+    assert main(["train", "--recipe", str(setup), "--env", "max_steps=40", "--run-dir", str(run), "--no-progress"]) == 0
+    # compare takes runs and controllers together: --recipe is the controllers' recipe
     quick = ["--episodes", "2", "--n-envs", "2", "--no-progress", "--out", str(tmp_path / "c.png")]
-    assert main(["compare", str(run), "controller:classical", "--preset", "ch5-bearing", *quick]) == 0
+    assert main(["compare", str(run), "controller:classical", "--recipe", "ch5-bearing", *quick]) == 0
     policy = load_policy(run)
     assert isinstance(policy, ResidualPolicy) and policy.scale == 0.3 and isinstance(policy.base, ClassicalController)
     # with the correction's mean set to zero the trained policy acts as the controller
@@ -124,15 +124,15 @@ def test_a_residual_setup_trains_saves_and_loads_as_a_residual_policy(tmp_path: 
 
 
 def test_a_policy_trained_on_several_team_sizes_acts_in_teams_of_any_size(tmp_path: Path) -> None:
-    values = yaml.safe_load((SETUPS_FOLDER / "mixed-ch5-bearing.yaml").read_text())
+    values = yaml.safe_load((RECIPES_FOLDER / "mixed-ch5-bearing.yaml").read_text())
     values["policy"]["net_arch"] = {"pi": [16], "vf": [16]}
     values["ppo"] |= {"n_steps": 16, "batch_size": 16, "n_epochs": 1}
-    values["teams"], values["team_sizes"] = 2, [3, 4]
+    values["n_envs"], values["team_sizes"] = 2, [3, 4]
     values["training"] |= {"steps": 16 * 7, "eval_every": None}
     setup = tmp_path / "mixed.yaml"
     setup.write_text(yaml.safe_dump(values))
     run = tmp_path / "run"
-    assert main(["train", "--preset", str(setup), "--env", "max_steps=30", "--run-dir", str(run), "--no-progress"]) == 0
+    assert main(["train", "--recipe", str(setup), "--env", "max_steps=30", "--run-dir", str(run), "--no-progress"]) == 0
     policy = load_policy(run)
     assert policy.correction.team_sizes == (3, 4) and policy.correction.any_team_size
     for n in (3, 7):  # a size it was trained on and one it never saw
@@ -149,7 +149,7 @@ def test_a_policy_trained_on_several_team_sizes_acts_in_teams_of_any_size(tmp_pa
         main(
             [
                 "train",
-                "--preset",
+                "--recipe",
                 str(setup),
                 "--agents",
                 "4",
@@ -169,15 +169,17 @@ def test_a_policy_trained_on_several_team_sizes_acts_in_teams_of_any_size(tmp_pa
 
 
 def test_residual_setups_are_checked() -> None:
-    setup = load_setup("residual-ch5-bearing")
-    values = {key: getattr(setup, key) for key in ("description", "env", "policy", "ppo", "curriculum", "teams", "evaluation")}
+    setup = load_recipe("residual-ch5-bearing")
+    values = {
+        key: getattr(setup, key) for key in ("description", "env", "policy", "ppo", "curriculum", "n_envs", "evaluation")
+    }
     with pytest.raises(ValueError, match="residual needs controller and scale"):
-        SetUp("bad", **values, residual={"controller": "classical"})
+        Recipe("bad", **values, residual={"controller": "classical"})
     with pytest.raises(ValueError, match="unknown controller 'pid'"):
-        SetUp("bad", **values, residual={"controller": "pid", "scale": 0.3})
+        Recipe("bad", **values, residual={"controller": "pid", "scale": 0.3})
     with pytest.raises(ValueError, match="unknown gains \\['k_gaol'\\]"):
-        SetUp("bad", **values, residual={"controller": "classical", "scale": 0.3, "gains": {"k_gaol": 1}})
+        Recipe("bad", **values, residual={"controller": "classical", "scale": 0.3, "gains": {"k_gaol": 1}})
     with pytest.raises(
         ValueError, match="residual: the residual scale must be a number in \\(0, 2\\] \\(a fraction of F_max\\), got 3"
     ):
-        SetUp("bad", **values, residual={"controller": "classical", "scale": 3})
+        Recipe("bad", **values, residual={"controller": "classical", "scale": 3})

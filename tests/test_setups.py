@@ -1,4 +1,4 @@
-"""Set-ups as data: the shipped thesis set-ups, a new set-up added as one file, and training that gives the recorded
+"""Recipes as data: the shipped thesis recipes, a new recipe added as one file, and training that gives the recorded
 parameters."""
 
 from __future__ import annotations
@@ -17,9 +17,9 @@ import yaml
 from sb3_formation.cli import main
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.experiment.pretrained import numerics_fingerprint
+from sb3_formation.experiment.recipes import RECIPES_FOLDER, Recipe, load_recipe, recipe_names
 from sb3_formation.experiment.runs import FINAL_MODEL
 from sb3_formation.experiment.settings import TrainSettings, layered_settings
-from sb3_formation.experiment.setups import SETUPS_FOLDER, SetUp, load_setup, setup_names
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
 
@@ -28,7 +28,7 @@ REFERENCE = Path(__file__).with_name("data") / "thesis_training_reference.json"
 
 def test_the_four_thesis_setups_are_shipped_with_their_citations() -> None:
     thesis = ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing"]
-    assert setup_names() == [
+    assert recipe_names() == [
         *thesis,
         *(f"fast-{name}" for name in thesis),
         "imitate-ch5-bearing",
@@ -44,77 +44,77 @@ def test_the_four_thesis_setups_are_shipped_with_their_citations() -> None:
         "ch5-bearing": ((5000, 5000, 15000), 14, 200, True, 1.0),
     }
     for name, (iterations, teams, episodes, recurrent, scale) in expected.items():
-        setup = load_setup(name)
+        setup = load_recipe(name)
         assert setup.env["preset"] == name and setup.config() == FormationConfig.task(name)
-        assert (setup.iterations, setup.teams, setup.evaluation["episodes"]) == (iterations, teams, episodes)
+        assert (setup.iterations, setup.n_envs, setup.evaluation["episodes"]) == (iterations, teams, episodes)
         assert setup.recurrent is recurrent
         assert setup.ppo == thesis_ppo and setup.policy["sigma"] == 0.7 and setup.policy["action_scale"] == scale
         kwargs = setup.ppo_kwargs()
         assert kwargs["policy"] is (RecurrentFormationPolicy if recurrent else FormationPolicy)
         assert ("team_size" in kwargs["policy_kwargs"]) == (name == "ch4-team")  # the team critic, fig. 4.3
-    for name in setup_names():  # every setting line cites the thesis or says what it changes and why
-        lines = [line for line in (SETUPS_FOLDER / f"{name}.yaml").read_text().splitlines() if ":" in line]
+    for name in recipe_names():  # every setting line cites the thesis or says what it changes and why
+        lines = [line for line in (RECIPES_FOLDER / f"{name}.yaml").read_text().splitlines() if ":" in line]
         uncited = [line for line in lines if "#" not in line and not line.rstrip().endswith(":") and "description" not in line]
         assert uncited == [], f"{name}: lines without a citation: {uncited}"
 
 
 def test_presets_command_lists_every_setup_on_one_line(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["presets"]) == 0
+    assert main(["recipes"]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert [line.split()[0] for line in lines] == setup_names()
-    assert all(load_setup(line.split()[0]).description in line for line in lines)
+    assert [line.split()[0] for line in lines] == recipe_names()
+    assert all(load_recipe(line.split()[0]).description in line for line in lines)
 
 
 def test_bad_setups_are_one_line_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    with pytest.raises(ValueError, match=r"unknown preset 'ch9'; presets: ch4-individual, ch4-team, ch5-angle, ch5-bearing"):
-        load_setup("ch9")
-    good = yaml.safe_load((SETUPS_FOLDER / "ch5-bearing.yaml").read_text())
+    with pytest.raises(ValueError, match=r"unknown recipe 'ch9'; recipes: ch4-individual, ch4-team, ch5-angle, ch5-bearing"):
+        load_recipe("ch9")
+    good = yaml.safe_load((RECIPES_FOLDER / "ch5-bearing.yaml").read_text())
     for change, message in (
         ({"colour": "red"}, r"unknown keys \['colour'\]"),
-        ({"teams": 0}, "teams must be an integer >= 1"),
+        ({"n_envs": 0}, "n_envs must be an integer >= 1"),
         ({"curriculum": {"iterations": [1, 2]}}, "iterations must be three integers"),
         ({"curriculum": {"iterations": [0, 0, 0]}}, r"iterations must be three integers >= 0, not all 0"),
-        ({"env": {"preset": "ch5-bearing", "n_agents": 2}}, "n_agents"),
+        ({"env": {"task": "ch5-bearing", "n_agents": 2}}, "n_agents"),
         ({"policy": {**good["policy"], "cell": "rnn"}}, "cell must be one of"),
     ):
         path = tmp_path / "bad.yaml"
         path.write_text(yaml.safe_dump({**good, **change}))
         with pytest.raises(ValueError, match=message):
-            load_setup(path)
-        assert main(["train", "--preset", str(path), "--run-dir", str(tmp_path / "never")]) == 2
+            load_recipe(path)
+        assert main(["train", "--recipe", str(path), "--run-dir", str(tmp_path / "never")]) == 2
         assert len(capsys.readouterr().err.strip().splitlines()) == 1
         assert not (tmp_path / "never").exists()
 
 
 def test_a_new_setup_is_one_data_file(tmp_path: Path) -> None:
-    """A set-up written to a temporary folder trains for an iteration and records itself in the run's config."""
-    values = yaml.safe_load((SETUPS_FOLDER / "ch4-individual.yaml").read_text())
+    """A recipe written to a temporary folder trains for an iteration and records itself in the run's config."""
+    values = yaml.safe_load((RECIPES_FOLDER / "ch4-individual.yaml").read_text())
     values |= {
-        "description": "a small test set-up",
-        "env": {"preset": "ch5-bearing", "n_agents": 4, "max_steps": 30},
+        "description": "a small test recipe",
+        "env": {"task": "ch5-bearing", "n_agents": 4, "max_steps": 30},
         "policy": {"recurrent": False, "sigma": 0.5, "action_scale": 1.0, "net_arch": {"pi": [16], "vf": [16]}},
         "ppo": {**values["ppo"], "n_steps": 16, "batch_size": 32, "n_epochs": 2, "learning_rate": 3e-4},
         "curriculum": {"iterations": [0, 0, 1], "success_threshold": None},
-        "teams": 2,
+        "n_envs": 2,
         "evaluation": {"episodes": 2, "stage": 3},
     }
     setup_file = tmp_path / "small.yaml"
     setup_file.write_text(yaml.safe_dump(values))
     run_dir = tmp_path / "run"
-    assert main(["train", "--preset", str(setup_file), "--run-dir", str(run_dir), "--no-progress"]) == 0
+    assert main(["train", "--recipe", str(setup_file), "--run-dir", str(run_dir), "--no-progress"]) == 0
     config = yaml.safe_load((run_dir / "config.yaml").read_text())
-    assert config["preset"] == str(setup_file) and config["n_envs"] == 2 and config["iterations"] == [0, 0, 1]
+    assert config["recipe"] == str(setup_file) and config["n_envs"] == 2 and config["iterations"] == [0, 0, 1]
     assert config["env"]["n_agents"] == 4 and config["ppo"]["policy_kwargs"]["sigma"] == 0.5
     assert (run_dir / FINAL_MODEL).is_file()
     assert main(["evaluate", str(run_dir), "--n-envs", "2", "--no-progress"]) == 0
-    assert json.loads((run_dir / "eval" / "summary.json").read_text())["episodes"] == 2  # the set-up's protocol
+    assert json.loads((run_dir / "eval" / "summary.json").read_text())["episodes"] == 2  # the recipe's protocol
 
 
 def test_layered_settings_put_flags_over_the_file_over_the_setup(tmp_path: Path) -> None:
     path = tmp_path / "run.yaml"
-    path.write_text(yaml.safe_dump({"preset": "ch4-team", "iterations": [3, 2, 1], "seed": 4, "env": {"max_steps": 99}}))
+    path.write_text(yaml.safe_dump({"recipe": "ch4-team", "iterations": [3, 2, 1], "seed": 4, "env": {"max_steps": 99}}))
     settings = layered_settings(path, seed=7, env={"eta_g": 0.7}, n_envs=None)
-    assert (settings.preset, settings.seed, settings.resolved_iterations()) == ("ch4-team", 7, (3, 2, 1))
+    assert (settings.recipe, settings.seed, settings.resolved_iterations()) == ("ch4-team", 7, (3, 2, 1))
     assert (settings.config().max_steps, settings.config().eta_g, settings.resolved_n_envs()) == (99, 0.7, 12)
     assert layered_settings().to_dict() == TrainSettings().to_dict()
 
@@ -135,7 +135,7 @@ def parameter_fingerprint(model_zip: Path) -> tuple[str, dict[str, list[float]]]
 @pytest.mark.slow
 @pytest.mark.parametrize("case", ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing", "ch5-bearing-mlp"])
 def test_thesis_setups_train_into_the_recorded_parameters(case: str, tmp_path: Path, one_torch_thread: None) -> None:
-    """Three iterations (one per curriculum stage, two teams, seed 0) of every thesis set-up against parameters recorded
+    """Three iterations (one per curriculum stage, two teams, seed 0) of every thesis recipe against parameters recorded
     before the package was split into layers (``tests/data/thesis_training_reference.json``, written by the same
     command on the code of commit b5de348, with one torch thread). On the machine that recorded them the SHA-256 of the
     parameters matched; the test compares each tensor's sum and sum of squares to 1e-6, so that another CPU's rounding
@@ -147,8 +147,8 @@ def test_thesis_setups_train_into_the_recorded_parameters(case: str, tmp_path: P
     reference = data.get("by_numerics", {}).get(numerics_fingerprint(), data)[case]
     run_dir = tmp_path / "run"
     extra = ["--no-recurrent"] if case.endswith("-mlp") else []
-    preset = case.removesuffix("-mlp")
-    arguments = ["train", "--preset", preset, "--iterations", "1,1,1", "--n-envs", "2", "--seed", "0", "--no-progress"]
+    recipe = case.removesuffix("-mlp")
+    arguments = ["train", "--recipe", recipe, "--iterations", "1,1,1", "--n-envs", "2", "--seed", "0", "--no-progress"]
     assert main([*arguments, "--run-dir", str(run_dir), *extra]) == 0
     digest, sums = parameter_fingerprint(run_dir / FINAL_MODEL)
     assert sorted(sums) == sorted(reference["tensors"])
@@ -159,27 +159,29 @@ def test_thesis_setups_train_into_the_recorded_parameters(case: str, tmp_path: P
 
 
 def test_team_sizes_are_checked() -> None:
-    setup = load_setup("mixed-ch5-bearing")
+    setup = load_recipe("mixed-ch5-bearing")
     assert setup.team_sizes == [3, 4, 5, 6, 7, 8] and setup.config().observe_reference_bearings
-    values = {key: getattr(setup, key) for key in ("description", "env", "policy", "ppo", "curriculum", "teams", "evaluation")}
+    values = {
+        key: getattr(setup, key) for key in ("description", "env", "policy", "ppo", "curriculum", "n_envs", "evaluation")
+    }
     with pytest.raises(ValueError, match="team_sizes must be a non-empty list of team sizes, got 5"):
-        SetUp("bad", **values, team_sizes=5)
+        Recipe("bad", **values, team_sizes=5)
     with pytest.raises(ValueError, match=r"team_sizes: FormationConfig\.n_agents=2 is invalid"):
-        SetUp("bad", **values, team_sizes=[3, 2])
+        Recipe("bad", **values, team_sizes=[3, 2])
     with pytest.raises(ValueError, match=r"a team critic reads teams of one size; team_sizes lists \[3, 4\]"):
-        SetUp("bad", **{**values, "policy": {**values["policy"], "team_critic": True}}, team_sizes=[3, 4])
+        Recipe("bad", **{**values, "policy": {**values["policy"], "team_critic": True}}, team_sizes=[3, 4])
 
 
 def test_a_runs_team_sizes_are_recorded_resolved_and_flags_replace_the_setups() -> None:
-    settings = TrainSettings(preset="mixed-ch5-bearing")
+    settings = TrainSettings(recipe="mixed-ch5-bearing")
     assert settings.resolved_team_sizes() == [3, 4, 5, 6, 7, 8]
     assert settings.steps_per_iteration() == 256 * 2 * (3 + 4 + 5 + 6 + 7 + 8)  # 12 teams: each size twice
     saved = settings.to_dict()
     assert saved["team_sizes"] == [3, 4, 5, 6, 7, 8] and saved["env"]["n_agents"] == 6
     assert TrainSettings.from_dict(saved).resolved_team_sizes() == [3, 4, 5, 6, 7, 8]  # a resumed run keeps its mix
-    assert TrainSettings(preset="mixed-ch5-bearing", env={"n_agents": 4}).resolved_team_sizes() == [4]  # --agents 4
-    assert TrainSettings(preset="ch5-bearing", team_sizes=[3, 5]).steps_per_iteration() == 128 * 7 * (3 + 5)  # 14 teams
+    assert TrainSettings(recipe="mixed-ch5-bearing", env={"n_agents": 4}).resolved_team_sizes() == [4]  # --agents 4
+    assert TrainSettings(recipe="ch5-bearing", team_sizes=[3, 5]).steps_per_iteration() == 128 * 7 * (3 + 5)  # 14 teams
     with pytest.raises(ValueError, match="team_sizes must be a non-empty list of team sizes, got \\[\\]"):
-        TrainSettings(preset="mixed-ch5-bearing", team_sizes=[])
+        TrainSettings(recipe="mixed-ch5-bearing", team_sizes=[])
     with pytest.raises(ValueError, match=r"a team critic reads teams of n_agents=3; team_sizes lists \[3, 4\]"):
-        TrainSettings(preset="ch4-team", team_sizes=[3, 4])
+        TrainSettings(recipe="ch4-team", team_sizes=[3, 4])

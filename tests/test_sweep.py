@@ -17,8 +17,8 @@ import pytest
 import yaml
 
 from sb3_formation.cli import main
+from sb3_formation.experiment.recipes import load_recipe
 from sb3_formation.experiment.runs import FINAL_MODEL
-from sb3_formation.experiment.setups import load_setup
 from sb3_formation.experiment.statistics import wilson_interval
 from sb3_formation.experiment.sweep import aggregate, load_experiment, sweep
 from sb3_formation.sb3.metrics import EPISODE_METRICS
@@ -39,26 +39,26 @@ def test_every_thesis_experiment_has_a_quick_twin_and_the_thesis_budget() -> Non
     assert names == sorted([*THESIS, *(name.replace("thesis-", "quick-") for name in THESIS), *pretrained])
     for name, (iterations, teams, seeds, episodes) in THESIS.items():
         settings = load_experiment(EXPERIMENTS / f"{name}.yaml")
-        assert settings.preset == name.removeprefix("thesis-")
+        assert settings.recipe == name.removeprefix("thesis-")
         assert settings.resolved_iterations() == iterations and settings.resolved_n_envs() == teams
         assert len(settings.seeds) == seeds and settings.evaluation["episodes"] == episodes
         assert settings.evaluation["stage"] == 3
         assert settings.resolved_recurrent() == name.startswith("thesis-ch5")  # thesis 5.1.2: recurrent networks
         kwargs = settings.ppo_kwargs()
-        thesis_ppo = load_setup(settings.preset).ppo  # the thesis's PPO settings (thesis 4.3, 5.3)
+        thesis_ppo = load_recipe(settings.recipe).ppo  # the thesis's PPO settings (thesis 4.3, 5.3)
         assert {key: kwargs[key] for key in thesis_ppo} == thesis_ppo and thesis_ppo["learning_rate"] == 5e-5
         quick = load_experiment(EXPERIMENTS / f"{name.replace('thesis-', 'quick-')}.yaml")
-        assert quick.preset == settings.preset and sum(quick.resolved_iterations()) <= 3
+        assert quick.recipe == settings.recipe and sum(quick.resolved_iterations()) <= 3
 
 
 def test_experiment_errors_name_the_file_and_the_setting(tmp_path: Path) -> None:
     with pytest.raises(FileNotFoundError, match=r"missing\.yaml"):
         load_experiment(tmp_path / "missing.yaml")
     bad = tmp_path / "bad.yaml"
-    bad.write_text("preset: ch5-bearing\nevaluation: {episodes: 5, colour: red}\n")
+    bad.write_text("recipe: ch5-bearing\nevaluation: {episodes: 5, colour: red}\n")
     with pytest.raises(ValueError, match=r"bad\.yaml: evaluation must map some of"):
         load_experiment(bad)
-    bad.write_text("preset: ch5-bearing\nseeds: []\n")
+    bad.write_text("recipe: ch5-bearing\nseeds: []\n")
     with pytest.raises(ValueError, match="seeds must be a non-empty list"):
         load_experiment(bad)
 
@@ -92,7 +92,7 @@ def test_quick_experiments_train_and_evaluate(name: str, tmp_path: Path) -> None
 # A real local Ray sweep --------------------------------------------------------------------------------------------
 
 TINY = {
-    "preset": "ch4-individual",
+    "recipe": "ch4-individual",
     "iterations": [1, 0, 12],
     "n_envs": 1,
     "seeds": [0, 1],

@@ -21,24 +21,24 @@ QUICK = ["--episodes", "2", "--n-envs", "2", "--no-progress"]
 
 
 def test_targets_resolve_through_one_registry() -> None:
-    policy = load_policy("controller:random", preset="ch4-team")
+    policy = load_policy("controller:random", recipe="ch4-team")
     assert isinstance(policy, RandomController) and isinstance(policy, TeamPolicy)
-    assert policy.config.n_agents == 3 and policy.config.team_reward  # the ch4-team set-up's task
-    assert load_policy("controller:random").config.n_agents == 6  # default set-up: ch5-bearing
+    assert policy.config.n_agents == 3 and policy.config.team_reward  # the ch4-team recipe's task
+    assert load_policy("controller:random").config.n_agents == 6  # default recipe: ch5-bearing
     assert target_kind("controller:random") == "controller" and target_kind("runs/a:b") is None
     assert evaluation_folder("controller:random", "ch4-team") == Path("evaluations/controller-random_ch4-team")
     with pytest.raises(ValueError, match="unknown controller 'pid'; controllers: classical, random"):
         load_policy("controller:pid")
-    with pytest.raises(ValueError, match="a preset applies to controller targets only"):
-        load_policy("runs/x", preset="ch5-bearing")
+    with pytest.raises(ValueError, match="a recipe applies to controller targets only"):
+        load_policy("runs/x", recipe="ch5-bearing")
     with pytest.raises(FileNotFoundError, match="no model at"):
         load_policy("runs/none")
 
 
 def test_a_controller_is_evaluated_reproducibly_by_seed() -> None:
-    policy = load_policy("controller:random", preset="ch4-individual")
+    policy = load_policy("controller:random", recipe="ch4-individual")
     first = evaluate(policy, episodes=3, stage=1, seed=5, n_envs=2, env_overrides={"max_steps": 20})
-    again = evaluate(load_policy("controller:random", preset="ch4-individual"), 3, 1, 5, 2, env_overrides={"max_steps": 20})
+    again = evaluate(load_policy("controller:random", recipe="ch4-individual"), 3, 1, 5, 2, env_overrides={"max_steps": 20})
     other = evaluate(policy, episodes=3, stage=1, seed=6, n_envs=2, env_overrides={"max_steps": 20})
     assert first.episodes == again.episodes and first.episodes != other.episodes
     assert first.summary["model"] == {"controller": "RandomController", "gains": {"seed": None}}
@@ -47,7 +47,7 @@ def test_a_controller_is_evaluated_reproducibly_by_seed() -> None:
 @pytest.mark.parametrize("name", ["random", "classical"])
 def test_controller_targets_work_with_every_command(name: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)
-    short = ["--preset", "ch4-individual"]
+    short = ["--recipe", "ch4-individual"]
     assert main(["evaluate", f"controller:{name}", *short, *QUICK, "--trajectories", "1"]) == 0
     folder = tmp_path / "evaluations" / f"controller-{name}_ch4-individual"
     summary = json.loads((folder / "summary.json").read_text())
@@ -66,7 +66,7 @@ def test_controller_targets_work_with_every_command(name: str, tmp_path: Path, m
 def test_a_recorded_episode_is_drawn_from_its_file_without_the_policy(tmp_path: Path) -> None:
     """render_frame of a state rebuilt from trajectories.npz equals the env's own frame at that step, replayed from the
     recorded actions (a state is all rendering needs; recordings hold no lidar readings)."""
-    policy = RandomController(load_policy("controller:random", preset="ch4-individual").config)
+    policy = RandomController(load_policy("controller:random", recipe="ch4-individual").config)
     result = evaluate(policy, episodes=1, stage=3, seed=2, n_envs=1, env_overrides={"max_steps": 12}, record=1)
     result.save(tmp_path)
     trajectories = Trajectories.load(tmp_path / "trajectories.npz")

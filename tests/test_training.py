@@ -22,9 +22,9 @@ from tensorboard_events import read_hparams
 
 from sb3_formation.cli import build_parser, main
 from sb3_formation.cli.train import settings_of as train_settings
+from sb3_formation.experiment.recipes import load_recipe, thesis_recipe_for
 from sb3_formation.experiment.runs import FINAL_MODEL, STATE_FILE, latest_checkpoint, load_trained
 from sb3_formation.experiment.settings import TrainSettings, layered_settings, reduce_to_overrides
-from sb3_formation.experiment.setups import load_setup, thesis_setup_for
 from sb3_formation.experiment.training import make_training_env
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
@@ -52,38 +52,38 @@ def only_run_dir(logdir: Path) -> Path:
 
 
 def test_thesis_setups_give_the_thesis_ppo_settings() -> None:
-    kwargs = load_setup("ch5-bearing").ppo_kwargs(recurrent=False)
+    kwargs = load_recipe("ch5-bearing").ppo_kwargs(recurrent=False)
     assert kwargs["policy"] is FormationPolicy
     expected = {"n_steps": 128, "batch_size": 512, "n_epochs": 10, "learning_rate": 5e-5, "gamma": 0.995}
     expected.update({"gae_lambda": 0.95, "clip_range": 0.2, "clip_range_vf": 20.0, "target_kl": 0.03})
     assert {name: kwargs[name] for name in expected} == expected
     assert kwargs["policy_kwargs"] == {"sigma": 0.7, "action_scale": 1.0}
-    assert load_setup("ch4-individual").ppo_kwargs()["policy_kwargs"]["action_scale"] == 0.01  # thesis 4.1.2
-    assert load_setup("ch4-team").ppo_kwargs()["policy_kwargs"]["team_size"] == 3
-    five = load_setup("ch4-team").config(n_agents=5)
-    assert load_setup("ch4-team").ppo_kwargs(five)["policy_kwargs"]["team_size"] == 5
+    assert load_recipe("ch4-individual").ppo_kwargs()["policy_kwargs"]["action_scale"] == 0.01  # thesis 4.1.2
+    assert load_recipe("ch4-team").ppo_kwargs()["policy_kwargs"]["team_size"] == 3
+    five = load_recipe("ch4-team").config(n_agents=5)
+    assert load_recipe("ch4-team").ppo_kwargs(five)["policy_kwargs"]["team_size"] == 5
 
 
 def test_reward_and_agents_flags_map_to_presets() -> None:
-    assert thesis_setup_for("bearing", 6, False) == "ch5-bearing"
-    assert thesis_setup_for("angle", None, False) == "ch4-individual"
-    assert thesis_setup_for("angle", 3, True) == "ch4-team"
-    assert thesis_setup_for("angle", 6, False) == "ch5-angle"
+    assert thesis_recipe_for("bearing", 6, False) == "ch5-bearing"
+    assert thesis_recipe_for("angle", None, False) == "ch4-individual"
+    assert thesis_recipe_for("angle", 3, True) == "ch4-team"
+    assert thesis_recipe_for("angle", 6, False) == "ch5-angle"
     settings = train_settings(build_parser().parse_args(["train", "--reward", "bearing", "--agents", "6"]))
-    assert settings.preset == "ch5-bearing" and settings.config().n_agents == 6
+    assert settings.recipe == "ch5-bearing" and settings.config().n_agents == 6
     assert settings.resolved_iterations() == (5000, 5000, 15000) and settings.resolved_n_envs() == 14
 
 
 def test_yaml_settings_are_overridden_by_flags_and_unknown_keys_fail(tmp_path: Path) -> None:
     config_file = tmp_path / "run.yaml"
     config_file.write_text(
-        yaml.safe_dump({"preset": "ch4-team", "iterations": [3, 2, 1], "seed": 4, "env": {"max_steps": 99}})
+        yaml.safe_dump({"recipe": "ch4-team", "iterations": [3, 2, 1], "seed": 4, "env": {"max_steps": 99}})
     )
     arguments = ["train", "--config", str(config_file), "--seed", "7", "--env", "eta_g=0.7"]
     settings = train_settings(build_parser().parse_args(arguments))
-    assert (settings.preset, settings.seed, settings.resolved_iterations()) == ("ch4-team", 7, (3, 2, 1))
+    assert (settings.recipe, settings.seed, settings.resolved_iterations()) == ("ch4-team", 7, (3, 2, 1))
     assert settings.config().max_steps == 99 and settings.config().eta_g == 0.7
-    config_file.write_text(yaml.safe_dump({"preset": "ch4-team", "learning_rate": 1e-3}))
+    config_file.write_text(yaml.safe_dump({"recipe": "ch4-team", "learning_rate": 1e-3}))
     with pytest.raises(ValueError, match=r"unknown setting\(s\) \['learning_rate'\]"):
         train_settings(build_parser().parse_args(["train", "--config", str(config_file)]))
     with pytest.raises(ValueError, match="unknown ppo setting"):
@@ -92,40 +92,40 @@ def test_yaml_settings_are_overridden_by_flags_and_unknown_keys_fail(tmp_path: P
         TrainSettings(env={"n_agent": 3})
 
 
-def test_a_resolved_config_can_be_reused_with_another_preset() -> None:
-    resolved = TrainSettings(preset="ch4-individual", env={"max_steps": 50}, ppo={"policy_kwargs": {"net_arch": [8]}})
+def test_a_resolved_config_can_be_reused_with_another_recipe() -> None:
+    resolved = TrainSettings(recipe="ch4-individual", env={"max_steps": 50}, ppo={"policy_kwargs": {"net_arch": [8]}})
     values = reduce_to_overrides(yaml.safe_load(yaml.safe_dump(resolved.to_dict())))
     assert values["env"] == {"max_steps": 50} and values["ppo"] == {"policy_kwargs": {"net_arch": [8]}}
-    moved = TrainSettings.from_dict({**values, "preset": "ch5-bearing"})
+    moved = TrainSettings.from_dict({**values, "recipe": "ch5-bearing"})
     config = moved.config()
     assert (config.layout, config.k_bearing, config.n_agents, config.max_steps) == ("ch5", 0.3, 6, 50)
     assert moved.ppo_kwargs()["policy_kwargs"] == {"sigma": 0.7, "action_scale": 1.0, "net_arch": [8]}
     # policy_kwargs overrides are merged into the thesis's, not replacing them (the team critic keeps its team)
-    team = TrainSettings(preset="ch4-team", ppo={"policy_kwargs": {"net_arch": {"pi": [8], "vf": [8, 8]}}})
+    team = TrainSettings(recipe="ch4-team", ppo={"policy_kwargs": {"net_arch": {"pi": [8], "vf": [8, 8]}}})
     assert team.ppo_kwargs()["policy_kwargs"]["team_size"] == 3
 
 
 def test_recurrent_policy_follows_the_thesis_chapter_unless_told() -> None:
-    assert TrainSettings(preset="ch5-bearing").resolved_recurrent() is True  # thesis 5.1.2: recurrent networks
-    assert TrainSettings(preset="ch5-angle").ppo_kwargs()["policy"] is RecurrentFormationPolicy
-    assert TrainSettings(preset="ch4-individual").ppo_kwargs()["policy"] is FormationPolicy
-    assert TrainSettings(preset="ch5-bearing", recurrent=False).ppo_kwargs()["policy"] is FormationPolicy
-    lstm = TrainSettings(preset="ch4-individual", recurrent=True, cell="lstm").ppo_kwargs()
+    assert TrainSettings(recipe="ch5-bearing").resolved_recurrent() is True  # thesis 5.1.2: recurrent networks
+    assert TrainSettings(recipe="ch5-angle").ppo_kwargs()["policy"] is RecurrentFormationPolicy
+    assert TrainSettings(recipe="ch4-individual").ppo_kwargs()["policy"] is FormationPolicy
+    assert TrainSettings(recipe="ch5-bearing", recurrent=False).ppo_kwargs()["policy"] is FormationPolicy
+    lstm = TrainSettings(recipe="ch4-individual", recurrent=True, cell="lstm").ppo_kwargs()
     assert lstm["policy"] is RecurrentFormationPolicy and lstm["policy_kwargs"]["cell"] == "lstm"
     assert lstm["policy_kwargs"]["action_scale"] == 0.01
     with pytest.raises(ValueError, match="team critic"):
-        TrainSettings(preset="ch4-team", recurrent=True)
+        TrainSettings(recipe="ch4-team", recurrent=True)
     with pytest.raises(ValueError, match="cell"):
         TrainSettings(cell="rnn")
-    assert TrainSettings(preset="ch5-bearing").to_dict()["recurrent"] is True
+    assert TrainSettings(recipe="ch5-bearing").to_dict()["recurrent"] is True
     parser = build_parser()
     assert train_settings(parser.parse_args(["train", "--no-recurrent"])).resolved_recurrent() is False
-    chosen = train_settings(parser.parse_args(["train", "--preset", "ch4-team", "--no-recurrent"]))
+    chosen = train_settings(parser.parse_args(["train", "--recipe", "ch4-team", "--no-recurrent"]))
     assert chosen.recurrent is False and chosen.ppo_kwargs()["policy"] is FormationPolicy
     with pytest.raises(ValueError, match="cell 'lstm' applies to recurrent policies only"):
-        train_settings(parser.parse_args(["train", "--preset", "ch5-bearing", "--no-recurrent", "--cell", "lstm"]))
-    assert TrainSettings(preset="ch4-team").to_dict()["cell"] is None
-    assert TrainSettings(preset="ch5-angle", cell="lstm").to_dict()["cell"] == "lstm"
+        train_settings(parser.parse_args(["train", "--recipe", "ch5-bearing", "--no-recurrent", "--cell", "lstm"]))
+    assert TrainSettings(recipe="ch4-team").to_dict()["cell"] is None
+    assert TrainSettings(recipe="ch5-angle", cell="lstm").to_dict()["cell"] == "lstm"
 
 
 def test_training_env_is_placed_for_the_curriculum_stage() -> None:
@@ -146,7 +146,7 @@ def test_train_cli_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureF
     assert main(["train", "--resume", str(tmp_path), "--seed", "3"]) == 2
     assert "--seed" in capsys.readouterr().err
     broken = tmp_path / "broken.yaml"
-    broken.write_text("preset: [unclosed")
+    broken.write_text("recipe: [unclosed")
     assert main(["train", "--config", str(broken)]) == 2
     assert "broken.yaml is not valid YAML" in capsys.readouterr().err
     with pytest.raises(SystemExit):
@@ -175,7 +175,7 @@ BAD_TRAIN_INPUT = [
     ([], "env: 5", "env must be a mapping of field names to values, got 5"),
     ([], "iterations: 5", "iterations must be three integers >= 0 (stages 1, 2, 3), got 5"),
     ([], "iterations: [0, 0, 0]", "iterations must give at least one stage an iteration"),
-    ([], "preset: 5", "preset must be a set-up name or the path of a set-up YAML file, got 5"),
+    ([], "recipe: 5", "recipe must be a recipe name or the path of a recipe YAML file, got 5"),
     ([], "success_threshold: true", "success_threshold must be a number in [0, 1]"),
 ]
 
@@ -209,7 +209,7 @@ def test_damaged_files_of_a_run_are_one_line_errors(tmp_path: Path, capsys: pyte
     """Issue 15, point 6: an empty normaliser (for ``evaluate``, and a checkpoint's for ``--resume``) and a damaged
     ``config.yaml`` are named in one line; nothing saved is touched."""
     run_dir = tmp_path / "run"
-    arguments = ["train", "--preset", "ch4-individual", "--iterations", "1,1,0", "--n-envs", "2", "--no-progress"]
+    arguments = ["train", "--recipe", "ch4-individual", "--iterations", "1,1,0", "--n-envs", "2", "--no-progress"]
     assert main([*arguments, "--env", "max_steps=20", "--run-dir", str(run_dir)]) == 0
     capsys.readouterr()
     (run_dir / "final_normalizer.npz").write_bytes(b"")
@@ -221,7 +221,7 @@ def test_damaged_files_of_a_run_are_one_line_errors(tmp_path: Path, capsys: pyte
     (checkpoint / "normalizer.npz").write_bytes(b"")
     assert main(["train", "--resume", str(run_dir)]) == 2
     assert f"{checkpoint / 'normalizer.npz'} is not a ScaleNormalizeVecEnv file (empty or" in capsys.readouterr().err
-    for text, message in [("preset: [oops", "config.yaml is not valid YAML"), ("- 1", "must hold a mapping of settings")]:
+    for text, message in [("recipe: [oops", "config.yaml is not valid YAML"), ("- 1", "must hold a mapping of settings")]:
         (run_dir / "config.yaml").write_text(text)
         assert main(["train", "--resume", str(run_dir)]) == 2
         error = capsys.readouterr().err
@@ -231,7 +231,7 @@ def test_damaged_files_of_a_run_are_one_line_errors(tmp_path: Path, capsys: pyte
 
 @pytest.mark.slow
 def test_train_run_folder_and_tensorboard(tmp_path: Path) -> None:
-    arguments = ["train", "--preset", "ch5-bearing", "--iterations", "1,1,1", "--checkpoint-every", "1", "--logdir", "runs"]
+    arguments = ["train", "--recipe", "ch5-bearing", "--iterations", "1,1,1", "--checkpoint-every", "1", "--logdir", "runs"]
     process = run_cli(*arguments, *QUICK, cwd=tmp_path)
     _, stderr = process.communicate(timeout=300)
     assert process.returncode == 0, stderr
@@ -239,7 +239,7 @@ def test_train_run_folder_and_tensorboard(tmp_path: Path) -> None:
     assert run_dir.name.startswith("ch5-bearing_6a_s0_")
     for name in ("config.yaml", "command.txt", "final_model.zip", "final_normalizer.npz"):
         assert (run_dir / name).is_file(), name
-    assert (run_dir / "command.txt").read_text().startswith("sb3-formation train --preset ch5-bearing --iterations 1,1,1 ")
+    assert (run_dir / "command.txt").read_text().startswith("sb3-formation train --recipe ch5-bearing --iterations 1,1,1 ")
     assert yaml.safe_load((run_dir / "config.yaml").read_text())["env"]["max_steps"] == 20
     state = json.loads((latest_checkpoint(run_dir) / STATE_FILE).read_text())
     assert state["num_timesteps"] == 3 * 128 * 6 and state["curriculum"]["stage"] == 3
@@ -256,7 +256,7 @@ def test_train_run_folder_and_tensorboard(tmp_path: Path) -> None:
     assert [event.value for event in events.Scalars("curriculum/stage")] == [1.0, 2.0, 3.0]  # stage of each iteration
     assert all(event.value == 20.0 for event in events.Scalars("episode/length"))  # no success in 20 steps
     hparams = read_hparams(run_dir / "tensorboard")
-    assert "episode/success_rate" in hparams["metrics"] and hparams["hparams"]["preset"] == "ch5-bearing"
+    assert "episode/success_rate" in hparams["metrics"] and hparams["hparams"]["recipe"] == "ch5-bearing"
     assert hparams["hparams"]["env/n_agents"] == 6 and hparams["hparams"]["iterations"] == "[1, 1, 1]"
 
 
@@ -376,7 +376,7 @@ def test_resuming_a_finished_run_says_so_and_rewrites_a_lost_final_model(
     """Issue 15, point 1: with no iterations left the run is finished; a final model lost in a kill while it was
     written comes back from the last checkpoint."""
     run_dir = tmp_path / "run"
-    arguments = ["train", "--preset", "ch4-individual", "--iterations", "1,1,0", "--n-envs", "2", "--no-progress"]
+    arguments = ["train", "--recipe", "ch4-individual", "--iterations", "1,1,0", "--n-envs", "2", "--no-progress"]
     assert main([*arguments, "--env", "max_steps=20", "--run-dir", str(run_dir)]) == 0
     model = (run_dir / FINAL_MODEL).read_bytes()
     capsys.readouterr()
@@ -385,7 +385,7 @@ def test_resuming_a_finished_run_says_so_and_rewrites_a_lost_final_model(
     assert (run_dir / FINAL_MODEL).read_bytes() == model
     # issue 15, point 3: a new run into the same folder is refused before anything is written
     files = {path: path.read_bytes() for path in run_dir.rglob("*") if path.is_file()}
-    again = ["train", "--preset", "ch5-bearing", "--iterations", "0,0,1", "--n-envs", "1", "--run-dir", str(run_dir)]
+    again = ["train", "--recipe", "ch5-bearing", "--iterations", "0,0,1", "--n-envs", "1", "--run-dir", str(run_dir)]
     assert main(again) == 2
     message = f"{run_dir} is not empty (a run is there already): continue it with --resume {run_dir}"
     assert message in capsys.readouterr().err
@@ -413,7 +413,7 @@ def test_resume_recovers_a_checkpoint_caught_in_a_folder_swap_and_leaves_it_alon
     """Issue 15, point 2: a kill between the two renames of a checkpoint's swap leaves it only in a hidden folder;
     resuming puts it back, and does not rewrite the checkpoint it starts from (which reopened that window)."""
     run_dir = tmp_path / "run"
-    arguments = ["train", "--preset", "ch4-individual", "--iterations", "1,1,1", "--n-envs", "2", "--no-progress"]
+    arguments = ["train", "--recipe", "ch4-individual", "--iterations", "1,1,1", "--n-envs", "2", "--no-progress"]
     assert main([*arguments, "--checkpoint-every", "1", "--env", "max_steps=20", "--run-dir", str(run_dir)]) == 0
     checkpoints = run_dir / "checkpoints"
     aside = checkpoints / ".iteration_000002.old.k1ll"  # what atomic_directory leaves between its renames

@@ -1,5 +1,5 @@
-"""Training features any set-up can use: schedules as data, a learned log-std, reward normalisation, a steps budget,
-periodic evaluation with the best model kept; and the fast set-ups, each trained for an iteration."""
+"""Training features any recipe can use: schedules as data, a learned log-std, reward normalisation, a steps budget,
+periodic evaluation with the best model kept; and the fast recipes, each trained for an iteration."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from sb3_formation import FormationPolicy, make_formation_vec_env
 from sb3_formation.cli import main
+from sb3_formation.experiment.recipes import RECIPES_FOLDER, load_recipe, recipe_names, schedule
 from sb3_formation.experiment.runs import (
     BEST_MODEL,
     FINAL_MODEL,
@@ -29,24 +30,23 @@ from sb3_formation.experiment.runs import (
     save_model,
 )
 from sb3_formation.experiment.settings import TrainSettings, load_settings
-from sb3_formation.experiment.setups import SETUPS_FOLDER, load_setup, schedule, setup_names
 from sb3_formation.experiment.training import make_training_env, train
 from sb3_formation.sb3.callbacks import ClockedSchedule, TrainingClock
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
 
 SMALL = {"net_arch": {"pi": [16], "vf": [16]}}
-#: A tiny run of a set-up: 2 teams, 30-step episodes, small networks, few steps per iteration.
+#: A tiny run of a recipe: 2 teams, 30-step episodes, small networks, few steps per iteration.
 TINY = ["--n-envs", "2", "--env", "max_steps=30", "--no-progress"]
 
 
 def tiny_yaml(tmp_path: Path, **changes: object) -> Path:
-    """The fast-ch5-bearing set-up shrunk to seconds, with ``changes`` applied, as a set-up file."""
-    values = yaml.safe_load((SETUPS_FOLDER / "fast-ch5-bearing.yaml").read_text())
+    """The fast-ch5-bearing recipe shrunk to seconds, with ``changes`` applied, as a recipe file."""
+    values = yaml.safe_load((RECIPES_FOLDER / "fast-ch5-bearing.yaml").read_text())
     values["policy"]["net_arch"] = SMALL["net_arch"]
     values["ppo"] |= {"n_steps": 16, "batch_size": 64, "n_epochs": 2}
     values["env"] |= {"max_steps": 30}
-    values["teams"] = 2
+    values["n_envs"] = 2
     values["training"] |= {"steps": 3 * 16 * 12, "eval_every": 1, "eval_episodes": 2}
     values.update(changes)
     path = tmp_path / "tiny.yaml"
@@ -91,7 +91,7 @@ def test_a_learned_log_std_trains_and_is_saved(tmp_path: Path) -> None:
 def test_reward_normalisation_divides_by_the_running_return_std(tmp_path: Path) -> None:
     """The rewards PPO sees are the env's divided by sqrt(var + 1e-8) of the discounted returns seen so far (SB3's
     VecNormalize, recomputed here with numpy), and the statistics survive a save and a resume."""
-    settings = TrainSettings(preset=str(tiny_yaml(tmp_path)), n_envs=1)
+    settings = TrainSettings(recipe=str(tiny_yaml(tmp_path)), n_envs=1)
     env = make_training_env(settings, stage=3)
     rewards = reward_normalizer(env)
     assert rewards is not None and not rewards.norm_obs and rewards.gamma == 0.99
@@ -119,8 +119,8 @@ def test_reward_normalisation_divides_by_the_running_return_std(tmp_path: Path) 
 
 
 def test_centred_observations_train_save_and_act_as_the_training_normaliser(tmp_path: Path) -> None:
-    training = {**load_setup("fast-ch5-bearing").training, "center_observations": True, "steps": 16 * 12, "eval_every": None}
-    settings = TrainSettings(preset=str(tiny_yaml(tmp_path, training=training)), progress_bar=False)
+    training = {**load_recipe("fast-ch5-bearing").training, "center_observations": True, "steps": 16 * 12, "eval_every": None}
+    settings = TrainSettings(recipe=str(tiny_yaml(tmp_path, training=training)), progress_bar=False)
     env = make_training_env(settings, stage=3)
     assert unwrap_vec_wrapper(env, ScaleNormalizeVecEnv).center
     folder = train(settings, command="test", run_dir=tmp_path / "run")
@@ -140,7 +140,7 @@ def test_a_steps_budget_sets_the_last_stage_and_repeats_by_seed(tmp_path: Path) 
     setup = str(tiny_yaml(tmp_path, training={"normalize_reward": True}))
     runs = []
     for name in ("a", "b"):
-        assert main(["train", "--preset", setup, *budget, "--run-dir", str(tmp_path / name), *TINY]) == 0
+        assert main(["train", "--recipe", setup, *budget, "--run-dir", str(tmp_path / name), *TINY]) == 0
         runs.append(load_trained(tmp_path / name))
     config = yaml.safe_load((tmp_path / "a" / "config.yaml").read_text())
     assert config["iterations"] == [0, 0, 4] and config["steps"] == 3 * 16 * 12 + 1  # rounded up to whole iterations
@@ -152,15 +152,15 @@ def test_a_steps_budget_sets_the_last_stage_and_repeats_by_seed(tmp_path: Path) 
 def test_a_steps_budget_spreads_a_curriculum_in_its_proportions() -> None:
     # thesis 5.3: 5000 : 5000 : 15000 iterations; 128 steps x 8 teams x 3 agents = 3072 agent-steps per iteration
     common = {"n_envs": 8, "env": {"n_agents": 3}}
-    thesis = TrainSettings(preset="ch5-bearing", steps=600_000, **common)
+    thesis = TrainSettings(recipe="ch5-bearing", steps=600_000, **common)
     assert thesis.resolved_iterations() == (39, 39, 118)  # 600,000 / 3072 = 195.3 -> 196 iterations: 20/20/60 %
     assert yaml.safe_load(yaml.safe_dump(thesis.to_dict()))["iterations"] == [39, 39, 118]
-    assert TrainSettings(preset="ch5-bearing", steps=3072, **common).resolved_iterations() == (0, 0, 1)
-    given = TrainSettings(preset="ch5-bearing", iterations=(1, 1, 3), steps=10 * 3072, **common)
+    assert TrainSettings(recipe="ch5-bearing", steps=3072, **common).resolved_iterations() == (0, 0, 1)
+    given = TrainSettings(recipe="ch5-bearing", iterations=(1, 1, 3), steps=10 * 3072, **common)
     assert given.resolved_iterations() == (2, 2, 6)  # given iterations are proportions too
-    resolved = TrainSettings(preset="ch5-bearing", iterations=(39, 39, 118), steps=600_000, **common)
+    resolved = TrainSettings(recipe="ch5-bearing", iterations=(39, 39, 118), steps=600_000, **common)
     assert resolved.resolved_iterations() == (39, 39, 118)  # a run's config.yaml resolves to itself on --resume
-    fast = TrainSettings(preset="fast-ch5-bearing", steps=600_000, **common)  # stage 3 only: 6144 per iteration
+    fast = TrainSettings(recipe="fast-ch5-bearing", steps=600_000, **common)  # stage 3 only: 6144 per iteration
     assert fast.resolved_iterations() == (0, 0, 98)
 
 
@@ -187,18 +187,18 @@ def test_a_clocked_schedule_follows_whichever_budget_is_further_along(monkeypatc
 
 def test_a_minutes_budget_replaces_the_setup_budget_and_ends_training(tmp_path: Path) -> None:
     setup = str(tiny_yaml(tmp_path))
-    settings = TrainSettings(preset=setup, minutes=0.5)
+    settings = TrainSettings(recipe=setup, minutes=0.5)
     assert settings.resolved_iterations() == (0, 0, None) and settings.resolved_training("steps") is None
-    capped = TrainSettings(preset=setup, minutes=0.5, steps=16 * 12)  # both: whichever runs out first
+    capped = TrainSettings(recipe=setup, minutes=0.5, steps=16 * 12)  # both: whichever runs out first
     assert capped.resolved_iterations() == (0, 0, 1) and capped.resolved_training("steps") == 16 * 12
     for bad in (0, -1.0, True, "5", float("inf"), float("nan")):
         with pytest.raises(ValueError, match="minutes must be a finite number > 0"):
-            TrainSettings(preset=setup, minutes=bad)
+            TrainSettings(recipe=setup, minutes=bad)
     with pytest.raises(ValueError, match="iterations must be three integers"):
-        TrainSettings(preset=setup, iterations=(0, 0, None))  # open-ended only with a time budget
+        TrainSettings(recipe=setup, iterations=(0, 0, None))  # open-ended only with a time budget
     run = tmp_path / "run"
     # 0.06 s: spent within the first iterations (or, on a loaded machine, before the first), so training ends there
-    assert main(["train", "--preset", setup, "--minutes", "0.001", "--run-dir", str(run), *TINY]) == 0
+    assert main(["train", "--recipe", setup, "--minutes", "0.001", "--run-dir", str(run), *TINY]) == 0
     config = yaml.safe_load((run / "config.yaml").read_text())
     assert config["iterations"] == [0, 0, None] and config["minutes"] == 0.001 and config["steps"] is None
     checkpoint = latest_checkpoint(run)
@@ -217,20 +217,20 @@ def test_a_minutes_budget_replaces_the_setup_budget_and_ends_training(tmp_path: 
     assert [path.name for path in (run / "checkpoints").iterdir()] == [checkpoint.name]
     assert load_settings(run).resolved_iterations() == (0, 0, None)
     # the run's settings with a steps budget added: the budget sets the open-ended stage 3
-    assert TrainSettings(preset=setup, iterations=(0, 0, None), minutes=1, steps=16 * 12).resolved_iterations() == (0, 0, 1)
+    assert TrainSettings(recipe=setup, iterations=(0, 0, None), minutes=1, steps=16 * 12).resolved_iterations() == (0, 0, 1)
 
 
 def test_a_minutes_budget_spreads_a_curriculum_over_the_time(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Stages 1 and 2 end at their shares of the time (as 500 : 500 : 1500 iterations: 20 % and 40 %), not after 500
     iterations each, which the 3 s budget could never reach."""
-    assert TrainSettings(preset=str(tiny_yaml(tmp_path)), minutes=1).stage_time_shares() == (0.0, 0.0)  # stage 3 only
+    assert TrainSettings(recipe=str(tiny_yaml(tmp_path)), minutes=1).stage_time_shares() == (0.0, 0.0)  # stage 3 only
     setup = str(tiny_yaml(tmp_path, curriculum={"iterations": [500, 500, 1500], "success_threshold": None}))
-    assert TrainSettings(preset=setup, minutes=1).stage_time_shares() == (0.2, 0.4)
-    assert TrainSettings(preset=setup, minutes=1, steps=16 * 12 * 1200).stage_time_shares() is None  # iterations count
-    assert TrainSettings(preset=setup, minutes=1, iterations=(1, 1, 1)).stage_time_shares() is None
-    assert TrainSettings(preset="ch5-bearing").stage_time_shares() is None
+    assert TrainSettings(recipe=setup, minutes=1).stage_time_shares() == (0.2, 0.4)
+    assert TrainSettings(recipe=setup, minutes=1, steps=16 * 12 * 1200).stage_time_shares() is None  # iterations count
+    assert TrainSettings(recipe=setup, minutes=1, iterations=(1, 1, 1)).stage_time_shares() is None
+    assert TrainSettings(recipe="ch5-bearing").stage_time_shares() is None
     run = tmp_path / "run"
-    assert main(["train", "--preset", setup, "--minutes", "0.05", "--run-dir", str(run), *TINY]) == 0
+    assert main(["train", "--recipe", setup, "--minutes", "0.05", "--run-dir", str(run), *TINY]) == 0
     assert "stages 1, 2 end at 20%, 40% of the time, stage 3 until the time is up" in capsys.readouterr().out
     config = yaml.safe_load((run / "config.yaml").read_text())
     assert config["iterations"] == [500, 500, None] and load_settings(run).stage_time_shares() == (0.2, 0.4)
@@ -244,7 +244,7 @@ def test_a_minutes_budget_spreads_a_curriculum_over_the_time(tmp_path: Path, cap
 
 def test_periodic_evaluation_logs_eval_scalars_and_keeps_the_best_model(tmp_path: Path) -> None:
     run = tmp_path / "run"
-    assert main(["train", "--preset", str(tiny_yaml(tmp_path)), "--run-dir", str(run), *TINY]) == 0
+    assert main(["train", "--recipe", str(tiny_yaml(tmp_path)), "--run-dir", str(run), *TINY]) == 0
     accumulator = EventAccumulator(str(run / "tensorboard"))
     accumulator.Reload()
     tags = accumulator.Tags()["scalars"]
@@ -261,13 +261,13 @@ def test_periodic_evaluation_logs_eval_scalars_and_keeps_the_best_model(tmp_path
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", [name for name in setup_names() if name.startswith("fast-")])
+@pytest.mark.parametrize("name", [name for name in recipe_names() if name.startswith("fast-")])
 def test_each_fast_setup_trains_an_iteration_and_records_its_changes(name: str, tmp_path: Path) -> None:
-    setup, thesis = load_setup(name), load_setup(name.removeprefix("fast-"))
+    setup, thesis = load_recipe(name), load_recipe(name.removeprefix("fast-"))
     assert setup.config() == thesis.config()  # the task is the thesis's
     assert setup.evaluation == thesis.evaluation  # and so is the evaluation protocol
     run = tmp_path / "run"
-    arguments = ["train", "--preset", name, "--run-dir", str(run), "--steps", "1", "--n-envs", "1", "--no-progress"]
+    arguments = ["train", "--recipe", name, "--run-dir", str(run), "--steps", "1", "--n-envs", "1", "--no-progress"]
     assert main([*arguments, "--env", "max_steps=40"]) == 0
     config = yaml.safe_load((run / "config.yaml").read_text())
     assert config["iterations"] == [0, 0, 1] and config["normalize_reward"] is True and config["eval_every"] == 25

@@ -7,7 +7,7 @@ The package is layered; each layer imports only from the layers below it (``test
   env, rendering); numpy, numba, Pymunk and Pillow only, no torch;
 - :mod:`sb3_formation.controllers`: the policy seam (anything that acts) and hand-written controllers; no torch;
 - :mod:`sb3_formation.sb3`: the Stable-Baselines3 layer (VecEnv, normaliser, policies, recurrent PPO, callbacks);
-- :mod:`sb3_formation.experiment`: set-ups, settings, run folders, training, evaluation, policy targets, sweeps;
+- :mod:`sb3_formation.experiment`: recipes, settings, run folders, training, evaluation, policy targets, sweeps;
 - :mod:`sb3_formation.viz`: figures and videos; :mod:`sb3_formation.cli` on top.
 
 The names below are re-exported lazily: ``import sb3_formation`` loads nothing heavy until a name is used.
@@ -36,12 +36,12 @@ _EXPORTS: dict[str, str] = {
     "load_policy": "sb3_formation.experiment.targets",
     "load_pretrained": "sb3_formation.experiment.pretrained",
     "pretrained_names": "sb3_formation.experiment.pretrained",
-    "load_setup": "sb3_formation.experiment.setups",
+    "load_recipe": "sb3_formation.experiment.recipes",
 }
 
 __all__ = sorted(_EXPORTS)
 #: Old names, kept for one release: old name -> new name (``CHANGELOG.md``).
-_RENAMED: dict[str, str] = {"PRESETS": "TASKS"}
+_RENAMED: dict[str, str] = {"PRESETS": "TASKS", "load_setup": "load_recipe"}
 
 
 def __getattr__(name: str) -> Any:

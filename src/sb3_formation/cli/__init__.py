@@ -1,6 +1,7 @@
 """The ``sb3-formation`` command line: a thin layer over functions a notebook can call with the same names.
 
-One module per subcommand, each with ``add_parser(commands)`` (its options) and ``run(args)`` (what it does);
+One module per subcommand, each with ``add_parser(commands)`` (its options, and ``run`` as the parser's default) and
+``run(args)`` (what it does);
 :mod:`~sb3_formation.cli.common` holds what several share.
 """
 
@@ -12,21 +13,11 @@ import shlex
 import sys
 from collections.abc import Sequence
 
-from sb3_formation.cli import compare, evaluate, plot, presets, pretrained, render, rollout, sweep, train
+from sb3_formation.cli import compare, evaluate, plot, pretrained, recipes, render, rollout, sweep, train
 from sb3_formation.experiment.training import TrainingStopped
 
-#: The subcommands, in the order ``--help`` lists them.
-COMMANDS = {
-    "train": train,
-    "presets": presets,
-    "pretrained": pretrained,
-    "evaluate": evaluate,
-    "plot": plot,
-    "render": render,
-    "compare": compare,
-    "sweep": sweep,
-    "rollout": rollout,
-}
+#: The subcommands' modules, in the order ``--help`` lists them: each adds its parser, which names its ``run``.
+COMMANDS = (train, recipes, pretrained, evaluate, plot, render, compare, sweep, rollout)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -37,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
     commands = parser.add_subparsers(dest="command", required=True)
-    for command in COMMANDS.values():
+    for command in COMMANDS:
         command.add_parser(commands)
     return parser
 
@@ -62,7 +53,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(_attach_negative_values(argv))
     args.command_line = shlex.join(["sb3-formation", *argv])
     try:
-        return COMMANDS[args.command].run(args)
+        return args.run(args)
     except TrainingStopped as stop:
         print(f"sb3-formation: {stop}", file=sys.stderr)
         return 128 + stop.signal_number

@@ -5,11 +5,13 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from sb3_formation.experiment.evaluation import EVALUATION_TEAMS, evaluate_target
+from sb3_formation.experiment.recipes import DEFAULT_RECIPE
 from sb3_formation.experiment.settings import positive_int, seed_value
-from sb3_formation.experiment.setups import DEFAULT_SETUP
 from sb3_formation.experiment.targets import evaluation_folder, target_kind
+from sb3_formation.utils.deprecation import warn_renamed
 
 
 def indices(text: str) -> list[int]:
@@ -27,16 +29,34 @@ TARGET_HELP = (
     "a run folder, a model .zip (normaliser beside it), controller:<name> (e.g. controller:classical) or "
     "pretrained:<name> (a shipped policy: sb3-formation pretrained)"
 )
-PRESET_HELP = (
-    f"set-up of a controller: target (default {DEFAULT_SETUP}); trained models act in the task they were trained in "
+RECIPE_HELP = (
+    f"recipe of a controller: target (default {DEFAULT_RECIPE}); trained models act in the task they were trained in "
     "(pretrained: refuses another)"
 )
 
 
+class RenamedFlag(argparse.Action):
+    """An old flag kept for one release: it warns, naming the new flag, and sets the new flag's value."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, new: str, **kwargs: Any) -> None:
+        super().__init__(option_strings, dest, **kwargs)
+        self.new = new
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any, option: Any = None):
+        warn_renamed(str(option), self.new, stacklevel=2)
+        setattr(namespace, self.dest, values)
+
+
+def add_recipe_option(parser: argparse.ArgumentParser, help: str = RECIPE_HELP, **options: Any) -> None:
+    """``--recipe NAME``, and the old spelling ``--preset`` (warns)."""
+    parser.add_argument("--recipe", help=help, **options)
+    parser.add_argument("--preset", dest="recipe", action=RenamedFlag, new="--recipe", help=argparse.SUPPRESS)
+
+
 def add_protocol_arguments(parser: argparse.ArgumentParser) -> None:
     """The evaluation protocol's options, shared by ``evaluate`` and ``compare``."""
-    parser.add_argument("--episodes", type=positive_int, help="episodes (default: the set-up's; thesis: 500 ch. 4, 200 ch. 5)")
-    parser.add_argument("--stage", type=int, choices=(1, 2, 3), help="curriculum stage (default: the set-up's, 3)")
+    parser.add_argument("--episodes", type=positive_int, help="episodes (default: the recipe's; thesis: 500 ch. 4, 200 ch. 5)")
+    parser.add_argument("--stage", type=int, choices=(1, 2, 3), help="curriculum stage (default: the recipe's, 3)")
     parser.add_argument("--seed", type=seed_value, default=0, help="episode k plays the scenario of seed + k (default 0)")
     parser.add_argument(
         "--n-envs", type=positive_int, default=EVALUATION_TEAMS, help=f"teams played at once (default {EVALUATION_TEAMS})"
@@ -47,7 +67,7 @@ def add_protocol_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stochastic", action="store_true", help="sample actions instead of using the mean")
     parser.add_argument("--device", default="auto", help="torch device (default auto)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument("--preset", help=PRESET_HELP)
+    add_recipe_option(parser)
 
 
 def run_folder(target: str | Path) -> Path:
@@ -83,8 +103,8 @@ def evaluate_with_protocol(args: argparse.Namespace, target: str, episodes: int 
         "record": getattr(args, "trajectories", 5),
         "env_overrides": {} if getattr(args, "agents", None) is None else {"n_agents": args.agents},
     }
-    out = out or evaluation_folder(target, args.preset)
-    result = evaluate_target(target, protocol, args.preset, device=args.device, progress_bar=not args.no_progress, out=out)
+    out = out or evaluation_folder(target, args.recipe)
+    result = evaluate_target(target, protocol, args.recipe, device=args.device, progress_bar=not args.no_progress, out=out)
     print(f"{target}: evaluation written to {out}")
     return result.summary
 

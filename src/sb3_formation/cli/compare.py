@@ -28,6 +28,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", type=Path, default=Path("compare.png"), help="bar chart file (default compare.png)")
     parser.add_argument("--table", type=Path, help="also write the Markdown table to this file")
     parser.add_argument("--force", action="store_true", help="evaluate again even if eval/ matches")
+    parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -35,27 +36,27 @@ def run(args: argparse.Namespace) -> int:
     labels = target_labels(args.labels, args.targets)
     if len(set(labels)) != len(labels):
         raise ValueError(f"labels must differ, got {labels}")
-    # --preset is the set-up of the controller: targets; runs and models act in the task they were trained in
-    presets = [args.preset if target_kind(target) else None for target in args.targets]
-    for target, preset in zip(args.targets, presets):  # every target loads before any is evaluated (and written to)
-        load_policy(target, preset, args.device)
-    protocols = [default_protocol(target, args.preset) for target in args.targets]
+    # --recipe is the recipe of the controller: targets; runs and models act in the task they were trained in
+    recipes = [args.recipe if target_kind(target) else None for target in args.targets]
+    for target, recipe in zip(args.targets, recipes):  # every target loads before any is evaluated (and written to)
+        load_policy(target, recipe, args.device)
+    protocols = [default_protocol(target, args.recipe) for target in args.targets]
     protocol = {
-        # the set-ups' protocol (the larger one if they differ, e.g. chapter 4's 500 episodes and chapter 5's 200)
+        # the recipes' protocol (the larger one if they differ, e.g. chapter 4's 500 episodes and chapter 5's 200)
         "episodes": args.episodes or max((p["episodes"] for p in protocols if "episodes" in p), default=None),
         "stage": args.stage or max((p.get("stage", 3) for p in protocols), default=3),
     }
     if protocol["episodes"] is None:
         raise ValueError(
-            "none of the targets belongs to a run folder whose set-up gives the number of episodes: give --episodes"
+            "none of the targets belongs to a run folder whose recipe gives the number of episodes: give --episodes"
         )
     summaries = {}
-    for label, target, preset in zip(labels, args.targets, presets):
-        own = argparse.Namespace(**{**vars(args), "preset": preset})
+    for label, target, recipe in zip(labels, args.targets, recipes):
+        own = argparse.Namespace(**{**vars(args), "recipe": recipe})
         wanted = {**protocol, "seed": args.seed, "deterministic": not args.stochastic}
-        summary = None if args.force else stored_summary(target, wanted, own.preset)
+        summary = None if args.force else stored_summary(target, wanted, own.recipe)
         if summary is not None:
-            print(f"{target}: reusing {evaluation_file(target, SUMMARY_FILE, own.preset)}")
+            print(f"{target}: reusing {evaluation_file(target, SUMMARY_FILE, own.recipe)}")
         own.stage = protocol["stage"]
         summaries[label] = summary or evaluate_with_protocol(own, target, protocol["episodes"])
     table = comparison_table(summaries, over=args.over)

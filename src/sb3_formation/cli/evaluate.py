@@ -24,6 +24,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "--trajectories", type=int, default=5, metavar="K", help="record every step of the first K episodes (default 5)"
     )
     parser.add_argument("--out", type=Path, help="folder for the files (default: <run>/eval)")
+    parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:

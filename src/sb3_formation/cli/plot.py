@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sb3_formation.cli.common import indices, target_labels
+from sb3_formation.cli.common import add_recipe_option, indices, target_labels
 from sb3_formation.experiment.evaluation import TRAJECTORIES_FILE, load_summary
+from sb3_formation.experiment.recipes import DEFAULT_RECIPE
 from sb3_formation.experiment.settings import load_settings, positive_int
-from sb3_formation.experiment.setups import DEFAULT_SETUP
 from sb3_formation.experiment.targets import evaluation_file
 from sb3_formation.experiment.trajectories import Trajectories
 from sb3_formation.viz.plots import (
@@ -38,7 +38,8 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--labels", help="comma-separated label per run (runs with the same label are seeds of one curve)")
     parser.add_argument("--window", type=positive_int, default=100, help="rolling-mean window in iterations (default 100)")
     parser.add_argument("--over", choices=("successful", "all"), default="successful", help="episodes for the bar means")
-    parser.add_argument("--preset", help="set-up of controller: targets (default: " + DEFAULT_SETUP + ")")
+    add_recipe_option(parser, "recipe of controller: targets (default: " + DEFAULT_RECIPE + ")")
+    parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -48,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     if args.figure in ("trajectories", "errors"):
         if len(args.targets) != 1:
             raise ValueError(f"{args.figure} draws one evaluation; got {len(args.targets)} targets")
-        path = evaluation_file(args.targets[0], TRAJECTORIES_FILE, args.preset)
+        path = evaluation_file(args.targets[0], TRAJECTORIES_FILE, args.recipe)
         trajectories = Trajectories.load(path)
         indices = _recordedindices(trajectories, args.episodes)
         default = path.parent / "figures" / ("trajectory.png" if args.figure == "trajectories" else "errors.png")
@@ -65,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
             ]
     elif args.figure == "bars":
         labels = target_labels(args.labels, args.targets)
-        summaries = dict(zip(labels, (load_summary(target, args.preset) for target in args.targets)))
+        summaries = dict(zip(labels, (load_summary(target, args.recipe) for target in args.targets)))
         written = [save_figure(plot_evaluation_bars(summaries, over=args.over), args.out or Path("evaluation_bars.png"))]
     else:
         labels = target_labels(args.labels, args.targets) if args.labels else [_setup_label(t) for t in args.targets]
@@ -91,6 +92,6 @@ def _recordedindices(trajectories: Trajectories, episodes: list[int] | None) -> 
 
 
 def _setup_label(run_dir: Path) -> str:
-    """A training-curve label naming a run's set-up (preset and team size), so seeds of one set-up share it."""
+    """A training-curve label naming a run's recipe (recipe and team size), so seeds of one recipe share it."""
     settings = load_settings(run_dir)
-    return f"{settings.preset} ({settings.config().n_agents} agents)"
+    return f"{settings.recipe} ({settings.config().n_agents} agents)"

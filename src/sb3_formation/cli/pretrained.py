@@ -22,6 +22,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--export", type=Path, metavar="RUN_DIR", help="a finished run folder to ship")
     parser.add_argument("--name", help="name of the exported policy (pretrained:<name>)")
     parser.add_argument("--into", type=Path, help="folder of shipped policies (default: the package's)")
+    parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -35,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
         card = pretrained_card(args.name, folder.parent)
         print_summary(card["summary"])
         return 0
-    columns = "target | set-up | n | success (95 % CI) | angle error (deg) | bearing error | agent contacts | steps | training"
+    columns = "target | recipe | n | success (95 % CI) | angle error (deg) | bearing error | agent contacts | steps | training"
     print(f"| {columns} |\n|---|---|---:|---:|---:|---:|---:|---:|---:|")
     for name in pretrained_names():
         card = pretrained_card(name)

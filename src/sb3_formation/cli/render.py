@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sb3_formation.cli.common import PRESET_HELP, TARGET_HELP
+from sb3_formation.cli.common import RECIPE_HELP, TARGET_HELP, add_recipe_option
 from sb3_formation.experiment.settings import positive_int, seed_value
 from sb3_formation.experiment.targets import evaluation_folder, load_policy
 from sb3_formation.viz.video import render_episodes
@@ -20,7 +20,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "success and current errors drawn on each frame. The format follows --out: .mp4 or .gif.",
     )
     parser.add_argument("target", help=TARGET_HELP)
-    parser.add_argument("--preset", help=PRESET_HELP)
+    add_recipe_option(parser, RECIPE_HELP)
     parser.add_argument("--episodes", type=positive_int, default=1, help="episodes (default 1)")
     parser.add_argument("--out", type=Path, help="video file, .mp4 or .gif (default: <run>/eval/episodes.mp4)")
     parser.add_argument("--stage", type=int, choices=(1, 2, 3), default=3, help="curriculum stage (default 3)")
@@ -31,12 +31,13 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--agents", type=int, help="team size (default: the model's; another only for one trained on several)")
     parser.add_argument("--stochastic", action="store_true", help="sample actions instead of using the mean")
     parser.add_argument("--device", default="auto", help="torch device (default auto)")
+    parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """``sb3-formation render``: a video of evaluation episodes."""
-    policy = load_policy(args.target, args.preset, device=args.device)
-    out = args.out or evaluation_folder(args.target, args.preset) / "episodes.mp4"
+    policy = load_policy(args.target, args.recipe, device=args.device)
+    out = args.out or evaluation_folder(args.target, args.recipe) / "episodes.mp4"
     frames = render_episodes(
         policy,
         out,

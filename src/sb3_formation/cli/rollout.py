@@ -8,12 +8,12 @@ from pathlib import Path
 
 from PIL import Image
 
-from sb3_formation.cli.common import TARGET_HELP
+from sb3_formation.cli.common import TARGET_HELP, add_recipe_option
 from sb3_formation.env.rendering import render_frame
 from sb3_formation.env.state import TeamState
+from sb3_formation.experiment.recipes import DEFAULT_RECIPE
 from sb3_formation.experiment.rollouts import PlayJob, play_episodes, seed_policy
 from sb3_formation.experiment.settings import positive_int
-from sb3_formation.experiment.setups import DEFAULT_SETUP
 from sb3_formation.experiment.targets import load_policy
 from sb3_formation.utils.files import atomic_path
 
@@ -27,22 +27,23 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "actions: a baseline and a smoke test), print each episode's metrics and save the last frame as a PNG.",
     )
     parser.add_argument("target", nargs="?", default="controller:random", help=TARGET_HELP + " (default: %(default)s)")
-    parser.add_argument("--preset", help=f"set-up of a controller: target (default: {DEFAULT_SETUP})")
-    parser.add_argument("--agents", type=int, default=None, help="team size n >= 3 (default: the preset's)")
+    add_recipe_option(parser, f"recipe of a controller: target (default: {DEFAULT_RECIPE})")
+    parser.add_argument("--agents", type=int, default=None, help="team size n >= 3 (default: the recipe's)")
     parser.add_argument("--stage", type=int, choices=(1, 2, 3), default=3, help="curriculum stage (default: %(default)s)")
     parser.add_argument("--episodes", type=positive_int, default=2, help="number of episodes (default: %(default)s)")
     parser.add_argument(
-        "--max-steps", type=positive_int, default=None, help="episode length T_s in steps (default: the preset's 2500)"
+        "--max-steps", type=positive_int, default=None, help="episode length T_s in steps (default: the recipe's 2500)"
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of the first episode; episode k uses seed + k")
     parser.add_argument("--out", type=Path, default=Path("runs/rollout_final_frame.png"), help="PNG of the final frame")
     parser.add_argument("--json", action="store_true", help="print the summaries as JSON lines")
     parser.add_argument("--stochastic", action="store_true", help="sample a trained policy's actions")
+    parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """``sb3-formation rollout``: episodes of any policy with per-episode metrics and a PNG of the final frame."""
-    policy = load_policy(args.target, args.preset, device="cpu")
+    policy = load_policy(args.target, args.recipe, device="cpu")
     overrides = {"stage": args.stage}
     if args.agents is not None:
         overrides["n_agents"] = args.agents

@@ -25,6 +25,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--address", help="address of a running Ray cluster (default: start Ray on this machine)")
     parser.add_argument("--max-concurrent", type=positive_int, help="trials at once (default: one per CPU)")
     parser.add_argument("--logdir", help="folder for the experiment's folder (default: the experiment's logdir)")
+    parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -1,1 +1,1 @@
-"""The experiment layer: set-ups, settings, run folders, training, evaluation, policy targets and sweeps."""
+"""The experiment layer: recipes, settings, run folders, training, evaluation, policy targets and sweeps."""

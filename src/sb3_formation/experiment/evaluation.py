@@ -184,7 +184,7 @@ def evaluate(
 def evaluate_target(
     target: str | os.PathLike[str],
     protocol: dict[str, Any] | None = None,
-    preset: str | None = None,
+    recipe: str | None = None,
     device: str = "auto",
     progress_bar: bool = False,
     out: str | os.PathLike[str] | None = None,
@@ -194,31 +194,31 @@ def evaluate_target(
     :param target: a run folder, a model ``.zip`` or ``controller:<name>``
     :param protocol: :func:`evaluate` arguments (``episodes``, ``stage``, ``seed``, ``n_envs``, ``workers``,
         ``deterministic``, ``record``, ``env_overrides``); ``episodes`` and ``stage`` default to the evaluation protocol
-        of the target's set-up (the thesis's: stage 3, 500 episodes in chapter 4, 200 in chapter 5)
-    :param preset: the set-up of a ``controller:`` target
+        of the target's recipe (the thesis's: stage 3, 500 episodes in chapter 4, 200 in chapter 5)
+    :param recipe: the recipe of a ``controller:`` target
     :param device: torch device
     :param progress_bar: show a progress bar
     :param out: folder for the files (default: :func:`~sb3_formation.experiment.targets.evaluation_folder`)
     """
     protocol = {key: value for key, value in (protocol or {}).items() if value is not None}
-    policy = load_policy(target, preset=preset, device=device)
-    protocol = {**default_protocol(target, preset), **protocol}
+    policy = load_policy(target, recipe=recipe, device=device)
+    protocol = {**default_protocol(target, recipe), **protocol}
     if "episodes" not in protocol:
-        raise ValueError(f"{target} belongs to no run folder whose set-up gives the number of episodes: give --episodes")
+        raise ValueError(f"{target} belongs to no run folder whose recipe gives the number of episodes: give --episodes")
     if "workers" in protocol:
         protocol["n_workers"] = protocol.pop("workers")
     result = evaluate(policy, progress_bar=progress_bar, **protocol)
-    result.save(out or evaluation_folder(target, preset))
+    result.save(out or evaluation_folder(target, recipe))
     return result
 
 
-def load_summary(target: str | os.PathLike[str], preset: str | None = None) -> dict[str, Any]:
+def load_summary(target: str | os.PathLike[str], recipe: str | None = None) -> dict[str, Any]:
     """The stored evaluation summary of a target (see :func:`~sb3_formation.experiment.targets.evaluation_file`).
 
     :raises FileNotFoundError: none was written
     :raises ValueError: the file is not an evaluation summary
     """
-    path = evaluation_file(target, SUMMARY_FILE, preset)
+    path = evaluation_file(target, SUMMARY_FILE, recipe)
     try:
         summary = json.loads(path.read_text())
     except json.JSONDecodeError as error:
@@ -228,12 +228,12 @@ def load_summary(target: str | os.PathLike[str], preset: str | None = None) -> d
     return summary
 
 
-def stored_summary(target: str | os.PathLike[str], protocol: dict[str, Any], preset: str | None = None) -> dict | None:
+def stored_summary(target: str | os.PathLike[str], protocol: dict[str, Any], recipe: str | None = None) -> dict | None:
     """The target's stored evaluation summary if it is of the same policy (the model file's SHA-256, or the controller
     and its gains) under ``protocol`` (summary keys such as ``episodes``, ``stage``, ``seed``), else ``None``."""
     try:
-        summary = load_summary(target, preset)
-        identity = policy_identity(load_policy(target, preset, device="cpu"))
+        summary = load_summary(target, recipe)
+        identity = policy_identity(load_policy(target, recipe, device="cpu"))
     except (FileNotFoundError, ValueError):
         return None
     same_policy = identity is not None and summary.get("model") == identity

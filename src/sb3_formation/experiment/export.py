@@ -72,7 +72,7 @@ def export_pretrained(
         result.save((folder / SUMMARY_PATH).parent)
         card = {
             "name": name,
-            "setup": settings.preset,
+            "setup": settings.recipe,
             "n_agents": settings.config().n_agents,
             "team_sizes": sorted(set(settings.resolved_team_sizes())),
             "seed": settings.seed,

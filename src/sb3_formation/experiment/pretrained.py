@@ -4,8 +4,8 @@ A shipped policy is a trimmed run folder in ``sb3_formation/pretrained/<name>/``
 
 - ``final_model.zip``: the trained model without its optimiser state and last rollout (what acting does not need);
 - ``final_normalizer.npz``: the observation normaliser's frozen statistics;
-- ``config.yaml``: the run's resolved settings (set-up, task configuration, PPO settings);
-- ``eval/summary.json`` and ``eval/episodes.csv``: the evaluation of this very model file on its set-up's protocol
+- ``config.yaml``: the run's resolved settings (recipe, task configuration, PPO settings);
+- ``eval/summary.json`` and ``eval/episodes.csv``: the evaluation of this very model file on its recipe's protocol
   (the thesis's: stage 3, fixed seeds from 0; 500 episodes in chapter 4, 200 in chapter 5);
 - ``card.json``: how it was made (the training command, seed, wall time, agent-steps, package and library versions).
 
@@ -26,8 +26,8 @@ import torch
 
 from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.experiment.recipes import load_recipe
 from sb3_formation.experiment.runs import load_trained
-from sb3_formation.experiment.setups import load_setup
 
 #: Where the shipped policies live (package data).
 PRETRAINED_DIR = Path(__file__).resolve().parent.parent / "pretrained"
@@ -90,7 +90,7 @@ def numerics_fingerprint() -> str:
 def check_task(name: str, trained: FormationConfig, wanted: FormationConfig, where: str, any_team_size: bool) -> None:
     """Refuse to act in a task other than the one a shipped policy was trained for.
 
-    :param where: what asked for ``wanted`` (e.g. ``preset ch4-team``), for the message
+    :param where: what asked for ``wanted`` (e.g. ``recipe ch4-team``), for the message
     :param any_team_size: the policy was trained on teams of several sizes, so ``n_agents`` may differ
     :raises ValueError: naming every differing field
     """
@@ -103,21 +103,21 @@ def check_task(name: str, trained: FormationConfig, wanted: FormationConfig, whe
     if differences:
         raise ValueError(
             f"pretrained:{name} was not trained for {where}: {'; '.join(differences)}; "
-            f"evaluate it without --preset (its own task) or train a policy for that task"
+            f"evaluate it without --recipe (its own task) or train a policy for that task"
         )
 
 
-def load_pretrained(name: str, preset: str | None = None, device: str = "cpu", root: Path = PRETRAINED_DIR) -> TeamPolicy:
+def load_pretrained(name: str, recipe: str | None = None, device: str = "cpu", root: Path = PRETRAINED_DIR) -> TeamPolicy:
     """A shipped policy, ready to act (a :class:`~sb3_formation.sb3.trained.TrainedPolicy`, or a residual policy
     around one).
 
     :param name: one of :func:`pretrained_names` (``sb3-formation pretrained`` lists them)
-    :param preset: a set-up whose task it must act in; refused unless it is the task the policy was trained for
+    :param recipe: a recipe whose task it must act in; refused unless it is the task the policy was trained for
     :param device: torch device
-    :raises ValueError: an unknown name, or a preset of another task
+    :raises ValueError: an unknown name, or a recipe of another task
     """
     policy = load_trained(pretrained_folder(name, root), device=device)
-    if preset is not None:
+    if recipe is not None:
         sizes = pretrained_card(name, root).get("team_sizes", [policy.config.n_agents])
-        check_task(name, policy.config, load_setup(preset).config(), f"preset {preset}", len(sizes) > 1)
+        check_task(name, policy.config, load_recipe(recipe).config(), f"recipe {recipe}", len(sizes) > 1)
     return policy

@@ -1,7 +1,7 @@
 """Run folders and their artefacts: file names, saving a model with its normalisers, finding checkpoints, and loading
 a trained model as a :class:`~sb3_formation.sb3.trained.TrainedPolicy`.
 
-A run folder ``runs/<preset>_<n>a_s<seed>_<timestamp>/`` holds ``config.yaml`` (the resolved settings),
+A run folder ``runs/<recipe>_<n>a_s<seed>_<timestamp>/`` holds ``config.yaml`` (the resolved settings),
 ``command.txt``, ``tensorboard/`` (events), ``checkpoints/iteration_<k>/`` (``model.zip``, ``normalizer.npz``, with
 reward normalisation ``reward_normalizer.npz``, and ``state.json``), at the end ``final_model.zip`` with
 ``final_normalizer.npz`` (and ``final_reward_normalizer.npz``), and with periodic evaluation ``best_model.zip`` with
@@ -22,7 +22,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecNormalize
 
 from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.env.config import FormationConfig
-from sb3_formation.experiment.setups import residual_policy
+from sb3_formation.experiment.recipes import residual_policy
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
 from sb3_formation.sb3.trained import TrainedPolicy
@@ -148,5 +148,5 @@ def load_trained(path: str | os.PathLike[str], device: str = "auto") -> TeamPoli
     normalizer_state = read_arrays(normalizer_path, "a normaliser file")
     team_sizes = tuple(getattr(model, "team_sizes", None) or ())  # files saved before mixed teams: the config's
     trained = TrainedPolicy(model, config, normalizer_state, source=model_path, team_sizes=team_sizes)
-    residual = getattr(model, "residual", None)  # a correction of a controller (a set-up's residual)
+    residual = getattr(model, "residual", None)  # a correction of a controller (a recipe's residual)
     return residual_policy(residual, trained) if residual else trained

@@ -1,5 +1,5 @@
 """Run settings: the one place where the options of ``sb3-formation train`` (and the keys of its YAML files) are
-declared, and the layering set-up -> YAML file -> flags as a function a notebook can call.
+declared, and the layering recipe -> YAML file -> flags as a function a notebook can call.
 
 Each field of :class:`TrainSettings` carries its command-line flag in its metadata (see :func:`option`); the CLI builds
 its parser from them, so a new setting is one new field.
@@ -19,13 +19,14 @@ from typing import Any
 import torch
 
 from sb3_formation.env.config import FormationConfig
-from sb3_formation.experiment.setups import DEFAULT_SETUP, SetUp, load_setup, with_schedules
+from sb3_formation.experiment.recipes import DEFAULT_RECIPE, Recipe, load_recipe, with_schedules
 from sb3_formation.utils.checks import is_count, is_number
+from sb3_formation.utils.deprecation import warn_renamed
 from sb3_formation.utils.yaml_files import read_yaml
 
 #: Keys of a run's ``evaluation:`` settings (arguments of :func:`~sb3_formation.experiment.evaluation.evaluate`).
 EVALUATION_KEYS = frozenset({"episodes", "stage", "seed", "n_envs", "workers", "deterministic", "record"})
-#: PPO settings a run may override (``ppo:`` in YAML), beyond those its set-up gives.
+#: PPO settings a run may override (``ppo:`` in YAML), beyond those its recipe gives.
 PPO_OVERRIDABLE = frozenset(
     {
         "n_steps",
@@ -136,9 +137,9 @@ def check_seed(name: str, value: Any) -> None:
 class TrainSettings:
     """Everything a training run needs; the ``sb3-formation train`` options and the keys of its YAML file.
 
-    Every setting left ``None`` takes its set-up's value (``preset``: see :mod:`~sb3_formation.experiment.setups`).
+    Every setting left ``None`` takes its recipe's value (``recipe``: see :mod:`~sb3_formation.experiment.recipes`).
 
-    :param preset: set-up name (``sb3-formation presets``) or the path of a set-up YAML file
+    :param recipe: recipe name (``sb3-formation recipes``) or the path of a recipe YAML file
     :param iterations: PPO iterations of curriculum stages 1, 2, 3
     :param n_envs: parallel teams
     :param workers: processes stepping the teams, this one included (the others are worker processes)
@@ -149,7 +150,7 @@ class TrainSettings:
     :param success_threshold: end curriculum stages 1-2 early at this rolling success rate
     :param progress_bar: show a progress bar
     :param seeds: the seeds of an experiment (``sb3-formation sweep`` trains one run per seed; ``train`` uses ``seed``)
-    :param team_sizes: team sizes taken in turn (default: the set-up's ``team_sizes``; an ``n_agents`` in ``env``, e.g.
+    :param team_sizes: team sizes taken in turn (default: the recipe's ``team_sizes``; an ``n_agents`` in ``env``, e.g.
         ``--agents``, gives every team that size); a run's ``config.yaml`` records them resolved
     :param evaluation: evaluate the final model with these :func:`~sb3_formation.experiment.evaluation.evaluate`
         settings (``episodes``, ``stage``, ``seed``, ``n_envs``, ``workers``, ``deterministic``, ``record``) into ``eval/``
@@ -158,26 +159,26 @@ class TrainSettings:
     :param steps: budget in agent-steps (rounded up to whole iterations), split between the stages in the
         proportions of the curriculum's iterations; schedules run over the budget
     :param minutes: budget in minutes of training wall-clock (not deterministic). Without ``steps`` and ``iterations``
-        it replaces the set-up's budget: stages 1 and 2 end at their shares of the time in the curriculum's
+        it replaces the recipe's budget: stages 1 and 2 end at their shares of the time in the curriculum's
         proportions (:meth:`stage_time_shares`) and stage 3 runs until the time is up; with them, training ends at
         whichever budget runs out first. Schedules run over whichever is further along (see
         :class:`~sb3_formation.sb3.callbacks.ClockedSchedule`)
     :param normalize_reward: divide rewards by a running std of the discounted return (SB3's ``VecNormalize``)
     :param eval_every: evaluate the deterministic policy on fixed-seed stage-3 episodes every this many iterations,
         log ``eval/*`` and keep ``best_model.zip``
-    :param env: :class:`FormationConfig` fields overriding the set-up's (e.g. ``n_agents``)
-    :param ppo: ``PPO`` keyword arguments overriding the set-up's (e.g. ``learning_rate``)
+    :param env: :class:`FormationConfig` fields overriding the recipe's (e.g. ``n_agents``)
+    :param ppo: ``PPO`` keyword arguments overriding the recipe's (e.g. ``learning_rate``)
     """
 
-    preset: str = field(
-        default=DEFAULT_SETUP,
-        metadata=option("set-up: a name listed by `sb3-formation presets` or a set-up YAML file (overrides --reward)"),
+    recipe: str = field(
+        default=DEFAULT_RECIPE,
+        metadata=option("recipe: a name listed by `sb3-formation recipes` or a recipe YAML file (overrides --reward)"),
     )
     iterations: tuple[int, int, int] | None = field(
         default=None,
-        metadata=option("PPO iterations of stages 1,2,3 (default: the set-up's)", type=stage_iterations, metavar="A,B,C"),
+        metadata=option("PPO iterations of stages 1,2,3 (default: the recipe's)", type=stage_iterations, metavar="A,B,C"),
     )
-    n_envs: int | None = field(default=None, metadata=option("parallel teams (default: the set-up's)", type=positive_int))
+    n_envs: int | None = field(default=None, metadata=option("parallel teams (default: the recipe's)", type=positive_int))
     workers: int = field(
         default=1, metadata=option("processes stepping the teams, this one included (default 1)", type=positive_int)
     )
@@ -198,25 +199,25 @@ class TrainSettings:
     evaluation: dict[str, Any] | None = None
     recurrent: bool | None = field(
         default=None,
-        metadata=option("recurrent actor and critic (default: the set-up's)", action=argparse.BooleanOptionalAction),
+        metadata=option("recurrent actor and critic (default: the recipe's)", action=argparse.BooleanOptionalAction),
     )
-    cell: str | None = field(default=None, metadata=option("recurrent cell (default: the set-up's)", choices=("gru", "lstm")))
+    cell: str | None = field(default=None, metadata=option("recurrent cell (default: the recipe's)", choices=("gru", "lstm")))
     steps: int | None = field(
-        default=None, metadata=option("budget in agent-steps (default: the set-up's, else its iterations)", type=positive_int)
+        default=None, metadata=option("budget in agent-steps (default: the recipe's, else its iterations)", type=positive_int)
     )
     minutes: float | None = field(
         default=None,
-        metadata=option("budget in minutes of training wall-clock (replaces the set-up's budget)", type=positive_float),
+        metadata=option("budget in minutes of training wall-clock (replaces the recipe's budget)", type=positive_float),
     )
     normalize_reward: bool | None = field(
         default=None,
         metadata=option(
-            "normalise rewards by a running return std (default: the set-up's)", action=argparse.BooleanOptionalAction
+            "normalise rewards by a running return std (default: the recipe's)", action=argparse.BooleanOptionalAction
         ),
     )
     eval_every: int | None = field(
         default=None,
-        metadata=option("evaluate every K iterations, keep best_model.zip (default: the set-up's)", type=positive_int),
+        metadata=option("evaluate every K iterations, keep best_model.zip (default: the recipe's)", type=positive_int),
     )
     env: dict[str, Any] = field(
         default_factory=dict,
@@ -237,11 +238,11 @@ class TrainSettings:
             raise ValueError(f"ppo: policy_kwargs must be a mapping, got {self.ppo['policy_kwargs']!r}")
         check_device(self.device)
         check_seed("seed", self.seed)
-        setup = self.setup()  # validates the preset
+        setup = self.recipe_record()  # validates the recipe
         self.config()  # validates the env overrides
         threshold = self.success_threshold
         if threshold is not None and not (is_number(threshold) and 0 <= threshold <= 1):
-            raise ValueError(f"success_threshold must be a number in [0, 1] or null (the set-up's), got {threshold!r}")
+            raise ValueError(f"success_threshold must be a number in [0, 1] or null (the recipe's), got {threshold!r}")
         if self.minutes is not None and not (is_number(self.minutes) and self.minutes > 0):
             raise ValueError(f"minutes must be a finite number > 0, got {self.minutes!r}")
         if self.iterations is not None:
@@ -285,10 +286,10 @@ class TrainSettings:
             if unknown is None or unknown:
                 raise ValueError(f"evaluation must map some of {sorted(EVALUATION_KEYS)} to values, got {self.evaluation!r}")
         if self.recurrent not in (None, True, False):
-            raise ValueError(f"recurrent must be true, false or null (the set-up's), got {self.recurrent!r}")
+            raise ValueError(f"recurrent must be true, false or null (the recipe's), got {self.recurrent!r}")
         with_schedules(self.ppo_kwargs())  # validates recurrent, cell, the policy and the schedules
         if self.normalize_reward not in (None, True, False):
-            raise ValueError(f"normalize_reward must be true, false or null (the set-up's), got {self.normalize_reward!r}")
+            raise ValueError(f"normalize_reward must be true, false or null (the recipe's), got {self.normalize_reward!r}")
         self.resolved_iterations()  # validates the budget against the curriculum
         if self.cell is not None and not self.resolved_recurrent():
             raise ValueError(f"cell {self.cell!r} applies to recurrent policies only; this run's policy is an MLP")
@@ -303,13 +304,14 @@ class TrainSettings:
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> TrainSettings:
         """Settings from a mapping (e.g. a YAML file); unknown keys are errors that list the valid ones."""
+        values = with_current_keys(values)
         unknown = sorted(set(values) - set(cls.field_names()))
         if unknown:
             raise ValueError(f"unknown setting(s) {unknown}; valid: {list(cls.field_names())}")
         return cls(**values)
 
     def to_dict(self) -> dict[str, Any]:
-        """Every setting resolved (set-up values filled in, every env field and PPO setting) as plain YAML data."""
+        """Every setting resolved (recipe values filled in, every env field and PPO setting) as plain YAML data."""
         values = dataclasses.asdict(self)
         values["iterations"] = list(self.resolved_iterations())
         values["n_envs"] = self.resolved_n_envs()
@@ -324,20 +326,20 @@ class TrainSettings:
         values["ppo"]["policy_kwargs"].pop("cell", None)  # written once, as the top-level cell
         return values
 
-    def setup(self) -> SetUp:
-        """The run's set-up."""
-        return load_setup(self.preset)
+    def recipe_record(self) -> Recipe:
+        """The run's recipe."""
+        return load_recipe(self.recipe)
 
     def config(self) -> FormationConfig:
         """The task configuration of this run."""
-        return self.setup().config(**self.env)
+        return self.recipe_record().config(**self.env)
 
     def resolved_iterations(self) -> tuple[int, int, int | None]:
-        """Iterations per stage: the set-up's unless given; with a steps budget, the budget's iterations (rounded up)
+        """Iterations per stage: the recipe's unless given; with a steps budget, the budget's iterations (rounded up)
         split in the curriculum's proportions (:meth:`curriculum_proportions`; stage 3 gets what stages 1-2 leave);
         with only a time budget stage 3 is open-ended (``None``) and stages 1-2 end at shares of the time
         (:meth:`stage_time_shares`)."""
-        iterations = self.iterations if self.iterations is not None else self.setup().iterations
+        iterations = self.iterations if self.iterations is not None else self.recipe_record().iterations
         budget = self.resolved_training("steps")
         if budget is None:
             if self.minutes is not None and self.iterations is None:
@@ -351,9 +353,9 @@ class TrainSettings:
     def curriculum_proportions(self) -> tuple[int, int, int]:
         """The curriculum's iterations per stage as proportions, e.g. 5000 : 5000 : 15000 (thesis 5.3), which a steps
         budget and a time budget split in the same ratio (20, 20 and 60 %); an open-ended stage 3 counts as the
-        set-up's."""
-        first, second, third = self.iterations if self.iterations is not None else self.setup().iterations
-        return first, second, self.setup().iterations[2] if third is None else third
+        recipe's."""
+        first, second, third = self.iterations if self.iterations is not None else self.recipe_record().iterations
+        return first, second, self.recipe_record().iterations[2] if third is None else third
 
     def stage_time_shares(self) -> tuple[float, float] | None:
         """With a time budget alone (stage 3 open-ended): the fractions of it after which stages 1 and 2 end, in the
@@ -370,11 +372,11 @@ class TrainSettings:
         return None if self.minutes is None else 60.0 * self.minutes
 
     def resolved_team_sizes(self) -> list[int]:
-        """The team sizes taken in turn: as given, else the set-up's, else (or with an ``n_agents`` in ``env``) the
+        """The team sizes taken in turn: as given, else the recipe's, else (or with an ``n_agents`` in ``env``) the
         task's ``n_agents``."""
         if self.team_sizes is not None:
             return list(self.team_sizes)
-        sizes = self.setup().team_sizes
+        sizes = self.recipe_record().team_sizes
         return [self.config().n_agents] if sizes is None or "n_agents" in self.env else list(sizes)
 
     def steps_per_iteration(self) -> int:
@@ -383,34 +385,34 @@ class TrainSettings:
         return self.ppo_kwargs()["n_steps"] * sum(sizes[team % len(sizes)] for team in range(self.resolved_n_envs()))
 
     def resolved_training(self, name: str) -> Any:
-        """A training feature (see :data:`~sb3_formation.experiment.setups.TRAINING_DEFAULTS`): this run's, else the
-        set-up's."""
+        """A training feature (see :data:`~sb3_formation.experiment.recipes.TRAINING_DEFAULTS`): this run's, else the
+        recipe's."""
         value = getattr(self, name, None)
         if value is not None:
             return value
         if name == "steps" and self.minutes is not None:
-            return None  # a time budget replaces the set-up's step budget
-        return self.setup().training_option(name)
+            return None  # a time budget replaces the recipe's step budget
+        return self.recipe_record().training_option(name)
 
     def resolved_n_envs(self) -> int:
-        """Number of teams, the set-up's unless given."""
-        return self.n_envs if self.n_envs is not None else self.setup().teams
+        """Number of teams, the recipe's unless given."""
+        return self.n_envs if self.n_envs is not None else self.recipe_record().n_envs
 
     def resolved_success_threshold(self) -> float | None:
-        """Success rate ending stages 1-2 early, the set-up's unless given."""
-        return self.success_threshold if self.success_threshold is not None else self.setup().success_threshold
+        """Success rate ending stages 1-2 early, the recipe's unless given."""
+        return self.success_threshold if self.success_threshold is not None else self.recipe_record().success_threshold
 
     def resolved_recurrent(self) -> bool:
-        """Whether the policy is recurrent: as given, else the set-up's choice."""
-        return self.recurrent if self.recurrent is not None else self.setup().recurrent
+        """Whether the policy is recurrent: as given, else the recipe's choice."""
+        return self.recurrent if self.recurrent is not None else self.recipe_record().recurrent
 
     def resolved_evaluation(self) -> dict[str, Any]:
-        """The evaluation protocol: the set-up's, then this run's ``evaluation`` settings."""
-        return {**self.setup().evaluation, **(self.evaluation or {})}
+        """The evaluation protocol: the recipe's, then this run's ``evaluation`` settings."""
+        return {**self.recipe_record().evaluation, **(self.evaluation or {})}
 
     def ppo_kwargs(self) -> dict[str, Any]:
-        """``PPO`` keyword arguments: the set-up's, then the overrides."""
-        kwargs = self.setup().ppo_kwargs(self.config(), self.recurrent, self.cell)
+        """``PPO`` keyword arguments: the recipe's, then the overrides."""
+        kwargs = self.recipe_record().ppo_kwargs(self.config(), self.recurrent, self.cell)
         overrides = dict(self.ppo)
         kwargs["policy_kwargs"] = {**kwargs["policy_kwargs"], **overrides.pop("policy_kwargs", {})}
         kwargs.update(overrides)
@@ -426,12 +428,22 @@ def _plain(value: Any) -> Any:
     return value
 
 
-def reduce_to_overrides(values: dict[str, Any]) -> dict[str, Any]:
-    """A settings mapping whose ``env:`` and ``ppo:`` keep only what differs from its own set-up's values.
+def with_current_keys(values: dict[str, Any]) -> dict[str, Any]:
+    """A settings mapping with the key of earlier releases renamed, with a warning: ``preset`` -> ``recipe`` (run
+    folders and YAML files written before recipes had their name)."""
+    if "preset" not in values or "recipe" in values:
+        return values
+    warn_renamed("the settings key preset:", "recipe:", stacklevel=4)
+    return {("recipe" if key == "preset" else key): value for key, value in values.items()}
 
-    A run's ``config.yaml`` holds every resolved value; reduced, it can be reused with another set-up or team size
-    (``--config old/config.yaml --reward bearing``) without pinning the old set-up's coefficients.
+
+def reduce_to_overrides(values: dict[str, Any]) -> dict[str, Any]:
+    """A settings mapping whose ``env:`` and ``ppo:`` keep only what differs from its own recipe's values.
+
+    A run's ``config.yaml`` holds every resolved value; reduced, it can be reused with another recipe or team size
+    (``--config old/config.yaml --reward bearing``) without pinning the old recipe's coefficients.
     """
+    values = with_current_keys(values)
     ppo = values.get("ppo") or {}
     if not (
         isinstance(values.get("env") or {}, dict)
@@ -440,7 +452,7 @@ def reduce_to_overrides(values: dict[str, Any]) -> dict[str, Any]:
     ):
         return values  # reported by TrainSettings
     try:
-        setup = load_setup(values.get("preset", DEFAULT_SETUP))
+        setup = load_recipe(values.get("recipe", DEFAULT_RECIPE))
         defaults = _plain(dataclasses.asdict(setup.config()))
         env = {name: value for name, value in (values.get("env") or {}).items() if defaults.get(name) != _plain(value)}
         config = setup.config(**env)
@@ -476,7 +488,7 @@ def read_settings_file(path: str | os.PathLike[str]) -> dict[str, Any]:
 
 
 def layered_settings(config_file: str | os.PathLike[str] | None = None, **flags: Any) -> TrainSettings:
-    """Settings layered as ``sb3-formation train`` layers them: the set-up, then a YAML file, then ``flags``.
+    """Settings layered as ``sb3-formation train`` layers them: the recipe, then a YAML file, then ``flags``.
 
     :param config_file: a YAML file of settings (a run's ``config.yaml`` or an experiment), or ``None``
     :param flags: settings that override the file (``None`` values are ignored); ``env`` is merged field by field into

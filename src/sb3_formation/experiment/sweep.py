@@ -65,7 +65,7 @@ class SweepResult:
     """What :func:`sweep` did.
 
     :param folder: the experiment's folder (run folders and aggregate files)
-    :param label: the experiment's name and set-up, e.g. for a figure's legend
+    :param label: the experiment's name and recipe, e.g. for a figure's legend
     :param trials: per seed: ``status`` ("skipped", "trained" or "failed"), ``run_dir``, ``summary`` or ``error``
     """
 
@@ -162,7 +162,7 @@ def sweep(
     try:
         task = ray.remote(num_cpus=cpus_per_trial, max_retries=0)(run_trial)
         limit = max_concurrent or max(1, math.floor(ray.cluster_resources().get("CPU", 1) / cpus_per_trial))
-        result = SweepResult(folder, f"{Path(experiment).stem} ({settings.preset})")
+        result = SweepResult(folder, f"{Path(experiment).stem} ({settings.recipe})")
         waiting = list(trials.items())
         while waiting or running:
             while waiting and len(running) < limit:

@@ -2,9 +2,9 @@
 
 - a run folder (its final model, else its latest checkpoint) or a model ``.zip`` (normaliser statistics beside it);
 - ``controller:<name>``: a hand-written controller of :data:`~sb3_formation.controllers.CONTROLLERS`, acting in the
-  task of the set-up given as ``preset`` (default ``ch5-bearing``);
+  task of the recipe given as ``recipe`` (default ``ch5-bearing``);
 - ``pretrained:<name>``: a policy shipped with the package (:mod:`~sb3_formation.experiment.pretrained`), acting in
-  the task it was trained for (a ``preset`` of another task is refused).
+  the task it was trained for (a ``recipe`` of another task is refused).
 
 ``evaluate``, ``render``, ``plot`` and ``compare`` of the command line and :func:`load_policy` in Python resolve targets
 here; a new kind of target is a new entry of :data:`TARGET_KINDS`.
@@ -20,36 +20,37 @@ from pathlib import Path
 from sb3_formation.controllers import CONTROLLERS
 from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.experiment.pretrained import load_pretrained, pretrained_folder
+from sb3_formation.experiment.recipes import DEFAULT_RECIPE, load_recipe
 from sb3_formation.experiment.runs import load_trained
 from sb3_formation.experiment.settings import load_settings
-from sb3_formation.experiment.setups import DEFAULT_SETUP, load_setup
+from sb3_formation.utils.deprecation import warn_renamed
 
 
 @dataclass(frozen=True)
 class TargetKind:
     """What a ``<kind>:<name>`` target is.
 
-    :param load: (name, preset, device) -> the policy
-    :param setup: (name, preset) -> the set-up whose evaluation protocol and task the target is evaluated in
+    :param load: (name, recipe, device) -> the policy
+    :param setup: (name, recipe) -> the recipe whose evaluation protocol and task the target is evaluated in
     """
 
     load: Callable[[str, str | None, str], TeamPolicy]
     setup: Callable[[str, str | None], str]
 
 
-def _controller(name: str, preset: str | None, device: str) -> TeamPolicy:
+def _controller(name: str, recipe: str | None, device: str) -> TeamPolicy:
     if name not in CONTROLLERS:
         raise ValueError(f"unknown controller {name!r}; controllers: {', '.join(sorted(CONTROLLERS))}")
-    return CONTROLLERS[name](load_setup(preset or DEFAULT_SETUP).config())
+    return CONTROLLERS[name](load_recipe(recipe or DEFAULT_RECIPE).config())
 
 
-def _pretrained_setup(name: str, preset: str | None) -> str:
-    return preset or load_settings(pretrained_folder(name)).preset
+def _pretrained_setup(name: str, recipe: str | None) -> str:
+    return recipe or load_settings(pretrained_folder(name)).recipe
 
 
 #: Target kinds written ``<kind>:<name>``.
 TARGET_KINDS: dict[str, TargetKind] = {
-    "controller": TargetKind(_controller, lambda name, preset: preset or DEFAULT_SETUP),
+    "controller": TargetKind(_controller, lambda name, recipe: recipe or DEFAULT_RECIPE),
     "pretrained": TargetKind(load_pretrained, _pretrained_setup),
 }
 
@@ -60,19 +61,25 @@ def target_kind(target: str | os.PathLike[str]) -> str | None:
     return kind if separator and kind in TARGET_KINDS else None
 
 
-def load_policy(target: str | os.PathLike[str], preset: str | None = None, device: str = "auto") -> TeamPolicy:
+def load_policy(
+    target: str | os.PathLike[str], recipe: str | None = None, device: str = "auto", preset: str | None = None
+) -> TeamPolicy:
     """The policy a target names.
 
     :param target: a run folder, a model ``.zip``, or ``<kind>:<name>`` (e.g. ``controller:random``)
-    :param preset: for ``controller:`` targets, the set-up whose task the controller acts in (default ``ch5-bearing``);
+    :param recipe: for ``controller:`` targets, the recipe whose task the controller acts in (default ``ch5-bearing``);
         a trained model acts in the task it was trained in, so a run takes none and ``pretrained:`` refuses another
     :param device: torch device of a trained model
+    :param preset: the old name of ``recipe`` (warns)
     """
+    if preset is not None:
+        warn_renamed("load_policy(preset=...)", "load_policy(recipe=...)")
+        recipe = preset
     kind = target_kind(target)
     if kind is not None:
-        return TARGET_KINDS[kind].load(str(target).partition(":")[2], preset, device)
-    if preset is not None:
-        raise ValueError(f"a preset applies to controller targets only; {target} acts in the task it was trained in")
+        return TARGET_KINDS[kind].load(str(target).partition(":")[2], recipe, device)
+    if recipe is not None:
+        raise ValueError(f"a recipe applies to controller targets only; {target} acts in the task it was trained in")
     return load_trained(Path(target), device=device)
 
 
@@ -87,12 +94,12 @@ def run_folder(target: str | os.PathLike[str]) -> Path | None:
     return None
 
 
-def default_protocol(target: str | os.PathLike[str], preset: str | None = None) -> dict:
-    """``episodes`` and ``stage`` of the evaluation protocol of a target's set-up (the run's, with its ``evaluation``
+def default_protocol(target: str | os.PathLike[str], recipe: str | None = None) -> dict:
+    """``episodes`` and ``stage`` of the evaluation protocol of a target's recipe (the run's, with its ``evaluation``
     settings; a ``<kind>:<name>`` target's :attr:`TargetKind.setup`); empty for a model file outside any run folder."""
     kind = target_kind(target)
     if kind is not None:
-        return dict(load_setup(TARGET_KINDS[kind].setup(str(target).partition(":")[2], preset)).evaluation)
+        return dict(load_recipe(TARGET_KINDS[kind].setup(str(target).partition(":")[2], recipe)).evaluation)
     folder = run_folder(target)
     if folder is None:
         return {}
@@ -100,24 +107,24 @@ def default_protocol(target: str | os.PathLike[str], preset: str | None = None) 
     return {key: evaluation[key] for key in ("episodes", "stage") if key in evaluation}
 
 
-def evaluation_folder(target: str | os.PathLike[str], preset: str | None = None) -> Path:
+def evaluation_folder(target: str | os.PathLike[str], recipe: str | None = None) -> Path:
     """Where the evaluation files of a target go by default: ``eval/`` in its run folder (or beside a model file), and
-    ``evaluations/<kind>-<name>_<set-up>/`` in the working folder for a ``<kind>:<name>`` target."""
+    ``evaluations/<kind>-<name>_<recipe>/`` in the working folder for a ``<kind>:<name>`` target."""
     kind = target_kind(target)
     if kind is not None:
         name = str(target).partition(":")[2]
-        return Path("evaluations") / f"{kind}-{name}_{Path(TARGET_KINDS[kind].setup(name, preset)).stem}"
+        return Path("evaluations") / f"{kind}-{name}_{Path(TARGET_KINDS[kind].setup(name, recipe)).stem}"
     path = Path(target)
     return (path if path.is_dir() else path.parent) / "eval"
 
 
-def evaluation_file(target: str | os.PathLike[str], name: str, preset: str | None = None) -> Path:
+def evaluation_file(target: str | os.PathLike[str], name: str, recipe: str | None = None) -> Path:
     """The evaluation file ``name`` (e.g. ``summary.json``) of a target: the file itself, in an eval folder, in a run
     folder's ``eval/``, or in a ``<kind>:<name>`` target's :func:`evaluation_folder`.
 
     :raises FileNotFoundError: there is none (the message says how to make it)
     """
-    folder = evaluation_folder(target, preset) if target_kind(target) is not None else Path(target)
+    folder = evaluation_folder(target, recipe) if target_kind(target) is not None else Path(target)
     for candidate in (folder, folder / name, (folder if folder.is_dir() else folder.parent) / "eval" / name):
         if candidate.is_file() and candidate.name == name:
             return candidate

@@ -1,5 +1,5 @@
 """Training runs: atomic checkpoints, periodic evaluation, stopping on signals, resuming (the settings of a run are in
-:mod:`~sb3_formation.experiment.settings`, its recipe in :mod:`~sb3_formation.experiment.setups`, its folder's files
+:mod:`~sb3_formation.experiment.settings`, its recipe in :mod:`~sb3_formation.experiment.recipes`, its folder's files
 in :mod:`~sb3_formation.experiment.runs`)."""
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from stable_baselines3.common.vec_env import VecEnv, unwrap_vec_wrapper
 
 from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.experiment.evaluation import evaluate
+from sb3_formation.experiment.recipes import residual_base, residual_policy, with_schedules
 from sb3_formation.experiment.runs import (
     BEST_MODEL,
     BEST_NORMALIZER,
@@ -41,7 +42,6 @@ from sb3_formation.experiment.runs import (
     saved_algorithm,
 )
 from sb3_formation.experiment.settings import TrainSettings, load_settings
-from sb3_formation.experiment.setups import residual_base, residual_policy, with_schedules
 from sb3_formation.sb3.callbacks import (
     CollectionThreadsCallback,
     CurriculumCallback,
@@ -124,7 +124,7 @@ class RunCheckpointCallback(BaseCallback):
 PERIODIC_EVALUATION_SEED = 1_000_000
 #: File beside ``best_model.zip`` holding the evaluation that made it the best.
 BEST_EVALUATION = "best_evaluation.json"
-#: Per-round records of the imitation pretraining (set-ups with an ``imitation`` block).
+#: Per-round records of the imitation pretraining (recipes with an ``imitation`` block).
 IMITATION_FILE = "imitation.json"
 
 
@@ -237,7 +237,7 @@ def make_training_env(settings: TrainSettings, stage: int, normalizer_path: Path
         team_sizes=settings.resolved_team_sizes(),
     )
     dim, mask = venv.agent_observation_dim, venv.binary_observation_mask
-    residual = settings.setup().residual
+    residual = settings.recipe_record().residual
     if residual:  # the controller acts on the raw observations, below the normaliser
         venv = ResidualVecEnv(venv, *residual_base(residual, config))
     if normalizer_path is None:
@@ -251,9 +251,9 @@ def make_training_env(settings: TrainSettings, stage: int, normalizer_path: Path
 
 
 def new_run_dir(settings: TrainSettings) -> Path:
-    """A fresh folder ``<logdir>/<preset>_<n>a_s<seed>_<timestamp>`` (``-2``, ``-3``, ... if taken)."""
+    """A fresh folder ``<logdir>/<recipe>_<n>a_s<seed>_<timestamp>`` (``-2``, ``-3``, ... if taken)."""
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    base = Path(settings.logdir) / f"{settings.preset}_{settings.config().n_agents}a_s{settings.seed}_{stamp}"
+    base = Path(settings.logdir) / f"{settings.recipe}_{settings.config().n_agents}a_s{settings.seed}_{stamp}"
     base.parent.mkdir(parents=True, exist_ok=True)
     for suffix in range(1, 1000):
         run_dir = base if suffix == 1 else base.with_name(f"{base.name}-{suffix}")
@@ -273,7 +273,7 @@ def train(settings: TrainSettings, command: str | None = None, run_dir: str | os
 
     :param settings: the run's settings
     :param command: the command line to record in ``command.txt`` (default: this process's)
-    :param run_dir: a new or empty folder (default: a new ``<logdir>/<preset>_<n>a_s<seed>_<time>``); it is locked
+    :param run_dir: a new or empty folder (default: a new ``<logdir>/<recipe>_<n>a_s<seed>_<time>``); it is locked
         (:func:`~sb3_formation.utils.files.folder_lock`) while the run trains
     :raises ValueError: ``run_dir`` holds something already (a run: continue it with :func:`resume`)
     :raises RuntimeError: another process trains in ``run_dir``
@@ -309,7 +309,7 @@ def _new_model(settings: TrainSettings) -> Iterator[tuple[PPO, CurriculumCallbac
             env=env, seed=settings.seed, device=settings.device, verbose=0, **with_schedules(kwargs)
         )
         model.formation_config = dataclasses.asdict(settings.config())
-        model.residual = settings.setup().residual  # the model file says how its actions are meant (load_trained)
+        model.residual = settings.recipe_record().residual  # the model file says how its actions are meant (load_trained)
         model.team_sizes = sorted(set(settings.resolved_team_sizes()))  # and which team sizes it acts in
         yield model, curriculum, clock
     finally:
@@ -327,7 +327,7 @@ def _start(
     """Record the settings in ``run_dir`` (locked by the caller) and train ``model`` from the start."""
     atomic_write(run_dir / "config.yaml", yaml.safe_dump(settings.to_dict(), sort_keys=False))
     atomic_write(run_dir / "command.txt", (command or " ".join(sys.argv)) + "\n")
-    setup = settings.setup()
+    setup = settings.recipe_record()
     imitation = setup.imitation_settings()
     if imitation is not None:
         teacher = setup.teacher(settings.config())
@@ -424,7 +424,7 @@ def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: Curri
     budget = TimeBudgetCallback(clock)
     checkpoint = RunCheckpointCallback(run_dir, curriculum, clock, settings.checkpoint_every)
     callbacks: list[BaseCallback] = [curriculum, *rollout_callbacks(settings), budget, checkpoint]
-    imitation = settings.setup().imitation_settings()
+    imitation = settings.recipe_record().imitation_settings()
     if imitation is not None and imitation.critic_warmup > 0:
         callbacks.append(FrozenActorCallback(imitation.critic_warmup, curriculum))
     every = settings.resolved_training("eval_every")

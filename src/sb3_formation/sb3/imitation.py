@@ -27,7 +27,7 @@ from sb3_formation.utils.checks import is_count, is_integer, is_number
 
 @dataclass(frozen=True)
 class ImitationSettings:
-    """How the actor is pretrained (a set-up's ``imitation:`` block, apart from its teacher).
+    """How the actor is pretrained (a recipe's ``imitation:`` block, apart from its teacher).
 
     :param rounds: data-collection rounds (round 0 flown by the teacher, later ones mostly by the student)
     :param steps: env steps per round (each gives one labelled state per slot)

@@ -1,7 +1,7 @@
 """Scale-only observation normalisation (thesis 3.1.4; ``docs/design.md`` "Normalisation").
 
 Continuous observation values are divided by a running standard deviation per feature, without subtracting the mean
-(tuned set-ups may subtract it: ``center``), then clipped to [-10, 10] (``clip_obs``); the 0/1 flags are left as they
+(tuned recipes may subtract it: ``center``), then clipped to [-10, 10] (``clip_obs``); the 0/1 flags are left as they
 are. The running variance is kept with Stable-Baselines3's ``RunningMeanStd`` (Chan, Golub & LeVeque's parallel
 update, the batch form of Welford's algorithm).
 
@@ -65,7 +65,7 @@ class ScaleNormalizeVecEnv(VecNormalize):
     :param epsilon: added to the variance before the square root, so that a constant feature gives no division by zero
     :param clip_obs: bound of the scaled non-binary features, or ``None`` for no clipping
     :param center: also subtract the running mean from the non-binary features, as SB3's ``VecNormalize`` does (a
-        departure from thesis 3.1.4 for tuned set-ups: without it, lidar rays that mostly read 1 come out at the clip
+        departure from thesis 3.1.4 for tuned recipes: without it, lidar rays that mostly read 1 come out at the clip
         bound, which slows supervised fitting of the actor)
     """
 

@@ -26,7 +26,7 @@ from sb3_formation.experiment.trajectories import Trajectories
 from sb3_formation.sb3.metrics import EPISODE_METRICS, SUCCESS_RATE_TAG
 from sb3_formation.utils.files import atomic_write
 
-#: Colours of agents (agent i: colour i mod 10) and of policies or set-ups in comparisons: matplotlib's tab10.
+#: Colours of agents (agent i: colour i mod 10) and of policies or recipes in comparisons: matplotlib's tab10.
 COLOURS: tuple[tuple[float, float, float], ...] = tuple(tuple(channel / 255 for channel in rgb) for rgb in AGENT_COLOURS)
 #: TensorBoard scalar tag -> name of the curve returned by :func:`load_training_curves`.
 TRAINING_SCALARS: dict[str, str] = {"rollout/ep_rew_mean": "episode_reward", SUCCESS_RATE_TAG: "success_rate"}
@@ -321,12 +321,12 @@ def rolling_mean(x: np.ndarray, y: np.ndarray, window: int) -> np.ndarray:
 
 
 def plot_training_curves(runs: Mapping[str, Sequence[Path]], window: int = 100) -> Figure:
-    """Episode reward and success rate against the iteration, averaged over the seeds of each set-up.
+    """Episode reward and success rate against the iteration, averaged over the seeds of each recipe.
 
     Each run's curve is smoothed with :func:`rolling_mean`; a label with several runs is drawn as the mean over its
     runs with a band of +- one (population) std, over the iterations all of its runs logged.
 
-    :param runs: label (a set-up) -> its run folders (one per seed)
+    :param runs: label (a recipe) -> its run folders (one per seed)
     :param window: smoothing window (iterations)
     """
     if not runs:

@@ -1,11 +1,11 @@
-"""Set-ups: a whole training recipe as one record of data.
+"""Recipes: a whole training recipe as one record of data.
 
-A set-up names the task (an environment preset of :data:`~sb3_formation.env.config.TASKS` and field overrides), the
+A recipe names the task (an environment recipe of :data:`~sb3_formation.env.config.TASKS` and field overrides), the
 policy (MLP or recurrent, its cell, a team critic, sigma, action scale, other policy keyword arguments), the PPO
 settings, the curriculum (iterations per stage, success threshold), the number of parallel teams and the evaluation
-protocol. The thesis's four set-ups are YAML files shipped in this package (``sb3_formation/experiment/setups/``), each
-line citing its table, equation or section; adding a set-up is adding one such file. A YAML file anywhere can be used
-as a set-up by giving its path instead of a name.
+protocol. The thesis's four recipes are YAML files shipped in this package (``sb3_formation/experiment/setups/``), each
+line citing its table, equation or section; adding a recipe is adding one such file. A YAML file anywhere can be used
+as a recipe by giving its path instead of a name.
 """
 
 from __future__ import annotations
@@ -26,28 +26,30 @@ from sb3_formation.sb3.imitation import ImitationSettings
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import CELLS, RecurrentFormationPolicy
 from sb3_formation.utils.checks import is_count, is_number
+from sb3_formation.utils.deprecation import warn_renamed
 from sb3_formation.utils.yaml_files import read_yaml
 
-#: The folder of the shipped set-ups, one ``<name>.yaml`` each.
-SETUPS_FOLDER = Path(__file__).with_name("setups")
-#: The set-up used when none is named.
-DEFAULT_SETUP = "ch5-bearing"
-#: Keys of a set-up's ``policy:`` that choose the network rather than being passed to it.
+#: The folder of the shipped recipes, one ``<name>.yaml`` each.
+RECIPES_FOLDER = Path(__file__).with_name("setups")
+#: The recipe used when none is named.
+DEFAULT_RECIPE = "ch5-bearing"
+#: Keys of a recipe's ``policy:`` that choose the network rather than being passed to it.
 _POLICY_CHOICES = ("recurrent", "cell", "team_critic")
 
 
 @dataclass(frozen=True)
-class SetUp:
+class Recipe:
     """One training recipe (see the module docstring); every field is plain YAML data.
 
-    :param name: the set-up's name (its file's stem)
-    :param description: one line for ``sb3-formation presets``
-    :param env: ``preset`` (an environment preset name) and any :class:`FormationConfig` fields overriding it
+    :param name: the recipe's name (its file's stem)
+    :param description: one line for ``sb3-formation recipes``
+    :param env: ``task`` (a name of :data:`~sb3_formation.env.config.TASKS`) and any :class:`FormationConfig` fields
+        overriding it
     :param policy: ``recurrent`` (bool), ``cell`` (``gru``/``lstm``, recurrent only), ``team_critic`` (bool; unset:
         with the team reward, fig. 4.3), and keyword arguments of the policy class (``sigma``, ``action_scale``, ...)
     :param ppo: keyword arguments of ``PPO`` (``n_steps``, ``batch_size``, ``learning_rate``, ...)
     :param curriculum: ``iterations`` (PPO iterations of stages 1, 2, 3) and ``success_threshold`` (or null)
-    :param teams: parallel teams during training
+    :param n_envs: parallel teams during training (each team is one env of the VecEnv, its agents the env's slots)
     :param team_sizes: optional: teams of several sizes in one rollout, taken in turn (team j has
         ``team_sizes[j % len(team_sizes)]`` agents; :class:`~sb3_formation.sb3.vec_env.FormationVecEnv`); without it
         every team has the task's ``n_agents``. A policy trained on several sizes acts in teams of any size
@@ -72,7 +74,7 @@ class SetUp:
     policy: dict[str, Any]
     ppo: dict[str, Any]
     curriculum: dict[str, Any]
-    teams: int
+    n_envs: int
     evaluation: dict[str, Any]
     training: dict[str, Any] = field(default_factory=dict)
     residual: dict[str, Any] = field(default_factory=dict)
@@ -81,9 +83,9 @@ class SetUp:
     source: Path | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
-        where = f"set-up {self.name!r}"
-        if self.env.get("preset") not in TASKS:
-            raise ValueError(f"{where}: env: preset must be one of {sorted(TASKS)}, got {self.env.get('preset')!r}")
+        where = f"recipe {self.name!r}"
+        if self.env.get("task") not in TASKS:
+            raise ValueError(f"{where}: env: task must be one of {sorted(TASKS)}, got {self.env.get('task')!r}")
         self.config()  # validates the env overrides
         iterations = self.curriculum.get("iterations")
         valid = isinstance(iterations, (list, tuple)) and len(iterations) == 3 and all(is_count(i) for i in iterations)
@@ -105,8 +107,8 @@ class SetUp:
         for name in ("learning_rate", "clip_range", "clip_range_vf"):
             if self.ppo.get(name) is not None:
                 schedule(self.ppo[name], f"{where}: ppo: {name}")
-        if not (is_count(self.teams) and self.teams >= 1):
-            raise ValueError(f"{where}: teams must be an integer >= 1, got {self.teams!r}")
+        if not (is_count(self.n_envs) and self.n_envs >= 1):
+            raise ValueError(f"{where}: n_envs must be an integer >= 1, got {self.n_envs!r}")
         unknown = sorted(set(self.evaluation) - {"episodes", "stage"})
         if unknown or not (is_count(self.evaluation.get("episodes")) and self.evaluation["episodes"] >= 1):
             raise ValueError(f"{where}: evaluation needs episodes (>= 1) and may give stage, got {self.evaluation!r}")
@@ -144,7 +146,7 @@ class SetUp:
 
     @property
     def recurrent(self) -> bool:
-        """Whether the set-up's policy is recurrent."""
+        """Whether the recipe's policy is recurrent."""
         return bool(self.policy.get("recurrent", False))
 
     def imitation_settings(self) -> ImitationSettings | None:
@@ -168,7 +170,7 @@ class SetUp:
         return controller_from_spec(self.imitation, config) if self.imitation else None
 
     def training_option(self, name: str) -> Any:
-        """A training feature's value: the set-up's, else its default (:data:`TRAINING_DEFAULTS`)."""
+        """A training feature's value: the recipe's, else its default (:data:`TRAINING_DEFAULTS`)."""
         return self.training.get(name, TRAINING_DEFAULTS[name])
 
     @property
@@ -182,20 +184,20 @@ class SetUp:
         return self.curriculum.get("success_threshold")
 
     def config(self, **overrides: Any) -> FormationConfig:
-        """The set-up's task configuration, with ``overrides`` (:class:`FormationConfig` fields) applied."""
-        env = {name: value for name, value in self.env.items() if name != "preset"}
+        """The recipe's task configuration, with ``overrides`` (:class:`FormationConfig` fields) applied."""
+        env = {name: value for name, value in self.env.items() if name != "task"}
         if "stage_disabled_terms" in env:
             env["stage_disabled_terms"] = tuple(tuple(terms) for terms in env["stage_disabled_terms"])
-        return FormationConfig.task(self.env["preset"], **{**env, **overrides})
+        return FormationConfig.task(self.env["task"], **{**env, **overrides})
 
     def ppo_kwargs(
         self, config: FormationConfig | None = None, recurrent: bool | None = None, cell: str | None = None
     ) -> dict:
         """Keyword arguments of ``PPO`` (or, for a recurrent policy, :class:`RecurrentFormationPPO`).
 
-        :param config: the run's task (default: the set-up's); a team critic reads its team size, and without
-            ``team_critic`` in the set-up the critic is the team critic exactly when the task uses the team reward
-        :param recurrent: override the set-up's choice of a recurrent policy
+        :param config: the run's task (default: the recipe's); a team critic reads its team size, and without
+            ``team_critic`` in the recipe the critic is the team critic exactly when the task uses the team reward
+        :param recurrent: override the recipe's choice of a recurrent policy
         :param cell: override the recurrent cell
         """
         config = self.config() if config is None else config
@@ -217,20 +219,35 @@ class SetUp:
         return {"policy": FormationPolicy, **self.ppo, "policy_kwargs": policy_kwargs}
 
     @classmethod
-    def from_dict(cls, name: str, values: dict[str, Any], source: Path | None = None) -> SetUp:
-        """A set-up from its YAML mapping; unknown or missing keys are errors that name the valid ones."""
+    def from_dict(cls, name: str, values: dict[str, Any], source: Path | None = None) -> Recipe:
+        """A recipe from its YAML mapping; unknown or missing keys are errors that name the valid ones."""
         keys = [f.name for f in fields(cls) if f.name not in ("name", "source")]
         if not isinstance(values, dict):
-            raise ValueError(f"set-up {name!r} must be a mapping of {keys}, not {type(values).__name__}")
+            raise ValueError(f"recipe {name!r} must be a mapping of {keys}, not {type(values).__name__}")
+        values = _with_current_keys(values, name)
         required = [key for key in keys if key not in ("training", "residual", "imitation", "team_sizes")]
         unknown, missing = sorted(set(values) - set(keys)), [key for key in required if key not in values]
         if unknown or missing:
-            raise ValueError(f"set-up {name!r}: unknown keys {unknown}, missing keys {missing}; a set-up has {keys}")
+            raise ValueError(f"recipe {name!r}: unknown keys {unknown}, missing keys {missing}; a recipe has {keys}")
         return cls(name=name, source=source, **values)
 
 
+def _with_current_keys(values: dict[str, Any], name: str) -> dict[str, Any]:
+    """A recipe mapping with the keys of earlier releases renamed, each with a warning: ``teams`` -> ``n_envs``, and
+    ``env: preset`` -> ``env: task``."""
+    values = dict(values)
+    if "teams" in values and "n_envs" not in values:
+        warn_renamed(f"the key teams: of recipe {name!r}", "n_envs:", stacklevel=4)
+        values["n_envs"] = values.pop("teams")
+    env = values.get("env")
+    if isinstance(env, dict) and "preset" in env and "task" not in env:
+        warn_renamed(f"the key env: preset: of recipe {name!r}", "env: task:", stacklevel=4)
+        values["env"] = {("task" if key == "preset" else key): value for key, value in env.items()}
+    return values
+
+
 def controller_from_spec(spec: dict[str, Any], config: FormationConfig) -> Controller:
-    """The controller a set-up block names (``controller`` and optional ``gains``), acting in ``config``."""
+    """The controller a recipe block names (``controller`` and optional ``gains``), acting in ``config``."""
     name = spec["controller"]
     if name not in CONTROLLERS:
         raise ValueError(f"unknown controller {name!r}; controllers: {', '.join(sorted(CONTROLLERS))}")
@@ -241,21 +258,21 @@ def controller_from_spec(spec: dict[str, Any], config: FormationConfig) -> Contr
 
 
 def residual_base(spec: dict[str, Any], config: FormationConfig) -> tuple[Controller, float]:
-    """The controller and the correction's bound that a set-up's ``residual`` describes.
+    """The controller and the correction's bound that a recipe's ``residual`` describes.
 
-    :param spec: ``controller``, ``scale`` and optional ``gains`` (see :class:`SetUp`)
+    :param spec: ``controller``, ``scale`` and optional ``gains`` (see :class:`Recipe`)
     :param config: the task the controller acts in
     """
     return controller_from_spec(spec, config), check_residual_scale(spec["scale"])
 
 
 def residual_policy(spec: dict[str, Any], correction: TeamPolicy) -> ResidualPolicy:
-    """The residual policy of a set-up's ``residual`` with ``correction`` (e.g. a trained model) as its learned part."""
+    """The residual policy of a recipe's ``residual`` with ``correction`` (e.g. a trained model) as its learned part."""
     base, scale = residual_base(spec, correction.config)
     return ResidualPolicy(base, correction, scale)
 
 
-#: Training features a set-up may switch on, and their defaults (the thesis's: none of them).
+#: Training features a recipe may switch on, and their defaults (the thesis's: none of them).
 TRAINING_DEFAULTS: dict[str, Any] = {
     "normalize_reward": False,
     "center_observations": False,
@@ -290,31 +307,31 @@ def with_schedules(kwargs: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def setup_names() -> list[str]:
-    """Names of the set-ups shipped with the package."""
-    return sorted(path.stem for path in SETUPS_FOLDER.glob("*.yaml"))
+def recipe_names() -> list[str]:
+    """Names of the recipes shipped with the package."""
+    return sorted(path.stem for path in RECIPES_FOLDER.glob("*.yaml"))
 
 
-def load_setup(name: str | os.PathLike[str]) -> SetUp:
-    """A shipped set-up by name, or any set-up YAML file by its path.
+def load_recipe(name: str | os.PathLike[str]) -> Recipe:
+    """A shipped recipe by name, or any recipe YAML file by its path.
 
     :raises ValueError: an unknown name (the valid ones are listed) or an invalid file
     """
     if not isinstance(name, (str, os.PathLike)):
-        raise ValueError(f"preset must be a set-up name or the path of a set-up YAML file, got {name!r}")
+        raise ValueError(f"recipe must be a recipe name or the path of a recipe YAML file, got {name!r}")
     path = Path(name)
     if path.suffix not in (".yaml", ".yml"):
-        if str(name) not in setup_names():
-            raise ValueError(f"unknown preset {str(name)!r}; presets: {', '.join(setup_names())}, or a set-up YAML file")
-        path = SETUPS_FOLDER / f"{name}.yaml"
+        if str(name) not in recipe_names():
+            raise ValueError(f"unknown recipe {str(name)!r}; recipes: {', '.join(recipe_names())}, or a recipe YAML file")
+        path = RECIPES_FOLDER / f"{name}.yaml"
     if not path.is_file():
-        raise ValueError(f"no set-up file {path}")
+        raise ValueError(f"no recipe file {path}")
     values = read_yaml(path.read_text(), str(path))
-    return SetUp.from_dict(path.stem, values, source=path)
+    return Recipe.from_dict(path.stem, values, source=path)
 
 
-def thesis_setup_for(reward: str | None, n_agents: int | None, team_reward: bool) -> str:
-    """The thesis set-up meant by ``--reward``, ``--agents`` and ``--team-reward`` (``docs/design.md``).
+def thesis_recipe_for(reward: str | None, n_agents: int | None, team_reward: bool) -> str:
+    """The thesis recipe meant by ``--reward``, ``--agents`` and ``--team-reward`` (``docs/design.md``).
 
     bearing -> ch5-bearing; angle with the team reward -> ch4-team; angle with 3 agents (the default) ->
     ch4-individual; angle with more agents -> ch5-angle; no reward given -> ch5-bearing, or ch4-team with the team
@@ -326,4 +343,4 @@ def thesis_setup_for(reward: str | None, n_agents: int | None, team_reward: bool
         if team_reward:
             return "ch4-team"
         return "ch4-individual" if n_agents in (None, 3) else "ch5-angle"
-    return DEFAULT_SETUP
+    return DEFAULT_RECIPE
