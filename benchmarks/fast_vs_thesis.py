@@ -1,9 +1,9 @@
-"""A fast set-up against its thesis set-up on the same small agent-step budget, seed and evaluation episodes.
+"""A fast recipe against its thesis recipe on the same small agent-step budget, seed and evaluation episodes.
 
-The thesis set-up keeps its curriculum's proportions (20 / 20 / 60 % of the iterations in stages 1 / 2 / 3, as
+The thesis recipe keeps its curriculum's proportions (20 / 20 / 60 % of the iterations in stages 1 / 2 / 3, as
 5000 : 5000 : 15000 in thesis 5.3); with ``--thesis-mlp`` it runs the chapter-4 MLP policy instead of the recurrent
 one of figs 5.1-5.2, which costs about 4x per step. Both final models play the same stage-3 episodes (seed 0 onwards,
-deterministic actions). It prints each set-up's stage plan, training wall time and success rate.
+deterministic actions). It prints each recipe's stage plan, training wall time and success rate.
 
     python benchmarks/fast_vs_thesis.py --fast fast-ch5-bearing --thesis ch5-bearing --steps 800000 --teams 8 --thesis-mlp
 """
@@ -22,15 +22,15 @@ from sb3_formation.experiment.training import train
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--fast", default="fast-ch5-bearing", help="the fast set-up")
-    parser.add_argument("--thesis", default="ch5-bearing", help="the thesis set-up")
-    parser.add_argument("--steps", type=int, default=800_000, help="agent-step budget of each set-up")
-    parser.add_argument("--teams", type=int, default=8, help="teams of both set-ups")
-    parser.add_argument("--seed", type=int, default=0, help="training seed of both set-ups")
+    parser.add_argument("--fast", default="fast-ch5-bearing", help="the fast recipe")
+    parser.add_argument("--thesis", default="ch5-bearing", help="the thesis recipe")
+    parser.add_argument("--steps", type=int, default=800_000, help="agent-step budget of each recipe")
+    parser.add_argument("--teams", type=int, default=8, help="teams of both recipes")
+    parser.add_argument("--seed", type=int, default=0, help="training seed of both recipes")
     parser.add_argument("--episodes", type=int, default=40, help="stage-3 evaluation episodes (seed 0 onwards)")
     parser.add_argument("--env", type=assignment, action="append", default=[], metavar="FIELD=VALUE",
-                        help="a FormationConfig override for both set-ups, e.g. n_agents=3 (repeatable)")  # fmt: skip
-    parser.add_argument("--thesis-mlp", action="store_true", help="the thesis set-up with the MLP policy")
+                        help="a FormationConfig override for both recipes, e.g. n_agents=3 (repeatable)")  # fmt: skip
+    parser.add_argument("--thesis-mlp", action="store_true", help="the thesis recipe with the MLP policy")
     parser.add_argument("--logdir", type=Path, default=Path("runs/benchmark-fast-vs-thesis"), help="folder of the runs")
     args = parser.parse_args()
     budget = {"steps": args.steps, "n_envs": args.teams, "seed": args.seed, "progress_bar": False, "env": dict(args.env)}

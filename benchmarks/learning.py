@@ -1,25 +1,25 @@
-"""Learning benchmark: train set-ups for a budget on several seeds, evaluate each on the thesis protocol, print tables.
+"""Learning benchmark: train recipes for a budget on several seeds, evaluate each on the thesis protocol, print tables.
 
-For every set-up and seed (one after the other, each on the whole machine) it trains ``--steps`` agent-steps (or
+For every recipe and seed (one after the other, each on the whole machine) it trains ``--steps`` agent-steps (or
 ``--minutes`` of wall-clock) with periodic evaluation every ``--eval-every`` iterations (20 stage-3 episodes from seed
 1,000,000), then evaluates the final model on the thesis's protocol (``--episodes`` stage-3 episodes from seed 0,
 deterministic actions). It prints:
 
-- a Markdown table: the thesis's published results, then one row per set-up and seed (success with its 95 % Wilson
+- a Markdown table: the thesis's published results, then one row per recipe and seed (success with its 95 % Wilson
   interval; over successful episodes the angle, bearing and distance errors, agent and obstacle contacts and steps to
   the goal; wall time; agent-steps per second);
 - time to success: wall-clock and agent-steps until the periodic evaluation first reached 50 %, 80 % and 90 %;
-- a figure of the periodic success rate against wall-clock, per set-up and seed (``--out``).
+- a figure of the periodic success rate against wall-clock, per recipe and seed (``--out``).
 
 ``--controllers classical`` adds a row per controller and thesis task (``--controller-recipes``), evaluated on the
 same protocol and seeds (its wall time is the evaluation's; it trains nothing).
 
-A thesis set-up trained on the same budget keeps its curriculum's proportions (stages 1, 2 and 3 get 20, 20 and 60 %
+A thesis recipe trained on the same budget keeps its curriculum's proportions (stages 1, 2 and 3 get 20, 20 and 60 %
 of the budget's iterations, or of its minutes, as 5000 : 5000 : 15000 in thesis 5.3).
 
-    python benchmarks/learning.py --setups fast-ch5-bearing,ch5-bearing --seeds 0,1,2 --steps 6000000
-    python benchmarks/learning.py --setups fast-ch5-bearing,ch5-bearing --seeds 0,1,2 --minutes 15
-    python benchmarks/learning.py --setups "" --controllers classical
+    python benchmarks/learning.py --recipes fast-ch5-bearing,ch5-bearing --seeds 0,1,2 --steps 6000000
+    python benchmarks/learning.py --recipes fast-ch5-bearing,ch5-bearing --seeds 0,1,2 --minutes 15
+    python benchmarks/learning.py --recipes "" --controllers classical
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ Budget = tuple[str, float]
 
 
 def run(setup: str, seed: int, budget: Budget, eval_every: int, logdir: Path) -> tuple[Path, float]:
-    """Train one set-up and seed for the budget; return the run folder and the training wall time (s).
+    """Train one recipe and seed for the budget; return the run folder and the training wall time (s).
 
     :param budget: ``("steps", agent-steps)`` or ``("minutes", minutes)``
     """
@@ -53,7 +53,7 @@ def run(setup: str, seed: int, budget: Budget, eval_every: int, logdir: Path) ->
     settings = TrainSettings(
         recipe=setup, seed=seed, eval_every=eval_every, progress_bar=False, logdir=str(logdir), **{kind: amount}
     )
-    run_dir = logdir / f"{Path(setup).stem}_s{seed}"  # a set-up file: its name without folder and suffix
+    run_dir = logdir / f"{Path(setup).stem}_s{seed}"  # a recipe file: its name without folder and suffix
     started = time.perf_counter()
     train(settings, command=f"benchmarks/learning.py {setup} seed {seed}", run_dir=run_dir)
     return run_dir, time.perf_counter() - started
@@ -72,8 +72,8 @@ def success_over_time(run_dir: Path) -> tuple[list[tuple[float, int, float]], in
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--setups", default="fast-ch5-bearing", help="comma-separated set-ups (may be empty)")
-    parser.add_argument("--controllers", default="", help="comma-separated controllers to evaluate beside the set-ups")
+    parser.add_argument("--recipes", default="fast-ch5-bearing", help="comma-separated recipes (may be empty)")
+    parser.add_argument("--controllers", default="", help="comma-separated controllers to evaluate beside the recipes")
     parser.add_argument(
         "--controller-recipes", default=",".join(THESIS_RESULTS), help="comma-separated recipes the controllers act in"
     )
@@ -83,7 +83,7 @@ def main() -> None:
     budgets.add_argument("--minutes", type=float, help="training budget in minutes of wall-clock per run (not --steps)")
     parser.add_argument("--eval-every", type=int, default=25, help="iterations between periodic evaluations")
     parser.add_argument(
-        "--episodes", type=int, help="final evaluation episodes (default: the set-up's protocol; thesis 4.4: 500, 5.4: 200)"
+        "--episodes", type=int, help="final evaluation episodes (default: the recipe's protocol; thesis 4.4: 500, 5.4: 200)"
     )
     parser.add_argument("--logdir", type=Path, default=Path("runs/benchmark-learning"), help="folder of the runs")
     parser.add_argument("--out", type=Path, default=Path("learning.png"), help="success-against-time figure")
@@ -91,7 +91,7 @@ def main() -> None:
     budget = ("steps", args.steps) if args.minutes is None else ("minutes", args.minutes)
     rows, curves = [], {}
     protocol = {"episodes": args.episodes, "stage": 3, "seed": 0, "n_envs": 8}
-    for setup in filter(None, args.setups.split(",")):
+    for setup in filter(None, args.recipes.split(",")):
         for seed in (int(seed) for seed in args.seeds.split(",")):
             run_dir, seconds = run(setup, seed, budget, args.eval_every, args.logdir)
             summary = evaluate_target(run_dir, protocol, out=run_dir / "eval").summary
@@ -112,7 +112,7 @@ def main() -> None:
 
 def print_tables(rows: list, curves: dict, budget: Budget) -> None:
     """The results table and the time-to-success table, in Markdown (controllers: no seed, no agent-steps)."""
-    headings = ["set-up", "seed", "success (95 % CI)", "angle error (deg)", "bearing error", "distance error (m)",
+    headings = ["recipe", "seed", "success (95 % CI)", "angle error (deg)", "bearing error", "distance error (m)",
                 "agent contacts", "obstacle contacts", "steps to goal", "wall time (min)", "agent-steps/s"]  # fmt: skip
     episodes = sorted({summary["episodes"] for _, _, summary, _, _ in rows})
     print(f"\n{'/'.join(map(str, episodes))} stage-3 episodes (seed 0 onwards); means over the successful ones")
@@ -132,7 +132,7 @@ def print_tables(rows: list, curves: dict, budget: Budget) -> None:
         cells += [f"{seconds / 60:.1f}", "-" if steps is None else f"{steps / seconds:,.0f}"]
         print("| " + " | ".join(cells) + " |")
     print("\nTime until the periodic evaluation (20 episodes) first reached a success rate\n")
-    print("| set-up | seed | " + " | ".join(f"{level:.0%}: min / M agent-steps" for level in LEVELS) + " |")
+    print("| recipe | seed | " + " | ".join(f"{level:.0%}: min / M agent-steps" for level in LEVELS) + " |")
     print("|---|---:|" + "---:|" * len(LEVELS))
     for (setup, seed), curve in curves.items():
         cells = []
@@ -143,7 +143,7 @@ def print_tables(rows: list, curves: dict, budget: Budget) -> None:
 
 
 def draw(curves: dict, out: Path) -> None:
-    """Periodic success rate against wall-clock minutes, one line per set-up and seed."""
+    """Periodic success rate against wall-clock minutes, one line per recipe and seed."""
     figure = Figure(figsize=(8.0, 4.5), layout="constrained")
     FigureCanvasAgg(figure)
     axes = figure.add_subplot()

@@ -1,6 +1,6 @@
 """Where a rollout step's time goes, and two choices of issue 17 against their alternative, measured in one run.
 
-A set-up's model on its training env (``train_throughput.py``'s recipes; 14 teams of 6, stage 3) collects whole
+A recipe's model on its training env (``train_throughput.py``'s recipes; 14 teams of 6, stage 3) collects whole
 rollouts with the callbacks training runs at every step. Prints, per step, medians over the rollouts:
 - one process: the policy's forward pass (``policy.forward``), the VecEnv step (the whole wrapper chain) and the part of
   it inside ``FormationVecEnv.step_wait`` (the rest: the observation and reward normalisers), the rollout buffer, and

@@ -1,7 +1,7 @@
-"""Training throughput of PPO set-ups: agent-steps per second, split into rollout collection and training, against a
+"""Training throughput of PPO recipes: agent-steps per second, split into rollout collection and training, against a
 reference measured in the same run: the bare gradient work of an iteration.
 
-ch5-bearing, 14 teams of n = 6 (84 agent slots), each set-up's networks and PPO settings, its training env (observation
+ch5-bearing, 14 teams of n = 6 (84 agent slots), each recipe's networks and PPO settings, its training env (observation
 and reward normalisation as in ``sb3-formation train``) and the callbacks training runs at every step (formation
 metrics; beside worker processes, torch's threads kept to the other cores):
 - ``fast``: the fast recipe (``fast-ch5-bearing``: two [256, 256] MLPs, 256 steps per rollout, 5 epochs of 2048);
@@ -13,7 +13,7 @@ buffers or bookkeeping) gives this machine's ceiling for an iteration; the ratio
 ceiling is the figure to compare across machines. Prints medians over the timed iterations (after one warm-up).
 
 Targets (issue 17): fast recipe: rollout at most 20 % of an iteration, at least 12,000 agent-steps/s and at least 80 %
-of the ceiling; thesis set-up with the MLP: at least 85 % of the ceiling.
+of the ceiling; thesis recipe with the MLP: at least 85 % of the ceiling.
 
 Usage: ``python benchmarks/train_throughput.py [--iterations 5] [--workers 1,2] [--recipes fast,thesis-mlp]``
 """
@@ -34,7 +34,7 @@ from sb3_formation.experiment.settings import TrainSettings
 from sb3_formation.experiment.training import make_training_env, rollout_callbacks
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
 
-#: recipe -> (set-up, recurrent cell or None for the MLP)
+#: recipe -> (recipe, recurrent cell or None for the MLP)
 RECIPES = {
     "fast": ("fast-ch5-bearing", None),
     "thesis-mlp": ("ch5-bearing", None),

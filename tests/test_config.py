@@ -1,4 +1,4 @@
-"""FormationConfig: the thesis presets (Tables 4.1 and 5.1), derived values, validation and per-stage coefficients."""
+"""FormationConfig: the thesis tasks (Tables 4.1 and 5.1), derived values, validation and per-stage coefficients."""
 
 from __future__ import annotations
 
@@ -228,7 +228,7 @@ def test_disabled_terms_need_three_stages() -> None:
 
 
 def test_unknown_preset_lists_valid_presets() -> None:
-    """preset('nope') raises a ValueError listing the valid presets."""
+    """task('nope') raises a ValueError listing the valid tasks."""
     with pytest.raises(ValueError) as info:
         FormationConfig.task("nope")
     message = str(info.value)
@@ -238,7 +238,7 @@ def test_unknown_preset_lists_valid_presets() -> None:
 
 
 def test_unknown_override_named_with_valid_fields() -> None:
-    """preset(name, bogus=1) raises a ValueError naming 'bogus' and listing the valid fields."""
+    """task(name, bogus=1) raises a ValueError naming 'bogus' and listing the valid fields."""
     with pytest.raises(ValueError) as info:
         FormationConfig.task("ch5-bearing", bogus=1)
     message = str(info.value)

@@ -45,7 +45,7 @@ def test_the_four_thesis_setups_are_shipped_with_their_citations() -> None:
     }
     for name, (iterations, teams, episodes, recurrent, scale) in expected.items():
         setup = load_recipe(name)
-        assert setup.env["preset"] == name and setup.config() == FormationConfig.task(name)
+        assert setup.env["task"] == name and setup.config() == FormationConfig.task(name)
         assert (setup.iterations, setup.n_envs, setup.evaluation["episodes"]) == (iterations, teams, episodes)
         assert setup.recurrent is recurrent
         assert setup.ppo == thesis_ppo and setup.policy["sigma"] == 0.7 and setup.policy["action_scale"] == scale

@@ -30,7 +30,7 @@ from sb3_formation.utils.deprecation import warn_renamed
 from sb3_formation.utils.yaml_files import read_yaml
 
 #: The folder of the shipped recipes, one ``<name>.yaml`` each.
-RECIPES_FOLDER = Path(__file__).with_name("setups")
+RECIPES_FOLDER = Path(__file__).with_name("shipped_recipes")
 #: The recipe used when none is named.
 DEFAULT_RECIPE = "ch5-bearing"
 #: Keys of a recipe's ``policy:`` that choose the network rather than being passed to it.
