@@ -73,3 +73,14 @@ def test_old_keys_of_settings_and_recipe_files_are_read(tmp_path) -> None:
     assert (settings.recipe, settings.seed) == ("ch4-team", 3)
     with pytest.warns(FutureWarning, match=r"the settings key preset:"):
         assert TrainSettings.from_dict({"preset": "ch4-team"}).recipe == "ch4-team"
+
+
+def test_the_setups_module_is_the_recipes_module() -> None:
+    from sb3_formation.experiment import recipes
+
+    with pytest.warns(FutureWarning, match=r"experiment\.setups\.load_setup is deprecated .*experiment\.recipes\.load_recipe"):
+        from sb3_formation.experiment.setups import load_setup
+    assert load_setup is recipes.load_recipe
+    with pytest.warns(FutureWarning, match=r"experiment\.setups\.SetUp is deprecated"):
+        from sb3_formation.experiment.setups import SetUp
+    assert SetUp is recipes.Recipe

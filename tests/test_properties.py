@@ -18,15 +18,15 @@ TASKS = ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing"]
 
 @settings(max_examples=30, deadline=None)
 @given(
-    recipe=st.sampled_from(TASKS),
+    task=st.sampled_from(TASKS),
     n_agents=st.integers(3, 8),
     stage=st.integers(1, 3),
     seed=st.integers(0, 2**31 - 1),
     hold=st.integers(1, 60),
 )
-def test_physics_and_observations_stay_in_bounds(preset: str, n_agents: int, stage: int, seed: int, hold: int) -> None:
+def test_physics_and_observations_stay_in_bounds(task: str, n_agents: int, stage: int, seed: int, hold: int) -> None:
     """Random pushes held for ``hold`` steps drive agents into walls, obstacles and each other."""
-    config = FormationConfig.task(preset, n_agents=n_agents, stage=stage)
+    config = FormationConfig.task(task, n_agents=n_agents, stage=stage)
     env = FormationEnv(config)
     observations, _ = env.reset(seed=seed)
     space = env.observation_space("agent_0")
