@@ -421,12 +421,12 @@ class FormationEngine:
         clip = self.config.reward_clip
         if self._single_size:  # one reshape: each team's block is its (terms, n) matrix
             rewards = combine_rewards(terms.reshape(self.n_teams, _N_TERMS, -1), self._coefficients, clip)
-            return rewards.reshape(-1), rewards.mean(axis=1)
+            return rewards.reshape(-1), _row_means(rewards)
         rewards, team_means = np.empty(int(self.starts[-1])), np.empty(self.n_teams)
         for n_agents, (teams, rows) in self._groups.items():
             blocks = np.stack([terms[_N_TERMS * self.starts[t] : _N_TERMS * self.starts[t + 1]] for t in teams])
             group = combine_rewards(blocks.reshape(len(teams), _N_TERMS, n_agents), self._coefficients[teams], clip)
-            rewards[rows], team_means[teams] = group.reshape(-1), group.mean(axis=1)
+            rewards[rows], team_means[teams] = group.reshape(-1), _row_means(group)
         return rewards, team_means
 
     # Reading a team ------------------------------------------------------------------------------------------------
@@ -502,6 +502,12 @@ def agent_infos(values: np.ndarray, contacts: np.ndarray, success: np.ndarray) -
     touched = contacts.T.tolist()
     columns = [*columns[:5], touched[1], touched[0], success.tolist(), *columns[5:]]
     return [dict(zip(INFO_KEYS, row)) for row in zip(*columns)]
+
+
+def _row_means(rows: np.ndarray) -> np.ndarray:
+    """The mean of each row, as ``rows.mean(axis=1)`` computes it (numpy's sum, then one division) without the
+    wrapper's checks, which cost more than the sum for a handful of agents."""
+    return np.add.reduce(rows, axis=1) / rows.shape[1]
 
 
 def _widened(array: np.ndarray, size: int) -> np.ndarray:

@@ -292,7 +292,7 @@ class FormationEnv(ParallelEnv):
         step = engine.step(clipped)
         team = self.team
         return (
-            step.observations.copy(),
+            step.observations,  # the engine never writes an array it returned
             step.rewards,
             bool(step.terminated[team]),
             bool(step.truncated[team]),
