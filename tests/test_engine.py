@@ -183,3 +183,22 @@ def test_a_view_of_a_team_of_a_larger_engine_is_stepped_by_its_engine() -> None:
 def test_teams_of_another_task_are_refused() -> None:
     with pytest.raises(ValueError, match="share one task"):
         FormationEngine([FormationConfig.task("ch4-individual"), FormationConfig.task("ch5-bearing")])
+
+
+def test_a_teams_formation_is_the_pure_geometry_of_its_positions() -> None:
+    """``FormationEngine.formation`` after steps equals ``measure_formation`` of the team's positions, an independent
+    (numpy-level) route through the same geometry."""
+    from sb3_formation.env.geometry import measure_formation, reference_bearings, ring_neighbours
+
+    config = FormationConfig.task("ch5-angle", n_agents=5, stage=3)
+    engine = FormationEngine([config.replace(n_agents=4), config])
+    engine.reset(0, seed=1)
+    engine.reset(1, seed=2)
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        engine.step(rng.uniform(-1.0, 1.0, (9, 2)))
+    positions = engine.team_state(1).positions
+    expected = measure_formation(positions, ring_neighbours(5), reference_bearings(5), config.beta_ref_deg, config.d_ref)
+    formation = engine.formation(1)
+    for name, value in expected._asdict().items():
+        np.testing.assert_array_equal(getattr(formation, name), value, err_msg=name)
