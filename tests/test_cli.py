@@ -34,7 +34,7 @@ def test_rollout_prints_episodes_and_saves_the_final_frame(tmp_path: Path, capsy
 def test_rollout_summary_matches_a_manual_episode() -> None:
     """The one episode loop (which ``sb3-formation rollout`` plays) against an episode played by hand."""
     config = FormationConfig.task("ch5-angle", stage=2, max_steps=25)
-    job = PlayJob(RandomController(config, seed=1), config, seed=4, episodes=[0], n_teams=1, deterministic=False, record=0)
+    job = PlayJob(RandomController(config, seed=1), config, seed=4, episodes=[0], n_envs=1, deterministic=False, record=0)
     (summary,), _ = play_episodes(job)
     twin = FormationEnv(config)
     observations, _ = twin.reset(seed=4)

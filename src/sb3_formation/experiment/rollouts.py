@@ -31,7 +31,7 @@ class PlayJob:
     :param config: task configuration of the episodes
     :param seed: episode k is played from ``reset(seed=seed + k)``
     :param episodes: the episode indices to play
-    :param n_teams: teams played at once
+    :param n_envs: teams played at once
     :param deterministic: ask the policy for its noise-free actions
     :param record: record every step of the episodes with an index below this
     :param n_workers: processes stepping the teams, this one included
@@ -41,7 +41,7 @@ class PlayJob:
     config: FormationConfig
     seed: int
     episodes: list[int]
-    n_teams: int
+    n_envs: int
     deterministic: bool
     record: int
     n_workers: int = 1
@@ -52,7 +52,7 @@ def play_episodes(
     on_episode: Callable[[], None] | None = None,
     on_step: Callable[[TeamState, int], None] | None = None,
 ) -> tuple[list[dict[str, Any]], list[tuple[int, EpisodeRecorder, bool]]]:
-    """Play ``job.episodes`` on ``job.n_teams`` teams; a team that ends an episode starts the next one left (teams in
+    """Play ``job.episodes`` on ``job.n_envs`` teams; a team that ends an episode starts the next one left (teams in
     order), and a team left without one is no longer stepped.
 
     This is the package's one episode loop: evaluation, videos and ``sb3-formation rollout`` all play through it. The
@@ -64,7 +64,7 @@ def play_episodes(
         ``n_workers`` must be 1)
     :return: one row per episode (in the order they ended), and (episode, recorder, success) of recorded episodes
     """
-    config, n_agents, n_teams = job.config, job.config.n_agents, job.n_teams
+    config, n_agents, n_teams = job.config, job.config.n_agents, job.n_envs
     if on_step is not None and job.n_workers > 1:
         raise ValueError("on_step reads every team in this process: play with n_workers=1")
     blocks = EngineBlocks([config] * n_teams, job.n_workers, auto_reset=False)

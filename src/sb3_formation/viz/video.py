@@ -329,7 +329,7 @@ def render_episodes(
         config=config,
         seed=seed,
         episodes=list(range(episodes)),
-        n_teams=1,
+        n_envs=1,
         deterministic=deterministic,
         record=0,
     )
