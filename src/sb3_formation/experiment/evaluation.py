@@ -42,8 +42,8 @@ EPISODE_COLUMNS = (
     *(f"reward_{term}" for term in REWARD_TERMS),
 )
 SUMMARY_FILE, EPISODES_FILE, TRAJECTORIES_FILE = "summary.json", "episodes.csv", "trajectories.npz"
-#: Teams an evaluation plays at once by default: the policy then acts for 16 teams per call, which took 0.88x the
-#: time of 8 teams for the shipped ch5-bearing policy (``benchmarks/evaluation_throughput.py``, 2026-11-25)
+#: Teams an evaluation plays at once by default: more teams per policy call spread the call's fixed cost, and the
+#: engine steps them at once (``benchmarks/evaluation_throughput.py`` measures the default command)
 EVALUATION_TEAMS = 16
 
 

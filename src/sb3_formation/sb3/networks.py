@@ -16,8 +16,8 @@ from torch.distributions import Normal
 class ModeOnChange:
     """Mixin for SB3 policies: ``set_training_mode`` switches the modules only when the mode changes.
 
-    SB3's ``predict`` calls ``set_training_mode(False)``, which walks every sub-module, on every call: about 0.13 ms,
-    a seventh of a shipped policy's step in an evaluation of 8 teams (``benchmarks/evaluation_throughput.py``). The
+    SB3's ``predict`` calls ``set_training_mode(False)``, which walks every sub-module, on every call, a noticeable
+    share of a policy's step in an evaluation of a few teams. The
     mode is read from the policy itself, which ``train(mode)`` sets together with its sub-modules.
     """
 
