@@ -14,9 +14,10 @@ import argparse
 import time
 from pathlib import Path
 
+from sb3_formation.cli.common import assignment
 from sb3_formation.experiment.evaluation import evaluate
 from sb3_formation.experiment.runs import load_trained
-from sb3_formation.experiment.settings import TrainSettings, assignment
+from sb3_formation.experiment.settings import layered_settings
 from sb3_formation.experiment.training import train
 
 
@@ -34,15 +35,15 @@ def main() -> None:
     parser.add_argument("--logdir", type=Path, default=Path("runs/benchmark-fast-vs-thesis"), help="folder of the runs")
     args = parser.parse_args()
     budget = {"steps": args.steps, "n_envs": args.teams, "seed": args.seed, "progress_bar": False, "env": dict(args.env)}
-    fast = TrainSettings(recipe=args.fast, logdir=str(args.logdir), **budget)
-    thesis = TrainSettings(recipe=args.thesis, recurrent=False if args.thesis_mlp else None, logdir=str(args.logdir),
+    fast = layered_settings(recipe=args.fast, logdir=str(args.logdir), **budget)
+    thesis = layered_settings(recipe=args.thesis, recurrent=False if args.thesis_mlp else None, logdir=str(args.logdir),
                            **budget)  # fmt: skip
     for settings in (fast, thesis):
         started = time.perf_counter()
-        run = train(settings, command=f"benchmarks/fast_vs_thesis.py {settings.recipe}")
+        run = train(settings, command=f"benchmarks/fast_vs_thesis.py {settings.recipe.name}")
         seconds = time.perf_counter() - started
         summary = evaluate(load_trained(run), episodes=args.episodes, stage=3, seed=0).summary
-        print(f"{settings.recipe}: stages {list(settings.resolved_iterations())}, trained {seconds / 60:.1f} min, "
+        print(f"{settings.recipe.name}: stages {list(settings.recipe.stage_iterations())}, trained {seconds / 60:.1f} min, "
               f"success {summary['success_rate']:.1%} of {args.episodes}", flush=True)  # fmt: skip
 
 

@@ -34,7 +34,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from sb3_formation.experiment.evaluation import evaluate_target
 from sb3_formation.experiment.reports import table_number
-from sb3_formation.experiment.settings import TrainSettings
+from sb3_formation.experiment.settings import layered_settings
 from sb3_formation.experiment.training import train
 from sb3_formation.viz.plots import save_figure
 
@@ -50,7 +50,7 @@ def run(setup: str, seed: int, budget: Budget, eval_every: int, logdir: Path) ->
     :param budget: ``("steps", agent-steps)`` or ``("minutes", minutes)``
     """
     kind, amount = budget  # a curriculum is spread over either budget in its proportions
-    settings = TrainSettings(
+    settings = layered_settings(
         recipe=setup, seed=seed, eval_every=eval_every, progress_bar=False, logdir=str(logdir), **{kind: amount}
     )
     run_dir = logdir / f"{Path(setup).stem}_s{seed}"  # a recipe file: its name without folder and suffix

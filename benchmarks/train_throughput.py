@@ -30,7 +30,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_formation.experiment.recipes import with_schedules
 from sb3_formation.experiment.runs import algorithm_for
-from sb3_formation.experiment.settings import TrainSettings
+from sb3_formation.experiment.settings import TrainSettings, layered_settings
 from sb3_formation.experiment.training import make_training_env, rollout_callbacks
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
 
@@ -74,9 +74,9 @@ def build(recipe: str, workers: int) -> tuple[PPO, TrainSettings]:
     """``recipe``'s model on its training env (stage 3, 14 teams, seed 0), as ``sb3-formation train`` makes them."""
     preset, cell = RECIPES[recipe]
     recurrent = {"recurrent": cell is not None, **({"cell": cell} if cell else {})}
-    settings = TrainSettings(recipe=preset, n_envs=14, workers=workers, seed=0, device="cpu", **recurrent)
+    settings = layered_settings(recipe=preset, n_envs=14, workers=workers, seed=0, device="cpu", **recurrent)
     env = make_training_env(settings, stage=3)
-    kwargs = settings.ppo_kwargs()
+    kwargs = settings.recipe.ppo_kwargs()
     return algorithm_for(kwargs["policy"])(env=env, seed=0, device="cpu", **with_schedules(kwargs)), settings
 
 

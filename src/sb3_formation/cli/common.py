@@ -3,15 +3,65 @@
 from __future__ import annotations
 
 import argparse
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from sb3_formation.experiment.evaluation import EVALUATION_TEAMS, evaluate_target
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE
-from sb3_formation.experiment.settings import positive_int, seed_value
+from sb3_formation.experiment.settings import MAX_SEED
 from sb3_formation.experiment.targets import evaluation_folder, target_kind
 from sb3_formation.utils.deprecation import warn_renamed
+from sb3_formation.utils.yaml_files import read_yaml
+
+# Command-line value types ---------------------------------------------------------------------------------------------
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def seed_value(text: str) -> int:
+    """A seed: an integer in [0, 2**32 - 1]."""
+    value = int(text)
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"must be an integer in [0, 2**32 - 1], got {value}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """A number > 0."""
+    value = float(text)
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
+def stage_iterations(text: str) -> list[int]:
+    """Three iteration counts ``A,B,C`` (curriculum stages 1, 2, 3)."""
+    try:
+        values = [int(part) for part in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3 or min(values) < 0:
+        raise argparse.ArgumentTypeError(f"expected three iteration counts A,B,C (stages 1, 2, 3), got {text!r}")
+    return values
+
+
+def assignment(text: str) -> tuple[str, object]:
+    """``FIELD=VALUE``, the value read as YAML."""
+    name, separator, value = text.partition("=")
+    if not separator or not name:
+        raise argparse.ArgumentTypeError(f"expected FIELD=VALUE, got {text!r}")
+    try:
+        return name.strip(), read_yaml(value, f"the value of {name.strip()}")
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 def indices(text: str) -> list[int]:

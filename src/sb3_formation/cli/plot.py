@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sb3_formation.cli.common import add_recipe_option, indices, target_labels
+from sb3_formation.cli.common import add_recipe_option, indices, positive_int, target_labels
 from sb3_formation.experiment.evaluation import TRAJECTORIES_FILE, load_summary
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE
-from sb3_formation.experiment.settings import load_settings, positive_int
+from sb3_formation.experiment.settings import load_settings
 from sb3_formation.experiment.targets import evaluation_file
 from sb3_formation.experiment.trajectories import Trajectories
 from sb3_formation.viz.plots import (
@@ -94,4 +94,4 @@ def _recordedindices(trajectories: Trajectories, episodes: list[int] | None) -> 
 def _setup_label(run_dir: Path) -> str:
     """A training-curve label naming a run's recipe (recipe and team size), so seeds of one recipe share it."""
     settings = load_settings(run_dir)
-    return f"{settings.recipe} ({settings.config().n_agents} agents)"
+    return f"{settings.recipe.name} ({settings.recipe.config().n_agents} agents)"

@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
         sizes = card.get("team_sizes", [card["n_agents"]])
         n = f"{card['n_agents']} (trained on {', '.join(map(str, sizes))})" if len(sizes) > 1 else card["n_agents"]
         print(
-            f"| pretrained:{name} | {card['setup']} | {n} | {summary['success_rate']:.1%} "
+            f"| pretrained:{name} | {card['recipe']} | {n} | {summary['success_rate']:.1%} "
             f"({low:.1%}-{high:.1%}) | {means['angle_error_deg']:.2f} | {means['bearing_error']:.4f} | {contacts:.3g} | "
             f"{means['length']:.0f} | {card['training_seconds'] / 60:.1f} min |"
         )

@@ -5,8 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sb3_formation.cli.common import RECIPE_HELP, TARGET_HELP, add_recipe_option
-from sb3_formation.experiment.settings import positive_int, seed_value
+from sb3_formation.cli.common import RECIPE_HELP, TARGET_HELP, add_recipe_option, positive_int, seed_value
 from sb3_formation.experiment.targets import evaluation_folder, load_policy
 from sb3_formation.viz.video import render_episodes
 

@@ -8,12 +8,11 @@ from pathlib import Path
 
 from PIL import Image
 
-from sb3_formation.cli.common import TARGET_HELP, add_recipe_option
+from sb3_formation.cli.common import TARGET_HELP, add_recipe_option, positive_int
 from sb3_formation.env.rendering import render_frame
 from sb3_formation.env.state import TeamState
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE
 from sb3_formation.experiment.rollouts import PlayJob, play_episodes, seed_policy
-from sb3_formation.experiment.settings import positive_int
 from sb3_formation.experiment.targets import load_policy
 from sb3_formation.utils.files import atomic_path
 

@@ -6,8 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from sb3_formation.cli.common import indices
-from sb3_formation.experiment.settings import positive_int
+from sb3_formation.cli.common import indices, positive_int
 from sb3_formation.viz.plots import save_sweep_curves
 
 

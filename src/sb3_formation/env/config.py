@@ -285,6 +285,29 @@ class FormationConfig:
         warn_renamed("FormationConfig.preset", "FormationConfig.task")
         return cls.task(name, **overrides)
 
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> FormationConfig:
+        """A configuration from the mapping :meth:`to_dict` writes (lists where fields hold tuples).
+
+        :raises ValueError: not a mapping, or unknown fields (the valid ones are listed)
+        """
+        if not isinstance(values, dict):
+            raise ValueError(f"a FormationConfig is a mapping of field names to values, not {type(values).__name__}")
+        unknown = sorted(set(values) - set(cls.field_names()))
+        if unknown:
+            raise ValueError(f"unknown FormationConfig field(s) {unknown}; valid fields: {list(cls.field_names())}")
+        return cls(**values)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Every field as plain YAML/JSON data: the one way a configuration is written (run folders, model files,
+        trajectories). Sub-steps chosen from v_max, dt and agent_radius are written as ``None``, so that they are
+        chosen again when read (and when another field is overridden)."""
+        values = dataclasses.asdict(self)
+        values["stage_disabled_terms"] = [list(terms) for terms in self.stage_disabled_terms]
+        if self.physics_substeps == self.substeps_needed:
+            values["physics_substeps"] = None
+        return values
+
     def replace(self, **changes: Any) -> FormationConfig:
         """A copy with ``changes`` applied (validated like a new config). Sub-steps that were chosen for this config
         (``physics_substeps`` equal to :attr:`substeps_needed`) are chosen again for the copy unless given."""

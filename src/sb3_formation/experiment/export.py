@@ -57,7 +57,7 @@ def export_pretrained(
     if missing or checkpoint is None:
         raise ValueError(f"{run_dir} is not a finished run: it lacks {', '.join(missing) or 'a checkpoint'}")
     state = json.loads((checkpoint / STATE_FILE).read_text())
-    protocol = settings.resolved_evaluation()
+    protocol = settings.recipe.evaluation
     protocol["n_workers"] = protocol.pop("workers", 1)
     with atomic_directory(root / name) as folder:
         model = saved_algorithm(run_dir / FINAL_MODEL).load(run_dir / FINAL_MODEL, device="cpu")
@@ -72,10 +72,10 @@ def export_pretrained(
         result.save((folder / SUMMARY_PATH).parent)
         card = {
             "name": name,
-            "setup": settings.recipe,
-            "n_agents": settings.config().n_agents,
-            "team_sizes": sorted(set(settings.resolved_team_sizes())),
-            "seed": settings.seed,
+            "recipe": settings.recipe.name,
+            "n_agents": settings.recipe.config().n_agents,
+            "team_sizes": sorted(set(settings.recipe.sizes)),
+            "seed": settings.run.seed,
             "training_command": (run_dir / "command.txt").read_text().strip(),
             "export_command": command,
             "training_seconds": round(float(state["training_seconds"]), 1),

@@ -1,20 +1,30 @@
-"""Recipes: a whole training recipe as one record of data.
+"""Recipes: a whole training recipe as one record of data, in one YAML format.
 
-A recipe names the task (an environment recipe of :data:`~sb3_formation.env.config.TASKS` and field overrides), the
-policy (MLP or recurrent, its cell, a team critic, sigma, action scale, other policy keyword arguments), the PPO
-settings, the curriculum (iterations per stage, success threshold), the number of parallel teams and the evaluation
-protocol. The thesis's four recipes are YAML files shipped in this package (``sb3_formation/experiment/setups/``), each
-line citing its table, equation or section; adding a recipe is adding one such file. A YAML file anywhere can be used
-as a recipe by giving its path instead of a name.
+A recipe names the task (a name of :data:`~sb3_formation.env.config.TASKS` and field overrides), the policy (MLP or
+recurrent, its cell, a team critic, sigma, action scale, other policy keyword arguments), the PPO settings, the
+curriculum (iterations per stage, success threshold), the budget, the number of parallel teams and the evaluation
+protocol. The same format serves the recipes shipped in this package (``sb3_formation/experiment/shipped_recipes/``,
+each line citing its table, equation or section), a user's file, the experiments under ``experiments/`` and a run's
+own ``config.yaml``, which is the complete recipe the run trained (:meth:`Recipe.to_dict`): ``sb3-formation train
+--config runs/X/config.yaml --seed 1`` trains it again.
+
+A recipe file may name a ``base:`` recipe (a shipped name, or a path relative to the file) and give only what differs:
+its sections merge into the base's key by key (:func:`merge_recipe`), as RL Zoo's YAML anchors do. :func:`load_recipe`
+resolves the chain once into a frozen :class:`Recipe`. The options of a run that are not the recipe (seed, device,
+workers, folders, checkpoints, progress) are :class:`~sb3_formation.experiment.settings.RunOptions`, written beside
+the recipe under ``run:``.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import inspect
 import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+from stable_baselines3 import PPO
 from stable_baselines3.common.type_aliases import Schedule
 from stable_baselines3.common.utils import LinearSchedule
 
@@ -33,31 +43,73 @@ from sb3_formation.utils.yaml_files import read_yaml
 RECIPES_FOLDER = Path(__file__).with_name("shipped_recipes")
 #: The recipe used when none is named.
 DEFAULT_RECIPE = "ch5-bearing"
+#: The key of a recipe file that holds the run options of an experiment or a run, not the recipe.
+RUN_KEY = "run"
+#: The sections of a recipe: mappings that a derived recipe merges key by key (:func:`merge_recipe`).
+SECTIONS = ("env", "policy", "ppo", "curriculum", "evaluation", "training", "residual", "imitation")
+#: Keys of a recipe's ``evaluation:`` (arguments of :func:`~sb3_formation.experiment.evaluation.evaluate`).
+EVALUATION_KEYS = ("episodes", "stage", "seed", "n_envs", "deterministic", "record")
 #: Keys of a recipe's ``policy:`` that choose the network rather than being passed to it.
 _POLICY_CHOICES = ("recurrent", "cell", "team_critic")
+#: Keyword arguments of SB3's ``PPO`` that a recipe's ``ppo:`` may give (what the run, the env and ``policy:`` set
+#: are not among them).
+PPO_KEYS = frozenset(inspect.signature(PPO.__init__).parameters) - {
+    "self",
+    "policy",
+    "env",
+    "policy_kwargs",
+    "seed",
+    "device",
+    "verbose",
+    "tensorboard_log",
+    "_init_setup_model",
+}
+#: SB3's ``n_steps`` when a recipe gives none.
+PPO_DEFAULT_N_STEPS: int = inspect.signature(PPO.__init__).parameters["n_steps"].default
+#: Training features a recipe may switch on, and their defaults (the thesis's: none of them).
+TRAINING_DEFAULTS: dict[str, Any] = {
+    "normalize_reward": False,
+    "center_observations": False,
+    "steps": None,
+    "minutes": None,
+    "eval_every": None,
+    "eval_episodes": 20,
+}
+#: Options of ``sb3-formation train`` that change a recipe, and where each goes in it: (section or None, key).
+RECIPE_OPTIONS: dict[str, tuple[str | None, str]] = {
+    "iterations": ("curriculum", "iterations"),
+    "success_threshold": ("curriculum", "success_threshold"),
+    "n_envs": (None, "n_envs"),
+    "team_sizes": (None, "team_sizes"),
+    "recurrent": ("policy", "recurrent"),
+    "cell": ("policy", "cell"),
+    "steps": ("training", "steps"),
+    "minutes": ("training", "minutes"),
+    "normalize_reward": ("training", "normalize_reward"),
+    "eval_every": ("training", "eval_every"),
+}
 
 
 @dataclass(frozen=True)
 class Recipe:
-    """One training recipe (see the module docstring); every field is plain YAML data.
+    """One training recipe (see the module docstring), resolved: its ``base:`` merged in, every field plain YAML data.
 
-    :param name: the recipe's name (its file's stem)
+    :param name: the recipe's name (its ``name:`` key, else its file's stem)
     :param description: one line for ``sb3-formation recipes``
     :param env: ``task`` (a name of :data:`~sb3_formation.env.config.TASKS`) and any :class:`FormationConfig` fields
         overriding it
     :param policy: ``recurrent`` (bool), ``cell`` (``gru``/``lstm``, recurrent only), ``team_critic`` (bool; unset:
         with the team reward, fig. 4.3), and keyword arguments of the policy class (``sigma``, ``action_scale``, ...)
     :param ppo: keyword arguments of ``PPO`` (``n_steps``, ``batch_size``, ``learning_rate``, ...)
-    :param curriculum: ``iterations`` (PPO iterations of stages 1, 2, 3) and ``success_threshold`` (or null)
+    :param curriculum: ``iterations`` (PPO iterations of stages 1, 2, 3; with a budget in ``training``, their
+        proportions) and ``success_threshold`` (or null)
     :param n_envs: parallel teams during training (each team is one env of the VecEnv, its agents the env's slots)
-    :param team_sizes: optional: teams of several sizes in one rollout, taken in turn (team j has
-        ``team_sizes[j % len(team_sizes)]`` agents; :class:`~sb3_formation.sb3.vec_env.FormationVecEnv`); without it
-        every team has the task's ``n_agents``. A policy trained on several sizes acts in teams of any size
-    :param evaluation: ``episodes`` and ``stage`` of the evaluation protocol
+    :param evaluation: the evaluation protocol: ``episodes`` and ``stage``, and optionally ``seed``, ``n_envs``,
+        ``deterministic`` and ``record`` (arguments of :func:`~sb3_formation.experiment.evaluation.evaluate`)
     :param training: optional training features (:data:`TRAINING_DEFAULTS`): ``normalize_reward`` (divide rewards by
         a running std of the discounted return, SB3's ``VecNormalize``), ``center_observations`` (subtract the running
-        mean of the observations too, unlike thesis 3.1.4: ``ScaleNormalizeVecEnv(center=True)``), ``steps`` (a budget
-        of agent-steps, split between the stages in the curriculum's proportions), ``eval_every`` and
+        mean of the observations too, unlike thesis 3.1.4: ``ScaleNormalizeVecEnv(center=True)``), the budget
+        (``steps`` of agents, ``minutes`` of wall-clock; see :meth:`stage_iterations`), ``eval_every`` and
         ``eval_episodes`` (periodic evaluation)
     :param residual: optional: train a correction of a controller (``controller``: a name of
         :data:`~sb3_formation.controllers.CONTROLLERS`, ``gains``: its keyword arguments, ``scale``: the correction's
@@ -65,6 +117,10 @@ class Recipe:
     :param imitation: optional: pretrain the actor on a controller's actions before PPO (``controller``, ``gains``,
         and the fields of :class:`~sb3_formation.sb3.imitation.ImitationSettings`: rounds, steps, epochs, batch_size,
         learning_rate, critic_warmup)
+    :param team_sizes: optional: teams of several sizes in one rollout, taken in turn (team j has
+        ``team_sizes[j % len(team_sizes)]`` agents; :class:`~sb3_formation.sb3.vec_env.FormationVecEnv`); without it
+        every team has the task's ``n_agents`` (:attr:`sizes`). A policy trained on several sizes acts in teams of any
+        size
     :param source: the file it was read from
     """
 
@@ -84,6 +140,9 @@ class Recipe:
 
     def __post_init__(self) -> None:
         where = f"recipe {self.name!r}"
+        for section in SECTIONS:
+            if not isinstance(getattr(self, section), dict):
+                raise ValueError(f"{where}: {section} must be a mapping, got {getattr(self, section)!r}")
         if self.env.get("task") not in TASKS:
             raise ValueError(f"{where}: env: task must be one of {sorted(TASKS)}, got {self.env.get('task')!r}")
         self.config()  # validates the env overrides
@@ -94,6 +153,9 @@ class Recipe:
         unknown = sorted(set(self.curriculum) - {"iterations", "success_threshold"})
         if unknown:
             raise ValueError(f"{where}: unknown curriculum keys {unknown}; valid: iterations, success_threshold")
+        threshold = self.success_threshold
+        if threshold is not None and not (is_number(threshold) and 0 <= threshold <= 1):
+            raise ValueError(f"{where}: curriculum: success_threshold must be a number in [0, 1] or null, got {threshold!r}")
         unknown = sorted(set(self.training) - set(TRAINING_DEFAULTS))
         if unknown:
             raise ValueError(f"{where}: unknown training keys {unknown}; valid: {list(TRAINING_DEFAULTS)}")
@@ -104,29 +166,47 @@ class Recipe:
             value = self.training_option(name)
             if value is not None and not (is_count(value) and value >= 1):
                 raise ValueError(f"{where}: training: {name} must be an integer >= 1 or null, got {value!r}")
-        for name in ("learning_rate", "clip_range", "clip_range_vf"):
-            if self.ppo.get(name) is not None:
-                schedule(self.ppo[name], f"{where}: ppo: {name}")
+        minutes = self.training_option("minutes")
+        if minutes is not None and not (is_number(minutes) and minutes > 0):
+            raise ValueError(f"{where}: training: minutes must be a finite number > 0 or null, got {minutes!r}")
         if not (is_count(self.n_envs) and self.n_envs >= 1):
             raise ValueError(f"{where}: n_envs must be an integer >= 1, got {self.n_envs!r}")
-        unknown = sorted(set(self.evaluation) - {"episodes", "stage"})
+        unknown = sorted(set(self.evaluation) - set(EVALUATION_KEYS))
         if unknown or not (is_count(self.evaluation.get("episodes")) and self.evaluation["episodes"] >= 1):
-            raise ValueError(f"{where}: evaluation needs episodes (>= 1) and may give stage, got {self.evaluation!r}")
+            raise ValueError(
+                f"{where}: evaluation needs episodes (>= 1) and may give {', '.join(EVALUATION_KEYS[1:])}, "
+                f"got {self.evaluation!r}"
+            )
         team_critic = self.policy.get("team_critic")
         if not isinstance(self.policy.get("recurrent", False), bool) or team_critic not in (None, True, False):
             raise ValueError(f"{where}: policy: recurrent must be true or false, team_critic true, false or unset")
+        if self.policy.get("cell") is not None and not self.recurrent:
+            raise ValueError(f"{where}: policy: cell {self.policy['cell']!r} applies to recurrent policies only")
+        valid = PPO_KEYS | ({"max_sequence_length"} if self.recurrent else set())
+        unknown = sorted(set(self.ppo) - valid)
+        if unknown:
+            hint = "; policy keyword arguments go under policy:" if "policy_kwargs" in unknown else ""
+            raise ValueError(f"{where}: unknown ppo settings {unknown}; valid: {sorted(valid)}{hint}")
+        for name in ("learning_rate", "clip_range", "clip_range_vf"):
+            if self.ppo.get(name) is not None:
+                schedule(self.ppo[name], f"{where}: ppo: {name}")
+        for name in ("n_steps", "batch_size", "n_epochs"):
+            if name in self.ppo and not (is_count(self.ppo[name]) and self.ppo[name] >= 1):
+                raise ValueError(f"{where}: ppo: {name} must be an integer >= 1, got {self.ppo[name]!r}")
         self.ppo_kwargs()  # validates the policy choices
         if self.team_sizes is not None:
             sizes = self.team_sizes
-            if not (isinstance(sizes, list) and sizes and all(is_count(size) for size in sizes)):
+            if not (isinstance(sizes, (list, tuple)) and sizes and all(is_count(size) for size in sizes)):
                 raise ValueError(f"{where}: team_sizes must be a non-empty list of team sizes, got {sizes!r}")
-            if "team_size" in self.ppo_kwargs()["policy_kwargs"] and len(set(sizes)) > 1:
-                raise ValueError(f"{where}: a team critic reads teams of one size; team_sizes lists {sizes}")
             for size in sizes:
                 try:
                     self.config(n_agents=size)
                 except ValueError as error:
                     raise ValueError(f"{where}: team_sizes: {error}") from error
+        if "team_size" in self.ppo_kwargs()["policy_kwargs"] and set(self.sizes) != {self.config().n_agents}:
+            raise ValueError(
+                f"{where}: a team critic reads teams of n_agents={self.config().n_agents}; team_sizes lists {self.sizes}"
+            )
         if self.residual:
             unknown = sorted(set(self.residual) - {"controller", "gains", "scale"})
             if unknown or "controller" not in self.residual or "scale" not in self.residual:
@@ -143,11 +223,156 @@ class Recipe:
                 self.teacher(self.config())
             except (TypeError, ValueError) as error:
                 raise ValueError(f"{where}: imitation: {error}") from error
+        self.stage_iterations()  # validates the budget against the curriculum
+
+    # Reading and writing ----------------------------------------------------------------------------------------------
+
+    @classmethod
+    def from_dict(cls, name: str, values: dict[str, Any], source: Path | None = None) -> Recipe:
+        """A recipe from its YAML mapping (its ``base:`` already merged in, see :func:`load_recipe`); unknown or missing
+        keys are errors that name the valid ones. A ``name:`` key replaces ``name``; a ``run:`` block (the run options
+        of an experiment, :class:`~sb3_formation.experiment.settings.RunOptions`) is not part of the recipe."""
+        keys = [f.name for f in fields(cls) if f.name not in ("name", "source")]
+        if not isinstance(values, dict):
+            raise ValueError(f"recipe {name!r} must be a mapping of {keys}, not {type(values).__name__}")
+        values = _with_current_keys(values, name)
+        values = {key: value for key, value in values.items() if key != RUN_KEY}
+        name = values.pop("name", name)
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"a recipe's name must be a non-empty string, got {name!r}")
+        for section in ("training", "residual", "imitation"):
+            if values.get(section, {}) is None:  # a derived recipe switches a block off with null
+                values[section] = {}
+        required = [key for key in keys if key not in ("training", "residual", "imitation", "team_sizes")]
+        unknown, missing = sorted(set(values) - set(keys)), [key for key in required if key not in values]
+        if unknown or missing:
+            raise ValueError(f"recipe {name!r}: unknown keys {unknown}, missing keys {missing}; a recipe has {keys}")
+        return cls(name=name, source=source, **values)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The complete recipe as plain YAML data: every env field, every training feature, the policy's choices and
+        the team sizes resolved. Read back (:meth:`from_dict`) it writes the same mapping again and does not depend on the
+        shipped recipes or the task defaults it was made from; a run writes it as its ``config.yaml``."""
+        policy = {**self.policy, "recurrent": self.recurrent, "team_critic": self.team_critic}
+        if self.recurrent:
+            policy["cell"] = self.cell
+        return _plain(
+            {
+                "name": self.name,
+                "description": self.description,
+                "env": {"task": self.env["task"], **self.config().to_dict()},
+                "policy": policy,
+                "ppo": self.ppo,
+                "curriculum": {"iterations": list(self.iterations), "success_threshold": self.success_threshold},
+                "n_envs": self.n_envs,
+                "team_sizes": self.sizes,
+                "evaluation": self.evaluation,
+                "training": {name: self.training_option(name) for name in TRAINING_DEFAULTS},
+                "residual": self.residual,
+                "imitation": self.imitation,
+            }
+        )
+
+    def with_changes(self, changes: dict[str, Any]) -> Recipe:
+        """This recipe with ``changes`` (a partial recipe mapping) merged in as a ``base:`` merges a file
+        (:func:`merge_recipe`), e.g. ``{"n_envs": 2, "env": {"max_steps": 60}}``; the result is validated."""
+        if not changes:
+            return self
+        values = merge_recipe(dataclasses.asdict(self), changes)
+        values.pop("source")
+        return Recipe.from_dict(self.name, values, source=self.source)
+
+    # What the recipe means --------------------------------------------------------------------------------------------
 
     @property
     def recurrent(self) -> bool:
         """Whether the recipe's policy is recurrent."""
         return bool(self.policy.get("recurrent", False))
+
+    @property
+    def cell(self) -> str | None:
+        """The recurrent cell (``None`` for an MLP)."""
+        return (self.policy.get("cell") or "gru") if self.recurrent else None
+
+    @property
+    def team_critic(self) -> bool:
+        """Whether the critic reads the whole team (fig. 4.3): as the recipe says, else exactly with the team reward."""
+        choice = self.policy.get("team_critic")
+        return self.config().team_reward if choice is None else bool(choice)
+
+    @property
+    def sizes(self) -> list[int]:
+        """The team sizes taken in turn: ``team_sizes``, else the task's ``n_agents``."""
+        return [int(size) for size in self.team_sizes] if self.team_sizes is not None else [self.config().n_agents]
+
+    @property
+    def iterations(self) -> tuple[int, int, int]:
+        """The curriculum's iterations of stages 1, 2 and 3 (with a budget, their proportions)."""
+        return tuple(int(value) for value in self.curriculum["iterations"])
+
+    @property
+    def success_threshold(self) -> float | None:
+        """Rolling success rate that ends stages 1-2 early, or ``None``."""
+        return self.curriculum.get("success_threshold")
+
+    def training_option(self, name: str) -> Any:
+        """A training feature's value: the recipe's, else its default (:data:`TRAINING_DEFAULTS`)."""
+        return self.training.get(name, TRAINING_DEFAULTS[name])
+
+    def config(self, **overrides: Any) -> FormationConfig:
+        """The recipe's task configuration, with ``overrides`` (:class:`FormationConfig` fields) applied."""
+        env = {name: value for name, value in self.env.items() if name != "task"}
+        return FormationConfig.task(self.env["task"], **{**env, **overrides})
+
+    def ppo_kwargs(self) -> dict:
+        """Keyword arguments of ``PPO`` (or, for a recurrent policy, :class:`RecurrentFormationPPO`), with the policy
+        class and its keyword arguments; a team critic reads the task's team size."""
+        policy_kwargs = {name: value for name, value in self.policy.items() if name not in _POLICY_CHOICES}
+        if self.recurrent:
+            if self.team_critic:
+                raise ValueError(f"{self.name} uses the team critic, which has no recurrent version: set recurrent: false")
+            if self.cell not in CELLS:
+                raise ValueError(f"cell must be one of {CELLS}, got {self.cell!r}")
+            return {"policy": RecurrentFormationPolicy, **self.ppo, "policy_kwargs": {**policy_kwargs, "cell": self.cell}}
+        if self.team_critic:
+            policy_kwargs["team_size"] = self.config().n_agents
+        return {"policy": FormationPolicy, **self.ppo, "policy_kwargs": policy_kwargs}
+
+    def steps_per_iteration(self) -> int:
+        """Agent-steps of one PPO iteration: n_steps in every slot (the agents of every team)."""
+        sizes = self.sizes  # team j has sizes[j % len(sizes)] agents
+        return self.ppo_kwargs().get("n_steps", PPO_DEFAULT_N_STEPS) * sum(
+            sizes[team % len(sizes)] for team in range(self.n_envs)
+        )
+
+    def stage_iterations(self) -> tuple[int, int, int | None]:
+        """PPO iterations of stages 1, 2 and 3 as trained. Without a budget, the curriculum's iterations. With a
+        ``steps`` budget, its iterations (rounded up) split in the curriculum's proportions (stage 3 gets what stages
+        1-2 leave); a ``minutes`` budget beside it ends training early if it runs out first. With a ``minutes`` budget
+        alone, stage 3 is open-ended (``None``): stages 1-2 end at their shares of the time
+        (:meth:`stage_time_shares`), stage 3 when the time is up."""
+        budget = self.training_option("steps")
+        if budget is None:
+            if self.training_option("minutes") is not None:
+                return (*self.iterations[:2], None)
+            return self.iterations
+        total = -(-budget // self.steps_per_iteration())
+        first, second = (total * count // sum(self.iterations) for count in self.iterations[:2])
+        return first, second, total - first - second
+
+    def stage_time_shares(self) -> tuple[float, float] | None:
+        """With a time budget alone: the fractions of it after which stages 1 and 2 end, in the curriculum's
+        proportions (0.2 and 0.4 for the thesis's 5000 : 5000 : 15000); otherwise ``None`` (stages end after their
+        iterations)."""
+        if self.stage_iterations()[2] is not None:
+            return None
+        first, second, third = self.iterations
+        return first / (first + second + third), (first + second) / (first + second + third)
+
+    def budget_seconds(self) -> float | None:
+        """The time budget in seconds, or ``None``."""
+        minutes = self.training_option("minutes")
+        return None if minutes is None else 60.0 * minutes
 
     def imitation_settings(self) -> ImitationSettings | None:
         """How the actor is pretrained before PPO (``None`` without an ``imitation`` block)."""
@@ -169,67 +394,31 @@ class Recipe:
         """
         return controller_from_spec(self.imitation, config) if self.imitation else None
 
-    def training_option(self, name: str) -> Any:
-        """A training feature's value: the recipe's, else its default (:data:`TRAINING_DEFAULTS`)."""
-        return self.training.get(name, TRAINING_DEFAULTS[name])
 
-    @property
-    def iterations(self) -> tuple[int, int, int]:
-        """PPO iterations of curriculum stages 1, 2 and 3."""
-        return tuple(int(value) for value in self.curriculum["iterations"])
+def merge_recipe(base: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
+    """``changes`` over ``base``, as a ``base:`` key merges a recipe file: the sections (``env``, ``policy``, ``ppo``,
+    ``curriculum``, ``evaluation``, ``training``, ``residual``, ``imitation``) merge key by key; every other value, and
+    every value inside a section, replaces the base's (lists and ``net_arch`` whole).
 
-    @property
-    def success_threshold(self) -> float | None:
-        """Rolling success rate that ends stages 1-2 early, or ``None``."""
-        return self.curriculum.get("success_threshold")
+    :param base: the base recipe's mapping
+    :param changes: the overriding mapping
+    """
+    merged = dict(base)
+    for key, value in changes.items():
+        if key in SECTIONS and isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = {**merged[key], **value}
+        else:
+            merged[key] = value
+    return merged
 
-    def config(self, **overrides: Any) -> FormationConfig:
-        """The recipe's task configuration, with ``overrides`` (:class:`FormationConfig` fields) applied."""
-        env = {name: value for name, value in self.env.items() if name != "task"}
-        if "stage_disabled_terms" in env:
-            env["stage_disabled_terms"] = tuple(tuple(terms) for terms in env["stage_disabled_terms"])
-        return FormationConfig.task(self.env["task"], **{**env, **overrides})
 
-    def ppo_kwargs(
-        self, config: FormationConfig | None = None, recurrent: bool | None = None, cell: str | None = None
-    ) -> dict:
-        """Keyword arguments of ``PPO`` (or, for a recurrent policy, :class:`RecurrentFormationPPO`).
-
-        :param config: the run's task (default: the recipe's); a team critic reads its team size, and without
-            ``team_critic`` in the recipe the critic is the team critic exactly when the task uses the team reward
-        :param recurrent: override the recipe's choice of a recurrent policy
-        :param cell: override the recurrent cell
-        """
-        config = self.config() if config is None else config
-        recurrent = self.recurrent if recurrent is None else recurrent
-        team_critic = self.policy.get("team_critic")
-        team_critic = config.team_reward if team_critic is None else team_critic
-        policy_kwargs = {name: value for name, value in self.policy.items() if name not in _POLICY_CHOICES}
-        if recurrent:
-            if team_critic:
-                raise ValueError(
-                    f"{self.name} uses the team critic, which has no recurrent version: train it without recurrent"
-                )
-            cell = cell or self.policy.get("cell") or "gru"
-            if cell not in CELLS:
-                raise ValueError(f"cell must be one of {CELLS}, got {cell!r}")
-            return {"policy": RecurrentFormationPolicy, **self.ppo, "policy_kwargs": {**policy_kwargs, "cell": cell}}
-        if team_critic:
-            policy_kwargs["team_size"] = config.n_agents
-        return {"policy": FormationPolicy, **self.ppo, "policy_kwargs": policy_kwargs}
-
-    @classmethod
-    def from_dict(cls, name: str, values: dict[str, Any], source: Path | None = None) -> Recipe:
-        """A recipe from its YAML mapping; unknown or missing keys are errors that name the valid ones."""
-        keys = [f.name for f in fields(cls) if f.name not in ("name", "source")]
-        if not isinstance(values, dict):
-            raise ValueError(f"recipe {name!r} must be a mapping of {keys}, not {type(values).__name__}")
-        values = _with_current_keys(values, name)
-        required = [key for key in keys if key not in ("training", "residual", "imitation", "team_sizes")]
-        unknown, missing = sorted(set(values) - set(keys)), [key for key in required if key not in values]
-        if unknown or missing:
-            raise ValueError(f"recipe {name!r}: unknown keys {unknown}, missing keys {missing}; a recipe has {keys}")
-        return cls(name=name, source=source, **values)
+def _plain(value: Any) -> Any:
+    """Tuples to lists, recursively, so that YAML writes plain lists."""
+    if isinstance(value, dict):
+        return {key: _plain(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(item) for item in value]
+    return value
 
 
 def _with_current_keys(values: dict[str, Any], name: str) -> dict[str, Any]:
@@ -272,16 +461,6 @@ def residual_policy(spec: dict[str, Any], correction: TeamPolicy) -> ResidualPol
     return ResidualPolicy(base, correction, scale)
 
 
-#: Training features a recipe may switch on, and their defaults (the thesis's: none of them).
-TRAINING_DEFAULTS: dict[str, Any] = {
-    "normalize_reward": False,
-    "center_observations": False,
-    "steps": None,
-    "eval_every": None,
-    "eval_episodes": 20,
-}
-
-
 def schedule(value: Any, where: str = "schedule") -> float | Schedule:
     """A learning rate or clip range written as data: a number (constant), or ``{start: a, end: b}`` for a linear change
     from a at the start of training to b at its end (over the run's budget).
@@ -312,10 +491,10 @@ def recipe_names() -> list[str]:
     return sorted(path.stem for path in RECIPES_FOLDER.glob("*.yaml"))
 
 
-def load_recipe(name: str | os.PathLike[str]) -> Recipe:
-    """A shipped recipe by name, or any recipe YAML file by its path.
+def recipe_path(name: str | os.PathLike[str], relative_to: Path | None = None) -> Path:
+    """The file of a recipe: a shipped name, or the path of a YAML file (relative paths from ``relative_to``).
 
-    :raises ValueError: an unknown name (the valid ones are listed) or an invalid file
+    :raises ValueError: an unknown name (the valid ones are listed) or no such file
     """
     if not isinstance(name, (str, os.PathLike)):
         raise ValueError(f"recipe must be a recipe name or the path of a recipe YAML file, got {name!r}")
@@ -323,11 +502,77 @@ def load_recipe(name: str | os.PathLike[str]) -> Recipe:
     if path.suffix not in (".yaml", ".yml"):
         if str(name) not in recipe_names():
             raise ValueError(f"unknown recipe {str(name)!r}; recipes: {', '.join(recipe_names())}, or a recipe YAML file")
-        path = RECIPES_FOLDER / f"{name}.yaml"
+        return RECIPES_FOLDER / f"{name}.yaml"
+    path = path if relative_to is None or path.is_absolute() else relative_to / path
     if not path.is_file():
         raise ValueError(f"no recipe file {path}")
+    return path
+
+
+def read_recipe_file(path: Path, chain: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """A recipe file's mapping with its ``base:`` chain merged in (:func:`merge_recipe`), ``name`` and ``run``
+    included.
+
+    :param path: the file
+    :param chain: the files that named this one as their base (to refuse a cycle)
+    :raises ValueError: not YAML, not a mapping, or a ``base:`` that is unknown or names a file of its own chain
+    """
     values = read_yaml(path.read_text(), str(path))
-    return Recipe.from_dict(path.stem, values, source=path)
+    if not isinstance(values, dict):
+        raise ValueError(f"{path} must hold a recipe mapping, not {type(values).__name__}")
+    values = {"name": path.stem, **values}
+    base = values.pop("base", None)
+    if base is None:
+        return values
+    base_path = recipe_path(base, relative_to=path.parent)
+    if base_path.resolve() in {p.resolve() for p in (*chain, path)}:
+        raise ValueError(f"{path}: base {base!r} makes a cycle of recipes ({' -> '.join(p.name for p in (*chain, path))})")
+    inherited = read_recipe_file(base_path, (*chain, path))
+    inherited.pop(RUN_KEY, None)  # a base's run options are its own
+    return merge_recipe({**inherited, "name": values["name"]}, values)
+
+
+def load_recipe(name: str | os.PathLike[str]) -> Recipe:
+    """A shipped recipe by name, or any recipe YAML file by its path, resolved (its ``base:`` chain merged in).
+
+    :raises ValueError: an unknown name (the valid ones are listed) or an invalid file
+    """
+    path = recipe_path(name)
+    return Recipe.from_dict(path.stem, read_recipe_file(path), source=path)
+
+
+def recipe_changes(
+    env: dict[str, Any] | None = None, ppo: dict[str, Any] | None = None, agents: int | None = None, **options: Any
+) -> dict[str, Any]:
+    """The partial recipe (for :meth:`Recipe.with_changes`) that options of ``sb3-formation train`` describe.
+
+    :param env: :class:`FormationConfig` fields (``--env``)
+    :param ppo: ``PPO`` keyword arguments
+    :param agents: teams of this many agents (``--agents``): the task's ``n_agents``, and no ``team_sizes``
+    :param options: options of :data:`RECIPE_OPTIONS` (``None`` values are left out). A ``minutes`` budget without a
+        ``steps`` one replaces the recipe's steps budget, so that the time is the budget
+    :raises ValueError: an option that is not a recipe's
+    """
+    unknown = sorted(set(options) - set(RECIPE_OPTIONS))
+    if unknown:
+        raise ValueError(f"unknown recipe option(s) {unknown}; valid: {list(RECIPE_OPTIONS)}")
+    options = {name: value for name, value in options.items() if value is not None}
+    if "minutes" in options and "steps" not in options:
+        options["steps"] = None
+    changes: dict[str, Any] = {}
+    for name, value in options.items():
+        section, key = RECIPE_OPTIONS[name]
+        if section is None:
+            changes[key] = value
+        else:
+            changes.setdefault(section, {})[key] = value
+    for section, values in (("env", env), ("ppo", ppo)):
+        if values:
+            changes[section] = {**changes.get(section, {}), **values}
+    if agents is not None:
+        changes.setdefault("env", {})["n_agents"] = agents
+        changes.setdefault("team_sizes", None)
+    return changes
 
 
 def thesis_recipe_for(reward: str | None, n_agents: int | None, team_reward: bool) -> str:

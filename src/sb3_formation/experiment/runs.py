@@ -144,7 +144,7 @@ def load_trained(path: str | os.PathLike[str], device: str = "auto") -> TeamPoli
     stored = getattr(model, "formation_config", None)
     if stored is None:
         raise ValueError(f"{model_path} was not saved by sb3-formation: it carries no formation_config")
-    config = FormationConfig(**{**stored, "stage_disabled_terms": tuple(tuple(t) for t in stored["stage_disabled_terms"])})
+    config = FormationConfig.from_dict(stored)
     normalizer_state = read_arrays(normalizer_path, "a normaliser file")
     team_sizes = tuple(getattr(model, "team_sizes", None) or ())  # files saved before mixed teams: the config's
     trained = TrainedPolicy(model, config, normalizer_state, source=model_path, team_sizes=team_sizes)

@@ -24,18 +24,18 @@ import numpy as np
 from sb3_formation.experiment.evaluation import SUMMARY_FILE, evaluate_target
 from sb3_formation.experiment.reports import TABLE_METRICS, table_number
 from sb3_formation.experiment.runs import FINAL_MODEL
-from sb3_formation.experiment.settings import TrainSettings, read_settings_file
+from sb3_formation.experiment.settings import TrainSettings, read_settings
 from sb3_formation.experiment.training import resume, train
 from sb3_formation.sb3.metrics import EPISODE_METRICS
 from sb3_formation.utils.files import atomic_write
 
 
 def load_experiment(path: str | os.PathLike[str]) -> TrainSettings:
-    """An experiment's settings from its YAML file (the keys of :class:`TrainSettings`), validated."""
+    """An experiment's settings from its YAML file (a recipe with ``run:`` options, :class:`TrainSettings`), validated."""
     if not Path(path).is_file():
         raise FileNotFoundError(f"no experiment file {path}")
     try:
-        return TrainSettings.from_dict(read_settings_file(path))
+        return read_settings(path)
     except (TypeError, ValueError) as error:
         raise ValueError(f"{path}: {error}") from error
 
@@ -56,7 +56,7 @@ def run_trial(settings: dict[str, Any], run_dir: str) -> dict[str, Any]:
             resume(folder)
         else:
             train(trial, command=f"sb3-formation sweep (trial {folder.name})", run_dir=folder)
-    summary = evaluate_target(folder, trial.evaluation).summary
+    summary = evaluate_target(folder, trial.recipe.evaluation).summary
     return {"status": "trained", "run_dir": run_dir, "summary": summary}
 
 
@@ -144,15 +144,15 @@ def sweep(
     import ray
 
     settings = load_experiment(experiment)
-    seeds = list(seeds or settings.seeds or [settings.seed])
+    seeds = list(seeds or settings.run.seeds or [settings.run.seed])
     if len(set(seeds)) != len(seeds):
         raise ValueError(f"seeds must differ, got {seeds}")
     if max_concurrent is not None and max_concurrent < 1:
         raise ValueError(f"max_concurrent must be >= 1, got {max_concurrent}")
-    folder = Path(logdir or settings.logdir) / Path(experiment).stem
+    folder = Path(logdir or settings.run.logdir) / Path(experiment).stem
     folder.mkdir(parents=True, exist_ok=True)
     trials = {
-        seed: (TrainSettings.from_dict({**settings.to_dict(), "seed": seed, "progress_bar": False}), folder / f"seed_{seed}")
+        seed: (TrainSettings(settings.recipe, settings.run.replace(seed=seed, progress_bar=False)), folder / f"seed_{seed}")
         for seed in seeds
     }
     started_here = not ray.is_initialized()
@@ -162,7 +162,8 @@ def sweep(
     try:
         task = ray.remote(num_cpus=cpus_per_trial, max_retries=0)(run_trial)
         limit = max_concurrent or max(1, math.floor(ray.cluster_resources().get("CPU", 1) / cpus_per_trial))
-        result = SweepResult(folder, f"{Path(experiment).stem} ({settings.recipe})")
+        name = Path(experiment).stem
+        result = SweepResult(folder, name if settings.recipe.name == name else f"{name} ({settings.recipe.name})")
         waiting = list(trials.items())
         while waiting or running:
             while waiting and len(running) < limit:

@@ -31,11 +31,11 @@ class TargetKind:
     """What a ``<kind>:<name>`` target is.
 
     :param load: (name, recipe, device) -> the policy
-    :param setup: (name, recipe) -> the recipe whose evaluation protocol and task the target is evaluated in
+    :param recipe: (name, recipe) -> the recipe whose evaluation protocol and task the target is evaluated in
     """
 
     load: Callable[[str, str | None, str], TeamPolicy]
-    setup: Callable[[str, str | None], str]
+    recipe: Callable[[str, str | None], str]
 
 
 def _controller(name: str, recipe: str | None, device: str) -> TeamPolicy:
@@ -44,14 +44,14 @@ def _controller(name: str, recipe: str | None, device: str) -> TeamPolicy:
     return CONTROLLERS[name](load_recipe(recipe or DEFAULT_RECIPE).config())
 
 
-def _pretrained_setup(name: str, recipe: str | None) -> str:
-    return recipe or load_settings(pretrained_folder(name)).recipe
+def _pretrained_recipe(name: str, recipe: str | None) -> str:
+    return recipe or load_settings(pretrained_folder(name)).recipe.name
 
 
 #: Target kinds written ``<kind>:<name>``.
 TARGET_KINDS: dict[str, TargetKind] = {
     "controller": TargetKind(_controller, lambda name, recipe: recipe or DEFAULT_RECIPE),
-    "pretrained": TargetKind(load_pretrained, _pretrained_setup),
+    "pretrained": TargetKind(load_pretrained, _pretrained_recipe),
 }
 
 
@@ -96,14 +96,14 @@ def run_folder(target: str | os.PathLike[str]) -> Path | None:
 
 def default_protocol(target: str | os.PathLike[str], recipe: str | None = None) -> dict:
     """``episodes`` and ``stage`` of the evaluation protocol of a target's recipe (the run's, with its ``evaluation``
-    settings; a ``<kind>:<name>`` target's :attr:`TargetKind.setup`); empty for a model file outside any run folder."""
+    settings; a ``<kind>:<name>`` target's :attr:`TargetKind.recipe`); empty for a model file outside any run folder."""
     kind = target_kind(target)
     if kind is not None:
-        return dict(load_recipe(TARGET_KINDS[kind].setup(str(target).partition(":")[2], recipe)).evaluation)
+        return dict(load_recipe(TARGET_KINDS[kind].recipe(str(target).partition(":")[2], recipe)).evaluation)
     folder = run_folder(target)
     if folder is None:
         return {}
-    evaluation = load_settings(folder).resolved_evaluation()
+    evaluation = load_settings(folder).recipe.evaluation
     return {key: evaluation[key] for key in ("episodes", "stage") if key in evaluation}
 
 
@@ -113,7 +113,7 @@ def evaluation_folder(target: str | os.PathLike[str], recipe: str | None = None)
     kind = target_kind(target)
     if kind is not None:
         name = str(target).partition(":")[2]
-        return Path("evaluations") / f"{kind}-{name}_{Path(TARGET_KINDS[kind].setup(name, recipe)).stem}"
+        return Path("evaluations") / f"{kind}-{name}_{Path(TARGET_KINDS[kind].recipe(name, recipe)).stem}"
     path = Path(target)
     return (path if path.is_dir() else path.parent) / "eval"
 

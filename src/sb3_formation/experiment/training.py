@@ -4,7 +4,6 @@ in :mod:`~sb3_formation.experiment.runs`)."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import shutil
@@ -148,7 +147,7 @@ class PeriodicEvaluation(BaseCallback):
         self, run_dir: Path, settings: TrainSettings, curriculum: CurriculumCallback, every: int, episodes: int
     ) -> None:
         super().__init__()
-        self.run_dir, self.config, self.curriculum = run_dir, settings.config(), curriculum
+        self.run_dir, self.config, self.curriculum = run_dir, settings.recipe.config(), curriculum
         self.every, self.episodes = every, episodes
         best = run_dir / BEST_EVALUATION
         self.best: dict[str, Any] | None = json.loads(best.read_text()) if best.is_file() else None
@@ -228,32 +227,33 @@ def make_training_env(settings: TrainSettings, stage: int, normalizer_path: Path
     Observations are scaled by :class:`ScaleNormalizeVecEnv`; with reward normalisation SB3's ``VecNormalize`` divides
     the rewards by a running std of the discounted return on top of it.
     """
-    config = settings.config().replace(stage=stage)
+    config = settings.recipe.config().replace(stage=stage)
     venv = FormationVecEnv(
         config,
-        n_envs=settings.resolved_n_envs(),
-        team_observations="team_size" in settings.ppo_kwargs()["policy_kwargs"],
-        n_workers=settings.workers,
-        team_sizes=settings.resolved_team_sizes(),
+        n_envs=settings.recipe.n_envs,
+        team_observations="team_size" in settings.recipe.ppo_kwargs()["policy_kwargs"],
+        n_workers=settings.run.workers,
+        team_sizes=settings.recipe.sizes,
     )
     dim, mask = venv.agent_observation_dim, venv.binary_observation_mask
-    residual = settings.recipe_record().residual
+    residual = settings.recipe.residual
     if residual:  # the controller acts on the raw observations, below the normaliser
         venv = ResidualVecEnv(venv, *residual_base(residual, config))
     if normalizer_path is None:
-        env: VecEnv = ScaleNormalizeVecEnv(venv, dim, mask, center=settings.resolved_training("center_observations"))
+        env: VecEnv = ScaleNormalizeVecEnv(venv, dim, mask, center=settings.recipe.training_option("center_observations"))
     else:
         env = ScaleNormalizeVecEnv.load(normalizer_path, venv, training=True, agent_obs_dim=dim, binary_mask=mask)
-    if not settings.resolved_training("normalize_reward"):
+    if not settings.recipe.training_option("normalize_reward"):
         return env
     reward_path = None if normalizer_path is None else normalizer_path.with_name(reward_normalizer_file(normalizer_path.name))
-    return normalize_rewards(env, settings.ppo_kwargs()["gamma"], reward_path)
+    return normalize_rewards(env, settings.recipe.ppo_kwargs()["gamma"], reward_path)
 
 
 def new_run_dir(settings: TrainSettings) -> Path:
     """A fresh folder ``<logdir>/<recipe>_<n>a_s<seed>_<timestamp>`` (``-2``, ``-3``, ... if taken)."""
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    base = Path(settings.logdir) / f"{settings.recipe}_{settings.config().n_agents}a_s{settings.seed}_{stamp}"
+    name = f"{settings.recipe.name}_{settings.recipe.config().n_agents}a_s{settings.run.seed}_{stamp}"
+    base = Path(settings.run.logdir) / name
     base.parent.mkdir(parents=True, exist_ok=True)
     for suffix in range(1, 1000):
         run_dir = base if suffix == 1 else base.with_name(f"{base.name}-{suffix}")
@@ -300,17 +300,17 @@ def _check_unused(run_dir: Path) -> None:
 @contextmanager
 def _new_model(settings: TrainSettings) -> Iterator[tuple[PPO, CurriculumCallback, TrainingClock]]:
     """A new run's model on its training env, with its curriculum and clock; the env is closed on leaving."""
-    clock = TrainingClock(settings.budget_seconds())
+    clock = TrainingClock(settings.recipe.budget_seconds())
     curriculum = make_curriculum(settings, clock)
     env = make_training_env(settings, curriculum.stage)
     try:
-        kwargs = settings.ppo_kwargs()
+        kwargs = settings.recipe.ppo_kwargs()
         model = algorithm_for(kwargs["policy"])(
-            env=env, seed=settings.seed, device=settings.device, verbose=0, **with_schedules(kwargs)
+            env=env, seed=settings.run.seed, device=settings.run.device, verbose=0, **with_schedules(kwargs)
         )
-        model.formation_config = dataclasses.asdict(settings.config())
-        model.residual = settings.recipe_record().residual  # the model file says how its actions are meant (load_trained)
-        model.team_sizes = sorted(set(settings.resolved_team_sizes()))  # and which team sizes it acts in
+        model.formation_config = settings.recipe.config().to_dict()
+        model.residual = settings.recipe.residual  # the model file says how its actions are meant (load_trained)
+        model.team_sizes = sorted(set(settings.recipe.sizes))  # and which team sizes it acts in
         yield model, curriculum, clock
     finally:
         env.close()
@@ -327,11 +327,10 @@ def _start(
     """Record the settings in ``run_dir`` (locked by the caller) and train ``model`` from the start."""
     atomic_write(run_dir / "config.yaml", yaml.safe_dump(settings.to_dict(), sort_keys=False))
     atomic_write(run_dir / "command.txt", (command or " ".join(sys.argv)) + "\n")
-    setup = settings.recipe_record()
-    imitation = setup.imitation_settings()
+    imitation = settings.recipe.imitation_settings()
     if imitation is not None:
-        teacher = setup.teacher(settings.config())
-        records = pretrain_actor(model, teacher, imitation, seed=settings.seed, log=_print_imitation_round)
+        teacher = settings.recipe.teacher(settings.recipe.config())
+        records = pretrain_actor(model, teacher, imitation, seed=settings.run.seed, log=_print_imitation_round)
         atomic_write(run_dir / IMITATION_FILE, json.dumps(records, indent=2))
     _learn(model, settings, run_dir, curriculum, clock)
 
@@ -374,7 +373,7 @@ def _resume(settings: TrainSettings, run_dir: Path) -> None:
     for leftover in (run_dir / "checkpoints").glob(".iteration_*"):  # folders of a write that was killed
         shutil.rmtree(leftover, ignore_errors=True)
     state = json.loads((checkpoint / STATE_FILE).read_text())
-    clock = TrainingClock(settings.budget_seconds(), spent=state.get("training_seconds", 0.0))
+    clock = TrainingClock(settings.recipe.budget_seconds(), spent=state.get("training_seconds", 0.0))
     curriculum = make_curriculum(settings, clock)
     curriculum.load_state_dict(state["curriculum"])
     total = curriculum.total_iterations
@@ -384,8 +383,8 @@ def _resume(settings: TrainSettings, run_dir: Path) -> None:
         return
     env = make_training_env(settings, curriculum.stage, checkpoint / NORMALIZER_FILE)
     try:
-        model = saved_algorithm(checkpoint / MODEL_FILE).load(checkpoint / MODEL_FILE, env=env, device=settings.device)
-        model.set_random_seed(int(np.random.SeedSequence([settings.seed, curriculum.iteration]).generate_state(1)[0]))
+        model = saved_algorithm(checkpoint / MODEL_FILE).load(checkpoint / MODEL_FILE, env=env, device=settings.run.device)
+        model.set_random_seed(int(np.random.SeedSequence([settings.run.seed, curriculum.iteration]).generate_state(1)[0]))
         _learn(model, settings, run_dir, curriculum, clock)
     finally:
         env.close()
@@ -399,9 +398,9 @@ def make_curriculum(settings: TrainSettings, clock: TrainingClock) -> Curriculum
     :param clock: the run's clock
     """
     return CurriculumCallback(
-        settings.resolved_iterations(),
-        settings.resolved_success_threshold(),
-        time_shares=settings.stage_time_shares(),
+        settings.recipe.stage_iterations(),
+        settings.recipe.success_threshold,
+        time_shares=settings.recipe.stage_time_shares(),
         clock=clock,
     )
 
@@ -410,8 +409,8 @@ def rollout_callbacks(settings: TrainSettings) -> list[BaseCallback]:
     """A run's callbacks that act at every step of a rollout: its formation metrics and, beside worker processes
     (which poll on their cores while a rollout runs), torch's thread count kept to the other cores."""
     callbacks: list[BaseCallback] = [FormationMetricsCallback(settings.to_dict())]
-    if settings.workers > 1:
-        callbacks.append(CollectionThreadsCallback(threads_beside_workers(settings.workers)))
+    if settings.run.workers > 1:
+        callbacks.append(CollectionThreadsCallback(threads_beside_workers(settings.run.workers)))
     return callbacks
 
 
@@ -422,18 +421,19 @@ def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: Curri
     csv_name = "progress.csv" if curriculum.iteration == 0 else f"progress_from_iteration_{curriculum.iteration}.csv"
     model.set_logger(Logger(str(folder), [TensorBoardOutputFormat(str(folder)), CSVOutputFormat(str(folder / csv_name))]))
     budget = TimeBudgetCallback(clock)
-    checkpoint = RunCheckpointCallback(run_dir, curriculum, clock, settings.checkpoint_every)
+    checkpoint = RunCheckpointCallback(run_dir, curriculum, clock, settings.run.checkpoint_every)
     callbacks: list[BaseCallback] = [curriculum, *rollout_callbacks(settings), budget, checkpoint]
-    imitation = settings.recipe_record().imitation_settings()
+    imitation = settings.recipe.imitation_settings()
     if imitation is not None and imitation.critic_warmup > 0:
         callbacks.append(FrozenActorCallback(imitation.critic_warmup, curriculum))
-    every = settings.resolved_training("eval_every")
+    every = settings.recipe.training_option("eval_every")
     periodic = None
     if every is not None:
-        periodic = PeriodicEvaluation(run_dir, settings, curriculum, every, settings.resolved_training("eval_episodes"))
+        episodes = settings.recipe.training_option("eval_episodes")
+        periodic = PeriodicEvaluation(run_dir, settings, curriculum, every, episodes)
         callbacks.append(periodic)
     total = curriculum.total_iterations
-    if settings.progress_bar:
+    if settings.run.progress_bar:
         callbacks.append(IterationProgressCallback(total, curriculum, curriculum.iteration))
     steps_per_iteration = model.n_steps * model.get_env().num_envs
     # an open-ended curriculum (total None) trains until the time budget ends it
@@ -453,7 +453,8 @@ def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: Curri
             periodic.evaluate()
             model.logger.dump(model.num_timesteps)
     if clock.exhausted:
-        print(f"time budget of {settings.minutes:g} min reached after {curriculum.iteration} iterations")
+        minutes = settings.recipe.training_option("minutes")
+        print(f"time budget of {minutes:g} min reached after {curriculum.iteration} iterations")
     if checkpoint.stop_signal is not None:
         raise TrainingStopped(checkpoint.stop_signal, run_dir, latest_checkpoint(run_dir))
     save_model(model, model.get_env(), run_dir, FINAL_MODEL, FINAL_NORMALIZER)

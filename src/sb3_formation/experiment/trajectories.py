@@ -82,7 +82,7 @@ class Trajectories:
         """Write every array (and the configuration as JSON) to an ``.npz`` file, atomically."""
         path = Path(path)
         arrays = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "config"}
-        arrays["config_json"] = np.array(json.dumps(dataclasses.asdict(self.config)))
+        arrays["config_json"] = np.array(json.dumps(self.config.to_dict()))
         buffer = io.BytesIO()
         np.savez_compressed(buffer, **arrays)
         atomic_write(path, buffer.getvalue())
@@ -96,7 +96,7 @@ class Trajectories:
         try:
             with np.load(path, allow_pickle=False) as data:
                 arrays = {key: data[key] for key in data.files}
-            config = FormationConfig(**json.loads(str(arrays.pop("config_json"))))
+            config = FormationConfig.from_dict(json.loads(str(arrays.pop("config_json"))))
             return cls(config=config, **arrays)
         except (KeyError, TypeError, ValueError, OSError, zipfile.BadZipFile) as error:
             raise ValueError(f"{path} is not a trajectories file written by sb3-formation: {error}") from error

@@ -252,7 +252,7 @@ def plot_evaluation_bars(summaries: Mapping[str, dict], over: str = "successful"
 
 def steps_per_iteration(run_dir: Path) -> int:
     """Environment steps logged per PPO iteration of a run: n_steps x the agents of every team, from its config.yaml."""
-    return load_settings(Path(run_dir)).steps_per_iteration()
+    return load_settings(Path(run_dir)).recipe.steps_per_iteration()
 
 
 def _read_scalars(event_file: Path) -> dict[str, list[tuple[float, int, float]]]:
