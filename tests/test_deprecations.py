@@ -68,11 +68,11 @@ def test_old_keys_of_settings_and_recipe_files_are_read(tmp_path) -> None:
     assert (recipe.n_envs, recipe.config()) == (current.n_envs, current.config())
     settings_file = tmp_path / "config.yaml"
     settings_file.write_text("preset: ch4-team\nseed: 3\n")
-    with pytest.warns(FutureWarning, match=r"the settings key preset: is deprecated .* use recipe:"):
+    with pytest.warns(FutureWarning, match=r"config.yaml is in the settings format of earlier releases"):
         settings = layered_settings(settings_file)
-    assert (settings.recipe, settings.seed) == ("ch4-team", 3)
-    with pytest.warns(FutureWarning, match=r"the settings key preset:"):
-        assert TrainSettings.from_dict({"preset": "ch4-team"}).recipe == "ch4-team"
+    assert (settings.recipe.name, settings.run.seed) == ("ch4-team", 3)
+    with pytest.warns(FutureWarning, match=r"settings format of earlier releases .*\(base: <recipe>"):
+        assert TrainSettings.from_dict({"preset": "ch4-team"}).recipe.to_dict() == load_recipe("ch4-team").to_dict()
 
 
 def test_the_setups_module_is_the_recipes_module() -> None:

@@ -15,7 +15,7 @@ from sb3_formation.controllers import ClassicalController
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.experiment.recipes import RECIPES_FOLDER, Recipe, load_recipe
 from sb3_formation.experiment.runs import load_trained
-from sb3_formation.experiment.settings import TrainSettings
+from sb3_formation.experiment.settings import layered_settings
 from sb3_formation.experiment.training import IMITATION_FILE, resume, train
 from sb3_formation.sb3.imitation import ImitationSettings, actor_parameters, pretrain_actor
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
@@ -25,7 +25,7 @@ from sb3_formation.sb3.vec_env import FormationVecEnv
 CONFIG = FormationConfig.task("ch5-bearing", stage=3, max_steps=60)
 
 
-def tiny_imitation_setup(tmp_path: Path, **imitation: object) -> Path:
+def tiny_imitation_recipe(tmp_path: Path, **imitation: object) -> Path:
     values = yaml.safe_load((RECIPES_FOLDER / "imitate-ch5-bearing.yaml").read_text())
     values["policy"]["net_arch"] = {"pi": [16], "vf": [16]}
     values["ppo"] |= {"n_steps": 16, "batch_size": 64, "n_epochs": 2}
@@ -38,11 +38,11 @@ def tiny_imitation_setup(tmp_path: Path, **imitation: object) -> Path:
 
 
 def test_the_actor_is_frozen_while_the_critic_warms_up(tmp_path: Path) -> None:
-    setup = tiny_imitation_setup(tmp_path)
+    recipe = tiny_imitation_recipe(tmp_path)
     snapshots = []
 
     def run(iterations: int) -> dict[str, torch.Tensor]:
-        settings = TrainSettings(recipe=str(setup), steps=iterations * 16 * 12, env={"max_steps": 40}, progress_bar=False)
+        settings = layered_settings(recipe=str(recipe), steps=iterations * 16 * 12, env={"max_steps": 40}, progress_bar=False)
         folder = train(settings, command="test", run_dir=tmp_path / f"run{iterations}")
         snapshots.append(json.loads((folder / IMITATION_FILE).read_text()))
         return {name: value.clone() for name, value in load_trained(folder).policy.state_dict().items()}
@@ -57,7 +57,7 @@ def test_the_actor_is_frozen_while_the_critic_warms_up(tmp_path: Path) -> None:
 
 
 def test_a_run_killed_before_its_first_checkpoint_is_trained_again_on_resume(tmp_path: Path) -> None:
-    settings = TrainSettings(recipe=str(tiny_imitation_setup(tmp_path)), steps=16 * 12, progress_bar=False)
+    settings = layered_settings(recipe=str(tiny_imitation_recipe(tmp_path)), steps=16 * 12, progress_bar=False)
     first = train(settings, command="test", run_dir=tmp_path / "first")
     killed = tmp_path / "killed"  # what a kill during pretraining leaves: settings and command, no checkpoint
     killed.mkdir()
@@ -72,19 +72,19 @@ def test_a_run_killed_before_its_first_checkpoint_is_trained_again_on_resume(tmp
         resume(killed)
 
 
-def test_imitation_setups_are_checked() -> None:
-    setup = load_recipe("imitate-ch5-bearing")
-    controller, settings = setup.teacher(setup.config()), setup.imitation_settings()
+def test_imitation_recipes_are_checked() -> None:
+    recipe = load_recipe("imitate-ch5-bearing")
+    controller, settings = recipe.teacher(recipe.config()), recipe.imitation_settings()
     assert isinstance(controller, ClassicalController) and settings.rounds == 4 and settings.critic_warmup == 10
     values = {
-        key: getattr(setup, key) for key in ("description", "env", "policy", "ppo", "curriculum", "n_envs", "evaluation")
+        key: getattr(recipe, key) for key in ("description", "env", "policy", "ppo", "curriculum", "n_envs", "evaluation")
     }
     with pytest.raises(ValueError, match="unknown: \\['round'\\]"):
         Recipe("bad", **values, imitation={"controller": "classical", "round": 3})
     with pytest.raises(ValueError, match="imitation: rounds must be an integer >= 1, got 0"):
         Recipe("bad", **values, imitation={"controller": "classical", "rounds": 0})
     with pytest.raises(ValueError, match="not recurrent, not residual"):
-        Recipe("bad", **{**values, "policy": {**setup.policy, "recurrent": True}}, imitation={"controller": "classical"})
+        Recipe("bad", **{**values, "policy": {**recipe.policy, "recurrent": True}}, imitation={"controller": "classical"})
 
 
 def test_the_actor_parameters_are_the_actor_layers_its_head_and_a_learned_log_std() -> None:

@@ -17,7 +17,7 @@ from PIL import Image
 
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.experiment.evaluation import EvaluationResult
-from sb3_formation.experiment.settings import TrainSettings
+from sb3_formation.experiment.settings import layered_settings
 from sb3_formation.experiment.trajectories import Trajectories
 from sb3_formation.viz.plots import (
     formation_steps,
@@ -262,9 +262,7 @@ N_STEPS, N_ENVS = 4, 2  # with ch4-individual's three agents: 24 steps per itera
 
 def write_run(folder: Path, seed: int, rewards: dict[int, float], success: dict[int, float], start: float = 1000.0) -> Path:
     """A run folder with config.yaml (as ``train`` writes it) and TensorBoard events at step = iteration x 24."""
-    settings = TrainSettings.from_dict(
-        {"recipe": "ch4-individual", "seed": seed, "n_envs": N_ENVS, "ppo": {"n_steps": N_STEPS}}
-    )
+    settings = layered_settings(recipe="ch4-individual", seed=seed, n_envs=N_ENVS, ppo={"n_steps": N_STEPS})
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "config.yaml").write_text(yaml.safe_dump(settings.to_dict(), sort_keys=False))
     add_events(folder, rewards, success, start)

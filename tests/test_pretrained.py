@@ -60,7 +60,7 @@ def test_an_exported_policy_is_the_runs_model_trimmed_and_evaluated(tiny_run: Pa
     assert card["training_command"] == (tiny_run / "command.txt").read_text().strip()
     assert card["export_command"] == "the command" and card["n_agents"] == 6 and card["team_sizes"] == [6]
     assert card["numerics"] == numerics_fingerprint()
-    assert card["setup"].endswith("tiny.yaml") and card["package_version"] == "0.1.0"
+    assert card["recipe"] == "tiny" and card["package_version"] == "0.1.0"
     shipped, run = load_pretrained("tiny", root=tmp_path), load_policy(tiny_run)
     # the same weights, without the optimiser's moments: a smaller file
     for mine, theirs in zip(shipped.correction.policy.parameters(), run.correction.policy.parameters()):
@@ -98,7 +98,7 @@ def test_the_four_thesis_tasks_ship_a_policy_trained_for_their_task() -> None:
     assert set(THESIS_TASKS) <= set(pretrained_names())
     for task in THESIS_TASKS:
         card = pretrained_card(task)
-        assert load_recipe(card["setup"]).config() == load_recipe(task).config()
+        assert load_recipe(card["recipe"]).config() == load_recipe(task).config()
         assert card["summary"]["episodes"] == load_recipe(task).evaluation["episodes"]
         assert card["summary"]["stage"] == 3 and card["summary"]["seed"] == 0 and card["summary"]["deterministic"]
         # the stored evaluation is of the shipped file, and its rate is that of its stored episodes
@@ -182,7 +182,7 @@ def test_pretrained_targets_work_with_every_command(tmp_path: Path, monkeypatch:
     listing = capsys.readouterr().out
     for name in pretrained_names():
         rate = pretrained_card(name)["summary"]["success_rate"]
-        assert f"| pretrained:{name} | {pretrained_card(name)['setup']} |" in listing and f"| {rate:.1%} (" in listing
+        assert f"| pretrained:{name} | {pretrained_card(name)['recipe']} |" in listing and f"| {rate:.1%} (" in listing
     quick = ["--episodes", "2", "--n-envs", "2", "--no-progress"]
     assert main(["evaluate", "pretrained:ch5-bearing", *quick, "--trajectories", "1"]) == 0
     folder = tmp_path / "evaluations" / "pretrained-ch5-bearing_residual-ch5-bearing"

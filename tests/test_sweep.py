@@ -39,26 +39,32 @@ def test_every_thesis_experiment_has_a_quick_twin_and_the_thesis_budget() -> Non
     assert names == sorted([*THESIS, *(name.replace("thesis-", "quick-") for name in THESIS), *pretrained])
     for name, (iterations, teams, seeds, episodes) in THESIS.items():
         settings = load_experiment(EXPERIMENTS / f"{name}.yaml")
-        assert settings.recipe == name.removeprefix("thesis-")
-        assert settings.resolved_iterations() == iterations and settings.resolved_n_envs() == teams
-        assert len(settings.seeds) == seeds and settings.evaluation["episodes"] == episodes
-        assert settings.evaluation["stage"] == 3
-        assert settings.resolved_recurrent() == name.startswith("thesis-ch5")  # thesis 5.1.2: recurrent networks
-        kwargs = settings.ppo_kwargs()
-        thesis_ppo = load_recipe(settings.recipe).ppo  # the thesis's PPO settings (thesis 4.3, 5.3)
+        recipe = settings.recipe
+        base = load_recipe(name.removeprefix("thesis-"))
+        assert {
+            key: value for key, value in recipe.to_dict().items() if key not in ("name", "curriculum", "n_envs", "evaluation")
+        } == {
+            key: value for key, value in base.to_dict().items() if key not in ("name", "curriculum", "n_envs", "evaluation")
+        }  # the thesis recipe, with the thesis's budget
+        assert recipe.stage_iterations() == iterations and recipe.n_envs == teams
+        assert len(settings.run.seeds) == seeds and recipe.evaluation["episodes"] == episodes and settings.run.evaluate
+        assert recipe.evaluation["stage"] == 3
+        assert recipe.recurrent == name.startswith("thesis-ch5")  # thesis 5.1.2: recurrent networks
+        kwargs = recipe.ppo_kwargs()
+        thesis_ppo = base.ppo  # the thesis's PPO settings (thesis 4.3, 5.3)
         assert {key: kwargs[key] for key in thesis_ppo} == thesis_ppo and thesis_ppo["learning_rate"] == 5e-5
         quick = load_experiment(EXPERIMENTS / f"{name.replace('thesis-', 'quick-')}.yaml")
-        assert quick.recipe == settings.recipe and sum(quick.resolved_iterations()) <= 3
+        assert quick.recipe.ppo == recipe.ppo and sum(quick.recipe.stage_iterations()) <= 3
 
 
 def test_experiment_errors_name_the_file_and_the_setting(tmp_path: Path) -> None:
     with pytest.raises(FileNotFoundError, match=r"missing\.yaml"):
         load_experiment(tmp_path / "missing.yaml")
     bad = tmp_path / "bad.yaml"
-    bad.write_text("recipe: ch5-bearing\nevaluation: {episodes: 5, colour: red}\n")
-    with pytest.raises(ValueError, match=r"bad\.yaml: evaluation must map some of"):
+    bad.write_text("base: ch5-bearing\nevaluation: {episodes: 5, colour: red}\n")
+    with pytest.raises(ValueError, match=r"bad\.yaml: recipe 'bad': evaluation needs episodes"):
         load_experiment(bad)
-    bad.write_text("recipe: ch5-bearing\nseeds: []\n")
+    bad.write_text("base: ch5-bearing\nrun: {seeds: []}\n")
     with pytest.raises(ValueError, match="seeds must be a non-empty list"):
         load_experiment(bad)
 
@@ -92,15 +98,13 @@ def test_quick_experiments_train_and_evaluate(name: str, tmp_path: Path) -> None
 # A real local Ray sweep --------------------------------------------------------------------------------------------
 
 TINY = {
-    "recipe": "ch4-individual",
-    "iterations": [1, 0, 12],
+    "base": "ch4-individual",
+    "curriculum": {"iterations": [1, 0, 12]},
     "n_envs": 1,
-    "seeds": [0, 1],
-    "progress_bar": False,
-    "checkpoint_every": 1,
     "env": {"max_steps": 30},
-    "ppo": {"policy_kwargs": {"net_arch": {"pi": [16], "vf": [16]}}},
+    "policy": {"net_arch": {"pi": [16], "vf": [16]}},
     "evaluation": {"episodes": 2, "stage": 3, "seed": 0, "n_envs": 2},
+    "run": {"seeds": [0, 1], "progress_bar": False, "checkpoint_every": 1, "evaluate": True},
 }
 
 
@@ -132,7 +136,10 @@ def test_ray_sweep_skips_finished_trials_after_a_kill_and_aggregates(tmp_path: P
     assert os.stat(first / FINAL_MODEL).st_mtime_ns == finished_at
     assert result.trials[1]["status"] == "trained" and not result.failed
     summaries = [json.loads((logdir / "tiny" / f"seed_{seed}" / "eval" / "summary.json").read_text()) for seed in (0, 1)]
-    assert [yaml.safe_load((logdir / "tiny" / f"seed_{s}" / "config.yaml").read_text())["seed"] for s in (0, 1)] == [0, 1]
+    assert [yaml.safe_load((logdir / "tiny" / f"seed_{s}" / "config.yaml").read_text())["run"]["seed"] for s in (0, 1)] == [
+        0,
+        1,
+    ]
     aggregated = json.loads((logdir / "tiny" / "aggregate.json").read_text())
     assert aggregated["seeds"] == [0, 1]
     rates = [summary["success_rate"] for summary in summaries]

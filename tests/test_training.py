@@ -22,9 +22,10 @@ from tensorboard_events import read_hparams
 
 from sb3_formation.cli import build_parser, main
 from sb3_formation.cli.train import settings_of as train_settings
-from sb3_formation.experiment.recipes import load_recipe, thesis_recipe_for
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.experiment.recipes import load_recipe, recipe_changes, thesis_recipe_for
 from sb3_formation.experiment.runs import FINAL_MODEL, STATE_FILE, latest_checkpoint, load_trained
-from sb3_formation.experiment.settings import TrainSettings, layered_settings, reduce_to_overrides
+from sb3_formation.experiment.settings import TrainSettings, layered_settings
 from sb3_formation.experiment.training import make_training_env
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
@@ -51,8 +52,8 @@ def only_run_dir(logdir: Path) -> Path:
     return runs[0]
 
 
-def test_thesis_setups_give_the_thesis_ppo_settings() -> None:
-    kwargs = load_recipe("ch5-bearing").ppo_kwargs(recurrent=False)
+def test_thesis_recipes_give_the_thesis_ppo_settings() -> None:
+    kwargs = load_recipe("ch5-bearing").with_changes(recipe_changes(recurrent=False)).ppo_kwargs()
     assert kwargs["policy"] is FormationPolicy
     expected = {"n_steps": 128, "batch_size": 512, "n_epochs": 10, "learning_rate": 5e-5, "gamma": 0.995}
     expected.update({"gae_lambda": 0.95, "clip_range": 0.2, "clip_range_vf": 20.0, "target_kl": 0.03})
@@ -60,76 +61,80 @@ def test_thesis_setups_give_the_thesis_ppo_settings() -> None:
     assert kwargs["policy_kwargs"] == {"sigma": 0.7, "action_scale": 1.0}
     assert load_recipe("ch4-individual").ppo_kwargs()["policy_kwargs"]["action_scale"] == 0.01  # thesis 4.1.2
     assert load_recipe("ch4-team").ppo_kwargs()["policy_kwargs"]["team_size"] == 3
-    five = load_recipe("ch4-team").config(n_agents=5)
-    assert load_recipe("ch4-team").ppo_kwargs(five)["policy_kwargs"]["team_size"] == 5
+    five = load_recipe("ch4-team").with_changes(recipe_changes(agents=5))
+    assert five.ppo_kwargs()["policy_kwargs"]["team_size"] == 5
 
 
-def test_reward_and_agents_flags_map_to_presets() -> None:
+def test_reward_and_agents_flags_map_to_recipes() -> None:
     assert thesis_recipe_for("bearing", 6, False) == "ch5-bearing"
     assert thesis_recipe_for("angle", None, False) == "ch4-individual"
     assert thesis_recipe_for("angle", 3, True) == "ch4-team"
     assert thesis_recipe_for("angle", 6, False) == "ch5-angle"
     settings = train_settings(build_parser().parse_args(["train", "--reward", "bearing", "--agents", "6"]))
-    assert settings.recipe == "ch5-bearing" and settings.config().n_agents == 6
-    assert settings.resolved_iterations() == (5000, 5000, 15000) and settings.resolved_n_envs() == 14
+    assert settings.recipe.name == "ch5-bearing" and settings.recipe.config().n_agents == 6
+    assert settings.recipe.stage_iterations() == (5000, 5000, 15000) and settings.recipe.n_envs == 14
 
 
-def test_yaml_settings_are_overridden_by_flags_and_unknown_keys_fail(tmp_path: Path) -> None:
+def test_a_settings_file_is_changed_by_options_and_unknown_keys_fail(tmp_path: Path) -> None:
     config_file = tmp_path / "run.yaml"
-    config_file.write_text(
-        yaml.safe_dump({"recipe": "ch4-team", "iterations": [3, 2, 1], "seed": 4, "env": {"max_steps": 99}})
-    )
+    values = {"base": "ch4-team", "curriculum": {"iterations": [3, 2, 1]}, "env": {"max_steps": 99}, "run": {"seed": 4}}
+    config_file.write_text(yaml.safe_dump(values))
     arguments = ["train", "--config", str(config_file), "--seed", "7", "--env", "eta_g=0.7"]
     settings = train_settings(build_parser().parse_args(arguments))
-    assert (settings.recipe, settings.seed, settings.resolved_iterations()) == ("ch4-team", 7, (3, 2, 1))
-    assert settings.config().max_steps == 99 and settings.config().eta_g == 0.7
-    config_file.write_text(yaml.safe_dump({"recipe": "ch4-team", "learning_rate": 1e-3}))
-    with pytest.raises(ValueError, match=r"unknown setting\(s\) \['learning_rate'\]"):
+    assert (settings.recipe.name, settings.run.seed, settings.recipe.stage_iterations()) == ("run", 7, (3, 2, 1))
+    assert settings.recipe.config().max_steps == 99 and settings.recipe.config().eta_g == 0.7
+    assert settings.recipe.config().team_reward is True  # the base's task, ch4-team
+    config_file.write_text(yaml.safe_dump({"base": "ch4-team", "learning_rate": 1e-3}))
+    with pytest.raises(ValueError, match=r"unknown keys \['learning_rate'\]"):
         train_settings(build_parser().parse_args(["train", "--config", str(config_file)]))
-    with pytest.raises(ValueError, match="unknown ppo setting"):
-        TrainSettings(ppo={"learning_rat": 1e-3})
+    config_file.write_text(yaml.safe_dump({"base": "ch4-team", "run": {"sed": 3}}))
+    with pytest.raises(ValueError, match=r"unknown run option\(s\) \['sed'\]"):
+        train_settings(build_parser().parse_args(["train", "--config", str(config_file)]))
+    with pytest.raises(ValueError, match="unknown ppo settings"):
+        layered_settings(ppo={"learning_rat": 1e-3})
     with pytest.raises(ValueError, match="unknown FormationConfig field"):
-        TrainSettings(env={"n_agent": 3})
+        layered_settings(env={"n_agent": 3})
+    with pytest.raises(ValueError, match="not both"):
+        train_settings(build_parser().parse_args(["train", "--config", str(config_file), "--recipe", "ch4-team"]))
 
 
-def test_a_resolved_config_can_be_reused_with_another_recipe() -> None:
-    resolved = TrainSettings(recipe="ch4-individual", env={"max_steps": 50}, ppo={"policy_kwargs": {"net_arch": [8]}})
-    values = reduce_to_overrides(yaml.safe_load(yaml.safe_dump(resolved.to_dict())))
-    assert values["env"] == {"max_steps": 50} and values["ppo"] == {"policy_kwargs": {"net_arch": [8]}}
-    moved = TrainSettings.from_dict({**values, "recipe": "ch5-bearing"})
-    config = moved.config()
-    assert (config.layout, config.k_bearing, config.n_agents, config.max_steps) == ("ch5", 0.3, 6, 50)
-    assert moved.ppo_kwargs()["policy_kwargs"] == {"sigma": 0.7, "action_scale": 1.0, "net_arch": [8]}
-    # policy_kwargs overrides are merged into the thesis's, not replacing them (the team critic keeps its team)
-    team = TrainSettings(recipe="ch4-team", ppo={"policy_kwargs": {"net_arch": {"pi": [8], "vf": [8, 8]}}})
-    assert team.ppo_kwargs()["policy_kwargs"]["team_size"] == 3
+def test_a_runs_config_is_a_complete_recipe_that_other_options_change() -> None:
+    resolved = layered_settings(recipe="ch4-individual", env={"max_steps": 50}, seed=3)
+    values = yaml.safe_load(yaml.safe_dump(resolved.to_dict()))
+    assert values["run"]["seed"] == 3 and "seed" not in values  # run options apart from the recipe
+    assert set(values["env"]) == {"task", *FormationConfig.field_names()}  # every field, not only the changes
+    again = TrainSettings.from_dict(values)
+    assert again.recipe.to_dict() == resolved.recipe.to_dict() and again.run == resolved.run
+    # policy keyword arguments merge into the recipe's, not replacing them (the team critic keeps its team)
+    team = layered_settings(recipe="ch4-team").recipe.with_changes({"policy": {"net_arch": {"pi": [8], "vf": [8, 8]}}})
+    assert team.ppo_kwargs()["policy_kwargs"]["team_size"] == 3 and team.ppo_kwargs()["policy_kwargs"]["sigma"] == 0.7
 
 
 def test_recurrent_policy_follows_the_thesis_chapter_unless_told() -> None:
-    assert TrainSettings(recipe="ch5-bearing").resolved_recurrent() is True  # thesis 5.1.2: recurrent networks
-    assert TrainSettings(recipe="ch5-angle").ppo_kwargs()["policy"] is RecurrentFormationPolicy
-    assert TrainSettings(recipe="ch4-individual").ppo_kwargs()["policy"] is FormationPolicy
-    assert TrainSettings(recipe="ch5-bearing", recurrent=False).ppo_kwargs()["policy"] is FormationPolicy
-    lstm = TrainSettings(recipe="ch4-individual", recurrent=True, cell="lstm").ppo_kwargs()
+    assert load_recipe("ch5-bearing").recurrent is True  # thesis 5.1.2: recurrent networks
+    assert load_recipe("ch5-angle").ppo_kwargs()["policy"] is RecurrentFormationPolicy
+    assert load_recipe("ch4-individual").ppo_kwargs()["policy"] is FormationPolicy
+    assert layered_settings(recipe="ch5-bearing", recurrent=False).recipe.ppo_kwargs()["policy"] is FormationPolicy
+    lstm = layered_settings(recipe="ch4-individual", recurrent=True, cell="lstm").recipe.ppo_kwargs()
     assert lstm["policy"] is RecurrentFormationPolicy and lstm["policy_kwargs"]["cell"] == "lstm"
     assert lstm["policy_kwargs"]["action_scale"] == 0.01
     with pytest.raises(ValueError, match="team critic"):
-        TrainSettings(recipe="ch4-team", recurrent=True)
+        layered_settings(recipe="ch4-team", recurrent=True)
     with pytest.raises(ValueError, match="cell"):
-        TrainSettings(cell="rnn")
-    assert TrainSettings(recipe="ch5-bearing").to_dict()["recurrent"] is True
+        layered_settings(cell="rnn")
+    assert load_recipe("ch5-bearing").to_dict()["policy"]["recurrent"] is True
     parser = build_parser()
-    assert train_settings(parser.parse_args(["train", "--no-recurrent"])).resolved_recurrent() is False
+    assert train_settings(parser.parse_args(["train", "--no-recurrent"])).recipe.recurrent is False
     chosen = train_settings(parser.parse_args(["train", "--recipe", "ch4-team", "--no-recurrent"]))
-    assert chosen.recurrent is False and chosen.ppo_kwargs()["policy"] is FormationPolicy
+    assert chosen.recipe.recurrent is False and chosen.recipe.ppo_kwargs()["policy"] is FormationPolicy
     with pytest.raises(ValueError, match="cell 'lstm' applies to recurrent policies only"):
         train_settings(parser.parse_args(["train", "--recipe", "ch5-bearing", "--no-recurrent", "--cell", "lstm"]))
-    assert TrainSettings(recipe="ch4-team").to_dict()["cell"] is None
-    assert TrainSettings(recipe="ch5-angle", cell="lstm").to_dict()["cell"] == "lstm"
+    assert "cell" not in load_recipe("ch4-team").to_dict()["policy"]
+    assert layered_settings(recipe="ch5-angle", cell="lstm").recipe.to_dict()["policy"]["cell"] == "lstm"
 
 
 def test_training_env_is_placed_for_the_curriculum_stage() -> None:
-    env = make_training_env(TrainSettings(n_envs=2, env={"max_steps": 20}), stage=3)
+    env = make_training_env(layered_settings(n_envs=2, env={"max_steps": 20}), stage=3)
     env.seed(0)
     env.reset()
     assert env.get_attr("stage") == [3] * 12
@@ -146,7 +151,7 @@ def test_train_cli_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureF
     assert main(["train", "--resume", str(tmp_path), "--seed", "3"]) == 2
     assert "--seed" in capsys.readouterr().err
     broken = tmp_path / "broken.yaml"
-    broken.write_text("recipe: [unclosed")
+    broken.write_text("base: [unclosed")
     assert main(["train", "--config", str(broken)]) == 2
     assert "broken.yaml is not valid YAML" in capsys.readouterr().err
     with pytest.raises(SystemExit):
@@ -158,8 +163,8 @@ def test_train_cli_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureF
     assert not (tmp_path / "runs").exists()  # nothing written
 
 
-#: Issue 15, points 4 and 6: bad settings of ``train`` (flags, or a YAML file's text), each with the words its one-line
-#: error must hold. None of them may leave a folder behind.
+#: Issue 15, points 4 and 6: bad settings of ``train`` (flags, or a settings file's text), each with the words its
+#: one-line error must hold. None of them may leave a folder behind.
 BAD_TRAIN_INPUT = [
     (["--workers", "5", "--n-envs", "2"], None, "workers=5 exceeds n_envs=2"),
     (["--seed", "99999999999"], None, "argument --seed: must be an integer in [0, 2**32 - 1], got 99999999999"),
@@ -168,15 +173,21 @@ BAD_TRAIN_INPUT = [
     (["--iterations", "-1,2,3"], None, "argument --iterations: expected three iteration counts A,B,C (stages 1, 2, 3)"),
     (["--env", "v_max=[1,"], None, "argument --env: the value of v_max is not valid YAML"),
     (["--env", "v_max=true"], None, "FormationConfig.v_max=True is invalid: it must be a finite number > 0"),
-    ([], "seed: -5", "seed must be an integer in [0, 2**32 - 1], got -5"),
-    ([], "seeds: [1, 4294967296]", "each of seeds must be an integer in [0, 2**32 - 1], got 4294967296"),
-    ([], "ppo: {policy_kwargs: 7}", "ppo: policy_kwargs must be a mapping, got 7"),
-    ([], "ppo: 7", "ppo must be a mapping of field names to values, got 7"),
-    ([], "env: 5", "env must be a mapping of field names to values, got 5"),
-    ([], "iterations: 5", "iterations must be three integers >= 0 (stages 1, 2, 3), got 5"),
-    ([], "iterations: [0, 0, 0]", "iterations must give at least one stage an iteration"),
-    ([], "recipe: 5", "recipe must be a recipe name or the path of a recipe YAML file, got 5"),
-    ([], "success_threshold: true", "success_threshold must be a number in [0, 1]"),
+    ([], "base: ch5-bearing\nrun: {seed: -5}", "seed must be an integer in [0, 2**32 - 1], got -5"),
+    (
+        [],
+        "base: ch5-bearing\nrun: {seeds: [1, 4294967296]}",
+        "each of seeds must be an integer in [0, 2**32 - 1], got 4294967296",
+    ),
+    ([], "base: ch5-bearing\nppo: {policy_kwargs: {sigma: 1}}", "policy keyword arguments go under policy:"),
+    ([], "base: ch5-bearing\nppo: 7", "ppo must be a mapping, got 7"),
+    ([], "base: ch5-bearing\nenv: 5", "env must be a mapping, got 5"),
+    ([], "base: ch5-bearing\ncurriculum: {iterations: 5}", "iterations must be three integers >= 0, not all 0, got 5"),
+    ([], "base: ch5-bearing\ncurriculum: {iterations: [0, 0, 0]}", "iterations must be three integers >= 0, not all 0"),
+    ([], "base: 5", "recipe must be a recipe name or the path of a recipe YAML file, got 5"),
+    ([], "base: ch5-bearing\ncurriculum: {success_threshold: true}", "success_threshold must be a number in [0, 1]"),
+    ([], "base: ch5-bearing\nppo: {n_epochs: 0}", "ppo: n_epochs must be an integer >= 1, got 0"),
+    ([], "base: bad.yaml", "base 'bad.yaml' makes a cycle of recipes"),
 ]
 
 
@@ -201,8 +212,8 @@ def test_bad_train_settings_are_one_line_errors_before_anything_is_written(
 def test_numbers_are_read_as_users_write_them() -> None:
     """Issue 15, point 6: PyYAML reads ``3e-4`` as a string; settings files and ``--env`` read it as a number."""
     settings = train_settings(build_parser().parse_args(["train", "--env", "v_max=5e-2", "--env", "dt=1E-1"]))
-    assert settings.config().v_max == 0.05 and settings.config().dt == 0.1
-    assert layered_settings(None, ppo={"learning_rate": 3e-4}).ppo_kwargs()["learning_rate"] == 3e-4
+    assert settings.recipe.config().v_max == 0.05 and settings.recipe.config().dt == 0.1
+    assert layered_settings(None, ppo={"learning_rate": 3e-4}).recipe.ppo_kwargs()["learning_rate"] == 3e-4
 
 
 def test_damaged_files_of_a_run_are_one_line_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -221,7 +232,7 @@ def test_damaged_files_of_a_run_are_one_line_errors(tmp_path: Path, capsys: pyte
     (checkpoint / "normalizer.npz").write_bytes(b"")
     assert main(["train", "--resume", str(run_dir)]) == 2
     assert f"{checkpoint / 'normalizer.npz'} is not a ScaleNormalizeVecEnv file (empty or" in capsys.readouterr().err
-    for text, message in [("recipe: [oops", "config.yaml is not valid YAML"), ("- 1", "must hold a mapping of settings")]:
+    for text, message in [("recipe: [oops", "config.yaml is not valid YAML"), ("- 1", "must hold a recipe mapping")]:
         (run_dir / "config.yaml").write_text(text)
         assert main(["train", "--resume", str(run_dir)]) == 2
         error = capsys.readouterr().err
@@ -256,8 +267,9 @@ def test_train_run_folder_and_tensorboard(tmp_path: Path) -> None:
     assert [event.value for event in events.Scalars("curriculum/stage")] == [1.0, 2.0, 3.0]  # stage of each iteration
     assert all(event.value == 20.0 for event in events.Scalars("episode/length"))  # no success in 20 steps
     hparams = read_hparams(run_dir / "tensorboard")
-    assert "episode/success_rate" in hparams["metrics"] and hparams["hparams"]["recipe"] == "ch5-bearing"
-    assert hparams["hparams"]["env/n_agents"] == 6 and hparams["hparams"]["iterations"] == "[1, 1, 1]"
+    assert "episode/success_rate" in hparams["metrics"] and hparams["hparams"]["name"] == "ch5-bearing"
+    assert hparams["hparams"]["env/n_agents"] == 6 and hparams["hparams"]["curriculum/iterations"] == "[1, 1, 1]"
+    assert hparams["hparams"]["run/seed"] == 0
 
 
 @pytest.mark.slow
@@ -311,7 +323,7 @@ def test_killed_recurrent_run_resumes_evaluates_and_renders(tmp_path: Path) -> N
     # normaliser statistics continue: two resets of every slot (start, resume) plus one row per slot and step
     with np.load(run_dir / "final_normalizer.npz") as statistics:
         assert float(statistics["count"]) == slots * (2 + 8 * 128)
-    assert yaml.safe_load((run_dir / "config.yaml").read_text())["recurrent"] is True
+    assert yaml.safe_load((run_dir / "config.yaml").read_text())["policy"]["recurrent"] is True
     trained = load_trained(run_dir, device="cpu")
     assert isinstance(trained.model, RecurrentFormationPPO) and trained.model.policy.cell == "gru"
     assert main(["evaluate", str(run_dir), "--episodes", "2", "--n-envs", "2", "--no-progress"]) == 0

@@ -29,7 +29,7 @@ from sb3_formation.experiment.runs import (
     reward_normalizer_file,
     save_model,
 )
-from sb3_formation.experiment.settings import TrainSettings, load_settings
+from sb3_formation.experiment.settings import TrainSettings, layered_settings, load_settings
 from sb3_formation.experiment.training import make_training_env, train
 from sb3_formation.sb3.callbacks import ClockedSchedule, TrainingClock
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
@@ -91,7 +91,7 @@ def test_a_learned_log_std_trains_and_is_saved(tmp_path: Path) -> None:
 def test_reward_normalisation_divides_by_the_running_return_std(tmp_path: Path) -> None:
     """The rewards PPO sees are the env's divided by sqrt(var + 1e-8) of the discounted returns seen so far (SB3's
     VecNormalize, recomputed here with numpy), and the statistics survive a save and a resume."""
-    settings = TrainSettings(recipe=str(tiny_yaml(tmp_path)), n_envs=1)
+    settings = layered_settings(recipe=str(tiny_yaml(tmp_path)), n_envs=1)
     env = make_training_env(settings, stage=3)
     rewards = reward_normalizer(env)
     assert rewards is not None and not rewards.norm_obs and rewards.gamma == 0.99
@@ -120,7 +120,7 @@ def test_reward_normalisation_divides_by_the_running_return_std(tmp_path: Path) 
 
 def test_centred_observations_train_save_and_act_as_the_training_normaliser(tmp_path: Path) -> None:
     training = {**load_recipe("fast-ch5-bearing").training, "center_observations": True, "steps": 16 * 12, "eval_every": None}
-    settings = TrainSettings(recipe=str(tiny_yaml(tmp_path, training=training)), progress_bar=False)
+    settings = layered_settings(recipe=str(tiny_yaml(tmp_path, training=training)), progress_bar=False)
     env = make_training_env(settings, stage=3)
     assert unwrap_vec_wrapper(env, ScaleNormalizeVecEnv).center
     folder = train(settings, command="test", run_dir=tmp_path / "run")
@@ -143,7 +143,8 @@ def test_a_steps_budget_sets_the_last_stage_and_repeats_by_seed(tmp_path: Path) 
         assert main(["train", "--recipe", setup, *budget, "--run-dir", str(tmp_path / name), *TINY]) == 0
         runs.append(load_trained(tmp_path / name))
     config = yaml.safe_load((tmp_path / "a" / "config.yaml").read_text())
-    assert config["iterations"] == [0, 0, 4] and config["steps"] == 3 * 16 * 12 + 1  # rounded up to whole iterations
+    assert config["training"]["steps"] == 3 * 16 * 12 + 1
+    assert load_settings(tmp_path / "a").recipe.stage_iterations() == (0, 0, 4)  # rounded up to whole iterations
     assert runs[0].model.num_timesteps == 4 * 16 * 12
     for first, second in zip(runs[0].model.policy.parameters(), runs[1].model.policy.parameters()):
         assert torch.equal(first, second)  # the same seed gives the same model
@@ -152,16 +153,18 @@ def test_a_steps_budget_sets_the_last_stage_and_repeats_by_seed(tmp_path: Path) 
 def test_a_steps_budget_spreads_a_curriculum_in_its_proportions() -> None:
     # thesis 5.3: 5000 : 5000 : 15000 iterations; 128 steps x 8 teams x 3 agents = 3072 agent-steps per iteration
     common = {"n_envs": 8, "env": {"n_agents": 3}}
-    thesis = TrainSettings(recipe="ch5-bearing", steps=600_000, **common)
-    assert thesis.resolved_iterations() == (39, 39, 118)  # 600,000 / 3072 = 195.3 -> 196 iterations: 20/20/60 %
-    assert yaml.safe_load(yaml.safe_dump(thesis.to_dict()))["iterations"] == [39, 39, 118]
-    assert TrainSettings(recipe="ch5-bearing", steps=3072, **common).resolved_iterations() == (0, 0, 1)
-    given = TrainSettings(recipe="ch5-bearing", iterations=(1, 1, 3), steps=10 * 3072, **common)
-    assert given.resolved_iterations() == (2, 2, 6)  # given iterations are proportions too
-    resolved = TrainSettings(recipe="ch5-bearing", iterations=(39, 39, 118), steps=600_000, **common)
-    assert resolved.resolved_iterations() == (39, 39, 118)  # a run's config.yaml resolves to itself on --resume
-    fast = TrainSettings(recipe="fast-ch5-bearing", steps=600_000, **common)  # stage 3 only: 6144 per iteration
-    assert fast.resolved_iterations() == (0, 0, 98)
+    thesis = layered_settings(recipe="ch5-bearing", steps=600_000, **common)
+    assert thesis.recipe.stage_iterations() == (39, 39, 118)  # 600,000 / 3072 = 195.3 -> 196 iterations: 20/20/60 %
+    written = yaml.safe_load(yaml.safe_dump(thesis.to_dict()))  # the curriculum's proportions and the budget
+    assert written["curriculum"]["iterations"] == [5000, 5000, 15000] and written["training"]["steps"] == 600_000
+    assert TrainSettings.from_dict(written).recipe.stage_iterations() == (39, 39, 118)
+    assert layered_settings(recipe="ch5-bearing", steps=3072, **common).recipe.stage_iterations() == (0, 0, 1)
+    given = layered_settings(recipe="ch5-bearing", iterations=(1, 1, 3), steps=10 * 3072, **common)
+    assert given.recipe.stage_iterations() == (2, 2, 6)  # given iterations are proportions too
+    resolved = layered_settings(recipe="ch5-bearing", iterations=(39, 39, 118), steps=600_000, **common)
+    assert resolved.recipe.stage_iterations() == (39, 39, 118)  # a run's config.yaml resolves to itself on --resume
+    fast = layered_settings(recipe="fast-ch5-bearing", steps=600_000, **common)  # stage 3 only: 6144 per iteration
+    assert fast.recipe.stage_iterations() == (0, 0, 98)
 
 
 def test_a_clocked_schedule_follows_whichever_budget_is_further_along(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -187,20 +190,20 @@ def test_a_clocked_schedule_follows_whichever_budget_is_further_along(monkeypatc
 
 def test_a_minutes_budget_replaces_the_setup_budget_and_ends_training(tmp_path: Path) -> None:
     setup = str(tiny_yaml(tmp_path))
-    settings = TrainSettings(recipe=setup, minutes=0.5)
-    assert settings.resolved_iterations() == (0, 0, None) and settings.resolved_training("steps") is None
-    capped = TrainSettings(recipe=setup, minutes=0.5, steps=16 * 12)  # both: whichever runs out first
-    assert capped.resolved_iterations() == (0, 0, 1) and capped.resolved_training("steps") == 16 * 12
+    settings = layered_settings(recipe=setup, minutes=0.5)
+    assert settings.recipe.stage_iterations() == (0, 0, None) and settings.recipe.training_option("steps") is None
+    capped = layered_settings(recipe=setup, minutes=0.5, steps=16 * 12)  # both: whichever runs out first
+    assert capped.recipe.stage_iterations() == (0, 0, 1) and capped.recipe.training_option("steps") == 16 * 12
     for bad in (0, -1.0, True, "5", float("inf"), float("nan")):
         with pytest.raises(ValueError, match="minutes must be a finite number > 0"):
-            TrainSettings(recipe=setup, minutes=bad)
+            layered_settings(recipe=setup, minutes=bad)
     with pytest.raises(ValueError, match="iterations must be three integers"):
-        TrainSettings(recipe=setup, iterations=(0, 0, None))  # open-ended only with a time budget
+        layered_settings(recipe=setup, iterations=(0, 0, None))  # open-ended only with a time budget
     run = tmp_path / "run"
     # 0.06 s: spent within the first iterations (or, on a loaded machine, before the first), so training ends there
     assert main(["train", "--recipe", setup, "--minutes", "0.001", "--run-dir", str(run), *TINY]) == 0
     config = yaml.safe_load((run / "config.yaml").read_text())
-    assert config["iterations"] == [0, 0, None] and config["minutes"] == 0.001 and config["steps"] is None
+    assert config["training"]["minutes"] == 0.001 and config["training"]["steps"] is None
     checkpoint = latest_checkpoint(run)
     state = json.loads((checkpoint / "state.json").read_text())
     iterations = state["curriculum"]["iteration"]
@@ -215,25 +218,32 @@ def test_a_minutes_budget_replaces_the_setup_budget_and_ends_training(tmp_path: 
         assert len(rates) == iterations and all(floor <= rate < 2.9e-4 for rate in rates)
     assert main(["train", "--resume", str(run)]) == 0  # the clock continues: no time left
     assert [path.name for path in (run / "checkpoints").iterdir()] == [checkpoint.name]
-    assert load_settings(run).resolved_iterations() == (0, 0, None)
+    assert load_settings(run).recipe.stage_iterations() == (0, 0, None)
     # the run's settings with a steps budget added: the budget sets the open-ended stage 3
-    assert TrainSettings(recipe=setup, iterations=(0, 0, None), minutes=1, steps=16 * 12).resolved_iterations() == (0, 0, 1)
+    assert layered_settings(run / "config.yaml", steps=16 * 12).recipe.stage_iterations() == (0, 0, 1)
 
 
 def test_a_minutes_budget_spreads_a_curriculum_over_the_time(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Stages 1 and 2 end at their shares of the time (as 500 : 500 : 1500 iterations: 20 % and 40 %), not after 500
     iterations each, which the 3 s budget could never reach."""
-    assert TrainSettings(recipe=str(tiny_yaml(tmp_path)), minutes=1).stage_time_shares() == (0.0, 0.0)  # stage 3 only
+    assert layered_settings(recipe=str(tiny_yaml(tmp_path)), minutes=1).recipe.stage_time_shares() == (
+        0.0,
+        0.0,
+    )  # stage 3 only
     setup = str(tiny_yaml(tmp_path, curriculum={"iterations": [500, 500, 1500], "success_threshold": None}))
-    assert TrainSettings(recipe=setup, minutes=1).stage_time_shares() == (0.2, 0.4)
-    assert TrainSettings(recipe=setup, minutes=1, steps=16 * 12 * 1200).stage_time_shares() is None  # iterations count
-    assert TrainSettings(recipe=setup, minutes=1, iterations=(1, 1, 1)).stage_time_shares() is None
-    assert TrainSettings(recipe="ch5-bearing").stage_time_shares() is None
+    assert layered_settings(recipe=setup, minutes=1).recipe.stage_time_shares() == (0.2, 0.4)
+    assert (
+        layered_settings(recipe=setup, minutes=1, steps=16 * 12 * 1200).recipe.stage_time_shares() is None
+    )  # iterations count
+    # with a budget, iterations given are proportions too
+    assert layered_settings(recipe=setup, minutes=1, iterations=(1, 1, 2)).recipe.stage_time_shares() == (0.25, 0.5)
+    assert layered_settings(recipe="ch5-bearing").recipe.stage_time_shares() is None
     run = tmp_path / "run"
     assert main(["train", "--recipe", setup, "--minutes", "0.05", "--run-dir", str(run), *TINY]) == 0
     assert "stages 1, 2 end at 20%, 40% of the time, stage 3 until the time is up" in capsys.readouterr().out
     config = yaml.safe_load((run / "config.yaml").read_text())
-    assert config["iterations"] == [500, 500, None] and load_settings(run).stage_time_shares() == (0.2, 0.4)
+    assert config["curriculum"]["iterations"] == [500, 500, 1500] and config["training"]["minutes"] == 0.05
+    assert load_settings(run).recipe.stage_time_shares() == (0.2, 0.4)
     state = json.loads((latest_checkpoint(run) / "state.json").read_text())
     assert state["curriculum"]["stage"] == 3 and state["curriculum"]["iteration"] < 500
     accumulator = EventAccumulator(str(run / "tensorboard"))
@@ -270,9 +280,10 @@ def test_each_fast_setup_trains_an_iteration_and_records_its_changes(name: str, 
     arguments = ["train", "--recipe", name, "--run-dir", str(run), "--steps", "1", "--n-envs", "1", "--no-progress"]
     assert main([*arguments, "--env", "max_steps=40"]) == 0
     config = yaml.safe_load((run / "config.yaml").read_text())
-    assert config["iterations"] == [0, 0, 1] and config["normalize_reward"] is True and config["eval_every"] == 25
+    training = config["training"]
+    assert config["curriculum"]["iterations"] == [0, 0, 1] and training["normalize_reward"] and training["eval_every"] == 25
     ppo = config["ppo"]
     assert ppo["learning_rate"] == {"start": 3e-4, "end": 1.5e-5} and (ppo["n_steps"], ppo["gamma"]) == (256, 0.99)
-    assert ppo["policy_kwargs"]["learn_sigma"] is True and ppo["policy_kwargs"]["net_arch"]["pi"] == [256, 256]
+    assert config["policy"]["learn_sigma"] is True and config["policy"]["net_arch"]["pi"] == [256, 256]
     assert (run / FINAL_MODEL).is_file() and (run / "final_reward_normalizer.npz").is_file()
     assert (run / BEST_MODEL).is_file()  # the last iteration is evaluated too

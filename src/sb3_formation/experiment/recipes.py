@@ -253,7 +253,8 @@ class Recipe:
         """The complete recipe as plain YAML data: every env field, every training feature, the policy's choices and
         the team sizes resolved. Read back (:meth:`from_dict`) it writes the same mapping again and does not depend on the
         shipped recipes or the task defaults it was made from; a run writes it as its ``config.yaml``."""
-        policy = {**self.policy, "recurrent": self.recurrent, "team_critic": self.team_critic}
+        policy = {name: value for name, value in self.policy.items() if name != "cell"}
+        policy |= {"recurrent": self.recurrent, "team_critic": self.team_critic}
         if self.recurrent:
             policy["cell"] = self.cell
         return _plain(
@@ -550,7 +551,8 @@ def recipe_changes(
     :param ppo: ``PPO`` keyword arguments
     :param agents: teams of this many agents (``--agents``): the task's ``n_agents``, and no ``team_sizes``
     :param options: options of :data:`RECIPE_OPTIONS` (``None`` values are left out). A ``minutes`` budget without a
-        ``steps`` one replaces the recipe's steps budget, so that the time is the budget
+        ``steps`` one replaces the recipe's steps budget, so that the time is the budget; ``recurrent=False`` without
+        a ``cell`` drops the recipe's cell
     :raises ValueError: an option that is not a recipe's
     """
     unknown = sorted(set(options) - set(RECIPE_OPTIONS))
@@ -559,6 +561,8 @@ def recipe_changes(
     options = {name: value for name, value in options.items() if value is not None}
     if "minutes" in options and "steps" not in options:
         options["steps"] = None
+    if options.get("recurrent") is False and "cell" not in options:
+        options["cell"] = None  # an MLP has no cell
     changes: dict[str, Any] = {}
     for name, value in options.items():
         section, key = RECIPE_OPTIONS[name]

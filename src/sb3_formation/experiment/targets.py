@@ -20,7 +20,7 @@ from pathlib import Path
 from sb3_formation.controllers import CONTROLLERS
 from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.experiment.pretrained import load_pretrained, pretrained_folder
-from sb3_formation.experiment.recipes import DEFAULT_RECIPE, load_recipe
+from sb3_formation.experiment.recipes import DEFAULT_RECIPE, Recipe, load_recipe
 from sb3_formation.experiment.runs import load_trained
 from sb3_formation.experiment.settings import load_settings
 from sb3_formation.utils.deprecation import warn_renamed
@@ -35,7 +35,7 @@ class TargetKind:
     """
 
     load: Callable[[str, str | None, str], TeamPolicy]
-    recipe: Callable[[str, str | None], str]
+    recipe: Callable[[str, str | None], Recipe]
 
 
 def _controller(name: str, recipe: str | None, device: str) -> TeamPolicy:
@@ -44,13 +44,13 @@ def _controller(name: str, recipe: str | None, device: str) -> TeamPolicy:
     return CONTROLLERS[name](load_recipe(recipe or DEFAULT_RECIPE).config())
 
 
-def _pretrained_recipe(name: str, recipe: str | None) -> str:
-    return recipe or load_settings(pretrained_folder(name)).recipe.name
+def _pretrained_recipe(name: str, recipe: str | None) -> Recipe:
+    return load_recipe(recipe) if recipe else load_settings(pretrained_folder(name)).recipe
 
 
 #: Target kinds written ``<kind>:<name>``.
 TARGET_KINDS: dict[str, TargetKind] = {
-    "controller": TargetKind(_controller, lambda name, recipe: recipe or DEFAULT_RECIPE),
+    "controller": TargetKind(_controller, lambda name, recipe: load_recipe(recipe or DEFAULT_RECIPE)),
     "pretrained": TargetKind(load_pretrained, _pretrained_recipe),
 }
 
@@ -95,16 +95,16 @@ def run_folder(target: str | os.PathLike[str]) -> Path | None:
 
 
 def default_protocol(target: str | os.PathLike[str], recipe: str | None = None) -> dict:
-    """``episodes`` and ``stage`` of the evaluation protocol of a target's recipe (the run's, with its ``evaluation``
-    settings; a ``<kind>:<name>`` target's :attr:`TargetKind.recipe`); empty for a model file outside any run folder."""
+    """The evaluation protocol of a target's recipe (``episodes``, ``stage`` and what else its ``evaluation:`` gives):
+    the run's, or a ``<kind>:<name>`` target's :attr:`TargetKind.recipe`; empty for a model file outside any run
+    folder."""
     kind = target_kind(target)
     if kind is not None:
-        return dict(load_recipe(TARGET_KINDS[kind].recipe(str(target).partition(":")[2], recipe)).evaluation)
+        return dict(TARGET_KINDS[kind].recipe(str(target).partition(":")[2], recipe).evaluation)
     folder = run_folder(target)
     if folder is None:
         return {}
-    evaluation = load_settings(folder).recipe.evaluation
-    return {key: evaluation[key] for key in ("episodes", "stage") if key in evaluation}
+    return dict(load_settings(folder).recipe.evaluation)
 
 
 def evaluation_folder(target: str | os.PathLike[str], recipe: str | None = None) -> Path:
@@ -113,7 +113,7 @@ def evaluation_folder(target: str | os.PathLike[str], recipe: str | None = None)
     kind = target_kind(target)
     if kind is not None:
         name = str(target).partition(":")[2]
-        return Path("evaluations") / f"{kind}-{name}_{Path(TARGET_KINDS[kind].recipe(name, recipe)).stem}"
+        return Path("evaluations") / f"{kind}-{name}_{TARGET_KINDS[kind].recipe(name, recipe).name}"
     path = Path(target)
     return (path if path.is_dir() else path.parent) / "eval"
 

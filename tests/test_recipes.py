@@ -19,14 +19,14 @@ from sb3_formation.env.config import FormationConfig
 from sb3_formation.experiment.pretrained import numerics_fingerprint
 from sb3_formation.experiment.recipes import RECIPES_FOLDER, Recipe, load_recipe, recipe_names
 from sb3_formation.experiment.runs import FINAL_MODEL
-from sb3_formation.experiment.settings import TrainSettings, layered_settings
+from sb3_formation.experiment.settings import TrainSettings, layered_settings, load_settings
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
 
 REFERENCE = Path(__file__).with_name("data") / "thesis_training_reference.json"
 
 
-def test_the_four_thesis_setups_are_shipped_with_their_citations() -> None:
+def test_the_four_thesis_recipes_are_shipped_with_their_citations() -> None:
     thesis = ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing"]
     assert recipe_names() == [
         *thesis,
@@ -44,12 +44,12 @@ def test_the_four_thesis_setups_are_shipped_with_their_citations() -> None:
         "ch5-bearing": ((5000, 5000, 15000), 14, 200, True, 1.0),
     }
     for name, (iterations, teams, episodes, recurrent, scale) in expected.items():
-        setup = load_recipe(name)
-        assert setup.env["task"] == name and setup.config() == FormationConfig.task(name)
-        assert (setup.iterations, setup.n_envs, setup.evaluation["episodes"]) == (iterations, teams, episodes)
-        assert setup.recurrent is recurrent
-        assert setup.ppo == thesis_ppo and setup.policy["sigma"] == 0.7 and setup.policy["action_scale"] == scale
-        kwargs = setup.ppo_kwargs()
+        recipe = load_recipe(name)
+        assert recipe.env["task"] == name and recipe.config() == FormationConfig.task(name)
+        assert (recipe.iterations, recipe.n_envs, recipe.evaluation["episodes"]) == (iterations, teams, episodes)
+        assert recipe.recurrent is recurrent
+        assert recipe.ppo == thesis_ppo and recipe.policy["sigma"] == 0.7 and recipe.policy["action_scale"] == scale
+        kwargs = recipe.ppo_kwargs()
         assert kwargs["policy"] is (RecurrentFormationPolicy if recurrent else FormationPolicy)
         assert ("team_size" in kwargs["policy_kwargs"]) == (name == "ch4-team")  # the team critic, fig. 4.3
     for name in recipe_names():  # every setting line cites the thesis or says what it changes and why
@@ -58,14 +58,14 @@ def test_the_four_thesis_setups_are_shipped_with_their_citations() -> None:
         assert uncited == [], f"{name}: lines without a citation: {uncited}"
 
 
-def test_presets_command_lists_every_setup_on_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+def test_recipes_command_lists_every_recipe_on_one_line(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["recipes"]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert [line.split()[0] for line in lines] == recipe_names()
     assert all(load_recipe(line.split()[0]).description in line for line in lines)
 
 
-def test_bad_setups_are_one_line_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_bad_recipes_are_one_line_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(ValueError, match=r"unknown recipe 'ch9'; recipes: ch4-individual, ch4-team, ch5-angle, ch5-bearing"):
         load_recipe("ch9")
     good = yaml.safe_load((RECIPES_FOLDER / "ch5-bearing.yaml").read_text())
@@ -86,7 +86,7 @@ def test_bad_setups_are_one_line_errors(tmp_path: Path, capsys: pytest.CaptureFi
         assert not (tmp_path / "never").exists()
 
 
-def test_a_new_setup_is_one_data_file(tmp_path: Path) -> None:
+def test_a_new_recipe_is_one_data_file(tmp_path: Path) -> None:
     """A recipe written to a temporary folder trains for an iteration and records itself in the run's config."""
     values = yaml.safe_load((RECIPES_FOLDER / "ch4-individual.yaml").read_text())
     values |= {
@@ -98,25 +98,92 @@ def test_a_new_setup_is_one_data_file(tmp_path: Path) -> None:
         "n_envs": 2,
         "evaluation": {"episodes": 2, "stage": 3},
     }
-    setup_file = tmp_path / "small.yaml"
-    setup_file.write_text(yaml.safe_dump(values))
+    recipe_file = tmp_path / "small.yaml"
+    recipe_file.write_text(yaml.safe_dump(values))
     run_dir = tmp_path / "run"
-    assert main(["train", "--recipe", str(setup_file), "--run-dir", str(run_dir), "--no-progress"]) == 0
+    assert main(["train", "--recipe", str(recipe_file), "--run-dir", str(run_dir), "--no-progress"]) == 0
     config = yaml.safe_load((run_dir / "config.yaml").read_text())
-    assert config["recipe"] == str(setup_file) and config["n_envs"] == 2 and config["iterations"] == [0, 0, 1]
-    assert config["env"]["n_agents"] == 4 and config["ppo"]["policy_kwargs"]["sigma"] == 0.5
+    assert config["name"] == "small" and config["n_envs"] == 2 and config["curriculum"]["iterations"] == [0, 0, 1]
+    assert config["env"]["n_agents"] == 4 and config["policy"]["sigma"] == 0.5
     assert (run_dir / FINAL_MODEL).is_file()
     assert main(["evaluate", str(run_dir), "--n-envs", "2", "--no-progress"]) == 0
     assert json.loads((run_dir / "eval" / "summary.json").read_text())["episodes"] == 2  # the recipe's protocol
 
 
-def test_layered_settings_put_flags_over_the_file_over_the_setup(tmp_path: Path) -> None:
+def test_a_recipe_names_its_base_and_overrides_keys_of_its_sections(tmp_path: Path) -> None:
+    """``base:`` merges section by section: the derived file's keys replace the base's, the rest is inherited; a
+    relative base is read from the file's folder, and a chain of bases is followed once, refusing cycles."""
+    (tmp_path / "small.yaml").write_text(
+        yaml.safe_dump({"base": "fast-ch5-bearing", "n_envs": 2, "ppo": {"n_steps": 16}, "env": {"max_steps": 30}})
+    )
+    (tmp_path / "smaller.yaml").write_text(yaml.safe_dump({"base": "small.yaml", "training": {"steps": 999}}))
+    recipe, fast = load_recipe(tmp_path / "smaller.yaml"), load_recipe("fast-ch5-bearing")
+    assert recipe.name == "smaller" and recipe.description == fast.description
+    assert (recipe.n_envs, recipe.ppo["n_steps"], recipe.config().max_steps, recipe.training["steps"]) == (2, 16, 30, 999)
+    assert {k: v for k, v in recipe.ppo.items() if k != "n_steps"} == {k: v for k, v in fast.ppo.items() if k != "n_steps"}
+    assert recipe.training["normalize_reward"] is True and recipe.policy == fast.policy  # inherited
+    # the shipped residual recipe, written as its own file, means what it says with a base too
+    residual = yaml.safe_load((RECIPES_FOLDER / "residual-ch5-bearing.yaml").read_text())
+    changes = {key: residual[key] for key in ("description", "residual", "policy", "ppo", "training")}
+    (tmp_path / "residual.yaml").write_text(yaml.safe_dump({"base": "fast-ch5-bearing", "name": "r", **changes}))
+    derived = load_recipe(tmp_path / "residual.yaml").to_dict()
+    assert derived == {**load_recipe("residual-ch5-bearing").to_dict(), "name": "r"}
+    (tmp_path / "small.yaml").write_text(yaml.safe_dump({"base": "smaller.yaml"}))
+    with pytest.raises(
+        ValueError, match=r"small.yaml: base 'smaller.yaml' makes a cycle of recipes \(smaller.yaml -> small.yaml\)"
+    ):
+        load_recipe(tmp_path / "smaller.yaml")
+    with pytest.raises(ValueError, match="no recipe file"):
+        load_recipe(tmp_path / "absent.yaml")
+
+
+def test_settings_put_options_over_the_file_over_its_recipe(tmp_path: Path) -> None:
     path = tmp_path / "run.yaml"
-    path.write_text(yaml.safe_dump({"recipe": "ch4-team", "iterations": [3, 2, 1], "seed": 4, "env": {"max_steps": 99}}))
+    values = {"base": "ch4-team", "curriculum": {"iterations": [3, 2, 1]}, "env": {"max_steps": 99}, "run": {"seed": 4}}
+    path.write_text(yaml.safe_dump(values))
     settings = layered_settings(path, seed=7, env={"eta_g": 0.7}, n_envs=None)
-    assert (settings.recipe, settings.seed, settings.resolved_iterations()) == ("ch4-team", 7, (3, 2, 1))
-    assert (settings.config().max_steps, settings.config().eta_g, settings.resolved_n_envs()) == (99, 0.7, 12)
-    assert layered_settings().to_dict() == TrainSettings().to_dict()
+    assert (settings.recipe.name, settings.run.seed, settings.recipe.stage_iterations()) == ("run", 7, (3, 2, 1))
+    assert (settings.recipe.config().max_steps, settings.recipe.config().eta_g, settings.recipe.n_envs) == (99, 0.7, 12)
+    assert layered_settings().to_dict() == TrainSettings(load_recipe("ch5-bearing")).to_dict()
+
+
+def test_a_runs_config_trains_again_into_the_same_parameters(tmp_path: Path) -> None:
+    """A run's ``config.yaml`` is a complete recipe with its run options: ``train --config runs/X/config.yaml`` (same
+    seed, a short budget) trains the same model, bit for bit, and writes the same ``config.yaml``."""
+    first, again = tmp_path / "first", tmp_path / "again"
+    options = ["--iterations", "0,0,1", "--n-envs", "2", "--env", "max_steps=30", "--seed", "3", "--no-progress"]
+    assert main(["train", "--recipe", "fast-ch5-bearing", "--steps", "1", *options, "--run-dir", str(first)]) == 0
+    assert main(["train", "--config", str(first / "config.yaml"), "--run-dir", str(again)]) == 0
+    assert (first / "config.yaml").read_text() == (again / "config.yaml").read_text()
+    assert parameter_fingerprint(first / FINAL_MODEL) == parameter_fingerprint(again / FINAL_MODEL)
+    assert main(["train", "--config", str(first / "config.yaml"), "--seed", "4", "--run-dir", str(tmp_path / "s4")]) == 0
+    assert parameter_fingerprint(tmp_path / "s4" / FINAL_MODEL) != parameter_fingerprint(first / FINAL_MODEL)
+    assert yaml.safe_load((tmp_path / "s4" / "config.yaml").read_text())["run"]["seed"] == 4
+
+
+def test_a_run_folder_of_an_earlier_release_still_loads(tmp_path: Path) -> None:
+    """A ``config.yaml`` in the settings format of earlier releases (``recipe:`` and resolved options) is read, with a
+    warning, as the same recipe with its changes and the same run options."""
+    shipped = load_recipe("residual-ch5-bearing")
+    old = {
+        "recipe": "residual-ch5-bearing", "iterations": [0, 0, 140], "n_envs": 14, "workers": 1, "seed": 5,
+        "device": "cpu", "logdir": "runs", "checkpoint_every": 50, "success_threshold": None, "progress_bar": False,
+        "seeds": None, "evaluation": None, "recurrent": False, "cell": None, "steps": 3000000, "minutes": None,
+        "normalize_reward": True, "eval_every": 25, "team_sizes": [6],
+        "env": {**FormationConfig.task("ch5-bearing").to_dict(), "max_steps": 400},
+        "ppo": {**shipped.ppo, "policy_kwargs": {**shipped.policy, "sigma": 0.5}},
+    }  # fmt: skip
+    del old["ppo"]["policy_kwargs"]["recurrent"]
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(old))
+    with pytest.warns(FutureWarning, match="settings format of earlier releases"):
+        settings = load_settings(tmp_path)
+    expected = shipped.with_changes({"env": {"max_steps": 400}, "policy": {"sigma": 0.5}})
+    assert settings.recipe.to_dict() == {
+        **expected.to_dict(),
+        "curriculum": {"iterations": [0, 0, 140], "success_threshold": None},
+    }
+    assert settings.recipe.stage_iterations() == expected.stage_iterations()
+    assert (settings.run.seed, settings.run.device, settings.run.progress_bar) == (5, "cpu", False)
 
 
 def parameter_fingerprint(model_zip: Path) -> tuple[str, dict[str, list[float]]]:
@@ -134,7 +201,7 @@ def parameter_fingerprint(model_zip: Path) -> tuple[str, dict[str, list[float]]]
 
 @pytest.mark.slow
 @pytest.mark.parametrize("case", ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing", "ch5-bearing-mlp"])
-def test_thesis_setups_train_into_the_recorded_parameters(case: str, tmp_path: Path, one_torch_thread: None) -> None:
+def test_thesis_recipes_train_into_the_recorded_parameters(case: str, tmp_path: Path, one_torch_thread: None) -> None:
     """Three iterations (one per curriculum stage, two teams, seed 0) of every thesis recipe against parameters recorded
     before the package was split into layers (``tests/data/thesis_training_reference.json``, written by the same
     command on the code of commit b5de348, with one torch thread). On the machine that recorded them the SHA-256 of the
@@ -159,29 +226,30 @@ def test_thesis_setups_train_into_the_recorded_parameters(case: str, tmp_path: P
 
 
 def test_team_sizes_are_checked() -> None:
-    setup = load_recipe("mixed-ch5-bearing")
-    assert setup.team_sizes == [3, 4, 5, 6, 7, 8] and setup.config().observe_reference_bearings
+    recipe = load_recipe("mixed-ch5-bearing")
+    assert recipe.team_sizes == [3, 4, 5, 6, 7, 8] and recipe.config().observe_reference_bearings
     values = {
-        key: getattr(setup, key) for key in ("description", "env", "policy", "ppo", "curriculum", "n_envs", "evaluation")
+        key: getattr(recipe, key) for key in ("description", "env", "policy", "ppo", "curriculum", "n_envs", "evaluation")
     }
     with pytest.raises(ValueError, match="team_sizes must be a non-empty list of team sizes, got 5"):
         Recipe("bad", **values, team_sizes=5)
     with pytest.raises(ValueError, match=r"team_sizes: FormationConfig\.n_agents=2 is invalid"):
         Recipe("bad", **values, team_sizes=[3, 2])
-    with pytest.raises(ValueError, match=r"a team critic reads teams of one size; team_sizes lists \[3, 4\]"):
+    with pytest.raises(ValueError, match=r"a team critic reads teams of n_agents=6; team_sizes lists \[3, 4\]"):
         Recipe("bad", **{**values, "policy": {**values["policy"], "team_critic": True}}, team_sizes=[3, 4])
 
 
-def test_a_runs_team_sizes_are_recorded_resolved_and_flags_replace_the_setups() -> None:
-    settings = TrainSettings(recipe="mixed-ch5-bearing")
-    assert settings.resolved_team_sizes() == [3, 4, 5, 6, 7, 8]
-    assert settings.steps_per_iteration() == 256 * 2 * (3 + 4 + 5 + 6 + 7 + 8)  # 12 teams: each size twice
-    saved = settings.to_dict()
+def test_a_runs_team_sizes_are_recorded_resolved_and_agents_replace_the_recipes() -> None:
+    recipe = load_recipe("mixed-ch5-bearing")
+    assert recipe.sizes == [3, 4, 5, 6, 7, 8]
+    assert recipe.steps_per_iteration() == 256 * 2 * (3 + 4 + 5 + 6 + 7 + 8)  # 12 teams: each size twice
+    saved = recipe.to_dict()
     assert saved["team_sizes"] == [3, 4, 5, 6, 7, 8] and saved["env"]["n_agents"] == 6
-    assert TrainSettings.from_dict(saved).resolved_team_sizes() == [3, 4, 5, 6, 7, 8]  # a resumed run keeps its mix
-    assert TrainSettings(recipe="mixed-ch5-bearing", env={"n_agents": 4}).resolved_team_sizes() == [4]  # --agents 4
-    assert TrainSettings(recipe="ch5-bearing", team_sizes=[3, 5]).steps_per_iteration() == 128 * 7 * (3 + 5)  # 14 teams
+    assert Recipe.from_dict("saved", saved).sizes == [3, 4, 5, 6, 7, 8]  # a resumed run keeps its mix
+    assert layered_settings(recipe="mixed-ch5-bearing", agents=4).recipe.sizes == [4]  # --agents 4: every team
+    assert load_recipe("ch5-bearing").sizes == [6]
+    assert layered_settings(recipe="ch5-bearing", team_sizes=[3, 5]).recipe.steps_per_iteration() == 128 * 7 * (3 + 5)
     with pytest.raises(ValueError, match="team_sizes must be a non-empty list of team sizes, got \\[\\]"):
-        TrainSettings(recipe="mixed-ch5-bearing", team_sizes=[])
+        layered_settings(recipe="mixed-ch5-bearing", team_sizes=[])
     with pytest.raises(ValueError, match=r"a team critic reads teams of n_agents=3; team_sizes lists \[3, 4\]"):
-        TrainSettings(recipe="ch4-team", team_sizes=[3, 4])
+        layered_settings(recipe="ch4-team", team_sizes=[3, 4])
