@@ -77,7 +77,7 @@ def test_a_device_this_machine_lacks_is_refused_before_anything_is_written(
 
 # evaluate, plot, render and compare on real (tiny) training runs ------------------------------------------------------
 
-TINY_RUN = {"ppo": {"policy_kwargs": {"net_arch": {"pi": [16], "vf": [16]}}}}
+TINY_RUN = {"base": "ch5-bearing", "policy": {"net_arch": {"pi": [16], "vf": [16]}}}
 
 
 @pytest.fixture(scope="module")

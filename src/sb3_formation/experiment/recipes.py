@@ -325,9 +325,15 @@ class Recipe:
         env = {name: value for name, value in self.env.items() if name != "task"}
         return FormationConfig.task(self.env["task"], **{**env, **overrides})
 
-    def ppo_kwargs(self) -> dict:
+    def ppo_kwargs(self, recurrent: bool | None = None, cell: str | None = None) -> dict:
         """Keyword arguments of ``PPO`` (or, for a recurrent policy, :class:`RecurrentFormationPPO`), with the policy
-        class and its keyword arguments; a team critic reads the task's team size."""
+        class and its keyword arguments; a team critic reads the task's team size.
+
+        :param recurrent: override the recipe's choice of a recurrent policy (``--recurrent``/``--no-recurrent``)
+        :param cell: override the recurrent cell (``--cell``)
+        """
+        if recurrent is not None or cell is not None:
+            return self.with_changes(recipe_changes(recurrent=recurrent, cell=cell)).ppo_kwargs()
         policy_kwargs = {name: value for name, value in self.policy.items() if name not in _POLICY_CHOICES}
         if self.recurrent:
             if self.team_critic:
