@@ -4,6 +4,12 @@ from __future__ import annotations
 
 import csv
 import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -190,3 +196,34 @@ def test_bad_input_to_evaluation_commands_is_one_line(
     assert main([argument.format(**names) for argument in arguments]) == 2
     error = capsys.readouterr().err
     assert message in error and error.count("\n") == 1 and "Traceback" not in error
+
+
+@pytest.mark.parametrize(
+    "arguments",
+    [
+        ["evaluate", "controller:classical", "--episodes", "2000", "--workers", "2", "--n-envs", "4", "--no-progress"],
+        ["evaluate", "controller:classical", "--episodes", "2000", "--n-envs", "4", "--no-progress"],
+        ["render", "controller:classical", "--episodes", "50", "--out", "v.gif"],
+        ["compare", "controller:classical", "controller:random", "--episodes", "2000", "--workers", "2"],
+    ],
+    ids=["evaluate-workers", "evaluate", "render", "compare-workers"],
+)
+def test_ctrl_c_ends_evaluations_at_once_with_one_line(arguments: list[str], tmp_path: Path) -> None:
+    """Issue 29: Ctrl-C (SIGINT to the whole process group, as a terminal sends it) ends ``evaluate``, ``render`` and
+    ``compare``, with or without workers, within 2 s, with exit code 130 and one line."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "sb3_formation.cli", *arguments],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    time.sleep(5.0)  # imports, workers started, episodes under way
+    assert process.poll() is None, process.communicate()
+    os.killpg(process.pid, signal.SIGINT)
+    started = time.monotonic()
+    _, errors = process.communicate(timeout=30)
+    assert time.monotonic() - started < 2.0 and process.returncode == 130, errors
+    lines = [line for line in errors.splitlines() if line.strip() and not re.match(r"\w+: +\d+%\|", line)]
+    assert lines == [f"sb3-formation: {arguments[0]} interrupted"], errors  # beside the progress bar's

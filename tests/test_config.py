@@ -11,7 +11,7 @@ import numpy as np
 import pymunk
 import pytest
 
-from sb3_formation.env.config import COLLISION_BIAS, FormationConfig
+from sb3_formation.env.config import COLLISION_BIAS, MAX_SUBSTEPS, MAX_WORLD_SIZE, FormationConfig
 
 PRESET_NAMES = ("ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing")
 
@@ -375,3 +375,31 @@ def test_largest_team_that_fits_the_start_formation() -> None:
     assert FormationConfig.task("ch5-bearing", n_agents=16).start_side_length == pytest.approx(0.421395, abs=1e-6)
     with pytest.raises(ValueError, match=r"n_agents=17 does not fit.*at most 16"):
         FormationConfig.task("ch5-bearing", n_agents=17)
+
+
+def test_a_config_that_needs_too_many_substeps_or_too_large_a_world_is_refused() -> None:
+    """Issue 29: v_max = 1e6 m/s needs 1e6 * 0.3 / 0.008 = 37,500,000 sub-steps per step (about 100 s each): refused,
+    naming v_max, dt and agent_radius; the fuzz-tested range stays allowed (v_max 1, dt 0.5, R_a 0.1: 0.5 m per step
+    over 0.1 * 0.1 * 0.8 / 2 = 4 mm per sub-step = 125)."""
+    with pytest.raises(ValueError, match=r"v_max=1e\+06 m/s, dt=0\.3 s and agent_radius=0\.2 m need 37,500,000 Pymunk"):
+        FormationConfig.task("ch5-bearing", v_max=1e6)
+    edge = FormationConfig.task("ch5-bearing", v_max=1.0, dt=0.5, agent_radius=0.1, eta_c=1.2)
+    assert edge.physics_substeps == 125 <= MAX_SUBSTEPS
+    with pytest.raises(ValueError, match=f"physics_substeps=5000 is invalid: it must be at most {MAX_SUBSTEPS}"):
+        FormationConfig.task("ch5-bearing", physics_substeps=5000)
+    for name in ("world_width", "world_height"):
+        with pytest.raises(ValueError, match=f"FormationConfig.{name}=1e\\+308 is invalid: it must be at most 10000 m"):
+            FormationConfig.task("ch5-bearing", **{name: 1e308})
+    assert FormationConfig.task("ch5-bearing", world_width=MAX_WORLD_SIZE).world_width == 10_000.0
+
+
+def test_a_config_is_written_and_read_one_way() -> None:
+    """``to_dict`` is plain data (lists, chosen sub-steps as None) and ``from_dict`` gives the equal config back."""
+    config = FormationConfig.task("ch4-team", n_agents=5, v_max=1.0)
+    values = config.to_dict()
+    assert values["stage_disabled_terms"] == [list(terms) for terms in config.stage_disabled_terms]
+    assert values["physics_substeps"] is None and FormationConfig.from_dict(values) == config
+    given = config.replace(physics_substeps=50)
+    assert given.to_dict()["physics_substeps"] == 50 and FormationConfig.from_dict(given.to_dict()) == given
+    with pytest.raises(ValueError, match=r"unknown FormationConfig field\(s\) \['colour'\]"):
+        FormationConfig.from_dict({**values, "colour": "red"})

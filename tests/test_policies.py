@@ -289,3 +289,18 @@ def test_gaussian_actions_is_sb3s_gaussian_without_argument_checks() -> None:
     nan_mean = th.tensor([[float("nan"), 0.0]])
     unchecked = gaussian_actions(DiagGaussianDistribution(2), nan_mean, log_std)  # torch's checks would raise here
     assert unchecked.distribution._validate_args is False and th.isnan(unchecked.mode()).any()  # left to the VecEnv
+
+
+@pytest.mark.parametrize("team_size", [None, 2])
+@pytest.mark.parametrize("rows", [1, 7, 96])
+def test_deterministic_actions_are_predicts_to_the_bit(team_size: int | None, rows: int) -> None:
+    """The evaluation's fast path gives what SB3's ``predict(..., deterministic=True)`` gives, bit for bit, with the
+    action space's clip (saturated means included)."""
+    obs_dim = D * 3 if team_size else D
+    policy = make_model(obs_dim=obs_dim, seed=5, team_size=team_size, action_scale=1.0).policy
+    with th.no_grad():
+        policy.action_net.weight.mul_(50.0)  # some means at the bounds
+    obs = observations(obs_dim, n=rows, seed=rows).numpy()
+    expected, _ = policy.predict(obs, deterministic=True)
+    actions = policy.deterministic_actions(obs)
+    assert actions.dtype == expected.dtype and np.array_equal(actions, expected)

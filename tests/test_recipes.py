@@ -253,3 +253,21 @@ def test_a_runs_team_sizes_are_recorded_resolved_and_agents_replace_the_recipes(
         layered_settings(recipe="mixed-ch5-bearing", team_sizes=[])
     with pytest.raises(ValueError, match=r"a team critic reads teams of n_agents=3; team_sizes lists \[3, 4\]"):
         layered_settings(recipe="ch4-team", team_sizes=[3, 4])
+
+
+def test_ppo_settings_that_sb3_would_reject_late_are_one_line_errors() -> None:
+    """Issue 29: SB3 asserts ``batch_size > 1`` and accepts ``gamma: 2``; a recipe refuses both before anything runs."""
+    recipe = load_recipe("fast-ch5-bearing")
+    for change, message in (
+        ({"batch_size": 1}, r"batch_size must be an integer >= 2 \(advantages are normalised over a mini-batch\)"),
+        ({"batch_size": 0}, "batch_size must be an integer >= 2"),
+        ({"n_steps": 0}, "n_steps must be an integer >= 1, got 0"),
+        ({"n_steps": -5}, "n_steps must be an integer >= 1, got -5"),
+        ({"n_epochs": 0}, "n_epochs must be an integer >= 1, got 0"),
+        ({"gamma": 2}, r"gamma must be a number in \(0, 1\], got 2"),
+        ({"gamma": 0}, r"gamma must be a number in \(0, 1\], got 0"),
+        ({"gae_lambda": 1.5}, r"gae_lambda must be a number in \[0, 1\], got 1.5"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            recipe.with_changes({"ppo": change})
+    assert recipe.with_changes({"ppo": {"gamma": 1, "batch_size": 2}}).ppo["gamma"] == 1

@@ -429,3 +429,12 @@ def test_the_curriculum_scales_to_the_world_and_refuses_one_too_small() -> None:
     message = f"a team starting at (2.13, 1.20) m needs {reach:.2f} m to every wall, has 1.20 m"
     with pytest.raises(ValueError, match=re.escape(message)):
         FormationEnv(small)
+
+
+def test_an_obstacle_outside_the_world_is_refused() -> None:
+    """Issue 29: an obstacle whose centre lies outside the world is named, as the goal is; one crossing a wall is
+    allowed (the curriculum's large obstacles may)."""
+    agents = [[2.0, 2.0], [5.0, 5.0], [8.0, 8.0]]
+    with pytest.raises(ValueError, match=r"obstacle 1 at \(100\.000, 100\.000\) m is outside the world"):
+        Scenario(agents, [12.0, 5.0], [[12.0, 2.0, 0.5], [100.0, 100.0, 0.5]]).validate(CH4)
+    Scenario(agents, [12.0, 5.0], [[14.9, 9.9, 2.0]]).validate(CH4)

@@ -150,6 +150,11 @@ def test_train_cli_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureF
     assert "config.yaml" in capsys.readouterr().err
     assert main(["train", "--resume", str(tmp_path), "--seed", "3"]) == 2
     assert "--seed" in capsys.readouterr().err
+    assert main(["train", "--resume", str(tmp_path), "--no-progress"]) == 2  # the flag as the user wrote it
+    assert "drop --no-progress" in capsys.readouterr().err
+    undecodable = os.fsdecode(b"run-\xff")  # a name the shell passed as bytes: refused before anything is written
+    assert main(["train", "--run-dir", str(tmp_path / undecodable), "--logdir", str(tmp_path / "runs")]) == 2
+    assert "is not valid UTF-8" in capsys.readouterr().err and not (tmp_path / undecodable).exists()
     broken = tmp_path / "broken.yaml"
     broken.write_text("base: [unclosed")
     assert main(["train", "--config", str(broken)]) == 2
@@ -188,6 +193,11 @@ BAD_TRAIN_INPUT = [
     ([], "base: ch5-bearing\ncurriculum: {success_threshold: true}", "success_threshold must be a number in [0, 1]"),
     ([], "base: ch5-bearing\nppo: {n_epochs: 0}", "ppo: n_epochs must be an integer >= 1, got 0"),
     ([], "base: bad.yaml", "base 'bad.yaml' makes a cycle of recipes"),
+    (["--env", "world_width=1e308"], None, "FormationConfig.world_width=1e+308 is invalid: it must be at most 10000 m"),
+    (["--env", "v_max=1.0e6"], None, "need 37,500,000 Pymunk sub-steps per step"),
+    ([], "base: ch5-bearing\nppo: {gamma: 2}", "gamma must be a number in (0, 1], got 2"),
+    ([], "base: ch5-bearing\nppo: {batch_size: 1}", "batch_size must be an integer >= 2"),
+    ([], "base: ch5-bearing\nppo: {n_steps: 0}", "n_steps must be an integer >= 1, got 0"),
 ]
 
 

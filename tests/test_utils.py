@@ -5,16 +5,21 @@ from __future__ import annotations
 import os
 import signal
 import stat
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator
+from multiprocessing import shared_memory
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from sb3_formation.utils import files
+from sb3_formation.utils.checks import check_path
 from sb3_formation.utils.files import FILE_MODE, atomic_directory, atomic_path, atomic_write, restore_directory
 from sb3_formation.utils.processes import SharedArrays, WorkerProcess, gather
+from sb3_formation.utils.yaml_files import read_yaml_file
 
 
 @pytest.fixture
@@ -367,3 +372,85 @@ def test_a_spinning_worker_polls_for_calls_then_sleeps() -> None:
         assert worker.call("add", 1) == 52  # and a call wakes it
     finally:
         worker.close()
+
+
+# Issue 29: workers and shared memory after kills, the __main__ guard, file names and YAML text ------------------------
+
+SCRIPT_WITH_WORKERS = """
+import sys
+from sb3_formation.env.blocks import EngineBlocks
+from sb3_formation.env.config import FormationConfig
+{body}
+"""
+
+
+def run_script(tmp_path: Path, body: str, guarded: bool = True, **popen: object) -> subprocess.Popen:
+    """Run ``body`` as a script (under the ``__main__`` guard unless told not to), its output piped."""
+    if guarded:
+        body = 'if __name__ == "__main__":\n' + "".join(f"    {line}\n" for line in body.strip().splitlines())
+    path = tmp_path / "script.py"
+    path.write_text(SCRIPT_WITH_WORKERS.format(body=body))
+    return subprocess.Popen([sys.executable, str(path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen)
+
+
+def test_no_shared_memory_outlives_a_killed_process_group(tmp_path: Path) -> None:
+    """The blocks' shared memory is unlinked as soon as every worker has mapped it: a ``kill -KILL`` of the whole
+    process group leaves no ``/dev/shm`` segment, and stepping still works meanwhile."""
+    body = """
+blocks = EngineBlocks([FormationConfig.task("ch5-bearing")] * 2, n_workers=2, auto_reset=False)
+print(*[shared._memory.name for shared in blocks.shared.values()], flush=True)
+blocks.reset([0, 1], [0, 1], [None, None])
+blocks.step(blocks.checked_actions([[0.1, 0.0]] * 12))
+print("stepped", flush=True)
+import time; time.sleep(60)
+"""
+    process = run_script(tmp_path, body, start_new_session=True)
+    names = process.stdout.readline().split()
+    assert process.stdout.readline().strip() == "stepped", process.stderr.read()
+    assert names and not any(Path("/dev/shm", name.lstrip("/")).exists() for name in names)
+    os.killpg(process.pid, signal.SIGKILL)
+    process.wait(timeout=10)
+    for name in names:
+        with pytest.raises(FileNotFoundError):
+            shared_memory.SharedMemory(name=name)
+
+
+def test_workers_end_quietly_when_their_parent_is_killed(tmp_path: Path) -> None:
+    body = """
+blocks = EngineBlocks([FormationConfig.task("ch5-bearing")] * 4, n_workers=2, auto_reset=True)
+blocks.reset([0, 1, 2, 3], [0, 1, 2, 3], [None] * 4)
+print("ready", flush=True)
+while True:
+    blocks.step(blocks.checked_actions([[0.1, 0.0]] * 24))
+"""
+    process = run_script(tmp_path, body)
+    assert process.stdout.readline().strip() == "ready", process.stderr.read()
+    time.sleep(0.5)
+    started = time.monotonic()
+    process.kill()  # the parent only: its workers must notice and end, without a word
+    errors = process.stderr.read()  # returns once every process holding the pipe has ended
+    assert time.monotonic() - started < 10 and "Traceback" not in errors and "Error" not in errors, errors
+
+
+def test_a_script_without_the_main_guard_is_told_about_it(tmp_path: Path) -> None:
+    body = 'blocks = EngineBlocks([FormationConfig.task("ch5-bearing")] * 2, n_workers=2)'
+    process = run_script(tmp_path, body, guarded=False)
+    _, errors = process.communicate(timeout=120)
+    lines = errors.strip().splitlines()
+    assert process.returncode != 0 and 'if __name__ == "__main__":' in lines[-1], errors
+    assert len(lines) < 30, errors  # a worker's own report is one line
+
+
+def test_yaml_files_that_are_not_utf8_and_unwritable_names_are_one_line_errors(tmp_path: Path) -> None:
+    path = tmp_path / "latin1.yaml"
+    path.write_bytes("name: caf\xe9\n".encode("latin-1"))
+    with pytest.raises(ValueError, match=r"latin1\.yaml is not UTF-8 text \(byte 9\)"):
+        read_yaml_file(path)
+    with pytest.raises(FileNotFoundError, match="no such file"):
+        read_yaml_file(tmp_path / "absent.yaml")
+    undecodable = os.fsdecode(b"runs/bad-\xff")  # a name the shell passed as bytes
+    with pytest.raises(ValueError, match=r"--run-dir 'runs/bad-\\udcff' is not valid UTF-8"):
+        check_path(undecodable, "--run-dir")
+    with pytest.raises(ValueError, match="is longer than 255 bytes"):
+        check_path(tmp_path / ("x" * 256), "logdir")
+    check_path(tmp_path / "runs with spaces" / "ünïcode", "logdir")

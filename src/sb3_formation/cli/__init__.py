@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import re
 import shlex
+import signal
 import sys
 from collections.abc import Sequence
 
@@ -57,6 +58,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except TrainingStopped as stop:
         print(f"sb3-formation: {stop}", file=sys.stderr)
         return 128 + stop.signal_number
+    except KeyboardInterrupt:  # Ctrl-C outside training (which checkpoints first): stop with the shell's code
+        if args.debug:
+            raise
+        print(f"sb3-formation: {args.command} interrupted", file=sys.stderr)
+        return 128 + signal.SIGINT
     except (ValueError, TypeError, OSError, RuntimeError) as error:  # bad input, files, a failed worker: one line
         if args.debug:
             raise

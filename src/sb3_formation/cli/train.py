@@ -19,6 +19,7 @@ from sb3_formation.experiment.recipes import thesis_recipe_for
 from sb3_formation.experiment.runs import FINAL_MODEL
 from sb3_formation.experiment.settings import TrainSettings, layered_settings, load_settings
 from sb3_formation.experiment.training import resume, train
+from sb3_formation.utils.checks import check_path
 
 #: The options that change the recipe (``recipe_changes``), with their argparse options.
 RECIPE_FLAGS: dict[str, dict] = {
@@ -67,13 +68,18 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "--env", type=assignment, action="append", metavar="FIELD=VALUE", help="set a FormationConfig field (repeatable)"
     )
     for name, options in {**RECIPE_FLAGS, **RUN_FLAGS}.items():
-        options = dict(options)
-        parser.add_argument(options.pop("flag", "--" + name.replace("_", "-")), dest=name, default=None, **options)
+        options = {key: value for key, value in options.items() if key != "flag"}
+        parser.add_argument(flag_of(name), dest=name, default=None, **options)
     parser.add_argument("--resume", type=Path, metavar="RUN_DIR", help="continue a run from its latest checkpoint")
     parser.add_argument(
         "--run-dir", type=Path, help="write the run into this new or empty folder (default: a new one under --logdir)"
     )
     parser.set_defaults(run=run)
+
+
+def flag_of(name: str) -> str:
+    """The command-line flag of an option of ``train`` (``progress_bar`` is ``--no-progress``)."""
+    return {**RECIPE_FLAGS, **RUN_FLAGS}.get(name, {}).get("flag", "--" + name.replace("_", "-"))
 
 
 def settings_of(args: argparse.Namespace) -> TrainSettings:
@@ -109,11 +115,13 @@ def run(args: argparse.Namespace) -> int:
     if args.resume is not None:
         given = [name for name in (*RECIPE_CHOICE, "run_dir", *RECIPE_FLAGS, *RUN_FLAGS) if getattr(args, name) is not None]
         if given:
-            flags = ", ".join("--" + name.replace("_", "-") for name in given)
+            flags = ", ".join(flag_of(name) for name in given)
             raise ValueError(f"--resume continues a run with its own settings; drop {flags}")
         run_dir = resume(args.resume)
         settings = load_settings(run_dir)
     else:
+        if args.run_dir is not None:
+            check_path(args.run_dir, "--run-dir")
         settings = settings_of(args)
         print(describe(settings))
         run_dir = train(settings, command=args.command_line, run_dir=args.run_dir)

@@ -20,7 +20,7 @@ from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.engine import INFO_VALUES, FormationEngine
 from sb3_formation.env.formation_env import FormationEnv
 from sb3_formation.env.state import TeamState
-from sb3_formation.utils.processes import SharedArrays, WorkerProcess, gather, worker_context
+from sb3_formation.utils.processes import SharedArrays, WorkerProcess, gather, wait_started, worker_context
 
 #: seconds a worker process polls for the next step before it sleeps (waking it would cost more than a step), and the
 #: parent for a worker's reply; the steps of a rollout follow each other well within it, training phases do not
@@ -240,6 +240,9 @@ class EngineBlocks:
                 self.shared[block] = shared = SharedArrays(step_layout(sum(sizes[team] for team in teams), dim))
                 arguments = ([configs[team] for team in teams], team_observations, auto_reset, render_mode, shared)
                 self.blocks.append(WorkerProcess(EngineBlock, arguments, "engine worker", context, WORKER_SPIN))
+            wait_started(self.blocks[1:])
+            for shared in self.shared.values():  # every process has mapped its block: no name to leave behind
+                shared.unlink()
         except BaseException:
             self.close()
             raise

@@ -27,6 +27,12 @@ COLLISION_BIAS = 0.0017970074436457143
 MAX_OVERLAP_REMOVAL = 0.8
 #: Pymunk sub-steps of the thesis's physics (the fewest the package uses).
 THESIS_SUBSTEPS = 2
+#: The most Pymunk sub-steps per environment step a configuration may need: 500 times the thesis's work per step, and
+#: four times what the fastest, smallest agents of the fuzz-tested range need (v_max 1 m/s, dt 0.5 s, R_a 0.1 m: 125).
+#: Beyond it one step takes seconds (v_max = 1e6 m/s would need 37.5 million).
+MAX_SUBSTEPS = 1000
+#: The largest world side (m): 1000 times the thesis's 10 m, far inside what float64 geometry keeps exact.
+MAX_WORLD_SIZE = 10_000.0
 
 #: Names of the reward terms, in the order of eq. (42); chapter 4's ``ref`` term (eq. 22) is ``dist``.
 REWARD_TERMS: tuple[str, ...] = ("time", "angle", "bearing", "dist", "centroid", "goal", "move", "velocity", "coll")
@@ -159,6 +165,8 @@ class FormationConfig:
         ).split()
         for name in positive:
             _check(name, getattr(self, name), "a finite number > 0", lambda v: is_number(v) and v > 0)
+        for name in ("world_width", "world_height"):
+            _check(name, getattr(self, name), f"at most {MAX_WORLD_SIZE:g} m", lambda v: v <= MAX_WORLD_SIZE)
         for name in "r_c r_reached r_late k1 r_o r_j".split() + [f"k_{t}" for t in REWARD_TERMS]:
             _check(name, getattr(self, name), "a finite number", lambda v: is_number(v))
         _check("d_safe", self.d_safe, "a finite number >= 0", lambda v: is_number(v) and v >= 0)
@@ -174,6 +182,13 @@ class FormationConfig:
         _check("stage", self.stage, "1, 2 or 3", lambda v: is_integer(v) and v in (1, 2, 3))
         for name in ("n_agents", "lidar_rays", "max_steps", "max_placement_tries", "stage"):
             object.__setattr__(self, name, int(getattr(self, name)))  # numpy integers become plain ints
+        if self.substeps_needed > MAX_SUBSTEPS:
+            raise ValueError(
+                f"v_max={self.v_max:g} m/s, dt={self.dt:g} s and agent_radius={self.agent_radius:g} m need "
+                f"{self.substeps_needed:,} Pymunk sub-steps per step to keep overlaps within {OVERLAP_TOLERANCE:.0%} of "
+                f"agent_radius, above the maximum of {MAX_SUBSTEPS}: lower v_max or dt, or raise agent_radius"
+            )
+        _check("physics_substeps", substeps, f"at most {MAX_SUBSTEPS}", lambda v: v is None or v <= MAX_SUBSTEPS)
         object.__setattr__(self, "physics_substeps", self.substeps_needed if substeps is None else int(substeps))
         _check("formation_scale", self.formation_scale, "in (0, 1)", lambda v: is_real(v) and 0 < v < 1)
         _check("layout", self.layout, f"one of {LAYOUTS}", lambda v: v in LAYOUTS)

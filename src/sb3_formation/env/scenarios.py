@@ -62,7 +62,8 @@ class Scenario:
         """Raise ``ValueError`` saying which agent is misplaced if the scenario does not fit ``config``.
 
         Checks: one position per agent, every agent inside the world, no two agents overlapping, no agent
-        overlapping an obstacle, the goal inside the world.
+        overlapping an obstacle, every obstacle's centre and the goal inside the world (an obstacle may cross a wall,
+        as the curriculum's large ones may).
         """
         n_agents, radius = config.n_agents, config.agent_radius
         if len(self.agent_positions) != n_agents:
@@ -88,6 +89,12 @@ class Scenario:
                         f"Scenario: agent_{index} overlaps obstacle {obstacle_index} at ({x:.3f}, {y:.3f}) m "
                         f"radius {r:.3f} m by {-gap:.3f} m"
                     )
+        for obstacle_index, (x, y, _) in enumerate(self.obstacles):
+            if not (0 <= x <= config.world_width and 0 <= y <= config.world_height):
+                raise ValueError(
+                    f"Scenario: obstacle {obstacle_index} at ({x:.3f}, {y:.3f}) m is outside the world "
+                    f"[0, {config.world_width}] x [0, {config.world_height}] m"
+                )
         gx, gy = self.goal
         if not (0 <= gx <= config.world_width and 0 <= gy <= config.world_height):
             raise ValueError(f"Scenario: goal ({gx:.3f}, {gy:.3f}) m is outside the world")

@@ -37,7 +37,7 @@ from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import CELLS, RecurrentFormationPolicy
 from sb3_formation.utils.checks import is_count, is_number
 from sb3_formation.utils.deprecation import warn_renamed
-from sb3_formation.utils.yaml_files import read_yaml
+from sb3_formation.utils.yaml_files import read_yaml_file
 
 #: The folder of the shipped recipes, one ``<name>.yaml`` each.
 RECIPES_FOLDER = Path(__file__).with_name("shipped_recipes")
@@ -190,9 +190,19 @@ class Recipe:
         for name in ("learning_rate", "clip_range", "clip_range_vf"):
             if self.ppo.get(name) is not None:
                 schedule(self.ppo[name], f"{where}: ppo: {name}")
-        for name in ("n_steps", "batch_size", "n_epochs"):
+        for name in ("n_steps", "n_epochs"):
             if name in self.ppo and not (is_count(self.ppo[name]) and self.ppo[name] >= 1):
                 raise ValueError(f"{where}: ppo: {name} must be an integer >= 1, got {self.ppo[name]!r}")
+        if "batch_size" in self.ppo and not (is_count(self.ppo["batch_size"]) and self.ppo["batch_size"] >= 2):
+            raise ValueError(  # SB3 normalises the advantages over each mini-batch: one sample has no spread
+                f"{where}: ppo: batch_size must be an integer >= 2 (advantages are normalised over a mini-batch), "
+                f"got {self.ppo['batch_size']!r}"
+            )
+        for name, low_open in (("gamma", True), ("gae_lambda", False)):
+            value = self.ppo.get(name)
+            if value is not None and not (is_number(value) and (0 < value <= 1 if low_open else 0 <= value <= 1)):
+                bounds = "(0, 1]" if low_open else "[0, 1]"
+                raise ValueError(f"{where}: ppo: {name} must be a number in {bounds}, got {value!r}")
         self.ppo_kwargs()  # validates the policy choices
         if self.team_sizes is not None:
             sizes = self.team_sizes
@@ -524,7 +534,7 @@ def read_recipe_file(path: Path, chain: tuple[Path, ...] = ()) -> dict[str, Any]
     :param chain: the files that named this one as their base (to refuse a cycle)
     :raises ValueError: not YAML, not a mapping, or a ``base:`` that is unknown or names a file of its own chain
     """
-    values = read_yaml(path.read_text(), str(path))
+    values = read_yaml_file(path)
     if not isinstance(values, dict):
         raise ValueError(f"{path} must hold a recipe mapping, not {type(values).__name__}")
     values = {"name": path.stem, **values}

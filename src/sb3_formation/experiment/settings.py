@@ -27,7 +27,7 @@ from sb3_formation.experiment.recipes import (
     recipe_changes,
     recipe_path,
 )
-from sb3_formation.utils.checks import is_count
+from sb3_formation.utils.checks import check_path, is_count
 
 #: Largest seed: numpy's and PyTorch's generators take seeds in [0, 2**32 - 1].
 MAX_SEED = 2**32 - 1
@@ -94,6 +94,7 @@ class RunOptions:
                 raise ValueError(f"{name} must be an integer >= 1, got {getattr(self, name)!r}")
         if not isinstance(self.logdir, (str, os.PathLike)):
             raise ValueError(f"logdir must be a folder name, got {self.logdir!r}")
+        check_path(self.logdir, "logdir")
         for name in ("progress_bar", "evaluate"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")

@@ -19,10 +19,11 @@ import math
 import numbers
 from typing import Any
 
+import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.distributions import Distribution
-from stable_baselines3.common.policies import ActorCriticPolicy
+from stable_baselines3.common.policies import ActorCriticPolicy, BasePolicy
 from stable_baselines3.common.type_aliases import Schedule
 from stable_baselines3.common.utils import get_device
 from torch import nn
@@ -220,7 +221,25 @@ class FormationPolicy(ModeOnChange, ActorCriticPolicy):
         trainable = [param for param in self.parameters() if param.requires_grad]
         self.optimizer = self.optimizer_class(trainable, lr=lr_schedule(1), **self.optimizer_kwargs)  # type: ignore[call-arg]
 
+    def _mean_actions(self, latent_pi: th.Tensor) -> th.Tensor:
+        """The mean of the action distribution: ``action_scale * tanh(action_net(latent_pi))``."""
+        return self.action_scale * th.tanh(self.action_net(latent_pi))
+
     def _get_action_dist_from_latent(self, latent_pi: th.Tensor) -> Distribution:
-        """Gaussian with mean ``action_scale * tanh(action_net(latent_pi))`` and the (fixed or learned) ``log_std``."""
-        mean_actions = self.action_scale * th.tanh(self.action_net(latent_pi))
-        return gaussian_actions(self.action_dist, mean_actions, self.log_std)
+        """Gaussian with mean :meth:`_mean_actions` and the (fixed or learned) ``log_std``."""
+        return gaussian_actions(self.action_dist, self._mean_actions(latent_pi), self.log_std)
+
+    def deterministic_actions(self, observations: np.ndarray) -> np.ndarray:
+        """What ``predict(observations, deterministic=True)`` returns, the same numbers, without building the action
+        distribution (a third of ``predict``'s time for a few hundred rows): SB3's tensor conversion, the actor, the
+        distribution's mean, and the clip to the action space.
+
+        :param observations: ``(rows, obs_dim)`` observations as the network reads them (normalised)
+        """
+        self.set_training_mode(False)
+        tensor, _ = self.obs_to_tensor(observations)
+        with th.no_grad():
+            features = BasePolicy.extract_features(self, tensor, self.pi_features_extractor)
+            actions = self._mean_actions(self.mlp_extractor.forward_actor(features))
+        actions = actions.cpu().numpy().reshape((-1, *self.action_space.shape))
+        return np.clip(actions, self.action_space.low, self.action_space.high)

@@ -19,6 +19,7 @@ from sb3_formation.env.blocks import slot_observations
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.observations import observation_fields
 from sb3_formation.sb3.normalization import STATE_KEYS, observation_offset, observation_scale, scale_observations
+from sb3_formation.sb3.policies import FormationPolicy
 
 #: Fields that shape the observation vector: a model only fits envs that agree on them.
 OBSERVATION_SHAPING_FIELDS = ("n_agents", "lidar_rays")
@@ -88,13 +89,9 @@ class TrainedPolicy:
         ]
         if differences:
             raise ValueError("the model does not fit this env's observations: " + "; ".join(differences))
-        mask = np.concatenate([np.full(field.size, field.binary) for field in observation_fields(config)])
-        state = self.normalizer_state
-        if int(np.asarray(state["agent_obs_dim"])) != mask.size or not np.array_equal(np.asarray(state["binary_mask"]), mask):
-            raise ValueError(
-                f"the normaliser statistics are for {int(np.asarray(state['agent_obs_dim']))} features with other flags; "
-                f"this env's observations have {mask.size}"
-            )
+        mismatch = normalizer_mismatch(self.normalizer_state, config)
+        if mismatch is not None:
+            raise ValueError(f"the normaliser statistics do not fit this env's observations: {mismatch}")
         return self if config.n_agents == self.config.n_agents else dataclasses.replace(self, config=config)
 
     def predict(
@@ -105,4 +102,24 @@ class TrainedPolicy:
         scaled = scale_observations(
             slot_observations(rows, self.config.n_agents, self.team_observations), self._scale, self._clip, self._offset
         )
+        if deterministic and isinstance(self.policy, FormationPolicy):  # the same actions, faster
+            return self.policy.deterministic_actions(scaled), state
         return self.policy.predict(scaled, state=state, episode_start=episode_start, deterministic=deterministic)
+
+
+def normalizer_mismatch(state: dict[str, np.ndarray], config: FormationConfig) -> str | None:
+    """How normaliser statistics differ from the layout of one agent's observation in envs of ``config`` (its size,
+    which features are 0/1 flags, the statistics' shapes), or ``None`` if they fit.
+
+    :param state: :meth:`~sb3_formation.sb3.normalization.ScaleNormalizeVecEnv.state_dict` (e.g. a normaliser file's)
+    """
+    mask = np.concatenate([np.full(field.size, field.binary) for field in observation_fields(config)])
+    size = int(np.asarray(state["agent_obs_dim"]))
+    if size != mask.size:
+        return f"they are for observations of {size} features, the task's have {mask.size}"
+    if not np.array_equal(np.asarray(state["binary_mask"]), mask):
+        return "their 0/1 flag features are not the task's"
+    shapes = {key: np.shape(state[key]) for key in ("mean", "var")}
+    if any(shape != (size,) for shape in shapes.values()):
+        return f"their statistics have shapes {shapes}, not ({size},)"
+    return None

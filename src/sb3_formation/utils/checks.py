@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -30,3 +32,25 @@ def is_real(value: Any) -> bool:
 def is_number(value: Any) -> bool:
     """A finite real number, not a bool."""
     return is_real(value) and math.isfinite(value)
+
+
+#: The longest file or folder name (bytes) the usual file systems take (ext4, XFS, APFS, NTFS in UTF-16 units).
+MAX_NAME_BYTES = 255
+
+
+def check_path(path: str | os.PathLike[str], what: str) -> None:
+    """Refuse a path the package could not write its records under: a name that is not valid UTF-8 (from bytes the
+    shell passed through), or a part longer than :data:`MAX_NAME_BYTES`.
+
+    :param path: the path
+    :param what: what it is (an option, a setting), for the message
+    :raises ValueError: naming the problem
+    """
+    text = os.fspath(path)
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise ValueError(f"{what} {text!r} is not valid UTF-8: give a name of UTF-8 characters") from None
+    for part in Path(text).parts:
+        if len(part.encode("utf-8")) > MAX_NAME_BYTES:
+            raise ValueError(f"{what}: the name {part[:40]!r}... is longer than {MAX_NAME_BYTES} bytes")

@@ -27,8 +27,13 @@ from typing import Any
 import cloudpickle
 import numpy as np
 
-#: Reply kinds sent by a worker.
-_OK, _ERROR, _PROGRESS = "ok", "error", "progress"
+#: Reply kinds sent by a worker (``_STARTED`` once, when its object is built).
+_OK, _ERROR, _PROGRESS, _STARTED = "ok", "error", "progress", "started"
+#: What a worker that dies while starting most likely met: a script without the ``__main__`` guard.
+MAIN_GUARD_HINT = (
+    'if a script starts the workers, put the code that does so under `if __name__ == "__main__":` (worker processes '
+    "import the script again, and must not start workers of their own)"
+)
 
 
 def worker_context(start_method: str | None = None) -> multiprocessing.context.BaseContext:
@@ -58,7 +63,12 @@ def _serve(remote: Connection, parent_remote: Connection, payload: bytes, spin: 
     parent_remote.close()
     try:
         factory, arguments = cloudpickle.loads(payload)
-        target = factory(*arguments)
+        try:
+            target = factory(*arguments)
+        except Exception as error:  # sent to the parent, which raises it
+            _send_error(remote, error)
+            return
+        remote.send((_STARTED, None))
         while True:
             _ready([remote], spin)
             method, arguments, progress = remote.recv()
@@ -77,8 +87,8 @@ def _serve(remote: Connection, parent_remote: Connection, payload: bytes, spin: 
                     remote.send((_OK, result))
                 except Exception as error:  # an unpicklable result
                     _send_error(remote, error)
-    except (EOFError, KeyboardInterrupt):
-        pass
+    except (EOFError, OSError):  # the parent is gone: end at once and quietly (the system frees what is left)
+        os._exit(0)
     finally:
         remote.close()
 
@@ -111,8 +121,12 @@ class WorkerProcess:
         context: multiprocessing.context.BaseContext | None = None,
         spin: float = 0.0,
     ) -> None:
+        if getattr(multiprocessing.current_process(), "_inheriting", False):  # importing the parent's script
+            raise SystemExit(f"sb3-formation: a worker process tried to start workers of its own: {MAIN_GUARD_HINT}")
         context = context or worker_context()
         self.name = name
+        #: whether the worker has built its object (see :func:`wait_started`)
+        self.started = False
         self.remote, work_remote = context.Pipe()
         payload = cloudpickle.dumps((factory, tuple(arguments)))
         self.process = context.Process(target=_serve, args=(work_remote, self.remote, payload, spin), daemon=True)
@@ -142,7 +156,8 @@ class WorkerProcess:
 
     def _died(self) -> RuntimeError:
         self.process.join(timeout=1)
-        return RuntimeError(f"{self.name} (pid {self.process.pid}) died, exit code {self.process.exitcode}")
+        message = f"{self.name} (pid {self.process.pid}) died, exit code {self.process.exitcode}"
+        return RuntimeError(message if self.started else f"{message}, while starting: {MAIN_GUARD_HINT}")
 
     def close(self, timeout: float = 10.0) -> None:
         """Ask the worker to close its object and exit; terminate it if it does not within ``timeout`` seconds."""
@@ -191,6 +206,9 @@ def gather(
                 kind, value = remote.recv()
             except (EOFError, ConnectionResetError, OSError):
                 kind, value = _ERROR, workers[index]._died()
+            if kind == _STARTED:
+                workers[index].started = True
+                continue
             if kind == _PROGRESS:
                 if on_progress is not None:
                     on_progress(index, value)
@@ -207,6 +225,26 @@ def gather(
     if errors:
         raise errors[0]
     return results
+
+
+def wait_started(workers: Sequence[WorkerProcess], spin: float = 0.0) -> None:
+    """Return once every worker has built its object (they start side by side).
+
+    :param spin: seconds to poll for each reply before sleeping on the pipes
+    :raises: the first worker's error in building its object; ``RuntimeError`` for a worker that died starting (with
+        a word on the ``__main__`` guard)
+    """
+    pending = {worker.remote: index for index, worker in enumerate(workers) if not worker.started}
+    while pending:
+        for remote in _ready(list(pending), spin):
+            index = pending.pop(remote)
+            try:
+                kind, value = remote.recv()
+            except (EOFError, ConnectionResetError, OSError):
+                raise workers[index]._died() from None
+            if kind == _ERROR:
+                raise value
+            workers[index].started = True
 
 
 class SharedArrays:
@@ -229,7 +267,7 @@ class SharedArrays:
         for key, (shape, dtype) in self.layout.items():
             offsets[key] = end
             end += -(-int(np.prod(shape)) * np.dtype(dtype).itemsize // self._ALIGNMENT) * self._ALIGNMENT
-        self._owner = name is None
+        self._owner = self._linked = name is None
         self._memory = shared_memory.SharedMemory(name=name, create=self._owner, size=max(end, 1) if self._owner else 0)
         # frombuffer views hold the block's buffer, so the block stays mapped while any view lives
         self.arrays = {
@@ -243,6 +281,13 @@ class SharedArrays:
     def __reduce__(self) -> tuple[type, tuple]:
         return SharedArrays, (self.layout, self._memory.name)
 
+    def unlink(self) -> None:
+        """Remove the block's name (its maker, once every process has attached): the memory stays mapped where it is
+        and goes with the last mapping, so no segment outlives the processes, even ones killed without a word."""
+        if self._owner and self._linked:
+            self._linked = False
+            self._memory.unlink()
+
     def close(self) -> None:
         """Drop this process's view of the block; its maker also frees it (the memory goes once no array of it is
         left in any process)."""
@@ -253,5 +298,4 @@ class SharedArrays:
             self._memory.close()
         except BufferError:  # an array of the block is still in use here: the mapping goes with it
             pass
-        if self._owner:
-            self._memory.unlink()
+        self.unlink()

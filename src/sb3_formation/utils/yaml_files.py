@@ -3,7 +3,9 @@ as a string because it has no dot. :func:`read_yaml` reads it, and ``1E5``, ``-2
 
 from __future__ import annotations
 
+import os
 import re
+from pathlib import Path
 from typing import Any
 
 import yaml
@@ -32,3 +34,19 @@ def read_yaml(text: str, source: str) -> Any:
     except yaml.YAMLError as error:
         reason = " ".join(str(error).split())
         raise ValueError(f"{source} is not valid YAML: {reason}") from None
+
+
+def read_yaml_file(path: str | os.PathLike[str]) -> Any:
+    """The data of a YAML file (see :func:`read_yaml`).
+
+    :raises FileNotFoundError: no such file
+    :raises ValueError: not UTF-8 text, or not valid YAML (the message names the file)
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such file {path}")
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as error:
+        raise ValueError(f"{path} is not UTF-8 text (byte {error.start}): a YAML file must be") from None
+    return read_yaml(text, str(path))
