@@ -182,7 +182,7 @@ def make_formation_vec_env(
 
     :param task: ``"ch4-individual"``, ``"ch4-team"``, ``"ch5-angle"`` or ``"ch5-bearing"``
         (:data:`~sb3_formation.env.config.TASKS`)
-    :param n_envs: number of teams (the thesis trained 12 in chapter 4 and 14 in chapter 5: see the set-ups)
+    :param n_envs: number of teams (the thesis trained 12 in chapter 4 and 14 in chapter 5: see the recipes)
     :param n_agents: team size (default: the task's)
     :param stage: curriculum stage (default: the task's, 1)
     :param seed: seed of the teams' scenario generators (each team gets ``seed`` + its first slot); ``None``: random
