@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Sequence
+from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +13,7 @@ from sb3_formation.experiment.evaluation import EVALUATION_TEAMS, evaluate_targe
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE
 from sb3_formation.experiment.settings import MAX_SEED
 from sb3_formation.experiment.targets import evaluation_folder, target_kind
+from sb3_formation.sb3.model_files import trust_pickle
 from sb3_formation.utils.deprecation import warn_renamed
 from sb3_formation.utils.yaml_files import read_yaml
 
@@ -103,6 +105,22 @@ def add_recipe_option(parser: argparse.ArgumentParser, help: str = RECIPE_HELP, 
     parser.add_argument("--preset", dest="recipe", action=RenamedFlag, new="--recipe", help=argparse.SUPPRESS)
 
 
+TRUST_PICKLE_HELP = (
+    "also load model files that need unpickling (SB3's own load, which runs code the file holds): only files you "
+    "trust; by default only plain data and tensors are read and such a file is refused"
+)
+
+
+def add_trust_pickle_option(parser: argparse.ArgumentParser, help: str = TRUST_PICKLE_HELP) -> None:
+    """``--trust-pickle``, for subcommands that load model files (:func:`model_trust` applies it)."""
+    parser.add_argument("--trust-pickle", action="store_true", help=help)
+
+
+def model_trust(args: argparse.Namespace) -> AbstractContextManager[None]:
+    """Within it, model files load as ``--trust-pickle`` says (:func:`~sb3_formation.sb3.model_files.trust_pickle`)."""
+    return trust_pickle(args.trust_pickle)
+
+
 def add_protocol_arguments(parser: argparse.ArgumentParser) -> None:
     """The evaluation protocol's options, shared by ``evaluate`` and ``compare``."""
     parser.add_argument("--episodes", type=positive_int, help="episodes (default: the recipe's; thesis: 500 ch. 4, 200 ch. 5)")
@@ -118,6 +136,7 @@ def add_protocol_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="auto", help="torch device (default auto)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_recipe_option(parser)
+    add_trust_pickle_option(parser)
 
 
 def run_folder(target: str | Path) -> Path:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sb3_formation.cli.common import add_protocol_arguments, evaluate_with_protocol, target_labels
+from sb3_formation.cli.common import add_protocol_arguments, evaluate_with_protocol, model_trust, target_labels
 from sb3_formation.experiment.evaluation import SUMMARY_FILE, stored_summary
 from sb3_formation.experiment.reports import comparison_table
 from sb3_formation.experiment.targets import default_protocol, evaluation_file, load_policy, target_kind
@@ -33,6 +33,11 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """``sb3-formation compare TARGET...``: every policy on the same seeds, a Markdown table and the bar chart."""
+    with model_trust(args):
+        return _compare(args)
+
+
+def _compare(args: argparse.Namespace) -> int:
     labels = target_labels(args.labels, args.targets)
     if len(set(labels)) != len(labels):
         raise ValueError(f"labels must differ, got {labels}")

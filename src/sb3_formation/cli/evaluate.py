@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sb3_formation.cli.common import TARGET_HELP, add_protocol_arguments, evaluate_with_protocol, print_summary
+from sb3_formation.cli.common import TARGET_HELP, add_protocol_arguments, evaluate_with_protocol, model_trust, print_summary
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -31,5 +31,6 @@ def run(args: argparse.Namespace) -> int:
     """``sb3-formation evaluate``: success rate with a Wilson interval, errors, episode table and trajectories."""
     if args.trajectories < 0:
         raise ValueError(f"--trajectories must be >= 0, got {args.trajectories}")
-    print_summary(evaluate_with_protocol(args, args.target, args.episodes, args.out))
+    with model_trust(args):
+        print_summary(evaluate_with_protocol(args, args.target, args.episodes, args.out))
     return 0

@@ -5,7 +5,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sb3_formation.cli.common import RECIPE_HELP, TARGET_HELP, add_recipe_option, positive_int, seed_value
+from sb3_formation.cli.common import (
+    RECIPE_HELP,
+    TARGET_HELP,
+    add_recipe_option,
+    add_trust_pickle_option,
+    model_trust,
+    positive_int,
+    seed_value,
+)
 from sb3_formation.experiment.targets import evaluation_folder, load_policy
 from sb3_formation.viz.video import render_episodes
 
@@ -30,12 +38,14 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--agents", type=int, help="team size (default: the model's; another only for one trained on several)")
     parser.add_argument("--stochastic", action="store_true", help="sample actions instead of using the mean")
     parser.add_argument("--device", default="auto", help="torch device (default auto)")
+    add_trust_pickle_option(parser)
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """``sb3-formation render``: a video of evaluation episodes."""
-    policy = load_policy(args.target, args.recipe, device=args.device)
+    with model_trust(args):
+        policy = load_policy(args.target, args.recipe, device=args.device)
     out = args.out or evaluation_folder(args.target, args.recipe) / "episodes.mp4"
     frames = render_episodes(
         policy,

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from PIL import Image
 
-from sb3_formation.cli.common import TARGET_HELP, add_recipe_option, positive_int
+from sb3_formation.cli.common import TARGET_HELP, add_recipe_option, add_trust_pickle_option, model_trust, positive_int
 from sb3_formation.env.rendering import render_frame
 from sb3_formation.env.state import TeamState
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE
@@ -37,12 +37,14 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", type=Path, default=Path("runs/rollout_final_frame.png"), help="PNG of the final frame")
     parser.add_argument("--json", action="store_true", help="print the summaries as JSON lines")
     parser.add_argument("--stochastic", action="store_true", help="sample a trained policy's actions")
+    add_trust_pickle_option(parser)
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """``sb3-formation rollout``: episodes of any policy with per-episode metrics and a PNG of the final frame."""
-    policy = load_policy(args.target, args.recipe, device="cpu")
+    with model_trust(args):
+        policy = load_policy(args.target, args.recipe, device="cpu")
     overrides = {"stage": args.stage}
     if args.agents is not None:
         overrides["n_agents"] = args.agents

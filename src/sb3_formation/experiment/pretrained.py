@@ -107,16 +107,20 @@ def check_task(name: str, trained: FormationConfig, wanted: FormationConfig, whe
         )
 
 
-def load_pretrained(name: str, recipe: str | None = None, device: str = "cpu", root: Path = PRETRAINED_DIR) -> TeamPolicy:
+def load_pretrained(
+    name: str, recipe: str | None = None, device: str = "cpu", root: Path = PRETRAINED_DIR, trusted: bool | None = None
+) -> TeamPolicy:
     """A shipped policy, ready to act (a :class:`~sb3_formation.sb3.trained.TrainedPolicy`, or a residual policy
     around one).
 
     :param name: one of :func:`pretrained_names` (``sb3-formation pretrained`` lists them)
     :param recipe: a recipe whose task it must act in; refused unless it is the task the policy was trained for
     :param device: torch device
+    :param trusted: unpickle what its model file needs (see :func:`~sb3_formation.experiment.runs.load_trained`;
+        the shipped files need nothing of it)
     :raises ValueError: an unknown name, or a recipe of another task
     """
-    policy = load_trained(pretrained_folder(name, root), device=device)
+    policy = load_trained(pretrained_folder(name, root), device=device, trusted=trusted)
     if recipe is not None:
         sizes = pretrained_card(name, root).get("team_sizes", [policy.config.n_agents])
         check_task(name, policy.config, load_recipe(recipe).config(), f"recipe {recipe}", len(sizes) > 1)

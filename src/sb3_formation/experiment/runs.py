@@ -11,21 +11,26 @@ reward normalisation ``reward_normalizer.npz``, and ``state.json``), at the end 
 from __future__ import annotations
 
 import os
-import zipfile
 from pathlib import Path
 
 import numpy as np
 from stable_baselines3 import PPO
 from stable_baselines3.common.running_mean_std import RunningMeanStd
-from stable_baselines3.common.save_util import json_to_data
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecNormalize, unwrap_vec_wrapper
 
 from sb3_formation.controllers.base import TeamPolicy
-from sb3_formation.env.config import FormationConfig
 from sb3_formation.experiment.recipes import residual_policy
-from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
-from sb3_formation.sb3.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
-from sb3_formation.sb3.trained import TrainedPolicy
+from sb3_formation.sb3.model_files import (
+    algorithm_for,
+    load_model,
+    policy_class_name,
+    policy_class_of,
+    read_model_data,
+    record_episode_windows,
+    recorded_config,
+)
+from sb3_formation.sb3.normalization import STATE_KEYS, ScaleNormalizeVecEnv
+from sb3_formation.sb3.trained import TrainedPolicy, normalizer_mismatch
 from sb3_formation.utils.files import atomic_path, read_arrays, restore_directory
 
 MODEL_FILE, NORMALIZER_FILE, STATE_FILE = "model.zip", "normalizer.npz", "state.json"
@@ -43,20 +48,15 @@ def reward_normalizer_file(normalizer_file: str) -> str:
 
 
 def saved_algorithm(path: Path) -> type[PPO]:
-    """The PPO class of a saved model, from the policy class recorded in its zip file."""
-    try:
-        with zipfile.ZipFile(path) as archive:
-            data = json_to_data(archive.read("data").decode())
-    except (zipfile.BadZipFile, KeyError, ValueError) as error:
-        raise ValueError(f"{path} is not a model saved by Stable-Baselines3: {error}") from error
-    if not isinstance(data.get("policy_class"), type):
-        raise ValueError(f"{path} is not a model saved by Stable-Baselines3: it names no policy class")
-    return algorithm_for(data["policy_class"])
+    """The PPO class of a saved model, from the policy class its zip file names (read without unpickling).
 
-
-def algorithm_for(policy: type) -> type[PPO]:
-    """The PPO class that trains ``policy``: :class:`RecurrentFormationPPO` for a recurrent policy, else SB3's ``PPO``."""
-    return RecurrentFormationPPO if issubclass(policy, RecurrentFormationPolicy) else PPO
+    :raises ValueError: not a model file, or it names no policy class of this package
+    """
+    data = read_model_data(Path(path))
+    policy = policy_class_of(data)
+    if policy is None:
+        raise ValueError(f"{path} names no policy class of sb3-formation ({policy_class_name(data) or 'none readable'})")
+    return algorithm_for(policy)
 
 
 def save_model(model: PPO, env: VecEnv, folder: Path, model_file: str, normalizer_file: str) -> None:
@@ -65,6 +65,7 @@ def save_model(model: PPO, env: VecEnv, folder: Path, model_file: str, normalize
     :param env: the training env: a :class:`ScaleNormalizeVecEnv`, possibly under SB3's ``VecNormalize`` (reward
         normalisation), whose return statistics then go to :func:`reward_normalizer_file`
     """
+    record_episode_windows(model)  # as plain data, for a resume that unpickles nothing
     with atomic_path(folder / model_file) as temporary:
         model.save(temporary)
     unwrap_vec_wrapper(env, ScaleNormalizeVecEnv).save(folder / normalizer_file)
@@ -114,7 +115,7 @@ def latest_checkpoint(run_dir: Path) -> Path | None:
     return complete[-1] if complete else None
 
 
-def load_trained(path: str | os.PathLike[str], device: str = "auto") -> TeamPolicy:
+def load_trained(path: str | os.PathLike[str], device: str = "auto", trusted: bool | None = None) -> TeamPolicy:
     """Load a run folder (its final model, else its latest checkpoint) or a model ``.zip`` with its normaliser beside,
     as a :class:`TrainedPolicy` (a :class:`~sb3_formation.controllers.residual.ResidualPolicy` around one when the
     model is a correction of a controller).
@@ -122,6 +123,10 @@ def load_trained(path: str | os.PathLike[str], device: str = "auto") -> TeamPoli
     :param path: a run folder, or a model file whose normaliser is ``normalizer.npz`` / ``final_normalizer.npz``
         in the same folder
     :param device: torch device
+    :param trusted: unpickle what the model file needs (SB3's ``load``, which runs code from the file); by default
+        (``None``: unless inside :func:`~sb3_formation.sb3.model_files.trust_pickle`) only plain data and tensors are
+        read, and a file that needs more is refused
+    :raises ValueError: a file that needs unpickling (untrusted), or a normaliser that does not fit the model
     """
     path = Path(path)
     if path.is_dir():
@@ -140,12 +145,12 @@ def load_trained(path: str | os.PathLike[str], device: str = "auto") -> TeamPoli
         raise FileNotFoundError(f"no model at {path}: give a run folder or a model .zip")
     if not normalizer_path.exists():
         raise FileNotFoundError(f"the normaliser statistics of {model_path} are missing: expected {normalizer_path}")
-    model = saved_algorithm(model_path).load(model_path, device=device)
-    stored = getattr(model, "formation_config", None)
-    if stored is None:
-        raise ValueError(f"{model_path} was not saved by sb3-formation: it carries no formation_config")
-    config = FormationConfig.from_dict(stored)
-    normalizer_state = read_arrays(normalizer_path, "a normaliser file")
+    config = recorded_config(model_path, read_model_data(model_path))
+    normalizer_state = read_arrays(normalizer_path, "a normaliser file", STATE_KEYS)
+    mismatch = normalizer_mismatch(normalizer_state, config)
+    if mismatch is not None:
+        raise ValueError(f"{normalizer_path} is not the normaliser of {model_path}: {mismatch}")
+    model = load_model(model_path, device=device, trusted=trusted)
     team_sizes = tuple(getattr(model, "team_sizes", None) or ())  # files saved before mixed teams: the config's
     trained = TrainedPolicy(model, config, normalizer_state, source=model_path, team_sizes=team_sizes)
     residual = getattr(model, "residual", None)  # a correction of a controller (a recipe's residual)

@@ -23,6 +23,7 @@ from sb3_formation.experiment.pretrained import load_pretrained, pretrained_fold
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE, Recipe, load_recipe
 from sb3_formation.experiment.runs import load_trained
 from sb3_formation.experiment.settings import load_settings
+from sb3_formation.sb3.model_files import trust_pickle
 from sb3_formation.utils.deprecation import warn_renamed
 
 
@@ -62,7 +63,11 @@ def target_kind(target: str | os.PathLike[str]) -> str | None:
 
 
 def load_policy(
-    target: str | os.PathLike[str], recipe: str | None = None, device: str = "auto", preset: str | None = None
+    target: str | os.PathLike[str],
+    recipe: str | None = None,
+    device: str = "auto",
+    preset: str | None = None,
+    trusted: bool | None = None,
 ) -> TeamPolicy:
     """The policy a target names.
 
@@ -71,16 +76,19 @@ def load_policy(
         a trained model acts in the task it was trained in, so a run takes none and ``pretrained:`` refuses another
     :param device: torch device of a trained model
     :param preset: the old name of ``recipe`` (warns)
+    :param trusted: unpickle what a model file needs (see :func:`~sb3_formation.experiment.runs.load_trained`;
+        ``None``: unless inside :func:`~sb3_formation.sb3.model_files.trust_pickle`)
     """
     if preset is not None:
         warn_renamed("load_policy(preset=...)", "load_policy(recipe=...)")
         recipe = preset
     kind = target_kind(target)
-    if kind is not None:
-        return TARGET_KINDS[kind].load(str(target).partition(":")[2], recipe, device)
-    if recipe is not None:
-        raise ValueError(f"a recipe applies to controller targets only; {target} acts in the task it was trained in")
-    return load_trained(Path(target), device=device)
+    with trust_pickle(trusted):
+        if kind is not None:
+            return TARGET_KINDS[kind].load(str(target).partition(":")[2], recipe, device)
+        if recipe is not None:
+            raise ValueError(f"a recipe applies to controller targets only; {target} acts in the task it was trained in")
+        return load_trained(Path(target), device=device)
 
 
 def run_folder(target: str | os.PathLike[str]) -> Path | None:

@@ -38,7 +38,6 @@ from sb3_formation.experiment.runs import (
     normalize_rewards,
     reward_normalizer_file,
     save_model,
-    saved_algorithm,
 )
 from sb3_formation.experiment.settings import TrainSettings, load_settings
 from sb3_formation.sb3.callbacks import (
@@ -51,6 +50,7 @@ from sb3_formation.sb3.callbacks import (
     threads_beside_workers,
 )
 from sb3_formation.sb3.imitation import FrozenActorCallback, pretrain_actor
+from sb3_formation.sb3.model_files import is_trusted, load_model, restore_training_state
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 from sb3_formation.sb3.residual import ResidualVecEnv
 from sb3_formation.sb3.trained import TrainedPolicy
@@ -304,16 +304,25 @@ def _new_model(settings: TrainSettings) -> Iterator[tuple[PPO, CurriculumCallbac
     curriculum = make_curriculum(settings, clock)
     env = make_training_env(settings, curriculum.stage)
     try:
-        kwargs = settings.recipe.ppo_kwargs()
-        model = algorithm_for(kwargs["policy"])(
-            env=env, seed=settings.run.seed, device=settings.run.device, verbose=0, **with_schedules(kwargs)
-        )
-        model.formation_config = settings.recipe.config().to_dict()
-        model.residual = settings.recipe.residual  # the model file says how its actions are meant (load_trained)
-        model.team_sizes = sorted(set(settings.recipe.sizes))  # and which team sizes it acts in
-        yield model, curriculum, clock
+        yield recipe_model(settings, env), curriculum, clock
     finally:
         env.close()
+
+
+def recipe_model(settings: TrainSettings, env: VecEnv) -> PPO:
+    """A new model of a run's recipe on its training env, carrying what :func:`load_trained` reads of it.
+
+    :param settings: the run's settings
+    :param env: its training env (:func:`make_training_env`)
+    """
+    kwargs = settings.recipe.ppo_kwargs()
+    model = algorithm_for(kwargs["policy"])(
+        env=env, seed=settings.run.seed, device=settings.run.device, verbose=0, **with_schedules(kwargs)
+    )
+    model.formation_config = settings.recipe.config().to_dict()
+    model.residual = settings.recipe.residual  # the model file says how its actions are meant (load_trained)
+    model.team_sizes = sorted(set(settings.recipe.sizes))  # and which team sizes it acts in
+    return model
 
 
 def _start(
@@ -343,22 +352,37 @@ def _print_imitation_round(record: dict[str, float]) -> None:
     )
 
 
-def resume(run_dir: str | os.PathLike[str]) -> Path:
+def resume(run_dir: str | os.PathLike[str], trusted: bool | None = None) -> Path:
     """Continue a run from its latest checkpoint: same curriculum stage, timestep count, normaliser and optimiser.
 
-    The random generators are re-seeded from the run's seed and the checkpoint's iteration, so resuming the same
-    checkpoint twice gives the same continuation. The run folder is locked while it trains.
+    The model is built from the run's recipe and takes the checkpoint's tensors (read with ``weights_only``) and
+    counters, so nothing in the checkpoint is unpickled. The random generators are re-seeded from the run's seed and
+    the checkpoint's iteration, so resuming the same checkpoint twice gives the same continuation. The run folder is
+    locked while it trains.
 
+    :param trusted: load the checkpoint with SB3's ``load`` instead, unpickling what it holds (``None``: unless
+        inside :func:`~sb3_formation.sb3.model_files.trust_pickle`)
+    :raises ValueError: a checkpoint that needs unpickling (untrusted) or was trained with other settings
     :raises RuntimeError: another process trains in ``run_dir``
     """
     run_dir = Path(run_dir)
     settings = load_settings(run_dir)
     with folder_lock(run_dir, "run folder"):
-        _resume(settings, run_dir)
+        _resume(settings, run_dir, is_trusted(trusted))
     return run_dir
 
 
-def _resume(settings: TrainSettings, run_dir: Path) -> None:
+def checkpoint_model(settings: TrainSettings, env: VecEnv, path: Path, trusted: bool = False) -> PPO:
+    """The model of a run's checkpoint on its training env: the recipe's model with the checkpoint's state, or with
+    ``trusted`` SB3's ``load`` of the file."""
+    if trusted:
+        return load_model(path, device=settings.run.device, trusted=True, env=env)
+    model = recipe_model(settings, env)
+    restore_training_state(model, path)
+    return model
+
+
+def _resume(settings: TrainSettings, run_dir: Path, trusted: bool = False) -> None:
     """Continue the run in ``run_dir`` (locked by the caller) from its latest checkpoint."""
     checkpoint = latest_checkpoint(run_dir)
     if checkpoint is None:
@@ -383,7 +407,7 @@ def _resume(settings: TrainSettings, run_dir: Path) -> None:
         return
     env = make_training_env(settings, curriculum.stage, checkpoint / NORMALIZER_FILE)
     try:
-        model = saved_algorithm(checkpoint / MODEL_FILE).load(checkpoint / MODEL_FILE, env=env, device=settings.run.device)
+        model = checkpoint_model(settings, env, checkpoint / MODEL_FILE, trusted)
         model.set_random_seed(int(np.random.SeedSequence([settings.run.seed, curriculum.iteration]).generate_state(1)[0]))
         _learn(model, settings, run_dir, curriculum, clock)
     finally:
