@@ -7,6 +7,7 @@ from pathlib import Path
 
 from sb3_formation.cli.common import (
     RenamedFlag,
+    add_trust_pickle_option,
     assignment,
     positive_float,
     positive_int,
@@ -71,6 +72,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         options = {key: value for key, value in options.items() if key != "flag"}
         parser.add_argument(flag_of(name), dest=name, default=None, **options)
     parser.add_argument("--resume", type=Path, metavar="RUN_DIR", help="continue a run from its latest checkpoint")
+    add_trust_pickle_option(parser, "with --resume: load the checkpoint with SB3's load, unpickling what it holds")
     parser.add_argument(
         "--run-dir", type=Path, help="write the run into this new or empty folder (default: a new one under --logdir)"
     )
@@ -117,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
         if given:
             flags = ", ".join(flag_of(name) for name in given)
             raise ValueError(f"--resume continues a run with its own settings; drop {flags}")
-        run_dir = resume(args.resume)
+        run_dir = resume(args.resume, trusted=args.trust_pickle)
         settings = load_settings(run_dir)
     else:
         if args.run_dir is not None:
