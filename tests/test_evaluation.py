@@ -26,6 +26,7 @@ from sb3_formation.experiment.statistics import wilson_interval
 from sb3_formation.experiment.trajectories import Trajectories
 from sb3_formation.sb3.metrics import EPISODE_METRICS
 from sb3_formation.sb3.trained import TrainedPolicy
+from sb3_formation.utils.files import file_digest
 
 Z95 = 1.959963984540054
 
@@ -401,7 +402,11 @@ def test_recorded_steps_replay_in_a_fresh_env(wandering: SimpleNamespace) -> Non
 def test_saved_files_hold_the_summary_rows_and_trajectories(wandering: SimpleNamespace) -> None:
     result, files = wandering.result, wandering.files
     assert set(files) == {"summary", "episodes", "trajectories"}
-    assert json.loads(files["summary"].read_text()) == result.summary
+    stored = json.loads(files["summary"].read_text())
+    assert stored.pop("files") == {
+        name: file_digest(files[kind]) for kind, name in (("episodes", "episodes.csv"), ("trajectories", "trajectories.npz"))
+    }
+    assert stored == result.summary
     with open(files["episodes"], newline="") as handle:
         rows = list(csv.DictReader(handle))
     assert list(rows[0]) == list(EPISODE_COLUMNS)

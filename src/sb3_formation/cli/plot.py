@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from sb3_formation.cli.common import add_recipe_option, indices, positive_int, target_labels
-from sb3_formation.experiment.evaluation import TRAJECTORIES_FILE, load_summary
+from sb3_formation.experiment.evaluation import TRAJECTORIES_FILE, load_summary, load_trajectories
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE
 from sb3_formation.experiment.settings import load_settings
 from sb3_formation.experiment.targets import evaluation_file
@@ -18,6 +18,7 @@ from sb3_formation.viz.plots import (
     plot_training_curves,
     plot_trajectory,
     save_figure,
+    save_figures,
 )
 
 
@@ -50,20 +51,21 @@ def run(args: argparse.Namespace) -> int:
         if len(args.targets) != 1:
             raise ValueError(f"{args.figure} draws one evaluation; got {len(args.targets)} targets")
         path = evaluation_file(args.targets[0], TRAJECTORIES_FILE, args.recipe)
-        trajectories = Trajectories.load(path)
+        trajectories = load_trajectories(path)
         indices = _recordedindices(trajectories, args.episodes)
         default = path.parent / "figures" / ("trajectory.png" if args.figure == "trajectories" else "errors.png")
         out = args.out or default
         if args.figure == "errors":
             written = [save_figure(plot_error_curves(trajectories, indices), out)]
         else:
-            written = [
-                save_figure(
-                    plot_trajectory(trajectories, index, every=args.every),
-                    out.with_name(f"{out.stem}_{int(trajectories.episodes[index]):03d}{out.suffix or '.png'}"),
-                )
-                for index in indices
-            ]
+            written = save_figures(
+                {
+                    out.with_name(f"{out.stem}_{int(trajectories.episodes[index]):03d}{out.suffix or '.png'}"): (
+                        plot_trajectory(trajectories, index, every=args.every)
+                    )
+                    for index in indices
+                }
+            )
     elif args.figure == "bars":
         labels = target_labels(args.labels, args.targets)
         summaries = dict(zip(labels, (load_summary(target, args.recipe) for target in args.targets)))

@@ -12,6 +12,7 @@ import hashlib
 import io
 import json
 import os
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,7 @@ from sb3_formation.experiment.targets import default_protocol, evaluation_file, 
 from sb3_formation.experiment.trajectories import Trajectories, stack_recordings
 from sb3_formation.sb3.callbacks import threads_beside_workers, torch_threads
 from sb3_formation.sb3.metrics import EPISODE_METRICS
-from sb3_formation.utils.files import atomic_write
+from sb3_formation.utils.files import atomic_files, file_digest
 
 #: Columns of ``episodes.csv``, in order (``reward_<term>``: the term's mean per step and agent).
 EPISODE_COLUMNS = (
@@ -42,6 +43,8 @@ EPISODE_COLUMNS = (
     *(f"reward_{term}" for term in REWARD_TERMS),
 )
 SUMMARY_FILE, EPISODES_FILE, TRAJECTORIES_FILE = "summary.json", "episodes.csv", "trajectories.npz"
+#: Key of ``summary.json`` giving the SHA-256 of the other files of its evaluation (readers check them against it).
+FILES_KEY = "files"
 #: Teams an evaluation plays at once by default: more teams per policy call spread the call's fixed cost, and the
 #: engine steps them at once (``benchmarks/evaluation_throughput.py`` measures the default command)
 EVALUATION_TEAMS = 16
@@ -86,24 +89,35 @@ class EvaluationResult:
         }
 
     def save(self, folder: str | os.PathLike[str]) -> dict[str, Path]:
-        """Write ``summary.json``, ``episodes.csv`` and (if recorded) ``trajectories.npz`` into ``folder``, atomically.
+        """Write the evaluation's set into ``folder`` as one unit: ``episodes.csv``, ``trajectories.npz`` (if recorded;
+        else one of an earlier evaluation is deleted) and ``summary.json``, which lists the SHA-256 of the others under
+        :data:`FILES_KEY`. Other files of the folder are left alone. A failure (a full disk included) leaves the earlier
+        set as it was, and two evaluations saved into one folder at once follow each other (see
+        :func:`~sb3_formation.utils.files.atomic_files`).
 
+        :param folder: the folder (created if needed)
         :return: the files written, by kind
         """
         folder = Path(folder)
-        files = {"summary": folder / SUMMARY_FILE, "episodes": folder / EPISODES_FILE}
-        atomic_write(files["summary"], json.dumps(self.summary, indent=2))
+        recorded = self.trajectories is not None
+        names = [EPISODES_FILE, *([TRAJECTORIES_FILE] if recorded else []), SUMMARY_FILE]
+        stale = () if recorded else (TRAJECTORIES_FILE,)
+        with atomic_files(folder, names, remove=stale, what="evaluation folder") as temporaries:
+            temporaries[EPISODES_FILE].write_text(self.episode_table())
+            if self.trajectories is not None:
+                self.trajectories.save(temporaries[TRAJECTORIES_FILE])
+            digests = {name: file_digest(temporaries[name]) for name in names[:-1]}
+            temporaries[SUMMARY_FILE].write_text(json.dumps({**self.summary, FILES_KEY: digests}, indent=2))
+        kinds = {EPISODES_FILE: "episodes", TRAJECTORIES_FILE: "trajectories", SUMMARY_FILE: "summary"}
+        return {kinds[name]: folder / name for name in names}
+
+    def episode_table(self) -> str:
+        """The text of ``episodes.csv``: a header of :data:`EPISODE_COLUMNS`, then one row per episode."""
         table = io.StringIO()
         writer = csv.DictWriter(table, fieldnames=EPISODE_COLUMNS, lineterminator="\n")
         writer.writeheader()
         writer.writerows(self.episodes)
-        atomic_write(files["episodes"], table.getvalue())
-        if self.trajectories is not None:
-            files["trajectories"] = folder / TRAJECTORIES_FILE
-            self.trajectories.save(files["trajectories"])
-        else:  # no trajectories from an earlier evaluation may stay beside this one's summary
-            (folder / TRAJECTORIES_FILE).unlink(missing_ok=True)
-        return files
+        return table.getvalue()
 
 
 def model_fingerprint(path: str | os.PathLike[str]) -> dict[str, str]:
@@ -213,12 +227,23 @@ def evaluate_target(
 
 
 def load_summary(target: str | os.PathLike[str], recipe: str | None = None) -> dict[str, Any]:
-    """The stored evaluation summary of a target (see :func:`~sb3_formation.experiment.targets.evaluation_file`).
+    """The stored evaluation summary of a target (see :func:`~sb3_formation.experiment.targets.evaluation_file`), checked
+    against the other files of its evaluation (see :func:`check_evaluation_set`).
 
     :raises FileNotFoundError: none was written
-    :raises ValueError: the file is not an evaluation summary
+    :raises ValueError: the file is not an evaluation summary, or the folder holds a mixed set
     """
     path = evaluation_file(target, SUMMARY_FILE, recipe)
+    summary = read_summary(path)
+    check_evaluation_set(path.parent, summary)
+    return summary
+
+
+def read_summary(path: Path) -> dict[str, Any]:
+    """The evaluation summary in the file ``path``.
+
+    :raises ValueError: the file is not an evaluation summary
+    """
     try:
         summary = json.loads(path.read_text())
     except json.JSONDecodeError as error:
@@ -226,6 +251,41 @@ def load_summary(target: str | os.PathLike[str], recipe: str | None = None) -> d
     if not isinstance(summary, dict) or "success_rate" not in summary:
         raise ValueError(f"{path} is not an evaluation summary written by sb3-formation")
     return summary
+
+
+def check_evaluation_set(folder: Path, summary: dict[str, Any], names: Collection[str] = ()) -> None:
+    """Check that the files of an evaluation in ``folder`` are those its summary was written with (the SHA-256 under
+    :data:`FILES_KEY`; summaries written before 0.2.0 list none and are not checked).
+
+    :param folder: the evaluation's folder
+    :param summary: its ``summary.json``
+    :param names: files that must belong to the set too (e.g. the ``trajectories.npz`` about to be read)
+    :raises ValueError: a file is missing, differs, or is not of the set: the folder mixes two evaluations
+    """
+    digests = summary.get(FILES_KEY)
+    if digests is None:
+        return
+    for name in {*digests, *names}:
+        path = folder / name
+        if name not in digests or not path.is_file() or file_digest(path) != digests[name]:
+            raise ValueError(
+                f"{path} is not of the evaluation in {folder / SUMMARY_FILE} (a write of the folder was cut short or "
+                "is under way): run `sb3-formation evaluate` again"
+            )
+
+
+def load_trajectories(path: str | os.PathLike[str]) -> Trajectories:
+    """The ``trajectories.npz`` at ``path``, checked against the ``summary.json`` beside it (if any), so that they are
+    never the trajectories of another evaluation than the summary's.
+
+    :raises FileNotFoundError: there is no such file
+    :raises ValueError: the file is damaged or not of the evaluation beside it
+    """
+    path = Path(path)
+    summary_path = path.parent / SUMMARY_FILE
+    if path.name == TRAJECTORIES_FILE and summary_path.is_file():
+        check_evaluation_set(path.parent, read_summary(summary_path), names=[path.name])
+    return Trajectories.load(path)
 
 
 def stored_summary(target: str | os.PathLike[str], protocol: dict[str, Any], recipe: str | None = None) -> dict | None:

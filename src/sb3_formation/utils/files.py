@@ -6,13 +6,16 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import hashlib
 import os
 import secrets
 import shutil
 import tempfile
+import time
 import zipfile
-from collections.abc import Collection, Iterator
+from collections.abc import Collection, Iterator, Sequence
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 
@@ -28,6 +31,8 @@ LOCK_FILE = ".lock"
 FILE_MODE = 0o644
 #: Mode of every folder written whole by :func:`atomic_directory` (rwxr-xr-x), like its files readable by all.
 DIRECTORY_MODE = 0o755
+#: Seconds :func:`atomic_files` waits for another process writing a set into the same folder.
+SET_LOCK_WAIT = 60.0
 
 
 def temporary_beside(path: Path) -> Path:
@@ -46,11 +51,16 @@ def temporary_beside(path: Path) -> Path:
     raise FileExistsError(f"could not create a temporary file beside {path}")
 
 
+def flush_file(path: Path) -> None:
+    """Flush a written file to disk and give it :data:`FILE_MODE`."""
+    with open(path, "rb") as stream:
+        os.fsync(stream.fileno())
+    os.chmod(path, FILE_MODE)
+
+
 def replace_with(temporary: Path, path: Path) -> None:
     """Flush ``temporary`` to disk and rename it to ``path`` (replacing any file there), then flush the folder."""
-    with open(temporary, "rb") as stream:
-        os.fsync(stream.fileno())
-    os.chmod(temporary, FILE_MODE)
+    flush_file(temporary)
     os.replace(temporary, path)
     fsync_directory(path.parent, files=False)
 
@@ -74,6 +84,51 @@ def atomic_write(path: str | os.PathLike[str], data: str | bytes) -> None:
     """Write ``data`` (text as UTF-8, or bytes) to ``path`` atomically, with :data:`FILE_MODE`."""
     with atomic_path(path) as temporary:
         temporary.write_bytes(data.encode() if isinstance(data, str) else data)
+
+
+@contextlib.contextmanager
+def atomic_files(
+    folder: Path, names: Sequence[str], remove: Collection[str] = (), what: str = "folder"
+) -> Iterator[dict[str, Path]]:
+    """Write a set of files into ``folder`` as one unit, leaving its other files alone.
+
+    Yields a new hidden temporary file beside each of ``names`` to write to. Only once the block ends without error
+    are they all flushed, the files of ``remove`` deleted, and the temporaries renamed into place in the order of
+    ``names``: a failure while writing (a full disk included) deletes the temporaries and leaves the folder untouched.
+    Put last the file that lists the others (e.g. with their digests, see :func:`file_digest`): a reader checking them
+    against it never takes a half-renamed set for a whole one. The folder is locked (:func:`folder_lock`, waiting up
+    to :data:`SET_LOCK_WAIT` seconds) while the block runs, so two sets written into it at once follow each other.
+
+    :param folder: the folder (created if needed)
+    :param names: the files of the set, in the order they are renamed into place
+    :param remove: files of an earlier set that this one lacks, deleted before the last rename
+    :param what: what the folder is, for the lock's message (e.g. ``"evaluation folder"``)
+    """
+    with folder_lock(folder, what, wait=SET_LOCK_WAIT, remove=True):
+        temporaries: dict[str, Path] = {}
+        try:
+            for name in names:
+                temporaries[name] = temporary_beside(folder / name)
+            yield temporaries
+            for temporary in temporaries.values():
+                flush_file(temporary)
+            for name in remove:
+                (folder / name).unlink(missing_ok=True)
+            for name, temporary in temporaries.items():
+                os.replace(temporary, folder / name)
+            fsync_directory(folder, files=False)
+        finally:
+            for temporary in temporaries.values():
+                temporary.unlink(missing_ok=True)
+
+
+def file_digest(path: Path) -> str:
+    """The SHA-256 of a file, as hex digits."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as stream:
+        for block in iter(lambda: stream.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 @contextlib.contextmanager
@@ -161,7 +216,7 @@ def fsync_directory(folder: Path, files: bool = True) -> None:
 
 
 @contextlib.contextmanager
-def folder_lock(folder: Path, what: str = "folder") -> Iterator[None]:
+def folder_lock(folder: Path, what: str = "folder", wait: float = 0.0, remove: bool = False) -> Iterator[None]:
     """Hold an exclusive lock on ``folder`` (created if needed) while the block runs, through ``folder/.lock``.
 
     The operating system drops the lock when the process ends, however it ends, so a killed process never leaves its
@@ -169,21 +224,22 @@ def folder_lock(folder: Path, what: str = "folder") -> Iterator[None]:
 
     :param folder: the folder to lock
     :param what: what the folder is, for the error message (e.g. ``"run folder"``)
-    :raises RuntimeError: another process holds the lock
+    :param wait: seconds to wait for another holder to let go before giving up
+    :param remove: delete the lock file when letting go (for folders that should hold only what is written in them)
+    :raises RuntimeError: another process holds the lock (still, after ``wait`` seconds)
     """
     folder.mkdir(parents=True, exist_ok=True)
     if fcntl is None:  # pragma: no cover
         yield
         return
-    with open(folder / LOCK_FILE, "a+") as stream:
-        try:
-            fcntl.flock(stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as error:
-            if error.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
-                raise
-            stream.seek(0)
-            holder = stream.read().strip() or "unknown"
-            raise RuntimeError(f"{what} {folder} is in use by another process (pid {holder}); wait for it to end") from None
+    path = folder / LOCK_FILE
+    deadline = time.monotonic() + wait
+    while (stream := _try_lock(path)) is None:
+        if time.monotonic() >= deadline:
+            holder = _lock_holder(path)
+            raise RuntimeError(f"{what} {folder} is in use by another process (pid {holder}); wait for it to end")
+        time.sleep(0.01)
+    with stream:
         stream.seek(0)
         stream.truncate()
         stream.write(str(os.getpid()))
@@ -191,4 +247,32 @@ def folder_lock(folder: Path, what: str = "folder") -> Iterator[None]:
         try:
             yield
         finally:
+            if remove:
+                path.unlink(missing_ok=True)
             fcntl.flock(stream.fileno(), fcntl.LOCK_UN)
+
+
+def _try_lock(path: Path) -> IO[str] | None:
+    """The open lock file ``path``, locked, or ``None`` if another holds it. A lock taken on a file that a holder
+    deleted (see ``remove`` of :func:`folder_lock`) before letting go is let go and taken again on the new file."""
+    while True:
+        stream = open(path, "a+")
+        try:
+            fcntl.flock(stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as error:
+            stream.close()
+            if error.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+                raise
+            return None
+        with contextlib.suppress(FileNotFoundError):
+            if os.stat(path).st_ino == os.fstat(stream.fileno()).st_ino:
+                return stream
+        stream.close()  # the file was deleted under this lock: try the one now at path
+
+
+def _lock_holder(path: Path) -> str:
+    """The process id a lock file names, or ``"unknown"``."""
+    try:
+        return path.read_text().strip() or "unknown"
+    except OSError:
+        return "unknown"

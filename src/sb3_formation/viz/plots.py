@@ -24,7 +24,7 @@ from sb3_formation.experiment.settings import load_settings
 from sb3_formation.experiment.sweep import SweepResult
 from sb3_formation.experiment.trajectories import Trajectories
 from sb3_formation.sb3.metrics import EPISODE_METRICS, SUCCESS_RATE_TAG
-from sb3_formation.utils.files import atomic_write
+from sb3_formation.utils.files import atomic_files
 
 #: Colours of agents (agent i: colour i mod 10) and of policies or recipes in comparisons: matplotlib's tab10.
 COLOURS: tuple[tuple[float, float, float], ...] = tuple(tuple(channel / 255 for channel in rgb) for rgb in AGENT_COLOURS)
@@ -377,16 +377,48 @@ def save_figure(figure: Figure, path: Path) -> Path:
         or ``.pdf``. Parent folders are created.
     :return: the file written
     """
+    return save_figures({path: figure})[0]
+
+
+def save_figures(figures: Mapping[Path, Figure]) -> list[Path]:
+    """Write a set of figures into one folder as one unit: all of them replace their files, or (on any failure, a full
+    disk included) none does; two sets written into one folder at once follow each other (see
+    :func:`~sb3_formation.utils.files.atomic_files`).
+
+    :param figures: target file -> figure; a file's suffix picks its format as in :func:`save_figure`
+    :return: the files written, in the order of ``figures``
+    """
+    targets = {_figure_path(path): figure for path, figure in figures.items()}
+    contents = {path: _encode(figure, path) for path, figure in targets.items()}
+    folders = {path.parent for path in contents}
+    if len(folders) != 1:
+        raise ValueError(f"a figure set goes into one folder, got {len(folders)}: {', '.join(map(str, sorted(folders)))}")
+    folder = folders.pop()
+    with atomic_files(folder, [path.name for path in contents], what="figure folder") as temporaries:
+        for path, data in contents.items():
+            temporaries[path.name].write_bytes(data)
+    return list(contents)
+
+
+def _figure_path(path: str | Path) -> Path:
+    """The file a figure goes to: ``path``, with ``.png`` added when it has no suffix.
+
+    :raises ValueError: the suffix is not one of :data:`FIGURE_FORMATS`
+    """
     path = Path(path)
     if not path.suffix:
         path = path.with_name(path.name + ".png")
+    if path.suffix[1:].lower() not in FIGURE_FORMATS:
+        raise ValueError(f"cannot save a figure as {path.suffix[1:]!r} ({path}): use one of {', '.join(FIGURE_FORMATS)}")
+    return path
+
+
+def _encode(figure: Figure, path: Path) -> bytes:
+    """The bytes of ``figure`` in the format of ``path``'s suffix (PNG at :data:`PNG_DPI` dpi)."""
     file_format = path.suffix[1:].lower()
-    if file_format not in FIGURE_FORMATS:
-        raise ValueError(f"cannot save a figure as {file_format!r} ({path}): use one of {', '.join(FIGURE_FORMATS)}")
     buffer = io.BytesIO()
     figure.savefig(buffer, format=file_format, dpi=PNG_DPI if file_format == "png" else "figure")
-    atomic_write(path, buffer.getvalue())
-    return path
+    return buffer.getvalue()
 
 
 def save_sweep_curves(result: SweepResult) -> Path | None:

@@ -12,9 +12,10 @@ import contextlib
 import functools
 import math
 import os
+import subprocess
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
 import numpy as np
 import torch
@@ -117,45 +118,65 @@ def _check_suffix(path: Path) -> str:
 
 
 class _Mp4Stream:
-    """H.264 frames piped to ffmpeg; odd frame sizes are padded to even ones (repeating the last row or column)."""
+    """H.264 frames piped to the ffmpeg binary of ``imageio-ffmpeg``, which writes ``path``; odd frame sizes are padded
+    to even ones (repeating the last row or column). ffmpeg's own messages go to stderr.
 
-    def __init__(self, path: Path, size: tuple[int, int], fps: int, crf: int) -> None:
+    :param path: the file ffmpeg writes
+    :param size: (width, height) of the frames (px)
+    :param fps: frames per second
+    :param crf: H.264 constant rate factor
+    :param target: the video's name in messages
+    """
+
+    def __init__(self, path: Path, size: tuple[int, int], fps: int, crf: int, target: Path) -> None:
         try:
             import imageio_ffmpeg
         except ImportError as error:
             raise ImportError("writing .mp4 videos needs imageio-ffmpeg: pip install imageio-ffmpeg") from error
         width, height = size
         self.pad = ((0, height % 2), (0, width % 2), (0, 0))
-        self.generator = imageio_ffmpeg.write_frames(
-            str(path),
-            (width + width % 2, height + height % 2),
-            fps=fps,
-            codec="libx264",
-            pix_fmt_out="yuv420p",
-            quality=None,  # the constant rate factor below instead
-            macro_block_size=1,  # no rescaling: frames are padded to even sizes here
-            ffmpeg_log_level="error",
-            output_params=["-crf", str(crf), "-movflags", "+faststart"],
-        )
-        self.generator.send(None)
+        self.target = target
+        raw = ["-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{width + width % 2}x{height + height % 2}", "-r", str(fps)]
+        h264 = ["-c:v", "libx264", "-pix_fmt", "yuv420p", "-crf", str(crf), "-movflags", "+faststart"]
+        command = [imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-v", "error", *raw, "-i", "-", "-an", *h264, str(path)]
+        self.process = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL)
 
     def write(self, frame: np.ndarray) -> None:
         frame = np.pad(frame, self.pad, mode="edge") if any(after for _, after in self.pad) else frame
-        self.generator.send(np.ascontiguousarray(frame))
+        try:
+            self.process.stdin.write(np.ascontiguousarray(frame).data)
+        except OSError:  # a broken pipe: ffmpeg stopped
+            status = self.process.wait()
+            raise RuntimeError(f"ffmpeg stopped writing {self.target} (exit status {status}; its message is above)") from None
 
     def close(self) -> None:
-        self.generator.close()  # waits for ffmpeg to finish the file
+        """Let ffmpeg finish the file and wait for it.
+
+        :raises RuntimeError: ffmpeg failed (e.g. a full disk); its message is on stderr
+        """
+        with contextlib.suppress(OSError):  # a broken pipe: the exit status tells
+            self.process.stdin.close()
+        status = self.process.wait()
+        if status != 0:
+            raise RuntimeError(f"ffmpeg failed writing {self.target} (exit status {status}; its message is above)")
+
+    def kill(self) -> None:
+        """Stop ffmpeg without finishing the file."""
+        self.process.kill()
+        with contextlib.suppress(OSError):
+            self.process.stdin.close()
+        self.process.wait()
 
 
 class _GifStream:
     """Frames quantised to a palette each (median cut: exact for the env's renderings, which have fewer than 256
-    colours), kept as palette images (0.5 MB per 900 x 600 frame) and written by Pillow on :meth:`close`.
+    colours), kept as palette images (0.5 MB per 900 x 600 frame) and written by Pillow to ``path`` on :meth:`close`.
 
     Frame k is shown for round(100 (k + 1) / fps) - round(100 k / fps) cs, so the total length is exact.
     """
 
-    def __init__(self, stream: BinaryIO, fps: int) -> None:
-        self.stream, self.fps = stream, fps
+    def __init__(self, path: Path, fps: int) -> None:
+        self.path, self.fps = path, fps
         self.images: list[Image.Image] = []
 
     def write(self, frame: np.ndarray) -> None:
@@ -164,14 +185,19 @@ class _GifStream:
     def close(self) -> None:
         delays = [round(100 * (k + 1) / self.fps) - round(100 * k / self.fps) for k in range(len(self.images))]
         first, *others = self.images
-        first.save(self.stream, format="GIF", save_all=True, append_images=others, duration=[10 * d for d in delays], loop=0)
+        first.save(self.path, format="GIF", save_all=True, append_images=others, duration=[10 * d for d in delays], loop=0)
+
+    def kill(self) -> None:
+        """Drop the frames."""
+        self.images.clear()
 
 
 class VideoWriter:
     """Stream ``(H, W, 3)`` uint8 frames into an ``.mp4`` (H.264) or ``.gif`` file; use as a context manager.
 
     Frames go to a temporary file in the target's folder (created if needed), which replaces ``path`` on
-    :meth:`close`; :meth:`abort` (or an exception inside the ``with`` block) deletes it and leaves ``path`` as it was.
+    :meth:`close` once the encoder has finished it without error; :meth:`abort`, an exception inside the ``with`` block
+    or a failing encoder (ffmpeg's exit status, a full disk) deletes it and leaves ``path`` as it was.
     Every frame must have the size of the first. MP4 frames of odd width or height are padded by one pixel.
 
     :param path: target file; its suffix picks the format (one of :data:`VIDEO_SUFFIXES`)
@@ -191,9 +217,7 @@ class VideoWriter:
         self.fps, self.crf = fps, crf
         self.frames = 0  #: frames written so far
         self.size: tuple[int, int] | None = None  #: (width, height) of the frames (px), known after the first
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         self._temporary: Path | None = temporary_beside(self.path)
-        self._file: BinaryIO | None = open(self._temporary, "wb")
         self._stream: _Mp4Stream | _GifStream | None = None
 
     def append(self, frame: np.ndarray) -> None:
@@ -207,18 +231,20 @@ class VideoWriter:
         if self._stream is None:
             self.size = size
             if self.suffix == ".gif":
-                self._stream = _GifStream(self._file, self.fps)
+                self._stream = _GifStream(self._temporary, self.fps)
             else:
-                self._file.close()  # ffmpeg writes the file itself
-                self._file = None
-                self._stream = _Mp4Stream(self._temporary, size, self.fps, self.crf)
+                self._stream = _Mp4Stream(self._temporary, size, self.fps, self.crf, self.path)
         elif size != self.size:
             raise ValueError(f"frame {self.frames} is {size[0]}x{size[1]} px, the first was {self.size[0]}x{self.size[1]}")
         self._stream.write(frame)
         self.frames += 1
 
     def close(self) -> None:
-        """Finish the file and move it to ``path``; an error (or no frame at all) aborts instead."""
+        """Finish the file and move it to ``path``; an error (or no frame at all) aborts instead.
+
+        :raises RuntimeError: the encoder failed (``path`` is left as it was)
+        :raises OSError: the file could not be written (e.g. a full disk; ``path`` is left as it was)
+        """
         if self._temporary is None:
             return
         try:
@@ -226,11 +252,8 @@ class VideoWriter:
                 raise ValueError(f"no frames were written to {self.path}")
             stream, self._stream = self._stream, None
             stream.close()
-            if self._file is not None:
-                self._file.close()
-                self._file = None
             if self._temporary.stat().st_size == 0:
-                raise RuntimeError(f"ffmpeg wrote nothing for {self.path}")
+                raise RuntimeError(f"the encoder wrote nothing for {self.path}")
             replace_with(self._temporary, self.path)
             self._temporary = None
         finally:
@@ -238,16 +261,14 @@ class VideoWriter:
 
     def abort(self) -> None:
         """Stop writing and delete the temporary file; ``path`` is left untouched."""
-        if self._stream is not None:
-            stream, self._stream = self._stream, None
-            with contextlib.suppress(Exception):
-                stream.close()
-        if self._file is not None:
-            self._file.close()
-            self._file = None
-        if self._temporary is not None:
-            self._temporary.unlink(missing_ok=True)
-            self._temporary = None
+        stream, self._stream = self._stream, None
+        temporary, self._temporary = self._temporary, None
+        try:
+            if stream is not None:
+                stream.kill()
+        finally:
+            if temporary is not None:
+                temporary.unlink(missing_ok=True)
 
     def __enter__(self) -> VideoWriter:
         return self
