@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import base64
 import csv
+import io
 import json
 import operator
 import pathlib
@@ -57,16 +58,22 @@ def serialized(value: Any, beside: dict[str, Any]) -> dict[str, Any]:
     return {":type:": str(type(value)), ":serialized:": base64.b64encode(pickle.dumps(value)).decode(), **beside}
 
 
+def rewrite_member(path: Path, member: str, content: bytes) -> None:
+    """Replace a member of the model file at ``path``."""
+    with zipfile.ZipFile(path) as archive:
+        members = {name: archive.read(name) for name in archive.namelist()}
+    members[member] = content
+    with zipfile.ZipFile(path, "w") as archive:
+        for name, value in members.items():
+            archive.writestr(name, value)
+
+
 def rewrite_data(path: Path, change: Callable[[dict[str, Any]], None]) -> None:
     """Change the ``data`` JSON of the model file at ``path`` in place."""
     with zipfile.ZipFile(path) as archive:
-        members = {name: archive.read(name) for name in archive.namelist()}
-    data = json.loads(members["data"])
+        data = json.loads(archive.read("data"))
     change(data)
-    members["data"] = json.dumps(data).encode()
-    with zipfile.ZipFile(path, "w") as archive:
-        for name, content in members.items():
-            archive.writestr(name, content)
+    rewrite_member(path, "data", json.dumps(data).encode())
 
 
 def hide_in_policy_kwargs(marker: Path) -> Callable[[dict[str, Any]], None]:
@@ -83,12 +90,10 @@ def one_line(text: str) -> str:
     return text
 
 
-@pytest.fixture(scope="module")
-def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A finished tiny run (3 iterations, a checkpoint after each) with a linear learning rate."""
-    folder = tmp_path_factory.mktemp("safe")
+def tiny_run(folder: Path, policy: dict[str, Any]) -> Path:
+    """A finished tiny run (3 iterations, a checkpoint after each) with a linear learning rate, in ``folder``."""
     values = yaml.safe_load((RECIPES_FOLDER / "ch4-individual.yaml").read_text())
-    values["policy"]["net_arch"] = {"pi": [16], "vf": [16]}
+    values["policy"] |= policy
     values["ppo"] |= {"n_steps": 16, "batch_size": 48, "n_epochs": 2, "learning_rate": {"start": 1e-3, "end": 1e-4}}
     values["n_envs"], values["curriculum"]["iterations"] = 2, [1, 1, 1]
     values["evaluation"] = {"episodes": 2, "stage": 3}
@@ -96,6 +101,19 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     arguments = ["train", "--recipe", str(folder / "tiny.yaml"), "--env", "max_steps=20", "--checkpoint-every", "1"]
     assert main([*arguments, "--no-evaluate", "--no-progress", "--run-dir", str(folder / "run")]) == 0
     return folder / "run"
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A tiny run of the MLP policy."""
+    return tiny_run(tmp_path_factory.mktemp("safe"), {"net_arch": {"pi": [16], "vf": [16]}})
+
+
+@pytest.fixture(scope="module")
+def recurrent_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A tiny run of the recurrent policy."""
+    widths = {"pi": [8], "vf": [8], "pi_recurrent": 8, "vf_recurrent": 8, "pi_after": [], "vf_after": []}
+    return tiny_run(tmp_path_factory.mktemp("recurrent"), {"recurrent": True, "net_arch": widths})
 
 
 def model_copy(run: Path, folder: Path) -> Path:
@@ -143,6 +161,17 @@ def test_pickles_of_what_safe_loading_does_not_need_are_never_run(run: Path, tmp
     assert np.array_equal(loaded.predict(rows)[0], reference.predict(rows)[0])
 
 
+def test_tensors_are_read_as_weights_only(run: Path, tmp_path: Path) -> None:
+    marker = tmp_path / "ran"
+    model = model_copy(run, tmp_path / "copy")
+    stream = io.BytesIO()
+    torch.save({"log_std": Payload(marker, torch.zeros(2))}, stream)
+    rewrite_member(model, "policy.pth", stream.getvalue())
+    with pytest.raises(ValueError, match="holds tensors that cannot be read as weights only") as refused:
+        load_trained(model)
+    assert str(model) in one_line(str(refused.value)) and not marker.exists()
+
+
 def test_only_this_packages_policy_classes_are_read_without_trust(run: Path, tmp_path: Path) -> None:
     model = model_copy(run, tmp_path / "copy")
 
@@ -186,10 +215,11 @@ def progress_rows(run_dir: Path) -> list[dict[str, str]]:
         return [{key: value for key, value in row.items() if not key.startswith("time/")} for row in csv.DictReader(stream)]
 
 
-def test_a_safe_resume_continues_exactly_as_sb3s_load(run: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize("kind", ["run", "recurrent_run"])
+def test_a_safe_resume_continues_exactly_as_sb3s_load(kind: str, request: pytest.FixtureRequest, tmp_path: Path) -> None:
     """The model rebuilt from the recipe with the checkpoint's tensors and counters trains on bit for bit as the
     model SB3's ``load`` gave (``--trust-pickle``), logging the same values (episode windows included)."""
-    start = shutil.copytree(run, tmp_path / "start")
+    start = shutil.copytree(request.getfixturevalue(kind), tmp_path / "start")
     for name in (FINAL_MODEL, FINAL_NORMALIZER):
         (start / name).unlink()
     shutil.rmtree(latest_checkpoint(start))

@@ -16,8 +16,10 @@ import ast
 import base64
 import binascii
 import contextvars
+import io
 import json
 import math
+import pickle
 import pickletools
 import re
 import sys
@@ -29,13 +31,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch as th
 from gymnasium import spaces
 from stable_baselines3 import PPO
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.save_util import load_from_zip_file, recursive_setattr
+from stable_baselines3.common.save_util import recursive_setattr
 from stable_baselines3.common.type_aliases import Schedule
-from stable_baselines3.common.utils import ConstantSchedule, FloatSchedule, LinearSchedule
+from stable_baselines3.common.utils import ConstantSchedule, FloatSchedule, LinearSchedule, get_device
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_formation.env.config import FormationConfig
@@ -202,7 +205,8 @@ def unreadable_settings(data: dict[str, Any]) -> list[str]:
     if policy_class_of(data) is None:
         named = policy_class_name(data) or "not a plain class reference"
         problems.append(f"policy_class ({named}; allowed: {', '.join(POLICY_CLASSES)})")
-    if is_serialized(data.get("policy_kwargs", {})):
+    kwargs = data.get("policy_kwargs", {})
+    if not isinstance(kwargs, dict) or is_serialized(kwargs):
         problems.append("policy_kwargs (values that are not plain data)")
     problems += [name for name in SCHEDULE_SETTINGS if data.get(name) is not None and plain_schedule(data.get(name)) is None]
     return problems
@@ -271,11 +275,29 @@ def trusted_load(path: Path, data: dict[str, Any], device: str, env: VecEnv | No
     return algorithm_for(policy_class_of(data)).load(path, env=env, device=device)
 
 
-def load_parameters(model: BaseAlgorithm, path: Path, device: str = "auto") -> None:
-    """Put a model file's tensors (read with ``weights_only=True``) into ``model``, as SB3's ``load`` does."""
-    _, parameters, variables = load_from_zip_file(path, device=device, load_data=False)
-    model.set_parameters(parameters, exact_match=True, device=device)
-    for name, value in (variables or {}).items():
+def read_tensors(path: Path, device: str | th.device = "auto") -> dict[str, Any]:
+    """The ``.pth`` members of a model file by name (``policy``, ``policy.optimizer``, ``pytorch_variables``), read
+    with ``torch.load(..., weights_only=True)``: tensors and plain containers only.
+
+    :raises ValueError: a member holds anything else, or the file is damaged
+    """
+    tensors = {}
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for name in (member for member in archive.namelist() if member.endswith(".pth")):
+                stream = io.BytesIO(archive.read(name))
+                tensors[name.removesuffix(".pth")] = th.load(stream, map_location=get_device(device), weights_only=True)
+    except (zipfile.BadZipFile, pickle.UnpicklingError, RuntimeError, OSError) as error:
+        raise ValueError(f"{path} holds tensors that cannot be read as weights only: {error}".splitlines()[0]) from None
+    return tensors
+
+
+def load_parameters(model: BaseAlgorithm, path: Path, device: str | th.device = "auto") -> None:
+    """Put a model file's tensors (:func:`read_tensors`) into ``model``, as SB3's ``load`` does."""
+    tensors = read_tensors(path, device)
+    variables = tensors.pop("pytorch_variables", None) or {}
+    model.set_parameters(tensors, exact_match=True, device=device)
+    for name, value in variables.items():
         if value is not None:
             recursive_setattr(model, f"{name}.data", value.data)
 
