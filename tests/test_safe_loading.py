@@ -25,7 +25,7 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.save_util import load_from_zip_file
 
 from sb3_formation import FormationEnv
-from sb3_formation.cli import main
+from sb3_formation.cli import build_parser, main
 from sb3_formation.experiment.pretrained import PRETRAINED_DIR, load_pretrained, pretrained_names
 from sb3_formation.experiment.recipes import RECIPES_FOLDER
 from sb3_formation.experiment.runs import FINAL_MODEL, FINAL_NORMALIZER, latest_checkpoint, load_trained
@@ -142,6 +142,22 @@ def test_a_model_that_needs_unpickling_is_refused_unless_trusted(
     assert marker.exists() and f"trusting {model}: unpickling policy_class, " in capsys.readouterr().err
     marker.unlink()
     assert load_trained(model, trusted=True).config.n_agents == 3 and marker.exists()
+
+
+@pytest.mark.parametrize(
+    "command",
+    [["evaluate", "--episodes", "1"], ["render", "--max-steps", "2"], ["compare", "--episodes", "1"], ["rollout"]],
+)
+def test_every_command_that_loads_a_model_refuses_it_unless_told(
+    command: list[str], run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    marker = tmp_path / "ran"
+    model = model_copy(run, tmp_path / "copy")
+    rewrite_data(model, hide_in_policy_kwargs(marker))
+    assert main([command[0], str(model), *command[1:]]) == 2
+    assert "needs unpickling" in one_line(capsys.readouterr().err) and not marker.exists()
+    arguments = build_parser().parse_args([command[0], str(model), *command[1:], "--trust-pickle"])
+    assert arguments.trust_pickle is True
 
 
 def test_pickles_of_what_safe_loading_does_not_need_are_never_run(run: Path, tmp_path: Path) -> None:
