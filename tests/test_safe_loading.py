@@ -206,7 +206,8 @@ def test_schedules_are_read_from_plain_text_only() -> None:
     text = "FloatSchedule(LinearSchedule(start=0.001, end=0.0001, end_fraction=1.0))"
     assert schedule_from_text(text)(0.5) == pytest.approx(5.5e-4)
     assert plain_schedule({":type:": "<class 'x.ConstantSchedule'>", ":serialized:": "", "val": 0.2})(0.3) == 0.2
-    for hostile in ("__import__('os').system('true')", "LinearSchedule(start=open('f'), end=1, end_fraction=1)"):
+    hostile_texts = ["__import__('os').system('true')", "LinearSchedule(start=open('f'), end=1, end_fraction=1)"]
+    for hostile in [*hostile_texts, "FloatSchedule(" * 100_000 + ")" * 100_000]:
         assert schedule_from_text(hostile) is None
 
 

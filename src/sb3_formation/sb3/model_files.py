@@ -179,7 +179,7 @@ def schedule_from_text(text: str) -> Schedule | None:
     ``FloatSchedule(...)``), parsed as literals (nothing is evaluated); ``None`` if it is not such text."""
     try:
         return _schedule_from_node(ast.parse(text, mode="eval").body)
-    except (SyntaxError, ValueError, TypeError):
+    except (SyntaxError, ValueError, TypeError, RecursionError):  # not such text, or nested without end
         return None
 
 
