@@ -1,6 +1,8 @@
 """Atomic files and folders: every artefact of the package (configs, models, normaliser statistics, evaluations,
 figures, videos, checkpoints) is written to a hidden temporary sibling and renamed into place only once complete, so a
-crash or a kill leaves either the old file or the new one, never half of one. Files get mode :data:`FILE_MODE`."""
+crash or a kill leaves either the old file or the new one, never half of one; sets of files that belong together
+(an evaluation, a figure set) are written by :func:`atomic_files` in a locked folder. Files get mode
+:data:`FILE_MODE`."""
 
 from __future__ import annotations
 

@@ -3,7 +3,8 @@
 MP4 files are H.264 (``yuv420p``) written through the ffmpeg binary of ``imageio-ffmpeg``, frame by frame (a
 2500-step episode is never held in memory); GIFs are written with Pillow, which needs every frame at once (as palette
 images, 0.5 MB per frame): use MP4 for long episodes. Either way the video goes to a temporary file beside the
-target, which replaces the target only once the video is complete.
+target, which replaces the target only once the encoder has finished it without error (ffmpeg's exit status is
+checked): a failure, a full disk included, leaves the earlier video as it was and no temporary file.
 """
 
 from __future__ import annotations
