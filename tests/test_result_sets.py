@@ -122,6 +122,8 @@ def test_evaluate_command_on_a_full_disk_exits_2_and_keeps_the_folder(
     assert snapshot(folder) == first and hidden(folder) == []
     assert main([*command, "--seed", "100", "--trajectories", "0"]) == 0  # a set without trajectories drops the old
     assert set(snapshot(folder)) == {"notes.txt", SUMMARY_FILE, EPISODES_FILE}
+    with pytest.raises(FileNotFoundError, match="no trajectories"):
+        load_trajectories(folder / TRAJECTORIES_FILE)
     assert (folder / "notes.txt").read_text() == "kept" and hidden(folder) == []
 
 

@@ -265,7 +265,7 @@ def check_evaluation_set(folder: Path, summary: dict[str, Any], names: Collectio
     digests = summary.get(FILES_KEY)
     if digests is None:
         return
-    for name in {*digests, *names}:
+    for name in sorted({*digests, *names}):
         path = folder / name
         if name not in digests or not path.is_file() or file_digest(path) != digests[name]:
             raise ValueError(
@@ -283,7 +283,7 @@ def load_trajectories(path: str | os.PathLike[str]) -> Trajectories:
     """
     path = Path(path)
     summary_path = path.parent / SUMMARY_FILE
-    if path.name == TRAJECTORIES_FILE and summary_path.is_file():
+    if path.name == TRAJECTORIES_FILE and path.is_file() and summary_path.is_file():
         check_evaluation_set(path.parent, read_summary(summary_path), names=[path.name])
     return Trajectories.load(path)
 
