@@ -152,6 +152,8 @@ def test_train_cli_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureF
     assert "--seed" in capsys.readouterr().err
     assert main(["train", "--resume", str(tmp_path), "--no-progress"]) == 2  # the flag as the user wrote it
     assert "drop --no-progress" in capsys.readouterr().err
+    assert main(["train", "--trust-pickle", "--logdir", str(tmp_path / "runs")]) == 2
+    assert "--trust-pickle applies to --resume" in capsys.readouterr().err
     undecodable = os.fsdecode(b"run-\xff")  # a name the shell passed as bytes: refused before anything is written
     assert main(["train", "--run-dir", str(tmp_path / undecodable), "--logdir", str(tmp_path / "runs")]) == 2
     assert "is not valid UTF-8" in capsys.readouterr().err and not (tmp_path / undecodable).exists()

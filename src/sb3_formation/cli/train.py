@@ -20,7 +20,6 @@ from sb3_formation.experiment.recipes import thesis_recipe_for
 from sb3_formation.experiment.runs import FINAL_MODEL
 from sb3_formation.experiment.settings import TrainSettings, layered_settings, load_settings
 from sb3_formation.experiment.training import resume, train
-from sb3_formation.utils.checks import check_path
 
 #: The options that change the recipe (``recipe_changes``), with their argparse options.
 RECIPE_FLAGS: dict[str, dict] = {
@@ -122,8 +121,8 @@ def run(args: argparse.Namespace) -> int:
         run_dir = resume(args.resume, trusted=args.trust_pickle)
         settings = load_settings(run_dir)
     else:
-        if args.run_dir is not None:
-            check_path(args.run_dir, "--run-dir")
+        if args.trust_pickle:
+            raise ValueError("--trust-pickle applies to --resume (a new run loads no model file)")
         settings = settings_of(args)
         print(describe(settings))
         run_dir = train(settings, command=args.command_line, run_dir=args.run_dir)

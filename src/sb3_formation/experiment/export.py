@@ -22,9 +22,9 @@ from sb3_formation.experiment.runs import (
     STATE_FILE,
     latest_checkpoint,
     load_trained,
-    saved_algorithm,
 )
 from sb3_formation.experiment.settings import load_settings
+from sb3_formation.sb3.model_files import load_model
 from sb3_formation.utils.files import atomic_directory
 
 #: Attributes of a saved model that acting does not need (the last rollout's observations, episode buffers).
@@ -57,10 +57,9 @@ def export_pretrained(
     if missing or checkpoint is None:
         raise ValueError(f"{run_dir} is not a finished run: it lacks {', '.join(missing) or 'a checkpoint'}")
     state = json.loads((checkpoint / STATE_FILE).read_text())
-    protocol = settings.recipe.evaluation
-    protocol["n_workers"] = protocol.pop("workers", 1)
+    protocol = dict(settings.recipe.evaluation)
     with atomic_directory(root / name) as folder:
-        model = saved_algorithm(run_dir / FINAL_MODEL).load(run_dir / FINAL_MODEL, device="cpu")
+        model = load_model(run_dir / FINAL_MODEL, device="cpu")  # nothing in the run's files is unpickled
         policy = model.policy
         policy.optimizer = policy.optimizer_class(policy.parameters(), **policy.optimizer.defaults)  # an empty state
         model.save(folder / FINAL_MODEL, exclude=list(UNSHIPPED_ATTRIBUTES))

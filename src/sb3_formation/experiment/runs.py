@@ -21,10 +21,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecNormalize
 from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.experiment.recipes import residual_policy
 from sb3_formation.sb3.model_files import (
-    algorithm_for,
     load_model,
-    policy_class_name,
-    policy_class_of,
     read_model_data,
     record_episode_windows,
     recorded_config,
@@ -45,18 +42,6 @@ REWARD_STATE_KEYS = ("mean", "var", "count")
 def reward_normalizer_file(normalizer_file: str) -> str:
     """The reward normaliser's file beside an observation normaliser's (``normalizer.npz`` -> ``reward_normalizer.npz``)."""
     return f"{normalizer_file.removesuffix('normalizer.npz')}reward_normalizer.npz"
-
-
-def saved_algorithm(path: Path) -> type[PPO]:
-    """The PPO class of a saved model, from the policy class its zip file names (read without unpickling).
-
-    :raises ValueError: not a model file, or it names no policy class of this package
-    """
-    data = read_model_data(Path(path))
-    policy = policy_class_of(data)
-    if policy is None:
-        raise ValueError(f"{path} names no policy class of sb3-formation ({policy_class_name(data) or 'none readable'})")
-    return algorithm_for(policy)
 
 
 def save_model(model: PPO, env: VecEnv, folder: Path, model_file: str, normalizer_file: str) -> None:

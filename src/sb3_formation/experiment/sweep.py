@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from sb3_formation.experiment.evaluation import SUMMARY_FILE, evaluate_target
+from sb3_formation.experiment.evaluation import SUMMARY_FILE, evaluate_target, load_summary
 from sb3_formation.experiment.reports import TABLE_METRICS, table_number
 from sb3_formation.experiment.runs import FINAL_MODEL
 from sb3_formation.experiment.settings import TrainSettings, read_settings
@@ -50,7 +50,7 @@ def run_trial(settings: dict[str, Any], run_dir: str) -> dict[str, Any]:
     folder = Path(run_dir)
     trial = TrainSettings.from_dict(settings)
     if (folder / FINAL_MODEL).exists() and (folder / "eval" / SUMMARY_FILE).exists():
-        return {"status": "skipped", "run_dir": run_dir, "summary": json.loads((folder / "eval" / SUMMARY_FILE).read_text())}
+        return {"status": "skipped", "run_dir": run_dir, "summary": load_summary(folder / "eval")}
     if not (folder / FINAL_MODEL).exists():
         if (folder / "config.yaml").exists():  # a trial that was stopped: from its checkpoint, or again from the start
             resume(folder)

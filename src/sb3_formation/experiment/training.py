@@ -33,7 +33,6 @@ from sb3_formation.experiment.runs import (
     MODEL_FILE,
     NORMALIZER_FILE,
     STATE_FILE,
-    algorithm_for,
     latest_checkpoint,
     normalize_rewards,
     reward_normalizer_file,
@@ -50,11 +49,12 @@ from sb3_formation.sb3.callbacks import (
     threads_beside_workers,
 )
 from sb3_formation.sb3.imitation import FrozenActorCallback, pretrain_actor
-from sb3_formation.sb3.model_files import is_trusted, load_model, restore_training_state
+from sb3_formation.sb3.model_files import algorithm_for, is_trusted, load_model, restore_training_state
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 from sb3_formation.sb3.residual import ResidualVecEnv
 from sb3_formation.sb3.trained import TrainedPolicy
 from sb3_formation.sb3.vec_env import FormationVecEnv
+from sb3_formation.utils.checks import check_path
 from sb3_formation.utils.files import LOCK_FILE, atomic_directory, atomic_write, folder_lock
 
 # Models and checkpoints ----------------------------------------------------------------------------------------
@@ -279,6 +279,7 @@ def train(settings: TrainSettings, command: str | None = None, run_dir: str | os
     :raises RuntimeError: another process trains in ``run_dir``
     """
     if run_dir is not None:
+        check_path(run_dir, "run folder")
         _check_unused(Path(run_dir))
     with _new_model(settings) as (model, curriculum, clock):
         run_dir = new_run_dir(settings) if run_dir is None else Path(run_dir)
