@@ -10,7 +10,6 @@ from sb3_formation.experiment.evaluation import SUMMARY_FILE, stored_summary
 from sb3_formation.experiment.reports import comparison_table
 from sb3_formation.experiment.targets import default_protocol, evaluation_file, load_policy, target_kind
 from sb3_formation.utils.files import atomic_write
-from sb3_formation.viz.plots import plot_evaluation_bars, save_figure
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -69,5 +68,7 @@ def _compare(args: argparse.Namespace) -> int:
     if args.table is not None:
         atomic_write(args.table, table + "\n")
         print(f"table written to {args.table}")
+    from sb3_formation.viz.plots import plot_evaluation_bars, save_figure  # matplotlib: only where a figure is drawn
+
     print(f"figure written to {save_figure(plot_evaluation_bars(summaries, over=args.over), args.out)}")
     return 0

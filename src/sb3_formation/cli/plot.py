@@ -11,15 +11,9 @@ from sb3_formation.experiment.recipes import DEFAULT_RECIPE
 from sb3_formation.experiment.settings import load_settings
 from sb3_formation.experiment.targets import evaluation_file
 from sb3_formation.experiment.trajectories import Trajectories
-from sb3_formation.viz.plots import (
-    FIGURES,
-    plot_error_curves,
-    plot_evaluation_bars,
-    plot_training_curves,
-    plot_trajectory,
-    save_figure,
-    save_figures,
-)
+
+#: The figures ``plot`` draws.
+FIGURES = ("trajectories", "errors", "bars", "training")
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -47,6 +41,16 @@ def run(args: argparse.Namespace) -> int:
     """``sb3-formation plot FIGURE TARGET...``: one of the thesis-style figures, as PNG, SVG or PDF."""
     if args.figure not in FIGURES:
         raise ValueError(f"unknown figure {args.figure!r}: choose one of {', '.join(FIGURES)}")
+    # matplotlib is imported by the commands that draw, not by every command
+    from sb3_formation.viz.plots import (
+        plot_error_curves,
+        plot_evaluation_bars,
+        plot_training_curves,
+        plot_trajectory,
+        save_figure,
+        save_figures,
+    )
+
     if args.figure in ("trajectories", "errors"):
         if len(args.targets) != 1:
             raise ValueError(f"{args.figure} draws one evaluation; got {len(args.targets)} targets")
@@ -71,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
         summaries = dict(zip(labels, (load_summary(target, args.recipe) for target in args.targets)))
         written = [save_figure(plot_evaluation_bars(summaries, over=args.over), args.out or Path("evaluation_bars.png"))]
     else:
-        labels = target_labels(args.labels, args.targets) if args.labels else [_setup_label(t) for t in args.targets]
+        labels = target_labels(args.labels, args.targets) if args.labels else [_recipe_label(t) for t in args.targets]
         groups: dict[str, list[Path]] = {}
         for label, target in zip(labels, args.targets):
             groups.setdefault(label, []).append(target)
@@ -93,7 +97,7 @@ def _recordedindices(trajectories: Trajectories, episodes: list[int] | None) -> 
     return [recorded.index(episode) for episode in episodes]
 
 
-def _setup_label(run_dir: Path) -> str:
+def _recipe_label(run_dir: Path) -> str:
     """A training-curve label naming a run's recipe (recipe and team size), so seeds of one recipe share it."""
     settings = load_settings(run_dir)
     return f"{settings.recipe.name} ({settings.recipe.config().n_agents} agents)"

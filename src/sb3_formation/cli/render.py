@@ -15,7 +15,6 @@ from sb3_formation.cli.common import (
     seed_value,
 )
 from sb3_formation.experiment.targets import evaluation_folder, load_policy
-from sb3_formation.viz.video import render_episodes
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -44,6 +43,8 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """``sb3-formation render``: a video of evaluation episodes."""
+    from sb3_formation.viz.video import render_episodes  # imported only by the command that uses it
+
     with model_trust(args):
         policy = load_policy(args.target, args.recipe, device=args.device)
     out = args.out or evaluation_folder(args.target, args.recipe) / "episodes.mp4"

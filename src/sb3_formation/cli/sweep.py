@@ -7,7 +7,6 @@ import sys
 from pathlib import Path
 
 from sb3_formation.cli.common import indices, positive_int
-from sb3_formation.viz.plots import save_sweep_curves
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -29,6 +28,8 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """``sb3-formation sweep``: every (configuration x seed) trial on Ray; exit code 1 if a trial failed."""
+    from sb3_formation.viz.plots import save_sweep_curves  # imported only by the command that uses it
+
     try:
         from sb3_formation.experiment.sweep import sweep
     except ImportError as error:  # pragma: no cover - without the extra

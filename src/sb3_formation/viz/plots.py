@@ -35,7 +35,6 @@ TRAINING_LABELS: dict[str, str] = {"episode_reward": "mean episode reward", "suc
 #: File formats :func:`save_figure` writes.
 FIGURE_FORMATS = ("png", "svg", "pdf")
 #: Figure names of ``sb3-formation plot``.
-FIGURES = ("trajectories", "errors", "bars", "training")
 PNG_DPI = 150
 OBSTACLE_COLOUR, GOAL_COLOUR = (0.55, 0.55, 0.59), (0.16, 0.67, 0.27)
 
