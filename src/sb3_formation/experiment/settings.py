@@ -25,7 +25,6 @@ from sb3_formation.experiment.recipes import (
     load_recipe,
     read_recipe_file,
     recipe_changes,
-    recipe_path,
 )
 from sb3_formation.utils.checks import check_path, is_count
 
@@ -224,7 +223,7 @@ def layered_settings(
     if config_file is not None:
         settings = read_settings(config_file)
     else:
-        settings = TrainSettings(load_recipe(recipe_path(recipe or DEFAULT_RECIPE)), RunOptions())
+        settings = TrainSettings(load_recipe(recipe or DEFAULT_RECIPE), RunOptions())
     run_names = {item.name for item in dataclasses.fields(RunOptions)}
     run = {name: value for name, value in options.items() if name in run_names and value is not None}
     changes = recipe_changes(**{name: value for name, value in options.items() if name not in run_names})
