@@ -25,6 +25,7 @@ from sb3_formation.env.rewards import (
 )
 
 PI = math.pi
+NO_WALLS = np.zeros((0, 5))
 
 
 def vec(x: float, y: float) -> np.ndarray:
@@ -129,7 +130,7 @@ def test_nearest_gaps() -> None:
     Agent 3 (14.9, 9): nearest agent agent 2, hypot(10.9, 4); wall 0.1 - 0.2 = -0.1 (sunk into the wall).
     """
     positions = np.array([[1.0, 1.0], [1.0, 2.0], [4.0, 5.0], [14.9, 9.0]])
-    nearest_agent, nearest_obstacle = nearest_gaps(positions, 0.2, np.array([[1.0, 3.2, 0.5]]), 15.0, 10.0)
+    nearest_agent, nearest_obstacle = nearest_gaps(positions, 0.2, np.array([[1.0, 3.2, 0.5]]), NO_WALLS, 15.0, 10.0)
     np.testing.assert_allclose(nearest_agent, [1.0, 1.0, math.hypot(3, 3), math.hypot(10.9, 4)], rtol=1e-12)
     np.testing.assert_allclose(nearest_obstacle, [0.8, 0.5, math.hypot(3, 1.8) - 0.7, -0.1], atol=1e-12)
     assert nearest_obstacle[2] == pytest.approx(2.798571, abs=1e-6)
@@ -138,12 +139,22 @@ def test_nearest_gaps() -> None:
 def test_nearest_gaps_without_obstacles_and_sunk_in() -> None:
     """No obstacles: the walls alone; an agent overlapping an obstacle has a negative gap (0.3 - 0.5 - 0.2 = -0.4)."""
     positions = np.array([[7.5, 0.5], [7.5, 9.7], [3.0, 5.0]])
-    nearest_agent, nearest_obstacle = nearest_gaps(positions, 0.2, np.zeros((0, 3)), 15.0, 10.0)
+    nearest_agent, nearest_obstacle = nearest_gaps(positions, 0.2, np.zeros((0, 3)), NO_WALLS, 15.0, 10.0)
     # walls: 0.5 - 0.2 = 0.3; 10 - 9.7 - 0.2 = 0.1; 3 - 0.2 = 2.8
     np.testing.assert_allclose(nearest_obstacle, [0.3, 0.1, 2.8], atol=1e-12)
     np.testing.assert_allclose(nearest_agent, [math.hypot(4.5, 4.5), math.hypot(4.5, 4.7), math.hypot(4.5, 4.5)])
-    _, nearest_obstacle = nearest_gaps(positions, 0.2, np.array([[3.3, 5.0, 0.5]]), 15.0, 10.0)
+    _, nearest_obstacle = nearest_gaps(positions, 0.2, np.array([[3.3, 5.0, 0.5]]), NO_WALLS, 15.0, 10.0)
     assert nearest_obstacle[2] == pytest.approx(-0.4, abs=1e-12)
+
+
+def test_nearest_gaps_with_a_wall() -> None:
+    """A wall from (5, 2) to (5, 8), 0.4 m thick (R = 0.2): agent (4, 5) is 1 - 0.2 - 0.2 = 0.6 from it; agent
+    (5, 9) is past its end: hypot(0, 1) - 0.2 - 0.2 = 0.6 too, but the border above is nearer (10 - 9 - 0.2 = 0.8,
+    not nearer): 0.6; agent (8, 8.5) is hypot(3, 0.5) - 0.4 = 2.6414 from the wall, 1.5 - 0.2 = 1.3 from the border."""
+    positions = np.array([[4.0, 5.0], [5.0, 9.0], [8.0, 8.5]])
+    wall = np.array([[5.0, 2.0, 5.0, 8.0, 0.4]])
+    _, nearest_obstacle = nearest_gaps(positions, 0.2, np.zeros((0, 3)), wall, 15.0, 10.0)
+    np.testing.assert_allclose(nearest_obstacle, [0.6, 0.6, 1.3], atol=1e-12)
 
 
 # reward_terms ----------------------------------------------------------------------------------------------------

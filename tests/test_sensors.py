@@ -9,6 +9,7 @@ import pytest
 
 from sb3_formation.env.geometry import ring_neighbours
 from sb3_formation.env.sensors import Lidar
+from sb3_formation.env.shapes import shape_gaps
 
 R = 0.2  # agent radius (m)
 RANGE = 1.5  # lidar range (m)
@@ -248,3 +249,72 @@ def test_readings_in_unit_interval() -> None:
         assert 0.0 <= reading.min() and reading.max() <= 1.0
     assert (obstacle_readings[4] == 0.0).any()  # sunk into the corner walls
     assert (agent_readings[0] == 0.0).any()  # overlapping non-neighbour 3
+
+
+# Walls -----------------------------------------------------------------------------------------------------------
+
+
+def test_wall_face_ahead() -> None:
+    """Agent (5,5); wall from (7,3) to (7,7), 0.4 m thick: its face at x = 6.8 is 1.8 - 0.2 = 1.6 m from the agent's
+    surface, beyond the 1.5 m range: ray 0 reads 1. Moved to x = 6.5 (face 6.3): ray 0 reads (1.3 - 0.2)/1.5; the
+    ray at 20 deg meets the face at t = 1.3 / cos 20 = 1.383424, reading (1.383424 - 0.2)/1.5 = 0.788949 (its point
+    y = 5 + 1.3 tan 20 = 5.473 lies on the face)."""
+    sensor = lidar(3)
+    sensor.set_obstacles(np.zeros((0, 3)), np.array([[7.0, 3.0, 7.0, 7.0, 0.4]]))
+    obstacles, _ = sensor.scan(positions([[5.0, 5.0]], 3))
+    assert obstacles[0, 0] == 1.0
+    sensor.set_obstacles(np.zeros((0, 3)), np.array([[6.5, 3.0, 6.5, 7.0, 0.4]]))
+    obstacles, _ = sensor.scan(positions([[5.0, 5.0]], 3))
+    assert obstacles[0, 0] == pytest.approx(1.1 / 1.5, abs=1e-12)
+    assert obstacles[0, 5] == pytest.approx((1.3 / math.cos(math.radians(20)) - 0.2) / 1.5, abs=1e-12)
+    assert obstacles[0, 45] == pytest.approx(1.0)  # 180 deg: the border at x = 0 is 5 m away
+
+
+def test_wall_round_end() -> None:
+    """Wall from (6,5) to (9,5), 0.6 m thick: its end is the disc of radius 0.3 around (6,5); ray 0 from (5,5) meets
+    it at t = 0.7 (reading (0.7 - 0.2)/1.5 = 1/3), as the circle (6,5) r=0.3 would; so does the ray at 8 deg
+    (:func:`chord_reading`)."""
+    sensor = lidar(3)
+    sensor.set_obstacles(np.zeros((0, 3)), np.array([[6.0, 5.0, 9.0, 5.0, 0.6]]))
+    obstacles, _ = sensor.scan(positions([[5.0, 5.0]], 3))
+    assert obstacles[0, 0] == pytest.approx(1 / 3, abs=1e-12)
+    assert obstacles[0, 2] == pytest.approx(chord_reading(8.0, (6.0, 5.0), 0.3), abs=1e-12)
+
+
+def test_walls_and_circles_against_pymunk_ray_casts() -> None:
+    """On random scenes of circles and walls, every reading equals Pymunk's own ``segment_query_first`` (an
+    independent ray cast against capsules and circles) from the agent's surface over the lidar range."""
+    import pymunk
+
+    rng = np.random.default_rng(7)
+    directions = None
+    for _ in range(8):
+        circles = np.column_stack([rng.uniform(1, 14, 6), rng.uniform(1, 9, 6), rng.uniform(0.1, 0.8, 6)])
+        starts = np.column_stack([rng.uniform(1, 14, 5), rng.uniform(1, 9, 5)])
+        angles = rng.uniform(0, 2 * np.pi, 5)
+        lengths = rng.uniform(0.5, 4.0, 5)
+        ends = starts + lengths[:, None] * np.column_stack([np.cos(angles), np.sin(angles)])
+        walls = np.column_stack([starts, np.clip(ends, 0, [15, 10]), rng.uniform(0.05, 0.5, 5)])
+        space = pymunk.Space()
+        for x, y, r in circles:
+            space.add(pymunk.Circle(space.static_body, r, (x, y)))
+        for x0, y0, x1, y1, thickness in walls:
+            space.add(pymunk.Segment(space.static_body, (x0, y0), (x1, y1), thickness / 2))
+        corners = [(0, 0), (W, 0), (W, H), (0, H)]
+        for a, b in zip(corners, corners[1:] + corners[:1]):
+            space.add(pymunk.Segment(space.static_body, a, b, 0.0))
+        # agents wherever they keep clear of every shape (so that each ray starts outside them)
+        candidates = np.column_stack([rng.uniform(0.3, 14.7, 400), rng.uniform(0.3, 9.7, 400)])
+        clear = shape_gaps(candidates, circles, walls, W, H) > R + 1e-6
+        agents = candidates[clear][:3]
+        sensor = Lidar(36, RANGE, R, W, H, ring_neighbours(3))
+        sensor.set_obstacles(circles, walls)
+        readings, _ = sensor.scan(agents)
+        directions = sensor.directions
+        for agent, position in enumerate(agents):
+            for ray, direction in enumerate(directions):
+                start = position + R * direction
+                hit = space.segment_query_first(tuple(start), tuple(start + RANGE * direction), 0.0, pymunk.ShapeFilter())
+                expected = 1.0 if hit is None else hit.alpha
+                assert readings[agent, ray] == pytest.approx(expected, abs=1e-9)
+    assert directions is not None

@@ -14,7 +14,9 @@ from pettingzoo.utils.conversions import parallel_to_aec
 
 from sb3_formation import FormationConfig, FormationEnv, Scenario, TeamState
 from sb3_formation.env.rendering import render_frame
-from sb3_formation.env.state import state_obstacle_slots
+from sb3_formation.env.scenarios import start_formation
+from sb3_formation.env.scenes import scene_slots
+from sb3_formation.env.state import state_layout
 
 #: A square of four agents around (5, 5) (side 1 m), the goal 3 m to the right of the centroid, two obstacles.
 SQUARE = Scenario(
@@ -142,14 +144,15 @@ def test_global_state_vector_reads_back_field_by_field() -> None:
     obstacles = np.array([2.0, 8.0, 0.5, 11.0, 2.0, 0.8, 0, 0, 0, 0, 0, 0], dtype=np.float32)
     np.testing.assert_array_equal(vector[layout["obstacles"]], obstacles)
     np.testing.assert_array_equal(vector[layout["step"]], [2.0])
-    assert list(layout) == ["positions", "velocities", "goal", "obstacles", "step"]
+    assert list(layout) == ["positions", "velocities", "goal", "obstacles", "walls", "step"]
+    assert layout["walls"] == slice(layout["obstacles"].stop, layout["obstacles"].stop)  # no walls in the curriculum
 
 
 def test_state_has_room_for_every_curriculum_stage() -> None:
     """Stage 1-2 place the most obstacles: 3 large and 1 small (thesis 4.3, 5.3)."""
     for preset in ("ch4-individual", "ch5-bearing"):
         config = FormationConfig.task(preset)
-        assert state_obstacle_slots(config) == 4
+        assert scene_slots(config) == (4, 0)
         env = FormationEnv(config)
         for stage in (1, 2, 3):
             env.set_stage(stage)
@@ -204,3 +207,27 @@ def test_contacts_of_the_last_step_are_in_the_state() -> None:
     np.testing.assert_array_equal(state.contacts_obstacle, [1, 0, 0, 0])  # agent 0 on the left wall
     np.testing.assert_array_equal(state.contacts_agent, [1, 1, 0, 0])  # agents 0 and 1, counted once each
     assert 0.17 < state.positions[0, 0] < 0.21  # on the wall (agent 1 presses it in by about a centimetre)
+
+
+@pytest.mark.parametrize("scenes", ["passage", "corridor", "trap", "clutter", "mixed"])
+def test_state_holds_every_scene_family(scenes: str) -> None:
+    """Each family's scenes fit the state's circle and wall slots, and the walls are written in their slots."""
+    config = FormationConfig.task("ch5-bearing", scenes=scenes, stage=3)
+    env = FormationEnv(config)
+    circles, walls = scene_slots(config)
+    layout = state_layout(config)
+    for seed in range(6):
+        env.reset(seed=seed)
+        state = env.state()
+        assert env.state_space.contains(state)
+        written = state[layout["walls"]].reshape(walls, 5)
+        team = env.team_state()
+        np.testing.assert_array_equal(written[: len(team.walls)], team.walls.astype(np.float32))
+        assert not written[len(team.walls) :].any()
+    assert (circles, walls) == {"passage": (0, 2), "corridor": (0, 4), "trap": (0, 3), "clutter": (12, 0), "mixed": (12, 4)}[
+        scenes
+    ]
+    walls_in_a_row = [[1.0, 0.5 + 0.3 * k, 2.0, 0.5 + 0.3 * k, 0.1] for k in range(walls + 1)]
+    env.reset(options={"scenario": Scenario(start_formation(config, np.array([7.5, 5.0])), [12.0, 5.0], walls=walls_in_a_row)})
+    with pytest.raises(ValueError, match=rf"room for {walls} walls .* this scenario has {walls + 1}"):
+        env.state()

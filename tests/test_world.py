@@ -207,6 +207,24 @@ def test_agent_pushed_into_obstacle() -> None:
         assert obstacle_contacts == ([0, 0, 0] if step <= 6 else [1, 0, 0]), step
 
 
+def test_agent_pushed_into_a_scene_wall_and_along_it() -> None:
+    """A wall from (7, 2) to (7, 8), 0.2 m thick (face at x = 6.9); an agent at x = 6.6 (gap 0.1 m) pushed right:
+    touches in step 7 as with the obstacle above, then stays outside (x <= 6.9 - 0.2 + 1 cm); one wall contact per
+    step, counted with the obstacles. Pushed diagonally, it slides along the face (y keeps growing)."""
+    world = World(CONFIG, Scenario([[6.6, 5.0], *FAR], [12.0, 8.0], walls=[[7.0, 2.0, 7.0, 8.0, 0.2]]))
+    push = _forces((F_MAX, 0.0), (0.0, 0.0), (0.0, 0.0))
+    for step in range(1, 21):
+        _, obstacle_contacts = world.step(push)
+        assert world.positions[0, 0] <= 6.9 - R_A + 0.01, (step, world.positions[0])
+        assert obstacle_contacts == ([0, 0, 0] if step <= 6 else [1, 0, 0]), step
+    slide = _forces((F_MAX / 2, F_MAX / 2), (0.0, 0.0), (0.0, 0.0))
+    y = world.positions[0, 1]
+    for _ in range(10):
+        assert world.step(slide)[1] == [1, 0, 0]
+        assert world.positions[0, 1] > y and world.positions[0, 0] <= 6.9 - R_A + 0.01
+        y = world.positions[0, 1]
+
+
 def test_contacts_stop_when_agents_part() -> None:
     """After touching, agents pulled apart report no more contacts."""
     world = _world([[5.0, 5.0], [5.41, 5.0], [2.0, 8.0]])

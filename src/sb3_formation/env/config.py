@@ -101,6 +101,9 @@ class FormationConfig:
     :param d_safe: safe gap d_safe (m) between an agent's surface and an obstacle's (walls included)
     :param reward_clip: per-agent rewards are clipped to [-reward_clip, reward_clip] after summing
     :param layout: curriculum placement layout, ``"ch4"`` (thesis 4.3) or ``"ch5"`` (thesis 5.3)
+    :param scenes: where episodes are placed: ``"curriculum"`` (the thesis's stages, by ``layout``) or a scene family
+        of :mod:`sb3_formation.env.scenes` (``"passage"``, ``"corridor"``, ``"trap"``, ``"clutter"``, or ``"mixed"``,
+        one of them drawn per episode); the stage still chooses the reward terms
     :param stage: curriculum stage 1, 2 or 3
     :param stage_disabled_terms: for stages 1, 2, 3, the reward terms switched off in that stage
     :param max_placement_tries: scenario draws before the sampler gives up with an error
@@ -148,6 +151,7 @@ class FormationConfig:
     d_safe: float = 0.05
     reward_clip: float = 10.0
     layout: Literal["ch4", "ch5"] = "ch5"
+    scenes: str = "curriculum"
     stage: int = 1
     stage_disabled_terms: tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]] = (
         ("dist", "angle", "bearing"),
@@ -192,6 +196,9 @@ class FormationConfig:
         object.__setattr__(self, "physics_substeps", self.substeps_needed if substeps is None else int(substeps))
         _check("formation_scale", self.formation_scale, "in (0, 1)", lambda v: is_real(v) and 0 < v < 1)
         _check("layout", self.layout, f"one of {LAYOUTS}", lambda v: v in LAYOUTS)
+        from sb3_formation.env.scenes import SCENES  # the families import this module
+
+        _check("scenes", self.scenes, f"one of {SCENES}", lambda v: isinstance(v, str) and v in SCENES)
         for name in ("team_reward", "observe_reference_bearings"):
             _check(name, getattr(self, name), "True or False", lambda v: isinstance(v, bool))
         if self.d_comm <= self.d_ref:

@@ -30,7 +30,8 @@ from sb3_formation.env.episodes import episode_summary
 from sb3_formation.env.geometry import FormationState, _measure, agent_errors, reference_bearings, ring_neighbours
 from sb3_formation.env.observations import _fill_observations, observation_fields
 from sb3_formation.env.rewards import _reward_terms, combine_rewards, nearest_gaps, reward_constants
-from sb3_formation.env.scenarios import Scenario, check_world_fits, sample_scenario
+from sb3_formation.env.scenarios import Scenario
+from sb3_formation.env.scenes import check_scenes_fit, draw_scenario
 from sb3_formation.env.sensors import Lidar, lidar_ranges
 from sb3_formation.env.state import TeamState
 from sb3_formation.env.world import World, clamp_speed, split_state
@@ -73,7 +74,7 @@ class FormationEngine:
             if team_config.replace(n_agents=config.n_agents) != config:
                 raise ValueError("the teams of a FormationEngine must share one task (they may differ in n_agents only)")
         for team_config in {team_config.n_agents: team_config for team_config in self.configs}.values():
-            check_world_fits(team_config)
+            check_scenes_fit(team_config)
         #: team sizes, and the first row of each team (and the number of rows, last)
         self.sizes = sizes = np.array([team_config.n_agents for team_config in self.configs])
         self.starts = np.concatenate([[0], np.cumsum(sizes)])
@@ -127,6 +128,8 @@ class FormationEngine:
         self._lidar_visible = np.zeros((n_slots, 0), dtype=bool)
         self._lidar_channels = np.zeros((n_teams, 0), dtype=np.int64)
         self._lidar_counts = np.zeros(n_teams, dtype=np.int64)
+        self._walls = np.zeros((n_teams, 0, 5))  # every team's walls, padded to the most walls of a team
+        self._wall_counts = np.zeros(n_teams, dtype=np.int64)
         self.step_counts = np.zeros(n_teams, dtype=np.int64)
         self.goal_distances = np.zeros(n_teams)
         self.previous_offsets = np.zeros((n_teams, 2))  # c_g^v one step earlier
@@ -186,7 +189,7 @@ class FormationEngine:
         if seed is not None:
             self.seed(team, seed)
         if scenario is None:
-            scenario = sample_scenario(config, int(self.stages[team]), self.generators[team])
+            scenario = draw_scenario(config, int(self.stages[team]), self.generators[team])
         elif not isinstance(scenario, Scenario):
             raise TypeError(f"the scenario must be a Scenario, got {type(scenario).__name__}")
         else:
@@ -198,7 +201,7 @@ class FormationEngine:
             world.place(scenario)
         self.scenarios[team] = scenario
         lidar = self.lidars[team]
-        lidar.set_obstacles(scenario.obstacles)
+        lidar.set_obstacles(scenario.obstacles, scenario.walls)
         self._load_lidar_layout(team, lidar)
         rows = self.team_rows(team)
         # arrays that were returned are copied before their rows change (see the module docstring)
@@ -232,6 +235,9 @@ class FormationEngine:
         self._lidar_visible[rows, :count] = visible
         self._lidar_channels[team, :count] = channels
         self._lidar_counts[team] = count
+        self._walls = _widened(self._walls, len(lidar.walls))
+        self._walls[team, : len(lidar.walls)] = lidar.walls
+        self._wall_counts[team] = len(lidar.walls)
 
     # Step ---------------------------------------------------------------------------------------------------------
 
@@ -336,6 +342,8 @@ class FormationEngine:
             config.agent_radius,
             self._lidar_circles,
             self._lidar_counts,
+            self._walls,
+            self._wall_counts,
             config.world_width,
             config.world_height,
             self.centroids,
@@ -388,6 +396,8 @@ class FormationEngine:
             self._lidar_visible,
             self._lidar_channels,
             self._lidar_counts,
+            self._walls,
+            self._wall_counts,
             config.agent_radius,
             config.world_width,
             config.world_height,
@@ -459,6 +469,7 @@ class FormationEngine:
             velocities=self.velocities[rows],
             goal=self.goals[team],
             obstacles=self.scenarios[team].obstacles,
+            walls=self.scenarios[team].walls,
             neighbours=self.neighbours[rows],
             contacts_agent=self.contacts[rows, 0],
             contacts_obstacle=self.contacts[rows, 1],
@@ -534,6 +545,8 @@ def _measure_teams(
     agent_radius: float,
     circles: np.ndarray,
     circle_counts: np.ndarray,
+    walls: np.ndarray,
+    wall_counts: np.ndarray,
     width: float,
     height: float,
     centroids: np.ndarray,
@@ -572,7 +585,8 @@ def _measure_teams(
                 in_range = in_range and neighbour_distance[agent, slot] <= d_ref
         range_flags[team] = in_range
         obstacles = circles[team, : circle_counts[team] - (end - start)]  # the lidar's circles: obstacles, then agents
-        agent_gap, obstacle_gap = nearest_gaps(team_positions, agent_radius, obstacles, width, height)
+        team_walls = walls[team, : wall_counts[team]]
+        agent_gap, obstacle_gap = nearest_gaps(team_positions, agent_radius, obstacles, team_walls, width, height)
         nearest_agent[start:end] = agent_gap
         nearest_obstacle[start:end] = obstacle_gap
     return nearest_agent, nearest_obstacle
@@ -651,6 +665,8 @@ def _observe_teams(
     lidar_visible: np.ndarray,
     lidar_channels: np.ndarray,
     lidar_counts: np.ndarray,
+    walls: np.ndarray,
+    wall_counts: np.ndarray,
     agent_radius: float,
     width: float,
     height: float,
@@ -691,6 +707,7 @@ def _observe_teams(
             circles,
             lidar_visible[start:end, :n_circles],
             lidar_channels[team, :n_circles],
+            walls[team, : wall_counts[team]],
             width,
             height,
             lidar_range,

@@ -236,6 +236,11 @@ class FormationEnv(ParallelEnv):
         return np.zeros((0, 3)) if self.scenario is None else self.scenario.obstacles
 
     @property
+    def walls(self) -> np.ndarray:
+        """``(w, 5)`` walls x0, y0, x1, y1, thickness (m) of the episode (:mod:`~sb3_formation.env.shapes`)."""
+        return np.zeros((0, 5)) if self.scenario is None else self.scenario.walls
+
+    @property
     def step_count(self) -> int:
         """Steps played since the last reset."""
         return int(self.engine.step_counts[self.team])

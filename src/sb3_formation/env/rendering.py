@@ -36,7 +36,7 @@ AGENT_COLOURS = [
 def render_frame(
     state: TeamState, config: FormationConfig, draw_lidar: bool = False, pixels_per_metre: int = PIXELS_PER_METRE
 ) -> np.ndarray:
-    """Draw a team's state: obstacles, the goal ring, neighbour links, agents by index, the centroid.
+    """Draw a team's state: obstacles and walls, the goal ring, neighbour links, agents by index, the centroid.
 
     A pure function of the state and the config, so a recorded trajectory can be drawn without the env.
 
@@ -62,6 +62,11 @@ def render_frame(
     positions = state.positions
     for x, y, radius in state.obstacles:
         circle(np.array([x, y]), radius, fill=OBSTACLE)
+    for x0, y0, x1, y1, thickness in state.walls:  # a capsule: a thick line with round ends
+        ends = np.array([[x0, y0], [x1, y1]])
+        draw.line([pixel(ends[0]), pixel(ends[1])], fill=OBSTACLE, width=max(1, round(thickness * pixels_per_metre)))
+        for end in ends:
+            circle(end, thickness / 2, fill=OBSTACLE)
     circle(state.goal, config.eta_g, outline=GOAL, width=max(2, pixels_per_metre // 15))
     if draw_lidar:
         if state.lidar_obstacles is None or state.lidar_agents is None:

@@ -18,6 +18,7 @@ import numpy as np
 
 from sb3_formation.env.config import REWARD_TERMS, FormationConfig
 from sb3_formation.env.geometry import FormationState
+from sb3_formation.env.shapes import shape_gaps
 
 #: A velocity slower than this (m/s) has no direction: the move and velocity terms are 0 for it (``docs/design.md`` "Rewards").
 STILL_SPEED = 1e-6
@@ -88,30 +89,26 @@ def collision_term(agent_contact: bool, obstacle_near: bool, r_j: float, r_o: fl
 
 @numba.njit(cache=True)
 def nearest_gaps(
-    positions: np.ndarray, agent_radius: float, obstacles: np.ndarray, width: float, height: float
+    positions: np.ndarray, agent_radius: float, obstacles: np.ndarray, walls: np.ndarray, width: float, height: float
 ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """Centre distance to the nearest other agent, and surface gap to the nearest obstacle or wall, of every agent.
+    """Centre distance to the nearest other agent, and surface gap to the nearest circle, wall or border, of every agent.
 
     :param positions: ``(n, 2)`` agent centres (m)
     :param agent_radius: R_a (m)
     :param obstacles: ``(m, 3)`` circles (x, y, radius) in m
+    :param walls: ``(w, 5)`` walls (x0, y0, x1, y1, thickness) in m
     :param width: world width (m)
     :param height: world height (m)
     :return: ``(n,)`` nearest agent centre distance (m) and ``(n,)`` nearest obstacle gap (m, negative when sunk in)
     """
     n_agents = positions.shape[0]
     nearest_agent = np.full(n_agents, np.inf)
-    nearest_obstacle = np.empty(n_agents)
+    nearest_obstacle = shape_gaps(positions, obstacles, walls, width, height) - agent_radius
     for agent in range(n_agents):
         x, y = positions[agent, 0], positions[agent, 1]
         for other in range(n_agents):
             if other != agent:
                 nearest_agent[agent] = min(nearest_agent[agent], math.hypot(positions[other, 0] - x, positions[other, 1] - y))
-        gap = min(min(x, width - x), min(y, height - y)) - agent_radius
-        for obstacle in range(obstacles.shape[0]):
-            centre_distance = math.hypot(obstacles[obstacle, 0] - x, obstacles[obstacle, 1] - y)
-            gap = min(gap, centre_distance - obstacles[obstacle, 2] - agent_radius)
-        nearest_obstacle[agent] = gap
     return nearest_agent, nearest_obstacle
 
 

@@ -15,22 +15,26 @@ import numpy as np
 
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.geometry import reference_polygon
+from sb3_formation.env.shapes import as_walls, circle_gap, wall_gap
 
 CM = 0.01  #: one thesis pixel (m)
 
 
 @dataclass(frozen=True)
 class Scenario:
-    """A complete placement, in metres: ``Scenario(agent_positions, goal, obstacles)``.
+    """A complete placement, in metres: ``Scenario(agent_positions, goal, obstacles, walls)``.
 
     :param agent_positions: ``(n, 2)`` agent centres; row i is agent i
     :param goal: ``(2,)`` goal centre
     :param obstacles: ``(m, 3)`` static circles as (x, y, radius); may be empty
+    :param walls: ``(w, 5)`` static walls as (x0, y0, x1, y1, thickness), capsules (:mod:`~sb3_formation.env.shapes`);
+        may be empty
     """
 
     agent_positions: np.ndarray
     goal: np.ndarray
     obstacles: np.ndarray | tuple = ()
+    walls: np.ndarray | tuple = ()
 
     def __post_init__(self) -> None:
         obstacles = np.array(self.obstacles, dtype=np.float64)
@@ -38,12 +42,12 @@ class Scenario:
             "agent_positions": np.array(self.agent_positions, dtype=np.float64),
             "goal": np.array(self.goal, dtype=np.float64),
             "obstacles": obstacles.reshape(0, 3) if obstacles.size == 0 else obstacles,
+            "walls": as_walls(self.walls),
         }
-        shapes = {"agent_positions": "(n, 2)", "goal": "(2,)", "obstacles": "(m, 3)"}
+        shapes = {"agent_positions": "(n, 2)", "goal": "(2,)", "obstacles": "(m, 3)", "walls": "(w, 5)"}
         for name, array in arrays.items():
             expected_ndim = 1 if name == "goal" else 2
-            width = 3 if name == "obstacles" else 2
-            if array.ndim != expected_ndim or array.shape[-1] != width:
+            if array.ndim != expected_ndim or array.shape[-1] != (2, 2, 3, 5)[list(shapes).index(name)]:
                 raise ValueError(f"Scenario.{name} must have shape {shapes[name]}, got {array.shape}")
             if not np.all(np.isfinite(array)):
                 raise ValueError(f"Scenario.{name} contains NaN or infinite values")
@@ -52,6 +56,9 @@ class Scenario:
         if np.any(self.obstacles[:, 2] <= 0):
             bad = int(np.flatnonzero(self.obstacles[:, 2] <= 0)[0])
             raise ValueError(f"Scenario obstacle {bad} has radius {self.obstacles[bad, 2]} m; radii must be > 0")
+        if np.any(self.walls[:, 4] <= 0):
+            bad = int(np.flatnonzero(self.walls[:, 4] <= 0)[0])
+            raise ValueError(f"Scenario wall {bad} has thickness {self.walls[bad, 4]} m; thicknesses must be > 0")
 
     @property
     def centroid(self) -> np.ndarray:
@@ -62,8 +69,8 @@ class Scenario:
         """Raise ``ValueError`` saying which agent is misplaced if the scenario does not fit ``config``.
 
         Checks: one position per agent, every agent inside the world, no two agents overlapping, no agent
-        overlapping an obstacle, every obstacle's centre and the goal inside the world (an obstacle may cross a wall,
-        as the curriculum's large ones may).
+        overlapping an obstacle or a wall, every obstacle's centre, every wall's ends and the goal inside the world (an
+        obstacle may cross the border, as the curriculum's large ones may).
         """
         n_agents, radius = config.n_agents, config.agent_radius
         if len(self.agent_positions) != n_agents:
@@ -81,18 +88,25 @@ class Scenario:
                 f"Scenario: agent_{first} and agent_{second} overlap ({between[first, second]:.3f} m apart, "
                 f"need >= {2 * radius:.3f} m)"
             )
-        for index, position in enumerate(self.agent_positions):
-            for obstacle_index, (x, y, r) in enumerate(self.obstacles):
-                gap = np.hypot(*(position - (x, y))) - r - radius
+        for index, (x, y) in enumerate(self.agent_positions):
+            for obstacle_index, circle in enumerate(self.obstacles):
+                gap = circle_gap(x, y, circle) - radius
                 if gap < 0:
                     raise ValueError(
-                        f"Scenario: agent_{index} overlaps obstacle {obstacle_index} at ({x:.3f}, {y:.3f}) m "
-                        f"radius {r:.3f} m by {-gap:.3f} m"
+                        f"Scenario: agent_{index} overlaps obstacle {obstacle_index} at ({circle[0]:.3f}, {circle[1]:.3f}) "
+                        f"m radius {circle[2]:.3f} m by {-gap:.3f} m"
                     )
-        for obstacle_index, (x, y, _) in enumerate(self.obstacles):
+            for wall_index, wall in enumerate(self.walls):
+                gap = wall_gap(x, y, wall) - radius
+                if gap < 0:
+                    raise ValueError(f"Scenario: agent_{index} overlaps wall {wall_index} by {-gap:.3f} m")
+        points = [(f"obstacle {index}", x, y) for index, (x, y, _) in enumerate(self.obstacles)]
+        for index, (x0, y0, x1, y1, _) in enumerate(self.walls):
+            points += [(f"wall {index}'s end", x0, y0), (f"wall {index}'s end", x1, y1)]
+        for name, x, y in points:
             if not (0 <= x <= config.world_width and 0 <= y <= config.world_height):
                 raise ValueError(
-                    f"Scenario: obstacle {obstacle_index} at ({x:.3f}, {y:.3f}) m is outside the world "
+                    f"Scenario: {name} at ({x:.3f}, {y:.3f}) m is outside the world "
                     f"[0, {config.world_width}] x [0, {config.world_height}] m"
                 )
         gx, gy = self.goal

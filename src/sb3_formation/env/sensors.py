@@ -1,21 +1,21 @@
 """The two-channel lidar, computed analytically for all agents and rays at once.
 
 Every agent casts ``n_rays`` rays, ``360 / n_rays`` degrees apart starting at +x, from its surface outwards.
-A ray reports the distance from the agent's surface to the first circle (or wall) it meets, divided by the range,
-so a reading lies in [0, 1] and 1 means nothing within range. Each channel sees only its own kind of body (no
-occlusion across channels): the obstacle channel sees the static circles and the world's walls, the agent channel
-sees the agents other than the agent itself and its designated neighbours.
+A ray reports the distance from the agent's surface to the first shape it meets, divided by the range, so a reading
+lies in [0, 1] and 1 means nothing within range. Each channel sees only its own kind of body (no occlusion across
+channels): the obstacle channel sees the static circles, the walls and the world's border, the agent channel sees the
+agents other than the agent itself and its designated neighbours.
 
-The scan is one numba-compiled loop over agents, circles and rays (circles out of reach are skipped before any ray
-is cast): with numpy the many tiny array operations of a 6-agent scan cost ~150 us, the compiled loop ~10 us.
+The scan is one numba-compiled loop over agents, shapes and rays (shapes out of reach are skipped before any ray is
+cast): with numpy the many tiny array operations of a 6-agent scan cost ~150 us, the compiled loop ~10 us.
 """
 
 from __future__ import annotations
 
-import math
-
 import numba
 import numpy as np
+
+from sb3_formation.env.shapes import as_walls, border_entry, circle_entry, wall_entry, wall_gap
 
 OBSTACLE_CHANNEL, AGENT_CHANNEL = 0, 1
 
@@ -50,15 +50,16 @@ def lidar_ranges(
     circles: np.ndarray,
     visible: np.ndarray,
     channels: np.ndarray,
+    walls: np.ndarray,
     width: float,
     height: float,
     max_range: float,
 ) -> np.ndarray:  # pragma: no cover - compiled; tested through its results
-    """Distance (m) along every ray from each agent's surface to the nearest wall or visible circle, per channel.
+    """Distance (m) along every ray from each agent's surface to the nearest visible shape, per channel.
 
-    Circle (c, r) is met along u from the centre p at t = u.(c - p) -+ sqrt((u.(c - p))^2 - |c - p|^2 + r^2); the
-    reading is the entry point's distance t - R_a from the surface (0 if the circle touches the surface), provided the
-    exit point lies beyond the surface. The walls of [0, width] x [0, height] belong to channel 0.
+    A ray's reading is the distance from the agent's surface to the first point of a shape at or beyond the surface
+    (:func:`~sb3_formation.env.shapes.circle_entry`, :func:`~sb3_formation.env.shapes.wall_entry`; 0 if the shape
+    touches the surface). The world's border and the walls belong to channel 0; each circle to its channel.
 
     :param origins: ``(n, 2)`` agent centres (m)
     :param agent_radius: R_a (m); rays start on the agent's surface
@@ -66,6 +67,7 @@ def lidar_ranges(
     :param circles: ``(m, 3)`` circles as (x, y, radius) in m
     :param visible: ``(n, m)`` bool, which circles each agent may see
     :param channels: ``(m,)`` channel (0 or 1) of every circle
+    :param walls: ``(w, 5)`` walls (x0, y0, x1, y1, thickness) in m, seen by channel 0
     :param width: world width (m)
     :param height: world height (m)
     :param max_range: lidar range (m)
@@ -76,39 +78,28 @@ def lidar_ranges(
     for agent in range(n_agents):
         px, py = origins[agent, 0], origins[agent, 1]
         for ray in range(n_rays):
-            ux, uy = directions[ray, 0], directions[ray, 1]
-            wall = math.inf
-            if ux > 0.0:
-                wall = (width - px) / ux
-            elif ux < 0.0:
-                wall = -px / ux
-            if uy > 0.0:
-                wall = min(wall, (height - py) / uy)
-            elif uy < 0.0:
-                wall = min(wall, -py / uy)
-            ranges[0, agent, ray] = min(max(wall - agent_radius, 0.0), max_range)
+            border = border_entry(px, py, directions[ray, 0], directions[ray, 1], width, height)
+            ranges[0, agent, ray] = min(max(border - agent_radius, 0.0), max_range)
             ranges[1, agent, ray] = max_range
         for circle in range(n_circles):
             if not visible[agent, circle]:
                 continue
-            ox, oy, radius = circles[circle, 0] - px, circles[circle, 1] - py, circles[circle, 2]
-            squared = ox * ox + oy * oy
+            cx, cy, radius = circles[circle, 0], circles[circle, 1], circles[circle, 2]
             reach = agent_radius + max_range + radius
-            if squared >= reach * reach:
+            if (cx - px) * (cx - px) + (cy - py) * (cy - py) >= reach * reach:
                 continue
-            gap = squared - radius * radius
             channel = channels[circle]
             for ray in range(n_rays):
-                projection = ox * directions[ray, 0] + oy * directions[ray, 1]
-                discriminant = projection * projection - gap
-                if discriminant < 0.0:
-                    continue
-                half_chord = math.sqrt(discriminant)
-                if projection + half_chord < agent_radius:
-                    continue
-                distance = max(projection - half_chord - agent_radius, 0.0)
-                if distance < ranges[channel, agent, ray]:
-                    ranges[channel, agent, ray] = distance
+                entry = circle_entry(px, py, directions[ray, 0], directions[ray, 1], cx, cy, radius, agent_radius)
+                if entry - agent_radius < ranges[channel, agent, ray]:
+                    ranges[channel, agent, ray] = entry - agent_radius
+        for wall in range(walls.shape[0]):
+            if wall_gap(px, py, walls[wall]) >= agent_radius + max_range:
+                continue
+            for ray in range(n_rays):
+                entry = wall_entry(px, py, directions[ray, 0], directions[ray, 1], walls[wall], agent_radius)
+                if entry - agent_radius < ranges[0, agent, ray]:
+                    ranges[0, agent, ray] = entry - agent_radius
     return ranges
 
 
@@ -134,8 +125,10 @@ class Lidar:
         self._agent_visibility = agent_visibility(len(neighbours), neighbours)
         self.set_obstacles(np.zeros((0, 3)))
 
-    def set_obstacles(self, obstacles: np.ndarray) -> None:
-        """Use ``obstacles`` (``(m, 3)``: x, y, radius in m) from now on."""
+    def set_obstacles(self, obstacles: np.ndarray, walls: np.ndarray | tuple = ()) -> None:
+        """Use ``obstacles`` (``(m, 3)``: x, y, radius in m) and ``walls`` (``(w, 5)``, see
+        :mod:`~sb3_formation.env.shapes`) from now on."""
+        self.walls = as_walls(walls)
         n_agents = len(self._agent_visibility)
         self._circles = np.vstack([np.asarray(obstacles, dtype=np.float64).reshape(-1, 3), np.zeros((n_agents, 3))])
         self._circles[-n_agents:, 2] = self.agent_radius
@@ -162,6 +155,7 @@ class Lidar:
             self._circles,
             self._visible,
             self._channels,
+            self.walls,
             self.width,
             self.height,
             self.max_range,

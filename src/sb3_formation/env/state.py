@@ -6,12 +6,13 @@ rebuilt from a recorded trajectory (without lidar readings), so a saved episode 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from sb3_formation.env.config import FormationConfig
-from sb3_formation.env.scenarios import CURRICULUM_LAYOUTS
+from sb3_formation.env.scenes import scene_slots
+from sb3_formation.env.shapes import WALL_COLUMNS
 
 
 @dataclass(frozen=True)
@@ -22,7 +23,7 @@ class TeamState:
     :param positions: ``(n, 2)`` agent centres (m)
     :param velocities: ``(n, 2)`` agent velocities (m/s)
     :param goal: ``(2,)`` goal centre (m)
-    :param obstacles: ``(m, 3)`` obstacle x, y, radius (m); walls are not listed (they are the world's border)
+    :param obstacles: ``(m, 3)`` obstacle x, y, radius (m)
     :param neighbours: ``(n, 2)`` neighbour graph: agent i's preceding and succeeding neighbour
     :param contacts_agent: ``(n,)`` other agents each agent touched during the last step (0 after a reset)
     :param contacts_obstacle: ``(n,)`` obstacles or walls each agent touched during the last step (0 after a reset)
@@ -34,6 +35,8 @@ class TeamState:
     :param lidar_obstacles: ``(n, rays)`` obstacle-channel readings in [0, 1] (1: nothing in range), or ``None``
         when not recorded
     :param lidar_agents: ``(n, rays)`` agent-channel readings, or ``None``
+    :param walls: ``(w, 5)`` walls x0, y0, x1, y1, thickness (m) (:mod:`~sb3_formation.env.shapes`); the world's
+        border is not listed
     """
 
     step: int
@@ -51,6 +54,7 @@ class TeamState:
     goal_distance: float
     lidar_obstacles: np.ndarray | None = None
     lidar_agents: np.ndarray | None = None
+    walls: np.ndarray = field(default_factory=lambda: np.zeros((0, len(WALL_COLUMNS))))
 
     def __post_init__(self) -> None:
         for name, value in vars(self).items():
@@ -71,15 +75,11 @@ class TeamState:
         return np.hypot(offsets[..., 0], offsets[..., 1])
 
 
-def state_obstacle_slots(config: FormationConfig) -> int:
-    """Obstacles the global state vector has room for: the most any curriculum stage of ``config.layout`` places."""
-    layout = CURRICULUM_LAYOUTS[config.layout]
-    return max(layout.stage1_large_count + 1, len(layout.stage3_radii))
-
-
 def state_fields(config: FormationConfig) -> list[tuple[str, int, np.ndarray, np.ndarray, str]]:
-    """The fields of the global state vector, in order: (name, size, low, high, unit)."""
-    n, slots = config.n_agents, state_obstacle_slots(config)
+    """The fields of the global state vector, in order: (name, size, low, high, unit). The obstacle and wall fields
+    have room for the most circles and walls a scene of ``config.scenes`` has (:func:`~sb3_formation.env.scenes.scene_slots`:
+    4 and 0 for the thesis's curriculum)."""
+    n, (slots, wall_slots) = config.n_agents, scene_slots(config)
     width, height, v = config.world_width, config.world_height, config.v_max * (1 + 1e-9)
     corner = np.array([width, height])
     largest_radius = max(width, height)
@@ -93,6 +93,13 @@ def state_fields(config: FormationConfig) -> list[tuple[str, int, np.ndarray, np
             np.tile([-largest_radius, -largest_radius, 0.0], slots),
             np.tile([width + largest_radius, height + largest_radius, largest_radius], slots),
             "m, (x, y, radius) per obstacle; unused slots are (0, 0, 0)",
+        ),
+        (
+            "walls",
+            5 * wall_slots,
+            np.zeros(5 * wall_slots),
+            np.tile([width, height, width, height, largest_radius], wall_slots),
+            "m, (x0, y0, x1, y1, thickness) per wall; unused slots are 0",
         ),
         ("step", 1, np.zeros(1), np.array([float(config.max_steps)]), "steps since the reset"),
     ]
@@ -110,15 +117,17 @@ def state_layout(config: FormationConfig) -> dict[str, slice]:
 def state_vector(state: TeamState, config: FormationConfig) -> np.ndarray:
     """The flat float32 global state of :func:`state_fields` (PettingZoo's ``state()``).
 
-    :raises ValueError: the scenario has more obstacles than the vector has slots (a hand-made scenario)
+    :raises ValueError: the scenario has more obstacles or walls than the vector has slots (a hand-made scenario)
     """
-    slots = state_obstacle_slots(config)
-    if len(state.obstacles) > slots:
-        raise ValueError(
-            f"the global state has room for {slots} obstacles (the most a curriculum stage of layout {config.layout!r} "
-            f"places) but this scenario has {len(state.obstacles)}"
-        )
-    obstacles = np.zeros((slots, 3))
+    slots, wall_slots = scene_slots(config)
+    for kind, shapes, room in (("obstacles", state.obstacles, slots), ("walls", state.walls, wall_slots)):
+        if len(shapes) > room:
+            raise ValueError(
+                f"the global state has room for {room} {kind} (the most a scene of {config.scenes!r} places, layout "
+                f"{config.layout!r}) but this scenario has {len(shapes)}"
+            )
+    obstacles, walls = np.zeros((slots, 3)), np.zeros((wall_slots, 5))
     obstacles[: len(state.obstacles)] = state.obstacles
-    parts = [state.positions.ravel(), state.velocities.ravel(), state.goal, obstacles.ravel(), [float(state.step)]]
-    return np.concatenate(parts).astype(np.float32)
+    walls[: len(state.walls)] = state.walls
+    parts = [state.positions.ravel(), state.velocities.ravel(), state.goal, obstacles.ravel(), walls.ravel()]
+    return np.concatenate([*parts, [float(state.step)]]).astype(np.float32)

@@ -1,13 +1,13 @@
 """The Pymunk world: the only stateful physics object. Forces in, positions and velocities out.
 
-Agents are dynamic circles that do not rotate; obstacles are static circles; the world's border is four thick static
-walls. Each environment step applies the agents' forces as the second-order integrator of eq. 19 (semi-implicit
-Euler, as Pymunk itself integrates): v <- v + F / m * dt, then the speed is clamped to v_max, then Pymunk moves the
-bodies over ``config.physics_substeps`` sub-steps and resolves contacts (inelastic, frictionless). Contacts are counted
-once per pair per environment step: after each sub-step the space's touching pairs are read in one call of Pymunk's
-batch API (every obstacle and wall hangs on its own static body, so a pair of bodies names the obstacle), not through
-a Python collision callback per contact and sub-step, which made a step 1.7x as long when agents press on walls
-(``benchmarks/env_throughput.py``).
+Agents are dynamic circles that do not rotate; obstacles are static circles and walls (Pymunk segments with a
+radius: capsules); the world's border is four thick static segments. Each environment step applies the agents'
+forces as the second-order integrator of eq. 19 (semi-implicit Euler, as Pymunk itself integrates): v <- v + F / m *
+dt, then the speed is clamped to v_max, then Pymunk moves the bodies over ``config.physics_substeps`` sub-steps and
+resolves contacts (inelastic, frictionless). Contacts are counted once per pair per environment step: after each
+sub-step the space's touching pairs are read in one call of Pymunk's batch API (every obstacle and wall hangs on its
+own static body, so a pair of bodies names the obstacle), not through a Python collision callback per contact and
+sub-step, which made a step 1.7x as long when agents press on walls (``benchmarks/env_throughput.py``).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from pymunk._chipmunk import lib as chipmunk
 from sb3_formation.env.config import COLLISION_BIAS, FormationConfig
 from sb3_formation.env.scenarios import Scenario
 
-WALL_THICKNESS = 1.0  #: m; the walls' inner faces lie exactly on the world's border
+BORDER_THICKNESS = 1.0  #: m; the border's inner faces lie exactly on [0, W] x [0, H]
 COLLISION_SLOP = 1e-3  #: m; Pymunk's allowed overlap (its default 0.1 is for pixel units)
 _STATE_FIELDS = pymunk.batch.BodyFields.POSITION | pymunk.batch.BodyFields.VELOCITY
 _VELOCITY_FIELD = pymunk.batch.BodyFields.VELOCITY
@@ -141,9 +141,11 @@ class World:
         # each wall and obstacle hangs on a static body of its own, of this episode (the space's own static body would
         # keep every old shape); a contact's pair of bodies then names the obstacle
         self._obstacle_bodies: list[pymunk.Body] = []
-        self._add_walls()
+        self._add_border()
         for x, y, radius in scenario.obstacles:
             self._add_obstacle(pymunk.Circle(None, float(radius), (float(x), float(y))))
+        for x0, y0, x1, y1, thickness in scenario.walls:  # capsules, as the scene's walls are
+            self._add_obstacle(pymunk.Segment(None, (float(x0), float(y0)), (float(x1), float(y1)), float(thickness) / 2))
         self.agent_bodies: list[pymunk.Body] = []
         for x, y in scenario.agent_positions:
             body = pymunk.Body(config.agent_mass, float("inf"))
@@ -182,8 +184,8 @@ class World:
         query.floatArray, query.intArray = buffer._float_arr, buffer._int_arr
         return buffer, query
 
-    def _add_walls(self) -> None:
-        width, height, half = self.config.world_width, self.config.world_height, WALL_THICKNESS / 2
+    def _add_border(self) -> None:
+        width, height, half = self.config.world_width, self.config.world_height, BORDER_THICKNESS / 2
         corners = [(-half, -half), (width + half, -half), (width + half, height + half), (-half, height + half)]
         for start, end in zip(corners, corners[1:] + corners[:1]):
             self._add_obstacle(pymunk.Segment(None, start, end, half))

@@ -56,6 +56,8 @@ class Trajectories:
     :param collisions_obstacle: ``(K, T + 1, n)``
     :param collisions_agent: ``(K, T + 1, n)`` (each touching pair counted by both agents)
     :param goal_distance: ``(K, T + 1)`` centroid-goal distance (m)
+    :param walls: ``(K, W, 5)`` walls x0, y0, x1, y1, thickness (m), NaN rows when an episode has fewer (files written
+        before walls existed have none)
     """
 
     config: FormationConfig
@@ -74,6 +76,11 @@ class Trajectories:
     collisions_obstacle: np.ndarray
     collisions_agent: np.ndarray
     goal_distance: np.ndarray
+    walls: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.walls is None:
+            self.walls = np.zeros((len(self.episodes), 0, 5))
 
     def __len__(self) -> int:
         return len(self.episodes)
@@ -112,7 +119,7 @@ class Trajectories:
         draw it with :func:`~sb3_formation.env.rendering.render_frame` without replaying the policy."""
         if not 0 <= step <= int(self.lengths[index]):
             raise IndexError(f"step {step} is outside episode {int(self.episodes[index])}'s 0 to {int(self.lengths[index])}")
-        obstacles = self.obstacles[index]
+        obstacles, walls = self.obstacles[index], self.walls[index]
         zeros = np.zeros(self.config.n_agents, dtype=np.int64)
         counts = {
             name: np.nan_to_num(getattr(self, name)[index, step]).astype(np.int64)
@@ -132,6 +139,7 @@ class Trajectories:
             neighbour_distance_errors=self.neighbour_distance_error[index, step],
             centroid=self.positions[index, step].mean(axis=0),
             goal_distance=float(self.goal_distance[index, step]),
+            walls=walls[~np.isnan(walls).any(axis=1)],
         )
 
 
@@ -142,7 +150,7 @@ class EpisodeRecorder:
     def __init__(self, state: TeamState) -> None:
         n_agents = state.n_agents
         nan = np.full(n_agents, np.nan)
-        self.goal, self.obstacles = state.goal, state.obstacles
+        self.goal, self.obstacles, self.walls = state.goal, state.obstacles, state.walls
         self.rows: dict[str, list[np.ndarray]] = {name: [nan] for name in STEP_RECORDS}
         self.rows["positions"] = [state.positions]
         self.rows["velocities"] = [state.velocities]
@@ -176,10 +184,12 @@ def stack_recordings(
             pad = np.full((rows - len(values), *values.shape[1:]), np.nan)
             padded.append(np.concatenate([values, pad]))
         arrays[name] = np.stack(padded)
-    most_obstacles = max(len(recorder.obstacles) for _, recorder, _ in recorded)
-    obstacles = np.full((len(recorded), most_obstacles, 3), np.nan)
-    for index, (_, recorder, _) in enumerate(recorded):
-        obstacles[index, : len(recorder.obstacles)] = recorder.obstacles
+    shapes = {}
+    for name, columns in (("obstacles", 3), ("walls", 5)):
+        most = max(len(getattr(recorder, name)) for _, recorder, _ in recorded)
+        shapes[name] = np.full((len(recorded), most, columns), np.nan)
+        for index, (_, recorder, _) in enumerate(recorded):
+            shapes[name][index, : len(getattr(recorder, name))] = getattr(recorder, name)
     episodes = np.array([episode for episode, _, _ in recorded], dtype=np.int64)
     return Trajectories(
         config=config,
@@ -188,6 +198,6 @@ def stack_recordings(
         lengths=lengths,
         success=np.array([success for _, _, success in recorded], dtype=bool),
         goals=np.stack([recorder.goal for _, recorder, _ in recorded]).astype(np.float64),
-        obstacles=obstacles,
+        **shapes,
         **arrays,
     )

@@ -73,8 +73,21 @@ def formation_steps(length: int, every: int) -> list[int]:
     return steps if steps[-1] == length else [*steps, length]
 
 
+def _wall_patches(wall: np.ndarray) -> list[Patch]:
+    """A wall (x0, y0, x1, y1, thickness) as the patches of its capsule: the rectangle and the two end discs."""
+    ends, radius = wall[:4].reshape(2, 2), wall[4] / 2
+    along = ends[1] - ends[0]
+    normal = np.array([-along[1], along[0]]) / max(float(np.hypot(*along)), 1e-12) * radius
+    corners = [ends[0] + normal, ends[1] + normal, ends[1] - normal, ends[0] - normal]
+    patches: list[Patch] = [Polygon(corners, closed=True, facecolor=OBSTACLE_COLOUR, edgecolor="none", zorder=1)]
+    patches += [Circle(tuple(end), radius, facecolor=OBSTACLE_COLOUR, edgecolor="none", zorder=1) for end in ends]
+    for patch in patches:
+        patch.set_gid("wall")
+    return patches
+
+
 def plot_trajectory(trajectories: Trajectories, index: int, every: int = 25) -> Figure:
-    """One episode to scale: obstacles, the goal ring, each agent's path, the formation every ``every`` steps, and a
+    """One episode to scale: obstacles and walls, the goal ring, each agent's path, the formation every ``every`` steps, and a
     mark where an agent's contact with an obstacle (red x) or another agent (black +) begins.
 
     :param trajectories: recorded evaluation episodes
@@ -99,6 +112,10 @@ def plot_trajectory(trajectories: Trajectories, index: int, every: int = 25) -> 
     for x, y, radius in trajectories.obstacles[row]:
         if not np.isnan([x, y, radius]).any():
             ax.add_patch(Circle((x, y), radius, facecolor=OBSTACLE_COLOUR, edgecolor="none", zorder=1))
+    for wall in trajectories.walls[row]:
+        if not np.isnan(wall).any():
+            for patch in _wall_patches(wall):
+                ax.add_patch(patch)
     goal = trajectories.goals[row]
     ax.add_patch(Circle(tuple(goal), config.eta_g, fill=False, edgecolor=GOAL_COLOUR, linestyle="--", linewidth=1.5))
     ax.plot(*goal, marker="*", color=GOAL_COLOUR, markersize=10, linestyle="none")
