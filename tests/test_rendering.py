@@ -41,3 +41,24 @@ def test_human_mode_draws_into_a_window(monkeypatch: pytest.MonkeyPatch) -> None
     assert tuple(surface.get_at((int(x), int(600 - y))))[:3] == AGENT_COLOURS[0]
     env.close()
     assert not pygame.display.get_init()
+
+
+def test_frame_shows_every_wall() -> None:
+    """A corridor scene: the middle of each of its four walls is drawn in the obstacle colour, and 0.3 m beside a
+    channel wall (off its 0.2 m thickness, inside the channel) is not; pixel (x, y) is row H - y ppm, column x ppm."""
+    config = FormationConfig.task("ch5-bearing", scenes="corridor", stage=3)
+    env = FormationEnv(config, render_mode="rgb_array")
+    env.reset(seed=4)
+    frame = env.render()
+    height = frame.shape[0]
+
+    def pixel(point: np.ndarray) -> np.ndarray:
+        return frame[int(height - point[1] * PIXELS_PER_METRE), int(point[0] * PIXELS_PER_METRE)]
+
+    assert len(env.walls) == 4
+    for wall in env.walls:
+        middle = (wall[:2] + wall[2:4]) / 2
+        assert tuple(pixel(middle)) == OBSTACLE
+    channel = env.walls[2]
+    inside = (channel[:2] + channel[2:4]) / 2 + [0.0, 0.3 if channel[1] < env.walls[3, 1] else -0.3]
+    assert tuple(pixel(inside)) != OBSTACLE

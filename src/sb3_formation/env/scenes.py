@@ -97,6 +97,17 @@ class SceneFamily:
 Layout = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
+class _NoRoom(Exception):
+    """The drawn values leave no room for a part of the scene: draw again."""
+
+
+def _between(rng: np.random.Generator, low: float, high: float) -> float:
+    """A uniform draw in [low, high]; :class:`_NoRoom` when the interval is empty."""
+    if high < low:
+        raise _NoRoom
+    return float(rng.uniform(low, high))
+
+
 def _vertical_wall_with_gap(x: float, gap_low: float, gap_high: float, height: float) -> list[list[float]]:
     """Two walls along x = ``x`` from the floor and from the ceiling, leaving [gap_low, gap_high] open between their
     surfaces."""
@@ -106,29 +117,31 @@ def _vertical_wall_with_gap(x: float, gap_low: float, gap_high: float, height: f
 
 def _passage(values: dict[str, float], width: float, height: float, sizes: TeamSizes, rng: np.random.Generator) -> Layout:
     opening, x = values["opening"], values["wall_x"]
-    centre = rng.uniform(opening / 2 + 0.5, height - opening / 2 - 0.5)
+    centre = _between(rng, opening / 2 + 0.5, height - opening / 2 - 0.5)
     walls = _vertical_wall_with_gap(x, centre - opening / 2, centre + opening / 2, height)
-    start = np.array([rng.uniform(sizes.footprint + PLACEMENT_ROOM, x - sizes.footprint - 1.0), _start_y(sizes, height, rng)])
-    goal = np.array([rng.uniform(x + 1.5, width - 1.0), rng.uniform(1.0, height - 1.0)])
+    start = np.array(
+        [_between(rng, sizes.footprint + PLACEMENT_ROOM, x - sizes.footprint - 1.0), _start_y(sizes, height, rng)]
+    )
+    goal = np.array([_between(rng, x + 1.5, width - 1.0), _between(rng, 1.0, height - 1.0)])
     return start, goal, np.zeros((0, 3)), np.array(walls)
 
 
 def _corridor(values: dict[str, float], width: float, height: float, sizes: TeamSizes, rng: np.random.Generator) -> Layout:
     channel, length, x = values["width"], values["length"], values["barrier_x"]
-    centre = rng.uniform(channel / 2 + 0.5, height - channel / 2 - 0.5)
+    centre = _between(rng, channel / 2 + 0.5, height - channel / 2 - 0.5)
     low, high = centre - channel / 2 - WALL_THICKNESS / 2, centre + channel / 2 + WALL_THICKNESS / 2
     walls = _vertical_wall_with_gap(x, centre - channel / 2, centre + channel / 2, height)
     walls += [[x - length / 2, y, x + length / 2, y, WALL_THICKNESS] for y in (low, high)]
     start_x_high = x - length / 2 - sizes.footprint - 0.5
-    start = np.array([rng.uniform(sizes.footprint + PLACEMENT_ROOM, start_x_high), _start_y(sizes, height, rng)])
-    goal = np.array([rng.uniform(x + length / 2 + 1.0, width - 1.0), rng.uniform(1.0, height - 1.0)])
+    start = np.array([_between(rng, sizes.footprint + PLACEMENT_ROOM, start_x_high), _start_y(sizes, height, rng)])
+    goal = np.array([_between(rng, x + length / 2 + 1.0, width - 1.0), _between(rng, 1.0, height - 1.0)])
     return start, goal, np.zeros((0, 3)), np.array(walls)
 
 
 def _trap(values: dict[str, float], width: float, height: float, sizes: TeamSizes, rng: np.random.Generator) -> Layout:
     inner, depth = values["inner_width"], values["depth"]
-    start = np.array([rng.uniform(sizes.footprint + PLACEMENT_ROOM, 0.2 * width), _start_y(sizes, height, rng)])
-    goal = np.array([rng.uniform(0.8 * width, width - 1.0), rng.uniform(1.0, height - 1.0)])
+    start = np.array([_between(rng, sizes.footprint + PLACEMENT_ROOM, 0.2 * width), _start_y(sizes, height, rng)])
+    goal = np.array([_between(rng, 0.8 * width, width - 1.0), _between(rng, 1.0, height - 1.0)])
     along = (goal - start) / np.linalg.norm(goal - start)
     across = np.array([-along[1], along[0]])
     back = start + values["position"] * (goal - start)  # the middle of the U's back wall
@@ -139,23 +152,27 @@ def _trap(values: dict[str, float], width: float, height: float, sizes: TeamSize
     return start, goal, np.zeros((0, 3)), np.array([[*wall, WALL_THICKNESS] for wall in walls])
 
 
-def _clutter(values: dict[str, float], width: float, height: float, sizes: TeamSizes, rng: np.random.Generator) -> Layout:
+def _clutter(
+    values: dict[str, float], width: float, height: float, sizes: TeamSizes, rng: np.random.Generator
+) -> Layout | None:
     circles: list[list[float]] = []
     band = (0.3 * width, 0.7 * width)
     for _ in range(50 * int(values["count"])):
         if len(circles) == int(values["count"]):
             break
-        radius = rng.uniform(values["radius_low"], values["radius_high"])
-        x, y = rng.uniform(*band), rng.uniform(0.0, height)
+        radius = _between(rng, values["radius_low"], values["radius_high"])
+        x, y = _between(rng, *band), _between(rng, 0.0, height)
         if all(math.hypot(x - cx, y - cy) - radius - r >= values["gap"] for cx, cy, r in circles):
             circles.append([x, y, radius])
-    start = np.array([rng.uniform(sizes.footprint + PLACEMENT_ROOM, band[0] - 0.5), _start_y(sizes, height, rng)])
-    goal = np.array([rng.uniform(band[1] + 0.5, width - 1.0), rng.uniform(1.0, height - 1.0)])
+    if len(circles) < int(values["count"]):  # no room left for them all
+        return None
+    start = np.array([_between(rng, sizes.footprint + PLACEMENT_ROOM, band[0] - 0.5), _start_y(sizes, height, rng)])
+    goal = np.array([_between(rng, band[1] + 0.5, width - 1.0), _between(rng, 1.0, height - 1.0)])
     return start, goal, np.array(circles).reshape(-1, 3), np.zeros((0, 5))
 
 
 def _start_y(sizes: TeamSizes, height: float, rng: np.random.Generator) -> float:
-    return rng.uniform(sizes.footprint + PLACEMENT_ROOM, height - sizes.footprint - PLACEMENT_ROOM)
+    return _between(rng, sizes.footprint + PLACEMENT_ROOM, height - sizes.footprint - PLACEMENT_ROOM)
 
 
 #: The scene families. Ranges: see :class:`SceneFamily`; ``mixed`` draws one of the others, uniformly, per episode.
@@ -214,7 +231,13 @@ def draw_scene(config: FormationConfig, rng: np.random.Generator) -> Scenario:
     family, sizes = SCENE_FAMILIES[name], TeamSizes.of(config)
     width, height = config.world_width, config.world_height
     for _ in range(config.max_placement_tries):
-        start, goal, circles, walls = family.layout(family.draw_values(sizes, width, rng), width, height, sizes, rng)
+        try:
+            layout = family.layout(family.draw_values(sizes, width, rng), width, height, sizes, rng)
+        except _NoRoom:
+            continue
+        if layout is None:
+            continue
+        start, goal, circles, walls = layout
         if rng.random() < 0.5:
             start, goal = np.array([width - start[0], start[1]]), np.array([width - goal[0], goal[1]])
             circles = circles * [-1.0, 1.0, 1.0] + [width, 0.0, 0.0]

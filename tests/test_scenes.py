@@ -1,0 +1,159 @@
+"""Scene families: determinism, the solvability check, the documented parameter ranges for n = 3 to 8, the API."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from pettingzoo.test import parallel_api_test
+
+from sb3_formation import FormationConfig, FormationEnv
+from sb3_formation.env.clearance import ClearanceMap, reachable, shortest_path, shrunk_footprint, start_footprint
+from sb3_formation.env.scenarios import PlacementError, Scenario, start_formation
+from sb3_formation.env.scenes import SCENE_FAMILIES, WALL_THICKNESS, check_scenes_fit, draw_scene, is_solvable
+from sb3_formation.env.shapes import shape_gaps, wall_lengths
+
+FAMILIES = [*SCENE_FAMILIES, "mixed"]
+
+
+def config_of(scenes: str, n_agents: int = 6, **changes: float) -> FormationConfig:
+    return FormationConfig.task("ch5-bearing", n_agents=n_agents, scenes=scenes, stage=3, **changes)
+
+
+def test_sizes_by_hand() -> None:
+    """n = 6 (R_a 0.2, eta_c 1.2, d_ref 1.5, scale 0.9): r_0 = 0.9 min(1.2, 1.5 / (2 sin 30)) = 1.08, footprint
+    1.28 m (the 2.56 m hexagon); smallest: 0.2 / sin 30 + 0.2 = 0.6 m. n = 3: r_0 = 0.9 * 1.5 / (2 sin 60) = 0.779423,
+    smallest 0.2 / sin 60 + 0.2 = 0.430940."""
+    assert start_footprint(config_of("passage")) == pytest.approx(1.28)
+    assert shrunk_footprint(config_of("passage")) == pytest.approx(0.6)
+    assert start_footprint(config_of("passage", 3)) == pytest.approx(0.779423 + 0.2, abs=1e-6)
+    assert shrunk_footprint(config_of("passage", 3)) == pytest.approx(0.430940, abs=1e-6)
+
+
+@pytest.mark.parametrize("scenes", FAMILIES)
+def test_the_same_seed_draws_the_same_scene(scenes: str) -> None:
+    config = config_of(scenes)
+    for seed in range(3):
+        first, second = (draw_scene(config, np.random.default_rng(seed)) for _ in range(2))
+        for name in ("agent_positions", "goal", "obstacles", "walls"):
+            np.testing.assert_array_equal(getattr(first, name), getattr(second, name))
+    others = [draw_scene(config, np.random.default_rng(seed)).goal for seed in range(3)]
+    assert len({tuple(goal) for goal in others}) == 3
+
+
+def gaps_between_parallel_walls(first: np.ndarray, second: np.ndarray) -> float:
+    """Surface gap (m) between two parallel walls: the distance between their lines minus the half thicknesses."""
+    direction = (first[2:4] - first[:2]) / np.linalg.norm(first[2:4] - first[:2])
+    offset = second[:2] - first[:2]
+    return abs(offset[0] * direction[1] - offset[1] * direction[0]) - (first[4] + second[4]) / 2
+
+
+@pytest.mark.parametrize("n_agents", range(3, 9))
+def test_every_draw_keeps_the_documented_ranges_and_is_solvable(n_agents: int) -> None:
+    """For n = 3 to 8, 15 draws of each family: the parameters measured back from the shapes lie in the documented
+    ranges (D_0 and D_min of the team); the start formation is clear of every shape; every scene is solvable."""
+    start, smallest = 2 * start_footprint(config_of("passage", n_agents)), 2 * shrunk_footprint(config_of("passage", n_agents))
+    for scenes in SCENE_FAMILIES:
+        config = config_of(scenes, n_agents)
+        rng = np.random.default_rng(100 + n_agents)
+        for _ in range(15):
+            scene = draw_scene(config, rng)
+            walls, circles = scene.walls, scene.obstacles
+            scene.validate(config)
+            gaps = shape_gaps(scene.agent_positions, circles, walls, config.world_width, config.world_height)
+            assert np.all(gaps >= config.agent_radius)
+            assert is_solvable(config, scene.centroid, scene.goal, circles, walls)
+            np.testing.assert_allclose(scene.centroid, scene.agent_positions.mean(axis=0))
+            if scenes == "passage":  # two collinear walls; the opening is between their facing ends' surfaces
+                assert len(walls) == 2 and np.allclose(walls[:, 0], walls[0, 0]) and np.allclose(walls[:, 2], walls[0, 0])
+                opening = walls[1, 1] - walls[0, 3] - WALL_THICKNESS
+                assert 1.15 * smallest - 1e-9 <= opening <= 1.1 * start + 1e-9
+                assert 0.4 * config.world_width <= walls[0, 0] <= 0.6 * config.world_width
+            elif scenes == "corridor":  # barrier parts, then the two channel walls
+                channel = walls[2:]
+                width = gaps_between_parallel_walls(channel[0], channel[1])
+                assert 1.15 * smallest - 1e-9 <= width <= 0.9 * start + 1e-9 < start
+                assert 1.5 * start - 1e-9 <= wall_lengths(channel)[0] <= 2.5 * start + 1e-9
+            elif scenes == "trap":  # the back wall, then the two arms towards the team
+                inner = gaps_between_parallel_walls(walls[1], walls[2])
+                assert 1.2 * start - 1e-9 <= inner <= 1.6 * start + 1e-9
+                assert 0.8 * start - 1e-9 <= wall_lengths(walls[1:])[0] <= 1.2 * start + 1e-9
+                # the U opens towards the team: its arms' free ends are nearer the start than the back wall
+                back = walls[0, :2] / 2 + walls[0, 2:4] / 2
+                mouth = walls[1, 2:4] / 2 + walls[2, 2:4] / 2
+                assert np.linalg.norm(mouth - scene.centroid) < np.linalg.norm(back - scene.centroid)
+            else:
+                assert 8 <= len(circles) <= 12 and np.all((circles[:, 2] >= 0.3) & (circles[:, 2] <= 0.6))
+                centres = circles[:, :2]
+                between = (
+                    np.hypot(*(centres[:, None] - centres[None]).transpose(2, 0, 1)) - circles[:, 2] - circles[:, 2, None]
+                )
+                assert between[np.triu_indices(len(circles), 1)].min() >= 1.1 * smallest - 1e-9
+
+
+def test_mixed_draws_every_family() -> None:
+    """Over 40 episodes "mixed" meets scenes with walls of 2, 3 and 4 (passage, trap, corridor) and with circles."""
+    config = config_of("mixed")
+    rng = np.random.default_rng(0)
+    kinds = {(len(scene.walls), len(scene.obstacles) > 0) for scene in (draw_scene(config, rng) for _ in range(40))}
+    assert {(2, False), (3, False), (4, False), (0, True)} <= kinds
+
+
+def test_an_unsolvable_scene_is_refused() -> None:
+    """A passage whose opening (1.0 m) is narrower than the smallest hexagon (1.2 m) plus margins is refused; 1.4 m
+    passes. The refusal comes from the map, not from the placement: the start and the goal are clear either way."""
+    config = config_of("passage")
+
+    def passage(opening: float) -> np.ndarray:
+        low, high = 5.0 - opening / 2 - WALL_THICKNESS / 2, 5.0 + opening / 2 + WALL_THICKNESS / 2
+        return np.array([[7.5, 0.0, 7.5, low, WALL_THICKNESS], [7.5, high, 7.5, 10.0, WALL_THICKNESS]])
+
+    start, goal = np.array([3.0, 5.0]), np.array([12.0, 5.0])
+    assert not is_solvable(config, start, goal, np.zeros((0, 3)), passage(1.0))
+    assert is_solvable(config, start, goal, np.zeros((0, 3)), passage(1.4))
+
+
+def test_a_family_that_cannot_fit_the_world_is_refused_with_a_message() -> None:
+    """An 8 m x 5 m world leaves no room for a corridor of 1.5-2.5 formation widths and a team on each side."""
+    with pytest.raises(ValueError, match=r"could not draw a solvable 'corridor' scene in the 8 m x 5 m world"):
+        check_scenes_fit(config_of("corridor", world_width=8.0, world_height=5.0))
+    with pytest.raises(PlacementError):
+        draw_scene(config_of("corridor", world_width=8.0, world_height=5.0), np.random.default_rng(0))
+
+
+def test_paths_through_a_small_maze() -> None:
+    """A 6 m x 4 m maze: two walls from alternate sides force an S; a disc of radius 0.3 m finds the way (every point
+    of the path clears the walls by 0.3 m, and the path is longer than the straight line), a disc of 1.2 m does not."""
+    config = FormationConfig(world_width=6.0, world_height=4.0, n_agents=3, eta_c=0.5, d_ref=0.8)
+    walls = np.array([[2.0, 0.0, 2.0, 2.8, 0.2], [4.0, 1.2, 4.0, 4.0, 0.2]])
+    clearance = ClearanceMap.of(config, np.zeros((0, 3)), walls)
+    start, goal = np.array([0.8, 1.0]), np.array([5.2, 3.0])
+    path = shortest_path(clearance, start, goal, 0.3, 0.3)
+    assert path is not None
+    np.testing.assert_array_equal(path[0], start)
+    assert np.linalg.norm(path[-1] - goal) <= 0.3 + 1e-9
+    assert np.all(shape_gaps(path[1:], np.zeros((0, 3)), walls, 6.0, 4.0) >= 0.3)
+    assert np.all(np.linalg.norm(np.diff(path[1:], axis=0), axis=1) <= 0.1 * math.sqrt(2) + 1e-9)  # neighbouring cells
+    assert path[:, 1].max() > 2.8 + 0.1 + 0.3 - 0.05 and path[:, 1].min() < 1.2 - 0.1 - 0.3 + 0.05  # over, then under
+    assert not reachable(clearance, start, goal, 0.3, 1.2)
+
+
+@pytest.mark.parametrize("scenes", FAMILIES)
+def test_the_pettingzoo_api_on_every_family(scenes: str) -> None:
+    parallel_api_test(FormationEnv(config_of(scenes, max_steps=60)), num_cycles=100)
+
+
+def test_a_hand_made_scene_with_walls_is_placed_as_given() -> None:
+    config = config_of("passage")
+    positions = start_formation(config, np.array([3.0, 5.0]))
+    scene = Scenario(positions, [12.0, 5.0], walls=[[7.5, 0.0, 7.5, 4.0, 0.2]])
+    env = FormationEnv(config)
+    env.reset(options={"scenario": scene})
+    np.testing.assert_array_equal(env.walls, scene.walls)
+    with pytest.raises(ValueError, match="agent_0 overlaps wall 0"):
+        env.reset(options={"scenario": Scenario(positions, [12.0, 5.0], walls=[[2.0, 3.9, 4.0, 3.9, 0.4]])})
+    with pytest.raises(ValueError, match=r"wall 0's end at \(16.000, 5.000\) m is outside the world"):
+        env.reset(options={"scenario": Scenario(positions, [12.0, 5.0], walls=[[9.0, 5.0, 16.0, 5.0, 0.2]])})
+    with pytest.raises(ValueError, match=r"wall 0 has thickness 0\.0 m"):
+        Scenario(positions, [12.0, 5.0], walls=[[9.0, 5.0, 10.0, 5.0, 0.0]])
