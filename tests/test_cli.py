@@ -227,3 +227,25 @@ def test_ctrl_c_ends_evaluations_at_once_with_one_line(arguments: list[str], tmp
     assert time.monotonic() - started < 2.0 and process.returncode == 130, errors
     lines = [line for line in errors.splitlines() if line.strip() and not re.match(r"\w+: +\d+%\|", line)]
     assert lines == [f"sb3-formation: {arguments[0]} interrupted"], errors  # beside the progress bar's
+
+
+def test_scenes_option_evaluates_plots_and_renders_a_family(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--scenes passage``: evaluate writes its set to its own folder (``..._<recipe>-passage``, the curriculum's
+    left alone), with two walls in every recorded episode; plot finds it with the same option; render draws it."""
+    monkeypatch.chdir(tmp_path)
+    common = ["--episodes", "2", "--n-envs", "2", "--no-progress"]
+    assert main(["evaluate", "controller:classical", *common, "--scenes", "passage", "--trajectories", "1"]) == 0
+    folder = tmp_path / "evaluations" / "controller-classical_ch5-bearing-passage"
+    summary = json.loads((folder / "summary.json").read_text())
+    assert summary["scenes"] == "passage" and summary["episodes"] == 2
+    with np.load(folder / "trajectories.npz") as data:
+        assert data["walls"].shape == (1, 2, 5)
+    assert not (tmp_path / "evaluations" / "controller-classical_ch5-bearing").exists()
+    assert main(["plot", "trajectories", "controller:classical", "--scenes", "passage", "--out", "t.png"]) == 0
+    assert (tmp_path / "t_000.png").is_file()
+    assert main(["plot", "trajectories", "controller:classical", "--scenes", "corridor"]) == 2
+    assert "--scenes corridor` first" in capsys.readouterr().err
+    arguments = ["render", "controller:classical", "--scenes", "trap", "--max-steps", "5", "--out", "v.gif"]
+    assert main(arguments) == 0 and (tmp_path / "v.gif").is_file()

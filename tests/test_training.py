@@ -75,6 +75,16 @@ def test_reward_and_agents_flags_map_to_recipes() -> None:
     assert settings.recipe.stage_iterations() == (5000, 5000, 15000) and settings.recipe.n_envs == 14
 
 
+def test_the_scenes_flag_sets_the_tasks_scenes() -> None:
+    """``train --scenes passage`` trains on the passage family; the recipe's file says so in its env section."""
+    settings = train_settings(build_parser().parse_args(["train", "--recipe", "fast-ch5-bearing", "--scenes", "passage"]))
+    assert settings.recipe.config().scenes == "passage"
+    assert settings.to_dict()["env"]["scenes"] == "passage"
+    assert train_settings(build_parser().parse_args(["train", "--recipe", "fast-ch5-bearing"])).recipe.config().scenes == (
+        "curriculum"
+    )
+
+
 def test_a_settings_file_is_changed_by_options_and_unknown_keys_fail(tmp_path: Path) -> None:
     config_file = tmp_path / "run.yaml"
     values = {"base": "ch4-team", "curriculum": {"iterations": [3, 2, 1]}, "env": {"max_steps": 99}, "run": {"seed": 4}}

@@ -9,6 +9,7 @@ from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any
 
+from sb3_formation.env.scenes import SCENES
 from sb3_formation.experiment.evaluation import EVALUATION_TEAMS, evaluate_target
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE
 from sb3_formation.experiment.settings import MAX_SEED
@@ -99,6 +100,15 @@ class RenamedFlag(argparse.Action):
         setattr(namespace, self.dest, values)
 
 
+def add_scenes_option(parser: argparse.ArgumentParser) -> None:
+    """``--scenes NAME``: where episodes are placed (``FormationConfig.scenes``; default: the policy's or recipe's)."""
+    parser.add_argument(
+        "--scenes",
+        choices=SCENES,
+        help="where episodes are placed: curriculum (the thesis's) or a scene family (default: the policy's own)",
+    )
+
+
 def add_recipe_option(parser: argparse.ArgumentParser, help: str = RECIPE_HELP, **options: Any) -> None:
     """``--recipe NAME``, and the old spelling ``--preset`` (warns)."""
     parser.add_argument("--recipe", help=help, **options)
@@ -135,6 +145,7 @@ def add_protocol_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stochastic", action="store_true", help="sample actions instead of using the mean")
     parser.add_argument("--device", default="auto", help="torch device (default auto)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_scenes_option(parser)
     add_recipe_option(parser)
     add_trust_pickle_option(parser)
 
@@ -170,12 +181,18 @@ def evaluate_with_protocol(args: argparse.Namespace, target: str, episodes: int 
         "workers": min(args.workers, args.n_envs),
         "deterministic": not args.stochastic,
         "record": getattr(args, "trajectories", 5),
-        "env_overrides": {} if getattr(args, "agents", None) is None else {"n_agents": args.agents},
+        "env_overrides": scene_overrides(args),
     }
-    out = out or evaluation_folder(target, args.recipe)
     result = evaluate_target(target, protocol, args.recipe, device=args.device, progress_bar=not args.no_progress, out=out)
+    out = out or evaluation_folder(target, args.recipe, result.scenes)
     print(f"{target}: evaluation written to {out}")
     return result.summary
+
+
+def scene_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """The :class:`FormationConfig` fields that ``--agents`` and ``--scenes`` change (those given)."""
+    overrides = {"n_agents": getattr(args, "agents", None), "scenes": getattr(args, "scenes", None)}
+    return {name: value for name, value in overrides.items() if value is not None}
 
 
 def target_labels(text: str | None, targets: Sequence[str | Path]) -> list[str]:

@@ -58,9 +58,12 @@ def _compare(args: argparse.Namespace) -> int:
     for label, target, recipe in zip(labels, args.targets, recipes):
         own = argparse.Namespace(**{**vars(args), "recipe": recipe})
         wanted = {**protocol, "seed": args.seed, "deterministic": not args.stochastic}
-        summary = None if args.force else stored_summary(target, wanted, own.recipe)
+        scenes = args.scenes or "curriculum"
+        if args.scenes is not None:
+            wanted["scenes"] = args.scenes
+        summary = None if args.force else stored_summary(target, wanted, own.recipe, scenes)
         if summary is not None:
-            print(f"{target}: reusing {evaluation_file(target, SUMMARY_FILE, own.recipe)}")
+            print(f"{target}: reusing {evaluation_file(target, SUMMARY_FILE, own.recipe, scenes)}")
         own.stage = protocol["stage"]
         summaries[label] = summary or evaluate_with_protocol(own, target, protocol["episodes"])
     table = comparison_table(summaries, over=args.over)

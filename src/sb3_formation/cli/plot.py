@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sb3_formation.cli.common import add_recipe_option, indices, positive_int, target_labels
+from sb3_formation.cli.common import add_recipe_option, add_scenes_option, indices, positive_int, target_labels
 from sb3_formation.experiment.evaluation import TRAJECTORIES_FILE, load_summary, load_trajectories
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE
 from sb3_formation.experiment.settings import load_settings
@@ -34,6 +34,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--window", type=positive_int, default=100, help="rolling-mean window in iterations (default 100)")
     parser.add_argument("--over", choices=("successful", "all"), default="successful", help="episodes for the bar means")
     add_recipe_option(parser, "recipe of controller: targets (default: " + DEFAULT_RECIPE + ")")
+    add_scenes_option(parser)
     parser.set_defaults(run=run)
 
 
@@ -54,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     if args.figure in ("trajectories", "errors"):
         if len(args.targets) != 1:
             raise ValueError(f"{args.figure} draws one evaluation; got {len(args.targets)} targets")
-        path = evaluation_file(args.targets[0], TRAJECTORIES_FILE, args.recipe)
+        path = evaluation_file(args.targets[0], TRAJECTORIES_FILE, args.recipe, args.scenes or "curriculum")
         trajectories = load_trajectories(path)
         indices = _recordedindices(trajectories, args.episodes)
         default = path.parent / "figures" / ("trajectory.png" if args.figure == "trajectories" else "errors.png")

@@ -9,9 +9,11 @@ from sb3_formation.cli.common import (
     RECIPE_HELP,
     TARGET_HELP,
     add_recipe_option,
+    add_scenes_option,
     add_trust_pickle_option,
     model_trust,
     positive_int,
+    scene_overrides,
     seed_value,
 )
 from sb3_formation.experiment.targets import evaluation_folder, load_policy
@@ -37,6 +39,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--agents", type=int, help="team size (default: the model's; another only for one trained on several)")
     parser.add_argument("--stochastic", action="store_true", help="sample actions instead of using the mean")
     parser.add_argument("--device", default="auto", help="torch device (default auto)")
+    add_scenes_option(parser)
     add_trust_pickle_option(parser)
     parser.set_defaults(run=run)
 
@@ -47,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
 
     with model_trust(args):
         policy = load_policy(args.target, args.recipe, device=args.device)
-    out = args.out or evaluation_folder(args.target, args.recipe) / "episodes.mp4"
+    out = args.out or evaluation_folder(args.target, args.recipe, args.scenes or policy.config.scenes) / "episodes.mp4"
     frames = render_episodes(
         policy,
         out,
@@ -57,9 +60,7 @@ def run(args: argparse.Namespace) -> int:
         deterministic=not args.stochastic,
         fps=args.fps,
         frame_every=args.frame_every,
-        env_overrides={
-            name: value for name, value in (("max_steps", args.max_steps), ("n_agents", args.agents)) if value is not None
-        },
+        env_overrides={**scene_overrides(args), **({} if args.max_steps is None else {"max_steps": args.max_steps})},
         progress_bar=True,
     )
     print(f"{frames} frames written to {out}")

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from sb3_formation.cli.common import (
     RenamedFlag,
+    add_scenes_option,
     add_trust_pickle_option,
     assignment,
     positive_float,
@@ -46,7 +47,7 @@ RUN_FLAGS: dict[str, dict] = {
     "evaluate": dict(action=argparse.BooleanOptionalAction, help="evaluate the final model on the recipe's protocol"),
 }
 #: Options of ``train`` that choose the recipe.
-RECIPE_CHOICE = ("config", "recipe", "reward", "agents", "team_reward", "env")
+RECIPE_CHOICE = ("config", "recipe", "reward", "agents", "team_reward", "env", "scenes")
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -67,6 +68,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--env", type=assignment, action="append", metavar="FIELD=VALUE", help="set a FormationConfig field (repeatable)"
     )
+    add_scenes_option(parser)
     for name, options in {**RECIPE_FLAGS, **RUN_FLAGS}.items():
         options = {key: value for key, value in options.items() if key != "flag"}
         parser.add_argument(flag_of(name), dest=name, default=None, **options)
@@ -91,6 +93,8 @@ def settings_of(args: argparse.Namespace) -> TrainSettings:
     env = dict(args.env or [])
     if args.team_reward:
         env["team_reward"] = True
+    if args.scenes is not None:
+        env["scenes"] = args.scenes
     options = {name: getattr(args, name) for name in (*RECIPE_FLAGS, *RUN_FLAGS)}
     return layered_settings(args.config, recipe, env=env, agents=args.agents, **options)
 

@@ -60,6 +60,7 @@ class EvaluationResult:
     :param seed: episode k was played from ``reset(seed=seed + k)``
     :param deterministic: whether the policy's mean actions were used
     :param model: where the model came from (``file`` and ``sha256``), if known
+    :param scenes: where the episodes were placed (``FormationConfig.scenes``)
     """
 
     episodes: list[dict[str, Any]]
@@ -69,6 +70,7 @@ class EvaluationResult:
     deterministic: bool
     n_agents: int
     model: dict[str, str] | None = None
+    scenes: str = "curriculum"
     summary: dict[str, Any] = field(init=False)
 
     def __post_init__(self) -> None:
@@ -80,6 +82,7 @@ class EvaluationResult:
             "success_rate": len(successes) / len(self.episodes),
             "success_rate_ci95": [low, high],
             "stage": self.stage,
+            "scenes": self.scenes,
             "seed": self.seed,
             "deterministic": self.deterministic,
             "n_agents": self.n_agents,
@@ -192,6 +195,7 @@ def evaluate(
         deterministic=deterministic,
         n_agents=config.n_agents,
         model=policy_identity(policy),
+        scenes=config.scenes,
     )
 
 
@@ -222,18 +226,18 @@ def evaluate_target(
     if "workers" in protocol:
         protocol["n_workers"] = protocol.pop("workers")
     result = evaluate(policy, progress_bar=progress_bar, **protocol)
-    result.save(out or evaluation_folder(target, recipe))
+    result.save(out or evaluation_folder(target, recipe, result.scenes))
     return result
 
 
-def load_summary(target: str | os.PathLike[str], recipe: str | None = None) -> dict[str, Any]:
+def load_summary(target: str | os.PathLike[str], recipe: str | None = None, scenes: str = "curriculum") -> dict[str, Any]:
     """The stored evaluation summary of a target (see :func:`~sb3_formation.experiment.targets.evaluation_file`), checked
     against the other files of its evaluation (see :func:`check_evaluation_set`).
 
     :raises FileNotFoundError: none was written
     :raises ValueError: the file is not an evaluation summary, or the folder holds a mixed set
     """
-    path = evaluation_file(target, SUMMARY_FILE, recipe)
+    path = evaluation_file(target, SUMMARY_FILE, recipe, scenes)
     summary = read_summary(path)
     check_evaluation_set(path.parent, summary)
     return summary
@@ -288,11 +292,14 @@ def load_trajectories(path: str | os.PathLike[str]) -> Trajectories:
     return Trajectories.load(path)
 
 
-def stored_summary(target: str | os.PathLike[str], protocol: dict[str, Any], recipe: str | None = None) -> dict | None:
-    """The target's stored evaluation summary if it is of the same policy (the model file's SHA-256, or the controller
-    and its gains) under ``protocol`` (summary keys such as ``episodes``, ``stage``, ``seed``), else ``None``."""
+def stored_summary(
+    target: str | os.PathLike[str], protocol: dict[str, Any], recipe: str | None = None, scenes: str = "curriculum"
+) -> dict | None:
+    """The target's stored evaluation summary (on ``scenes``) if it is of the same policy (the model file's SHA-256, or
+    the controller and its gains) under ``protocol`` (summary keys such as ``episodes``, ``stage``, ``seed``), else
+    ``None``."""
     try:
-        summary = load_summary(target, recipe)
+        summary = load_summary(target, recipe, scenes)
         identity = policy_identity(load_policy(target, recipe, device="cpu"))
     except (FileNotFoundError, ValueError):
         return None

@@ -115,25 +115,29 @@ def default_protocol(target: str | os.PathLike[str], recipe: str | None = None) 
     return dict(load_settings(folder).recipe.evaluation)
 
 
-def evaluation_folder(target: str | os.PathLike[str], recipe: str | None = None) -> Path:
+def evaluation_folder(target: str | os.PathLike[str], recipe: str | None = None, scenes: str = "curriculum") -> Path:
     """Where the evaluation files of a target go by default: ``eval/`` in its run folder (or beside a model file), and
-    ``evaluations/<kind>-<name>_<recipe>/`` in the working folder for a ``<kind>:<name>`` target."""
+    ``evaluations/<kind>-<name>_<recipe>/`` in the working folder for a ``<kind>:<name>`` target; an evaluation on a
+    scene family (``scenes``) goes to ``eval-<scenes>/`` and ``evaluations/<kind>-<name>_<recipe>-<scenes>/``."""
+    suffix = "" if scenes == "curriculum" else f"-{scenes}"
     kind = target_kind(target)
     if kind is not None:
         name = str(target).partition(":")[2]
-        return Path("evaluations") / f"{kind}-{name}_{TARGET_KINDS[kind].recipe(name, recipe).name}"
+        return Path("evaluations") / f"{kind}-{name}_{TARGET_KINDS[kind].recipe(name, recipe).name}{suffix}"
     path = Path(target)
-    return (path if path.is_dir() else path.parent) / "eval"
+    return (path if path.is_dir() else path.parent) / f"eval{suffix}"
 
 
-def evaluation_file(target: str | os.PathLike[str], name: str, recipe: str | None = None) -> Path:
+def evaluation_file(target: str | os.PathLike[str], name: str, recipe: str | None = None, scenes: str = "curriculum") -> Path:
     """The evaluation file ``name`` (e.g. ``summary.json``) of a target: the file itself, in an eval folder, in a run
     folder's ``eval/``, or in a ``<kind>:<name>`` target's :func:`evaluation_folder`.
 
     :raises FileNotFoundError: there is none (the message says how to make it)
     """
-    folder = evaluation_folder(target, recipe) if target_kind(target) is not None else Path(target)
-    for candidate in (folder, folder / name, (folder if folder.is_dir() else folder.parent) / "eval" / name):
+    folder = evaluation_folder(target, recipe, scenes) if target_kind(target) is not None else Path(target)
+    own = evaluation_folder(folder if folder.is_dir() else folder.parent, scenes=scenes).name
+    for candidate in (folder, folder / name, (folder if folder.is_dir() else folder.parent) / own / name):
         if candidate.is_file() and candidate.name == name:
             return candidate
-    raise FileNotFoundError(f"no {name} in {target}: run `sb3-formation evaluate {target}` first")
+    option = "" if scenes == "curriculum" else f" --scenes {scenes}"
+    raise FileNotFoundError(f"no {name} in {target}: run `sb3-formation evaluate {target}{option}` first")
