@@ -5,9 +5,23 @@
 
 from sb3_formation.controllers.base import Controller, TeamPolicy
 from sb3_formation.controllers.classical import ClassicalController, ClassicalGains
+from sb3_formation.controllers.planner import PlannerGains, PrivilegedPlanner
 from sb3_formation.controllers.random import RandomController
 
 #: Controllers by name: ``controller:<name>`` on the command line, :func:`sb3_formation.load_policy` in Python.
-CONTROLLERS: dict[str, type[Controller]] = {"classical": ClassicalController, "random": RandomController}
+CONTROLLERS: dict[str, type[Controller]] = {
+    "classical": ClassicalController,
+    "random": RandomController,
+    "privileged-planner": PrivilegedPlanner,
+}
 
-__all__ = ["CONTROLLERS", "ClassicalController", "ClassicalGains", "Controller", "RandomController", "TeamPolicy"]
+__all__ = [
+    "CONTROLLERS",
+    "ClassicalController",
+    "ClassicalGains",
+    "Controller",
+    "PlannerGains",
+    "PrivilegedPlanner",
+    "RandomController",
+    "TeamPolicy",
+]

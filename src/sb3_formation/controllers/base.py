@@ -13,12 +13,14 @@ from __future__ import annotations
 
 import copy
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.observations import observation_fields, observation_layout
+from sb3_formation.env.state import TeamState
 
 
 @runtime_checkable
@@ -48,12 +50,26 @@ class TeamPolicy(Protocol):
         ...
 
 
+@runtime_checkable
+class PrivilegedPolicy(TeamPolicy, Protocol):
+    """A policy that also reads the map: the episode loop gives it each team's state when the team's episode starts.
+    Not decentralised (an agent's sensors see less), hence labelled ``privileged``."""
+
+    privileged: bool
+
+    def start_episodes(self, teams: Sequence[int], states: Sequence[TeamState]) -> None:
+        """Take the states after the reset of ``teams`` (team k holds rows k n to (k + 1) n - 1 of ``predict``)."""
+        ...
+
+
 class Controller(ABC):
     """Base class of hand-written controllers: each agent acts from its own raw observation and its index.
 
     Controllers are decentralised and memoryless: :meth:`act` sees one row per agent (the fields of
     :attr:`layout`) and the agents' indices in their teams, never the world. Subclasses take their gains as keyword
-    arguments of ``__init__`` and store them in :attr:`gains` (evaluation summaries record them).
+    arguments of ``__init__`` and store them in :attr:`gains` (evaluation summaries record them). The one exception
+    is labelled: a controller whose ``privileged`` is true also reads each team's map when its episode starts
+    (:class:`PrivilegedPolicy`).
 
     :param config: the task configuration the controller acts in
     """

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from sb3_formation.controllers.base import TeamPolicy
+from sb3_formation.controllers.base import PrivilegedPolicy, TeamPolicy
 from sb3_formation.env.blocks import EngineBlocks
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.state import TeamState
@@ -87,8 +87,11 @@ def play_episodes(
         if not started:
             return
         reset = blocks.reset(started, [job.seed + current[team] for team in started], [None] * len(started))
-        watched = started if on_step is not None else [team for team in started if current[team] < job.record]
+        privileged = isinstance(job.policy, PrivilegedPolicy)
+        watched = started if on_step is not None or privileged else [t for t in started if current[t] < job.record]
         states = blocks.call_teams("team_states", watched) if watched else {}
+        if privileged:  # the map, for a policy that reads it
+            job.policy.start_episodes(started, [states[team] for team in started])
         for team in started:
             observations[slots(team)] = reset[team]
             episode_starts[slots(team)] = True
