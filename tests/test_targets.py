@@ -27,7 +27,7 @@ def test_targets_resolve_through_one_registry() -> None:
     assert load_policy("controller:random").config.n_agents == 6  # default recipe: ch5-bearing
     assert target_kind("controller:random") == "controller" and target_kind("runs/a:b") is None
     assert evaluation_folder("controller:random", "ch4-team") == Path("evaluations/controller-random_ch4-team")
-    with pytest.raises(ValueError, match="unknown controller 'pid'; controllers: classical, random"):
+    with pytest.raises(ValueError, match="unknown controller 'pid'; controllers: classical, privileged-planner, random"):
         load_policy("controller:pid")
     with pytest.raises(ValueError, match="a recipe applies to controller targets only"):
         load_policy("runs/x", recipe="ch5-bearing")
