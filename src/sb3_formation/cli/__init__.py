@@ -14,11 +14,11 @@ import signal
 import sys
 from collections.abc import Sequence
 
-from sb3_formation.cli import compare, evaluate, plot, pretrained, recipes, render, rollout, sweep, train
+from sb3_formation.cli import benchmark, compare, evaluate, plot, pretrained, recipes, render, rollout, sweep, train
 from sb3_formation.experiment.training import TrainingStopped
 
 #: The subcommands' modules, in the order ``--help`` lists them: each adds its parser, which names its ``run``.
-COMMANDS = (train, recipes, pretrained, evaluate, plot, render, compare, sweep, rollout)
+COMMANDS = (train, recipes, pretrained, evaluate, plot, render, compare, benchmark, sweep, rollout)
 
 
 def build_parser() -> argparse.ArgumentParser:

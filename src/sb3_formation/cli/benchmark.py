@@ -1,0 +1,90 @@
+"""``sb3-formation benchmark``: targets on the thesis's stage 3 and every scene family, one table."""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+
+from sb3_formation.cli.common import (
+    add_recipe_option,
+    add_trust_pickle_option,
+    model_trust,
+    positive_int,
+    seed_value,
+    target_labels,
+)
+from sb3_formation.experiment.benchmark import (
+    BENCHMARK_EPISODES,
+    BENCHMARK_SCENES,
+    BENCHMARK_SEED,
+    TABLE_FILE,
+    benchmark_table,
+    run_benchmark,
+)
+from sb3_formation.experiment.targets import load_policy, target_kind
+
+
+def add_parser(commands: argparse._SubParsersAction) -> None:
+    """Add the ``benchmark`` subcommand to ``commands``."""
+    parser = commands.add_parser(
+        "benchmark",
+        help="every target on stage 3 and on every scene family: success (95%% CI), shape error, contacts, steps",
+        description="Evaluate each target on the thesis's stage 3 and on the scene families "
+        f"({', '.join(BENCHMARK_SCENES[1:])}) with fixed seeds; print one table, write it with every evaluation and "
+        "a trajectory figure per target and family into --out.",
+    )
+    parser.add_argument("targets", nargs="+", help="run folders, model .zip files or <kind>:<name> targets")
+    parser.add_argument(
+        "--episodes", type=positive_int, default=BENCHMARK_EPISODES, help=f"per family (default {BENCHMARK_EPISODES})"
+    )
+    parser.add_argument(
+        "--seed", type=seed_value, default=BENCHMARK_SEED, help=f"episode k plays seed + k (default {BENCHMARK_SEED})"
+    )
+    parser.add_argument("--agents", type=positive_int, help="team size (default: each target's own)")
+    parser.add_argument("--n-envs", type=positive_int, default=16, help="teams played at once (default 16)")
+    parser.add_argument("--workers", type=positive_int, default=2, help="processes stepping the teams (default 2)")
+    parser.add_argument("--labels", help="comma-separated label per target (default: the targets)")
+    parser.add_argument("--out", type=Path, default=Path("benchmark"), help="a new or empty folder (default benchmark/)")
+    parser.add_argument("--device", default="auto", help="torch device (default auto)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_recipe_option(parser, "recipe of controller: targets (default ch5-bearing)")
+    add_trust_pickle_option(parser)
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """``sb3-formation benchmark TARGET...``: the table, the evaluations and the figures."""
+    if args.out.exists() and (not args.out.is_dir() or any(args.out.iterdir())):
+        raise ValueError(f"{args.out} already holds files: give a new or empty --out (nothing was written)")
+    labels = target_labels(args.labels, args.targets)
+    folders = [re.sub(r"[^A-Za-z0-9_.-]+", "-", label) for label in labels]
+    if len(set(folders)) != len(folders):
+        raise ValueError(f"labels must differ, got {labels}")
+    with model_trust(args):
+        for target in args.targets:  # every target loads before any is evaluated
+            load_policy(target, args.recipe if target_kind(target) else None, args.device)
+        rows = run_benchmark(
+            args.targets,
+            folders,
+            args.out,
+            episodes=args.episodes,
+            seed=args.seed,
+            n_agents=args.agents,
+            n_envs=args.n_envs,
+            workers=args.workers,
+            recipe=args.recipe,
+            device=args.device,
+            progress_bar=not args.no_progress,
+        )
+    from sb3_formation.viz.plots import plot_trajectory, save_figures  # matplotlib: only where a figure is drawn
+
+    figures = {
+        args.out / "figures" / f"{row.label}_{row.scenes}.png": plot_trajectory(row.result.trajectories, 0)
+        for row in rows
+        if row.result.trajectories is not None
+    }
+    save_figures(figures)
+    print(benchmark_table(rows))
+    print(f"table written to {args.out / TABLE_FILE}, figures to {args.out / 'figures'}")
+    return 0

@@ -1,0 +1,145 @@
+"""The benchmark: every target on the thesis's stage 3 and on every scene family, with fixed seeds, in one table.
+
+Protocol (``sb3-formation benchmark``): each target plays ``episodes`` episodes (100 by default) of each scene set of
+:data:`BENCHMARK_SCENES` at stage 3, episode k from ``reset(seed=seed + k)`` (seed 10,000 by default: seeds that no
+training run of the package draws, which start at 0 for the first team), with deterministic actions, in teams of the
+target's own size unless ``n_agents`` is given. A row reports:
+
+- success: the share of episodes whose centroid reached the goal, with its Wilson 95 % interval;
+- shape error: the bearing error (the mean over agents and steps of norm(g_ref - g) over the two neighbours) averaged
+  over the successful episodes. It is free of scale, so a formation that shrinks to pass keeps its score, and one
+  that passes in single file or loses its shape shows it;
+- agent and obstacle contacts per episode (over all episodes; a touching pair of agents counts once per step, an
+  agent touching a shape or the border once per step);
+- steps per episode over the successful episodes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from sb3_formation.experiment.evaluation import EvaluationResult, evaluate_target
+from sb3_formation.experiment.targets import target_kind
+from sb3_formation.utils.files import atomic_write
+
+#: The scene sets of the benchmark: the thesis's stage 3 ("curriculum"), then every family.
+BENCHMARK_SCENES: tuple[str, ...] = ("curriculum", "passage", "corridor", "trap", "clutter")
+#: The first seed of the benchmark's episodes.
+BENCHMARK_SEED = 10_000
+#: Episodes per target and scene set.
+BENCHMARK_EPISODES = 100
+TABLE_FILE, RESULTS_FILE = "benchmark.md", "benchmark.json"
+
+
+@dataclass(frozen=True)
+class BenchmarkRow:
+    """One target on one scene set.
+
+    :param label: the target's label
+    :param scenes: the scene set
+    :param result: its evaluation
+    :param folder: where its evaluation files are
+    """
+
+    label: str
+    scenes: str
+    result: EvaluationResult
+    folder: Path
+
+    def cells(self) -> dict[str, Any]:
+        """The row's figures (see the module docstring), as plain data."""
+        summary = self.result.summary
+        successful, everything = summary["successful_episodes"], summary["all_episodes"]
+        return {
+            "target": self.label,
+            "scenes": self.scenes,
+            "episodes": summary["episodes"],
+            "n_agents": summary["n_agents"],
+            "success_rate": summary["success_rate"],
+            "success_rate_ci95": summary["success_rate_ci95"],
+            "shape_error": successful["bearing_error"]["mean"],
+            "agent_contacts": everything["collisions_agent"]["mean"],
+            "obstacle_contacts": everything["collisions_obstacle"]["mean"],
+            "steps": successful["length"]["mean"],
+        }
+
+
+def run_benchmark(
+    targets: Sequence[str | os.PathLike[str]],
+    labels: Sequence[str],
+    out: str | os.PathLike[str],
+    episodes: int = BENCHMARK_EPISODES,
+    seed: int = BENCHMARK_SEED,
+    n_agents: int | None = None,
+    n_envs: int = 16,
+    workers: int = 1,
+    recipe: str | None = None,
+    device: str = "auto",
+    progress_bar: bool = False,
+    scenes: Sequence[str] = BENCHMARK_SCENES,
+) -> list[BenchmarkRow]:
+    """Evaluate every target on every scene set; write each evaluation under ``out/<label>/<scenes>/``, then the table
+    (``benchmark.md``) and its figures as data (``benchmark.json``).
+
+    :param targets: run folders, model files or ``<kind>:<name>`` targets
+    :param labels: one label per target (folder names)
+    :param out: the benchmark's folder
+    :param episodes: episodes per target and scene set
+    :param seed: episode k is played from ``reset(seed=seed + k)``
+    :param n_agents: team size (default: each target's own)
+    :param n_envs: teams played at once
+    :param workers: processes stepping the teams, this one included
+    :param recipe: the recipe of ``controller:`` targets
+    :param device: torch device of learned targets
+    :param progress_bar: show each evaluation's progress bar
+    :param scenes: the scene sets (default :data:`BENCHMARK_SCENES`)
+    """
+    if len(labels) != len(targets) or len(set(labels)) != len(labels):
+        raise ValueError(f"give one distinct label per target, got {list(labels)} for {len(targets)} targets")
+    out = Path(out)
+    rows = []
+    for target, label in zip(targets, labels):
+        for scene_set in scenes:
+            overrides: dict[str, Any] = {"scenes": scene_set}
+            if n_agents is not None:
+                overrides["n_agents"] = n_agents
+            protocol = {
+                "episodes": episodes,
+                "stage": 3,
+                "seed": seed,
+                "n_envs": min(n_envs, episodes),
+                "workers": min(workers, n_envs, episodes),
+                "deterministic": True,
+                "record": 1,
+                "env_overrides": overrides,
+            }
+            folder = out / label / scene_set
+            own_recipe = recipe if target_kind(target) == "controller" else None  # others act in their own task
+            result = evaluate_target(target, protocol, own_recipe, device=device, progress_bar=progress_bar, out=folder)
+            rows.append(BenchmarkRow(label, scene_set, result, folder))
+    atomic_write(out / TABLE_FILE, benchmark_table(rows) + "\n")
+    atomic_write(out / RESULTS_FILE, json.dumps([row.cells() for row in rows], indent=2) + "\n")
+    return rows
+
+
+def benchmark_table(rows: Sequence[BenchmarkRow]) -> str:
+    """The Markdown table of a benchmark: a line per target and scene set."""
+    headings = ["target", "scenes", "n", "episodes", "success (95 % CI)", "shape error", "agent contacts"]
+    headings += ["obstacle contacts", "steps"]
+    lines = ["| " + " | ".join(headings) + " |", "|" + "|".join(["---"] * 2 + ["---:"] * (len(headings) - 2)) + "|"]
+    for row in rows:
+        cells = row.cells()
+        low, high = cells["success_rate_ci95"]
+        figures = [cells[name] for name in ("shape_error", "agent_contacts", "obstacle_contacts", "steps")]
+        line = [cells["target"], cells["scenes"], str(cells["n_agents"]), str(cells["episodes"])]
+        line.append(f"{cells['success_rate']:.0%} ({low:.0%} - {high:.0%})")
+        line += [
+            "-" if value is None else f"{value:.3f}" if index == 0 else f"{value:.1f}" for index, value in enumerate(figures)
+        ]
+        lines.append("| " + " | ".join(line) + " |")
+    return "\n".join(lines)

@@ -1,0 +1,40 @@
+"""``sb3-formation benchmark``: the table, the evaluations and the figures of a small run; its refusals."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from sb3_formation.cli import main
+from sb3_formation.experiment.benchmark import BENCHMARK_SCENES
+from sb3_formation.experiment.evaluation import load_summary
+
+
+def test_benchmark_writes_the_table_evaluations_and_figures(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Two episodes per scene set: a row per scene set in the printed table and in benchmark.md, figures of each,
+    and every figure of benchmark.json is the stored evaluation's (success, shape error = bearing error over the
+    successes, contacts over all episodes)."""
+    out = tmp_path / "bench"
+    arguments = ["benchmark", "controller:classical", "--episodes", "2", "--workers", "1", "--out", str(out)]
+    assert main([*arguments, "--no-progress", "--labels", "classical"]) == 0
+    printed = capsys.readouterr().out
+    table = (out / "benchmark.md").read_text()
+    rows = [line for line in table.splitlines() if line.startswith("| classical |")]
+    assert [row.split(" | ")[1] for row in rows] == list(BENCHMARK_SCENES)
+    assert table.strip() in printed
+    results = json.loads((out / "benchmark.json").read_text())
+    assert [row["scenes"] for row in results] == list(BENCHMARK_SCENES)
+    for row in results:
+        summary = load_summary(out / "classical" / row["scenes"])
+        assert summary["scenes"] == row["scenes"] and summary["seed"] == 10_000 and summary["episodes"] == 2
+        assert row["success_rate"] == summary["success_rate"]
+        assert row["shape_error"] == summary["successful_episodes"]["bearing_error"]["mean"]
+        assert row["obstacle_contacts"] == summary["all_episodes"]["collisions_obstacle"]["mean"]
+        assert (out / "figures" / f"classical_{row['scenes']}.png").stat().st_size > 10_000
+    # a reused folder is refused before anything is written
+    before = sorted(path.stat().st_mtime_ns for path in out.rglob("*"))
+    assert main([*arguments, "--no-progress"]) == 2
+    assert "already holds files" in capsys.readouterr().err
+    assert sorted(path.stat().st_mtime_ns for path in out.rglob("*")) == before
