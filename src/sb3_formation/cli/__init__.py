@@ -63,13 +63,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         print(f"sb3-formation: {args.command} interrupted", file=sys.stderr)
         return 128 + signal.SIGINT
-    except (
-        ValueError,
-        TypeError,
-        OSError,
-        RuntimeError,
-        ImportError,
-    ) as error:  # bad input, files, a failed worker, a missing extra: one line
+    # bad input, files, a failed worker, a missing optional package: one line
+    except (ValueError, TypeError, OSError, RuntimeError, ImportError) as error:
         if args.debug:
             raise
         print(f"sb3-formation: error: {error}", file=sys.stderr)

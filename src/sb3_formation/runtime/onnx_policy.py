@@ -81,11 +81,10 @@ class PolicyMetadata:
 
     def to_properties(self) -> dict[str, str]:
         """The metadata as the model's ``metadata_props`` (key -> string)."""
+        fields = observation_fields(self.config)
         layout = [
             {"name": field.name, "start": where.start, "stop": where.stop, "binary": field.binary}
-            for field, where in zip(
-                observation_fields(self.config), observation_layout(observation_fields(self.config)).values()
-            )
+            for field, where in zip(fields, observation_layout(fields).values())
         ]
         values = {
             "format": FORMAT_VERSION,
