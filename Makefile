@@ -74,6 +74,7 @@ bench: setup
 	$(BIN)/python benchmarks/env_throughput.py
 	$(BIN)/python benchmarks/train_throughput.py
 	$(BIN)/python benchmarks/sequence_length.py
+	$(BIN)/python benchmarks/onnx_latency.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .ruff_cache
