@@ -261,3 +261,14 @@ def test_export_refuses_what_it_cannot_export(tmp_path: Path, capsys: pytest.Cap
         "(controllers are numpy code)"
     )
     assert not (tmp_path / "c.onnx").exists()
+
+
+def test_a_missing_onnxruntime_is_named_with_the_extra_that_installs_it(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)  # import onnxruntime then raises ImportError
+    target = str(PRETRAINED_DIR / "ch5-bearing" / ONNX_FILE)
+    assert main(["evaluate", target, "--episodes", "1", "--no-progress"]) == 2
+    assert capsys.readouterr().err.strip() == (
+        "sb3-formation: error: running an exported policy needs onnxruntime: pip install 'sb3-formation[runtime]'"
+    )
