@@ -49,15 +49,17 @@ lint: setup
 test: lint
 	$(BIN)/python -m pytest -n 2 --durations=15 tests
 
-# RLlib with one shared policy and SB3's VecVideoRecorder (README "Using it with other libraries"): their pins clash
-# with the main environment's, so they get an environment of their own, and only their tests run there.
+# RLlib with one shared policy, SB3's VecVideoRecorder (README "Using it with other libraries") and BenchMARL
+# (docs/export.md): their pins clash with the main environment's, so they get an environment of their own, and only their
+# tests run there. BenchMARL needs torchvision, and PyPI's torchvision does not import beside torch 2.13.0 (CPU): this
+# environment takes torch 2.14.1 with torchvision 0.29.1 (about 5.5 GB; pip finds both on this machine's disk).
 INT_VENV := .venv-integrations
 INT_BIN := $(INT_VENV)/bin
 
 $(INT_VENV)/.installed: pyproject.toml
 	test -x $(INT_BIN)/python || $(PYTHON) -m venv $(INT_VENV)
 	$(INT_BIN)/python -m pip install --quiet --upgrade pip
-	$(INT_BIN)/python -m pip install --quiet torch==2.13.0
+	$(INT_BIN)/python -m pip install --quiet torch==2.14.1 torchvision==0.29.1
 	$(INT_BIN)/python -m pip install --quiet -e '.[integrations]'
 	touch $(INT_VENV)/.installed
 
@@ -72,6 +74,7 @@ bench: setup
 	$(BIN)/python benchmarks/env_throughput.py
 	$(BIN)/python benchmarks/train_throughput.py
 	$(BIN)/python benchmarks/sequence_length.py
+	$(BIN)/python benchmarks/onnx_latency.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .ruff_cache

@@ -161,3 +161,41 @@ def test_the_readme_snippets_for_rllib_and_video_recording_run(tmp_path: Path, m
     # the video opens on the reset frame of seed 0 (up to its compression: mean 1.7 of 255 measured), not of seed 1 (9.6)
     own, other = (np.abs(frames[0].astype(float) - first).mean() for first in first_frames)
     assert own < 3 < other
+
+
+@pytest.mark.integrations
+def test_benchmarl_trains_mappo_on_the_formation_task_for_two_iterations(tmp_path: Path) -> None:
+    """Issue 33, point 4, in ``make test-integrations``'s environment: BenchMARL 1.5.2 (TorchRL 0.11, torch and
+    torchvision 2.14.1 / 0.29.1) trains MAPPO with one shared policy on teams of six; episodes end and are counted, and
+    the policy's weights change."""
+    pytest.importorskip("benchmarl", reason="BenchMARL is in the integrations extra: make test-integrations runs this")
+    from benchmarl.algorithms import MappoConfig
+    from benchmarl.experiment import Experiment, ExperimentConfig
+    from benchmarl.models.mlp import MlpConfig
+
+    from sb3_formation.experiment.benchmarl_task import FormationTask
+
+    config = ExperimentConfig.get_from_yaml()
+    config.max_n_iters, config.max_n_frames = 2, None
+    config.on_policy_collected_frames_per_batch, config.on_policy_n_envs_per_worker = 200, 2
+    config.on_policy_n_minibatch_iters, config.on_policy_minibatch_size = 2, 50
+    config.evaluation, config.render, config.loggers, config.create_json = False, False, ["csv"], False
+    config.save_folder, config.checkpoint_at_end = str(tmp_path), False
+    task = FormationTask.CH5_BEARING.get_task({"stage": 3, "max_steps": 60})  # 100 steps per env: episodes end
+    experiment = Experiment(
+        task=task,
+        algorithm_config=MappoConfig.get_from_yaml(),
+        model_config=MlpConfig.get_from_yaml(),
+        critic_model_config=MlpConfig.get_from_yaml(),
+        seed=0,
+        config=config,
+    )
+    assert experiment.group_map == {"agent": [f"agent_{i}" for i in range(6)]}
+    before = [parameter.detach().clone() for parameter in experiment.policy.parameters()]
+    experiment.run()
+    assert experiment.n_iters_performed == 2 and experiment.total_frames == 400
+    assert any(not torch.equal(old, new) for old, new in zip(before, experiment.policy.parameters()))
+    returns = list(tmp_path.rglob("collection_agent_reward_episode_reward_mean.csv"))
+    assert returns, sorted(path.name for path in tmp_path.rglob("*.csv"))
+    values = [float(line.split(",")[1]) for line in returns[0].read_text().split()]
+    assert len(values) == 2 and all(np.isfinite(values))

@@ -1,6 +1,6 @@
 """The package's layers: each imports only from the layers below it, and the environment layer loads no learning stack.
 
-Layers, bottom to top: utils, env, controllers, sb3, experiment, viz, cli (README "Development").
+Layers, bottom to top: utils, env, controllers, runtime, sb3, experiment, viz, cli (``docs/design.md`` "Layers").
 """
 
 from __future__ import annotations
@@ -14,10 +14,11 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "src" / "sb3_formation"
 #: Layer of each subpackage or top-level module, bottom (0) to top.
-LAYERS = {"utils": 0, "env": 1, "controllers": 2, "sb3": 3, "experiment": 4, "viz": 5, "cli": 6}
-#: Third-party packages the bottom layers (utils, env, controllers) must not import: the learning and plotting stacks.
+LAYERS = {"utils": 0, "env": 1, "controllers": 2, "runtime": 3, "sb3": 4, "experiment": 5, "viz": 6, "cli": 7}
+#: Third-party packages the bottom layers (utils, env, controllers, runtime) must not import: the learning and plotting
+#: stacks (the runtime runs an exported policy with numpy and onnxruntime only).
 HEAVY = {"torch", "stable_baselines3", "matplotlib", "tensorboard", "ray", "tqdm", "imageio_ffmpeg"}
-LIGHT_LAYERS = {"utils", "env", "controllers"}
+LIGHT_LAYERS = {"utils", "env", "controllers", "runtime"}
 
 
 def layer(relative: Path) -> str:
@@ -95,6 +96,16 @@ def test_each_layer_imports_only_from_the_layers_below() -> None:
             "env/blocks.py: layer 'env' imports sb3_formation.sb3.vec_env from the higher layer 'sb3'",
         ),
         (
+            "runtime/onnx_policy.py",
+            "import torch\n",
+            "runtime/onnx_policy.py: layer 'runtime' imports torch",
+        ),
+        (
+            "runtime/onnx_policy.py",
+            "from sb3_formation.sb3.trained import TrainedPolicy\n",
+            "runtime/onnx_policy.py: layer 'runtime' imports sb3_formation.sb3.trained from the higher layer 'sb3'",
+        ),
+        (
             "utils/checks.py",
             "from sb3_formation.env.config import FormationConfig\n",
             "utils/checks.py: layer 'utils' imports sb3_formation.env.config from the higher layer 'env'",
@@ -108,9 +119,12 @@ def test_the_rule_catches_a_forbidden_import(module: str, added: str, expected: 
     assert expected in violations(sources)
 
 
-@pytest.mark.parametrize("module", ["sb3_formation", "sb3_formation.env", "sb3_formation.controllers"])
+@pytest.mark.parametrize(
+    "module", ["sb3_formation", "sb3_formation.env", "sb3_formation.controllers", "sb3_formation.runtime"]
+)
 def test_importing_the_light_layers_loads_no_learning_stack(module: str) -> None:
-    """Measured in a fresh interpreter: importing the env (or the package's top level) leaves torch and SB3 unloaded."""
+    """Measured in a fresh interpreter: importing the env, the runtime (or the package's top level) leaves torch and SB3
+    unloaded."""
     code = f"import sys, {module}; print(sorted(m for m in {sorted(HEAVY)!r} if m in sys.modules))"
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert loaded == "[]"

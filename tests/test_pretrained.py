@@ -20,6 +20,7 @@ from sb3_formation.cli import main
 from sb3_formation.experiment.evaluation import EPISODES_FILE, evaluate
 from sb3_formation.experiment.export import export_pretrained
 from sb3_formation.experiment.pretrained import (
+    ONNX_FILE,
     PRETRAINED_DIR,
     load_pretrained,
     numerics_fingerprint,
@@ -29,6 +30,7 @@ from sb3_formation.experiment.pretrained import (
 )
 from sb3_formation.experiment.recipes import RECIPES_FOLDER, load_recipe
 from sb3_formation.experiment.runs import FINAL_MODEL, latest_checkpoint
+from sb3_formation.runtime import OnnxPolicy
 
 THESIS_TASKS = ("ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing")
 
@@ -76,6 +78,9 @@ def test_an_exported_policy_is_the_runs_model_trimmed_and_evaluated(tiny_run: Pa
         stored = list(csv.DictReader(stream))
     assert [row["length"] for row in stored] == [str(row["length"]) for row in again.episodes]
     assert [row["return"] for row in stored] == [str(row["return"]) for row in again.episodes]
+    # the ONNX export beside the zip acts as the shipped model
+    rows = np.stack(list(FormationEnv(shipped.config.replace(stage=3)).reset(seed=1)[0].values()))
+    assert np.abs(OnnxPolicy(folder / ONNX_FILE).predict(rows)[0] - shipped.predict(rows)[0]).max() <= 1e-5
 
 
 def test_export_refuses_bad_input_and_keeps_what_is_shipped(tiny_run: Path, tmp_path: Path) -> None:

@@ -6,7 +6,9 @@ The package is layered; each layer imports only from the layers below it (``test
 - :mod:`sb3_formation.env`: the task (config, geometry, world, sensors, observations, rewards, scenarios, the PettingZoo
   env, rendering); numpy, numba, Pymunk and Pillow only, no torch;
 - :mod:`sb3_formation.controllers`: the policy seam (anything that acts) and hand-written controllers; no torch;
-- :mod:`sb3_formation.sb3`: the Stable-Baselines3 layer (VecEnv, normaliser, policies, recurrent PPO, callbacks);
+- :mod:`sb3_formation.runtime`: an exported ONNX policy run with onnxruntime (``docs/export.md``); no torch;
+- :mod:`sb3_formation.sb3`: the Stable-Baselines3 layer (VecEnv, normaliser, policies, recurrent PPO, callbacks, ONNX
+  export);
 - :mod:`sb3_formation.experiment`: recipes, settings, run folders, training, evaluation, policy targets, sweeps;
 - :mod:`sb3_formation.viz`: figures and videos; :mod:`sb3_formation.cli` on top.
 
@@ -37,6 +39,8 @@ _EXPORTS: dict[str, str] = {
     "load_pretrained": "sb3_formation.experiment.pretrained",
     "pretrained_names": "sb3_formation.experiment.pretrained",
     "load_recipe": "sb3_formation.experiment.recipes",
+    "OnnxPolicy": "sb3_formation.runtime",
+    "export_onnx": "sb3_formation.sb3.onnx_export",
 }
 
 __all__ = sorted(_EXPORTS)

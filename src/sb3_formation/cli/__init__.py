@@ -14,11 +14,11 @@ import signal
 import sys
 from collections.abc import Sequence
 
-from sb3_formation.cli import benchmark, compare, evaluate, plot, pretrained, recipes, render, rollout, sweep, train
+from sb3_formation.cli import benchmark, compare, evaluate, export, plot, pretrained, recipes, render, rollout, sweep, train
 from sb3_formation.experiment.training import TrainingStopped
 
 #: The subcommands' modules, in the order ``--help`` lists them: each adds its parser, which names its ``run``.
-COMMANDS = (train, recipes, pretrained, evaluate, plot, render, compare, benchmark, sweep, rollout)
+COMMANDS = (train, recipes, pretrained, evaluate, plot, render, compare, benchmark, sweep, rollout, export)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -63,7 +63,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         print(f"sb3-formation: {args.command} interrupted", file=sys.stderr)
         return 128 + signal.SIGINT
-    except (ValueError, TypeError, OSError, RuntimeError) as error:  # bad input, files, a failed worker: one line
+    # bad input, files, a failed worker, a missing optional package: one line
+    except (ValueError, TypeError, OSError, RuntimeError, ImportError) as error:
         if args.debug:
             raise
         print(f"sb3-formation: error: {error}", file=sys.stderr)

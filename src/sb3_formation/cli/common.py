@@ -79,8 +79,8 @@ def indices(text: str) -> list[int]:
 
 
 TARGET_HELP = (
-    "a run folder, a model .zip (normaliser beside it), controller:<name> (e.g. controller:classical) or "
-    "pretrained:<name> (a shipped policy: sb3-formation pretrained)"
+    "a run folder, a model .zip (normaliser beside it), controller:<name> (e.g. controller:classical), "
+    "pretrained:<name> (a shipped policy: sb3-formation pretrained) or an exported .onnx (onnx:<path>)"
 )
 RECIPE_HELP = (
     f"recipe of a controller: target (default {DEFAULT_RECIPE}); trained models act in the task they were trained in "

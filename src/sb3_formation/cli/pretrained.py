@@ -16,8 +16,8 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "pretrained",
         help="list the trained policies shipped with the package (pretrained:<name> targets), or export one",
         description="List the shipped policies with their stored evaluation (the thesis protocol), or with --export "
-        "make one of a finished run: its model without optimiser state, its normaliser, settings, a fresh evaluation "
-        "of that model file and a card recording the command, seed, wall time and versions.",
+        "make one of a finished run: its model without optimiser state, its ONNX export, its normaliser, settings, a "
+        "fresh evaluation of that model file and a card recording the command, seed, wall time and versions.",
     )
     parser.add_argument("--export", type=Path, metavar="RUN_DIR", help="a finished run folder to ship")
     parser.add_argument("--name", help="name of the exported policy (pretrained:<name>)")

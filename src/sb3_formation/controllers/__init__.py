@@ -3,10 +3,13 @@
 :data:`CONTROLLERS` names the controllers that ``controller:<name>`` targets of the CLI resolve to.
 """
 
+from typing import Any
+
 from sb3_formation.controllers.base import Controller, TeamPolicy
 from sb3_formation.controllers.classical import ClassicalController, ClassicalGains
 from sb3_formation.controllers.planner import PlannerGains, PrivilegedPlanner
 from sb3_formation.controllers.random import RandomController
+from sb3_formation.env.config import FormationConfig
 
 #: Controllers by name: ``controller:<name>`` on the command line, :func:`sb3_formation.load_policy` in Python.
 CONTROLLERS: dict[str, type[Controller]] = {
@@ -14,6 +17,23 @@ CONTROLLERS: dict[str, type[Controller]] = {
     "random": RandomController,
     "privileged-planner": PrivilegedPlanner,
 }
+
+
+def controller_from_spec(spec: dict[str, Any], config: FormationConfig) -> Controller:
+    """The controller a recipe block (or an exported policy's residual) names: ``controller`` and optional ``gains``.
+
+    :param spec: ``controller`` (a name of :data:`CONTROLLERS`) and optionally ``gains`` (its keyword arguments)
+    :param config: the task the controller acts in
+    :raises ValueError: an unknown controller, or gains that are not a mapping
+    """
+    name = spec["controller"]
+    if name not in CONTROLLERS:
+        raise ValueError(f"unknown controller {name!r}; controllers: {', '.join(sorted(CONTROLLERS))}")
+    gains = spec.get("gains") or {}
+    if not isinstance(gains, dict):
+        raise ValueError(f"gains must be a mapping of gain names to values, got {gains!r}")
+    return CONTROLLERS[name](config, **gains)
+
 
 __all__ = [
     "CONTROLLERS",
@@ -24,4 +44,5 @@ __all__ = [
     "PrivilegedPlanner",
     "RandomController",
     "TeamPolicy",
+    "controller_from_spec",
 ]

@@ -95,9 +95,18 @@ class Controller(ABC):
         """SB3's signature: :meth:`act` on every row, actions clipped to [-1, 1]; controllers keep no state."""
         observation = np.asarray(observation, dtype=np.float64)
         rows = observation.reshape(-1, observation.shape[-1])
-        agents = np.arange(len(rows)) % self.config.n_agents
-        actions = np.clip(self.act(rows, agents, deterministic), -1.0, 1.0)
-        return actions.reshape(*observation.shape[:-1], 2).astype(np.float32), None
+        actions = self.agent_actions(rows, np.arange(len(rows)) % self.config.n_agents, deterministic)
+        return actions.reshape(*observation.shape[:-1], 2), None
+
+    def agent_actions(self, observations: np.ndarray, agents: np.ndarray, deterministic: bool = True) -> np.ndarray:
+        """:meth:`act` on rows of any agents (e.g. one robot's), clipped to [-1, 1], as float32 ``(k, 2)``.
+
+        :param observations: ``(k, obs_dim)`` raw observations
+        :param agents: ``(k,)`` each row's agent index in its team
+        :param deterministic: act without noise
+        """
+        observations = np.asarray(observations, dtype=np.float64)
+        return np.clip(self.act(observations, np.asarray(agents), deterministic), -1.0, 1.0).astype(np.float32)
 
     @abstractmethod
     def act(self, observations: np.ndarray, agents: np.ndarray, deterministic: bool) -> np.ndarray:

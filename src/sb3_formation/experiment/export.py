@@ -1,4 +1,5 @@
-"""Making a shipped policy (:mod:`sb3_formation.experiment.pretrained`) of a finished training run."""
+"""Making a shipped policy (:mod:`sb3_formation.experiment.pretrained`) of a finished training run, its ONNX export
+included."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ import torch
 
 from sb3_formation import __version__
 from sb3_formation.experiment.evaluation import evaluate
-from sb3_formation.experiment.pretrained import CARD_FILE, PRETRAINED_DIR, SUMMARY_PATH, numerics_fingerprint
+from sb3_formation.experiment.pretrained import CARD_FILE, ONNX_FILE, PRETRAINED_DIR, SUMMARY_PATH, numerics_fingerprint
 from sb3_formation.experiment.runs import (
     FINAL_MODEL,
     FINAL_NORMALIZER,
@@ -25,6 +26,7 @@ from sb3_formation.experiment.runs import (
 )
 from sb3_formation.experiment.settings import load_settings
 from sb3_formation.sb3.model_files import load_model
+from sb3_formation.sb3.onnx_export import export_onnx
 from sb3_formation.utils.files import atomic_directory
 
 #: Attributes of a saved model that acting does not need (the last rollout's observations, episode buffers).
@@ -38,8 +40,8 @@ def export_pretrained(
     command: str | None = None,
     progress_bar: bool = False,
 ) -> Path:
-    """Make a shipped policy of a finished run: trim its final model, evaluate that file on the run's protocol, and
-    write the folder (replacing one of the same name only once all of it is written).
+    """Make a shipped policy of a finished run: trim its final model, export it to ONNX, evaluate the model file on the
+    run's protocol, and write the folder (replacing one of the same name only once all of it is written).
 
     :param run_dir: a run folder with ``final_model.zip``, ``final_normalizer.npz`` and its last checkpoint
     :param name: the policy's name (``pretrained:<name>``): letters, digits, ``-`` and ``_``
@@ -65,7 +67,9 @@ def export_pretrained(
         model.save(folder / FINAL_MODEL, exclude=list(UNSHIPPED_ATTRIBUTES))
         shutil.copyfile(run_dir / FINAL_NORMALIZER, folder / FINAL_NORMALIZER)
         shutil.copyfile(run_dir / "config.yaml", folder / "config.yaml")
-        result = evaluate(load_trained(folder, device="cpu"), **{**protocol, "record": 0}, progress_bar=progress_bar)
+        shipped = load_trained(folder, device="cpu")
+        export_onnx(shipped, folder / ONNX_FILE)
+        result = evaluate(shipped, **{**protocol, "record": 0}, progress_bar=progress_bar)
         # the summary names the shipped model (its SHA-256), not the temporary folder it was evaluated in
         result = dataclasses.replace(result, model={**result.model, "file": f"pretrained:{name}"})
         result.save((folder / SUMMARY_PATH).parent)

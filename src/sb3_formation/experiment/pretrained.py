@@ -4,6 +4,8 @@ A shipped policy is a trimmed run folder in ``sb3_formation/pretrained/<name>/``
 
 - ``final_model.zip``: the trained model without its optimiser state and last rollout (what acting does not need);
 - ``final_normalizer.npz``: the observation normaliser's frozen statistics;
+- ``final_model.onnx``: the same policy exported to ONNX (:func:`~sb3_formation.sb3.onnx_export.export_onnx`), for
+  :class:`~sb3_formation.runtime.OnnxPolicy` without torch (``docs/export.md``);
 - ``config.yaml``: the run's resolved settings (recipe, task configuration, PPO settings);
 - ``eval/summary.json`` and ``eval/episodes.csv``: the evaluation of this very model file on its recipe's protocol
   (the thesis's: stage 3, fixed seeds from 0; 500 episodes in chapter 4, 200 in chapter 5);
@@ -31,7 +33,7 @@ from sb3_formation.experiment.runs import load_trained
 
 #: Where the shipped policies live (package data).
 PRETRAINED_DIR = Path(__file__).resolve().parent.parent / "pretrained"
-CARD_FILE, SUMMARY_PATH = "card.json", "eval/summary.json"
+CARD_FILE, SUMMARY_PATH, ONNX_FILE = "card.json", "eval/summary.json", "final_model.onnx"
 #: Task fields a shipped policy may be evaluated with other values of (the curriculum stage is the protocol's).
 FREE_FIELDS = frozenset({"stage"})
 

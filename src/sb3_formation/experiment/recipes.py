@@ -28,7 +28,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.type_aliases import Schedule
 from stable_baselines3.common.utils import LinearSchedule
 
-from sb3_formation.controllers import CONTROLLERS
+from sb3_formation.controllers import controller_from_spec
 from sb3_formation.controllers.base import Controller, TeamPolicy
 from sb3_formation.controllers.residual import ResidualPolicy, check_residual_scale
 from sb3_formation.env.config import TASKS, FormationConfig
@@ -450,17 +450,6 @@ def _with_current_keys(values: dict[str, Any], name: str) -> dict[str, Any]:
         warn_renamed(f"the key env: preset: of recipe {name!r}", "env: task:", stacklevel=4)
         values["env"] = {("task" if key == "preset" else key): value for key, value in env.items()}
     return values
-
-
-def controller_from_spec(spec: dict[str, Any], config: FormationConfig) -> Controller:
-    """The controller a recipe block names (``controller`` and optional ``gains``), acting in ``config``."""
-    name = spec["controller"]
-    if name not in CONTROLLERS:
-        raise ValueError(f"unknown controller {name!r}; controllers: {', '.join(sorted(CONTROLLERS))}")
-    gains = spec.get("gains") or {}
-    if not isinstance(gains, dict):
-        raise ValueError(f"gains must be a mapping of gain names to values, got {gains!r}")
-    return CONTROLLERS[name](config, **gains)
 
 
 def residual_base(spec: dict[str, Any], config: FormationConfig) -> tuple[Controller, float]:

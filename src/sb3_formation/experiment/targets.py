@@ -4,7 +4,9 @@
 - ``controller:<name>``: a hand-written controller of :data:`~sb3_formation.controllers.CONTROLLERS`, acting in the
   task of the recipe given as ``recipe`` (default ``ch5-bearing``);
 - ``pretrained:<name>``: a policy shipped with the package (:mod:`~sb3_formation.experiment.pretrained`), acting in
-  the task it was trained for (a ``recipe`` of another task is refused).
+  the task it was trained for (a ``recipe`` of another task is refused);
+- an exported ``.onnx`` file, or ``onnx:<path>``: run by :class:`~sb3_formation.runtime.OnnxPolicy` (no torch), in a
+  run folder or shipped policy folder like the model it was exported from.
 
 ``evaluate``, ``render``, ``plot`` and ``compare`` of the command line and :func:`load_policy` in Python resolve targets
 here; a new kind of target is a new entry of :data:`TARGET_KINDS`.
@@ -23,6 +25,7 @@ from sb3_formation.experiment.pretrained import load_pretrained, pretrained_fold
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE, Recipe, load_recipe
 from sb3_formation.experiment.runs import load_trained
 from sb3_formation.experiment.settings import load_settings
+from sb3_formation.runtime import OnnxPolicy
 from sb3_formation.sb3.model_files import trust_pickle
 from sb3_formation.utils.deprecation import warn_renamed
 
@@ -56,10 +59,24 @@ TARGET_KINDS: dict[str, TargetKind] = {
 }
 
 
+#: Prefix of a target that names an exported ONNX file (the path alone works too when it ends in ``.onnx``).
+ONNX_PREFIX = "onnx:"
+
+
 def target_kind(target: str | os.PathLike[str]) -> str | None:
-    """The kind of a ``<kind>:<name>`` target, or ``None`` for a path."""
+    """The kind of a ``<kind>:<name>`` target, or ``None`` for a path (``onnx:<path>`` included)."""
     kind, separator, _ = str(target).partition(":")
     return kind if separator and kind in TARGET_KINDS else None
+
+
+def target_path(target: str | os.PathLike[str]) -> Path:
+    """The path a path target names (``onnx:<path>`` -> ``<path>``)."""
+    return Path(str(target).removeprefix(ONNX_PREFIX))
+
+
+def is_onnx_target(target: str | os.PathLike[str]) -> bool:
+    """Whether a target names an exported ONNX file (``onnx:<path>``, or a path ending in ``.onnx``)."""
+    return str(target).startswith(ONNX_PREFIX) or target_path(target).suffix == ".onnx"
 
 
 def load_policy(
@@ -71,7 +88,8 @@ def load_policy(
 ) -> TeamPolicy:
     """The policy a target names.
 
-    :param target: a run folder, a model ``.zip``, or ``<kind>:<name>`` (e.g. ``controller:random``)
+    :param target: a run folder, a model ``.zip``, an exported ``.onnx`` (or ``onnx:<path>``), or ``<kind>:<name>``
+        (e.g. ``controller:random``)
     :param recipe: for ``controller:`` targets, the recipe whose task the controller acts in (default ``ch5-bearing``);
         a trained model acts in the task it was trained in, so a run takes none and ``pretrained:`` refuses another
     :param device: torch device of a trained model
@@ -88,14 +106,16 @@ def load_policy(
             return TARGET_KINDS[kind].load(str(target).partition(":")[2], recipe, device)
         if recipe is not None:
             raise ValueError(f"a recipe applies to controller targets only; {target} acts in the task it was trained in")
-        return load_trained(Path(target), device=device)
+        if is_onnx_target(target):
+            return OnnxPolicy(target_path(target))
+        return load_trained(target_path(target), device=device)
 
 
 def run_folder(target: str | os.PathLike[str]) -> Path | None:
     """The run folder a path target belongs to (the folder itself, a model file in it, or a checkpoint's), or ``None``."""
     if target_kind(target) is not None:
         return None
-    path = Path(target)
+    path = target_path(target)
     for folder in [path, *path.parents][:4]:  # run/, run/final_model.zip, run/checkpoints/iteration_k/model.zip
         if (folder / "config.yaml").is_file():
             return folder
@@ -116,15 +136,18 @@ def default_protocol(target: str | os.PathLike[str], recipe: str | None = None) 
 
 
 def evaluation_folder(target: str | os.PathLike[str], recipe: str | None = None, scenes: str = "curriculum") -> Path:
-    """Where the evaluation files of a target go by default: ``eval/`` in its run folder (or beside a model file), and
+    """Where the evaluation files of a target go by default: ``eval/`` in its run folder (or beside a model file),
+    ``eval_<stem>/`` beside an exported ``<stem>.onnx`` (not over its model's), and
     ``evaluations/<kind>-<name>_<recipe>/`` in the working folder for a ``<kind>:<name>`` target; an evaluation on a
-    scene family (``scenes``) goes to ``eval-<scenes>/`` and ``evaluations/<kind>-<name>_<recipe>-<scenes>/``."""
+    scene family (``scenes``) adds ``-<scenes>`` to the folder's name."""
     suffix = "" if scenes == "curriculum" else f"-{scenes}"
     kind = target_kind(target)
     if kind is not None:
         name = str(target).partition(":")[2]
         return Path("evaluations") / f"{kind}-{name}_{TARGET_KINDS[kind].recipe(name, recipe).name}{suffix}"
-    path = Path(target)
+    path = target_path(target)
+    if is_onnx_target(target):
+        return path.parent / f"eval_{path.stem}{suffix}"
     return (path if path.is_dir() else path.parent) / f"eval{suffix}"
 
 
@@ -134,9 +157,8 @@ def evaluation_file(target: str | os.PathLike[str], name: str, recipe: str | Non
 
     :raises FileNotFoundError: there is none (the message says how to make it)
     """
-    folder = evaluation_folder(target, recipe, scenes) if target_kind(target) is not None else Path(target)
-    own = evaluation_folder(folder if folder.is_dir() else folder.parent, scenes=scenes).name
-    for candidate in (folder, folder / name, (folder if folder.is_dir() else folder.parent) / own / name):
+    folder = evaluation_folder(target, recipe, scenes) if target_kind(target) is not None else target_path(target)
+    for candidate in (folder, folder / name, evaluation_folder(target, recipe, scenes) / name):
         if candidate.is_file() and candidate.name == name:
             return candidate
     option = "" if scenes == "curriculum" else f" --scenes {scenes}"

@@ -1,0 +1,288 @@
+"""A policy exported to ONNX (``sb3-formation export``), run with onnxruntime: numpy and onnxruntime only, no torch.
+
+The graph (``docs/export.md``) reads the raw observations of one agent or a batch, ``observation`` ``(batch, obs_dim)``
+float32, folds in the frozen scale-only normaliser, and returns the clipped action ``action`` ``(batch, 2)``; a
+recurrent policy also reads and returns its actor's state (``hidden_in`` -> ``hidden_out``, and for an LSTM
+``cell_in`` -> ``cell_out``, each ``(1, batch, hidden)``). A residual policy's graph returns the network's
+``correction``; :class:`OnnxPolicy` adds it to the numpy controller's action the metadata names (the residual
+composition of ``docs/export.md``). The model's metadata (:class:`PolicyMetadata`) holds the task configuration, the
+observation layout, the team sizes, the residual and recurrent settings, the package version and the opset.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sb3_formation import __version__
+from sb3_formation.controllers import controller_from_spec
+from sb3_formation.controllers.residual import add_correction, check_residual_scale
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.observations import observation_fields, observation_layout
+
+#: Prefix of the metadata keys this package writes into an exported model.
+METADATA_PREFIX = "sb3_formation."
+#: Version of the graph's contract (inputs, outputs, metadata keys); a runtime refuses other versions.
+FORMAT_VERSION = 1
+#: Name of the graph's observation input.
+OBSERVATION_INPUT = "observation"
+#: Name of the graph's first output: the action, or a residual policy's correction.
+ACTION_OUTPUT, CORRECTION_OUTPUT = "action", "correction"
+#: The actor state's parts of each recurrent cell, as the graph names them (``<part>_in`` / ``<part>_out``).
+STATE_PARTS = {"gru": ("hidden",), "lstm": ("hidden", "cell")}
+
+
+@dataclass(frozen=True)
+class PolicyMetadata:
+    """What an exported graph records of its policy, as the model's metadata (string values, JSON where structured).
+
+    :param config: the task configuration it was trained in
+    :param team_sizes: the team sizes it was trained on (several: it acts in teams of any size)
+    :param residual: ``controller``, ``gains`` and ``scale`` of a residual policy (the graph is its correction), or
+        ``None``
+    :param recurrent: ``cell`` (``gru`` / ``lstm``) and ``hidden`` (width of its state) of a recurrent actor, or ``None``
+    :param opset: the ONNX opset of the graph
+    :param package_version: the version of sb3-formation that exported it
+    """
+
+    config: FormationConfig
+    team_sizes: tuple[int, ...]
+    residual: dict[str, Any] | None = None
+    recurrent: dict[str, Any] | None = None
+    opset: int = 0
+    package_version: str = __version__
+
+    @property
+    def observation_dim(self) -> int:
+        """Features of one agent's observation."""
+        return sum(field.size for field in observation_fields(self.config))
+
+    @property
+    def state_parts(self) -> tuple[str, ...]:
+        """The actor state's parts (``()`` for a feed-forward policy)."""
+        return () if self.recurrent is None else STATE_PARTS[self.recurrent["cell"]]
+
+    @property
+    def input_names(self) -> list[str]:
+        """The graph's inputs, in order."""
+        return [OBSERVATION_INPUT, *(f"{part}_in" for part in self.state_parts)]
+
+    @property
+    def output_names(self) -> list[str]:
+        """The graph's outputs, in order."""
+        first = CORRECTION_OUTPUT if self.residual is not None else ACTION_OUTPUT
+        return [first, *(f"{part}_out" for part in self.state_parts)]
+
+    def to_properties(self) -> dict[str, str]:
+        """The metadata as the model's ``metadata_props`` (key -> string)."""
+        fields = observation_fields(self.config)
+        layout = [
+            {"name": field.name, "start": where.start, "stop": where.stop, "binary": field.binary}
+            for field, where in zip(fields, observation_layout(fields).values())
+        ]
+        values = {
+            "format": FORMAT_VERSION,
+            "config": self.config.to_dict(),
+            "observation_layout": layout,
+            "team_sizes": list(self.team_sizes),
+            "residual": self.residual,
+            "recurrent": self.recurrent,
+            "opset": self.opset,
+            "package_version": self.package_version,
+        }
+        return {METADATA_PREFIX + key: json.dumps(value) for key, value in values.items()}
+
+    @classmethod
+    def from_properties(cls, properties: dict[str, str], where: str) -> PolicyMetadata:
+        """The metadata of an exported model.
+
+        :param properties: its ``metadata_props`` (onnxruntime's ``custom_metadata_map``)
+        :param where: the model's file, for the messages
+        :raises ValueError: a key is missing or unreadable, another format version, or a layout that is not the task's
+        """
+        values = {}
+        for key in (
+            "format",
+            "config",
+            "observation_layout",
+            "team_sizes",
+            "residual",
+            "recurrent",
+            "opset",
+            "package_version",
+        ):
+            text = properties.get(METADATA_PREFIX + key)
+            if text is None:
+                raise ValueError(
+                    f"{where} is not a policy exported by sb3-formation: its metadata lack {METADATA_PREFIX + key}"
+                )
+            try:
+                values[key] = json.loads(text)
+            except json.JSONDecodeError as error:
+                raise ValueError(f"{where}: the metadata {METADATA_PREFIX + key} is not JSON ({error})") from None
+        if values["format"] != FORMAT_VERSION:
+            raise ValueError(f"{where} has export format {values['format']}; this runtime reads format {FORMAT_VERSION}")
+        metadata = cls(
+            config=FormationConfig.from_dict(values["config"]),
+            team_sizes=tuple(values["team_sizes"]),
+            residual=values["residual"],
+            recurrent=values["recurrent"],
+            opset=int(values["opset"]),
+            package_version=str(values["package_version"]),
+        )
+        if json.loads(metadata.to_properties()[METADATA_PREFIX + "observation_layout"]) != values["observation_layout"]:
+            raise ValueError(f"{where}: the observation layout in its metadata is not the layout of its task")
+        if metadata.recurrent is not None and metadata.recurrent.get("cell") not in STATE_PARTS:
+            raise ValueError(f"{where}: unknown recurrent cell {metadata.recurrent.get('cell')!r}; cells: {list(STATE_PARTS)}")
+        return metadata
+
+
+def _onnxruntime() -> Any:
+    """The onnxruntime module, or a one-line error saying how to install it."""
+    try:
+        import onnxruntime
+    except ImportError:
+        raise ImportError("running an exported policy needs onnxruntime: pip install 'sb3-formation[runtime]'") from None
+    return onnxruntime
+
+
+class OnnxPolicy:
+    """An exported policy on the policy seam (:class:`~sb3_formation.controllers.base.TeamPolicy`): evaluation,
+    rendering and comparison run it as any target (``onnx:path/to/file.onnx`` or the path itself).
+
+    On a robot, :meth:`agent_actions` acts for the agents it hosts (their observations and indices in the team).
+
+    :param path: the ``.onnx`` file ``sb3-formation export`` wrote
+    :param threads: onnxruntime's intra-op threads (``None``: its default, one per core)
+    :raises FileNotFoundError: there is no file at ``path``
+    :raises ValueError: the file is not an ONNX model, or not one exported by sb3-formation
+    """
+
+    def __init__(self, path: str | os.PathLike[str], threads: int | None = None) -> None:
+        self.source = Path(path)
+        if not self.source.is_file():
+            raise FileNotFoundError(
+                f"no exported policy at {self.source}: write one with `sb3-formation export TARGET --onnx FILE`"
+            )
+        onnxruntime = _onnxruntime()
+        options = onnxruntime.SessionOptions()
+        if threads is not None:
+            options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
+        try:
+            self.session = onnxruntime.InferenceSession(str(self.source), options, providers=["CPUExecutionProvider"])
+        except Exception as error:  # onnxruntime raises its own exception types for damaged files
+            reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+            raise ValueError(f"{self.source} is not a readable ONNX model: {reason}") from None
+        self.metadata = PolicyMetadata.from_properties(self.session.get_modelmeta().custom_metadata_map, str(self.source))
+        inputs, outputs = [node.name for node in self.session.get_inputs()], [node.name for node in self.session.get_outputs()]
+        if inputs != self.metadata.input_names or outputs != self.metadata.output_names:
+            raise ValueError(
+                f"{self.source}: the graph's inputs {inputs} and outputs {outputs} are not those its metadata promise "
+                f"({self.metadata.input_names}, {self.metadata.output_names})"
+            )
+        self.config = self.metadata.config
+        self.observation_dim = self.metadata.observation_dim
+        residual = self.metadata.residual
+        self.controller = None if residual is None else controller_from_spec(residual, self.config)
+        self.scale = None if residual is None else check_residual_scale(residual["scale"])
+
+    @property
+    def any_team_size(self) -> bool:
+        """Whether it acts in teams of any size (it was trained on several)."""
+        return len(self.metadata.team_sizes) > 1
+
+    def fit(self, config: FormationConfig) -> OnnxPolicy:
+        """The policy acting in envs of ``config``: ``self``, or a copy (same session) whose controller acts there.
+
+        :raises ValueError: naming every difference that changes the observation (or the team size, for a policy
+            trained on one)
+        """
+        if config == self.config:
+            return self
+        differences = [
+            f"{name}={getattr(self.config, name)} in the model, {getattr(config, name)} in the env"
+            for name in ("n_agents", "lidar_rays", "observe_reference_bearings")
+            if getattr(self.config, name) != getattr(config, name) and not (name == "n_agents" and self.any_team_size)
+        ]
+        if differences:
+            raise ValueError(f"{self.source} does not fit this env's observations: " + "; ".join(differences))
+        fitted = copy.copy(self)
+        fitted.config = config
+        fitted.controller = None if self.controller is None else self.controller.fit(config)
+        return fitted
+
+    def predict(
+        self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
+    ) -> tuple[np.ndarray, Any]:
+        """Actions for raw observations of whole teams (row k: agent ``k % n`` of team ``k // n``) and the next state.
+
+        :param observation: ``(..., obs_dim)`` raw observations
+        :param state: what the previous call returned (``None``: zeros); a feed-forward policy returns it unchanged
+        :param episode_start: ``(k,)`` flags: these rows start an episode (their recurrent state is reset)
+        :param deterministic: must be True: the graph holds the mean action only
+        """
+        rows = self._rows(observation)
+        actions, state = self.agent_actions(
+            rows, np.arange(len(rows)) % self.config.n_agents, state, episode_start, deterministic
+        )
+        return actions.reshape(*np.shape(observation)[:-1], 2), state
+
+    def agent_actions(
+        self,
+        observations: np.ndarray,
+        agents: np.ndarray,
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, Any]:
+        """Actions ``(k, 2)`` for the raw observations of any agents, e.g. the one a robot hosts.
+
+        :param observations: ``(k, obs_dim)`` (or one ``(obs_dim,)``) raw observations
+        :param agents: ``(k,)`` each row's agent index in its team (a residual policy's controller needs it)
+        :param state: a recurrent policy's state for these rows, as returned before (``None``: zeros)
+        :param episode_start: ``(k,)`` flags: reset these rows' recurrent state first
+        :param deterministic: must be True: the graph holds the mean action only
+        :raises ValueError: observations of the wrong size, a state of the wrong shape, or ``deterministic=False``
+        """
+        if not deterministic:
+            raise ValueError(f"{self.source} acts deterministically only (its graph holds the mean action): drop --stochastic")
+        rows = self._rows(observations)
+        feeds = {OBSERVATION_INPUT: rows, **self._state_feeds(state, episode_start, len(rows))}
+        first, *new_state = self.session.run(self.metadata.output_names, feeds)
+        if self.controller is not None:
+            base = self.controller.agent_actions(rows, np.asarray(agents).reshape(-1))
+            first = add_correction(base.astype(np.float64), first, self.scale)
+        return first, (tuple(new_state) if new_state else state)
+
+    def _rows(self, observation: np.ndarray) -> np.ndarray:
+        """``observation`` as float32 rows of one agent's observation each."""
+        observation = np.asarray(observation, dtype=np.float32)
+        if observation.ndim == 0 or observation.shape[-1] != self.observation_dim:
+            raise ValueError(
+                f"{self.source} reads observations of {self.observation_dim} features per agent (the layout of its task), "
+                f"got an array of shape {observation.shape}"
+            )
+        return observation.reshape(-1, self.observation_dim)
+
+    def _state_feeds(self, state: Any, episode_start: np.ndarray | None, rows: int) -> dict[str, np.ndarray]:
+        """The graph's state inputs: ``state`` (zeros if ``None``) with the rows of ``episode_start`` reset."""
+        parts = self.metadata.state_parts
+        if not parts:
+            return {}
+        shape = (1, rows, self.metadata.recurrent["hidden"])
+        arrays = [np.zeros(shape, np.float32) for _ in parts] if state is None else [np.asarray(a, np.float32) for a in state]
+        if len(arrays) != len(parts) or any(array.shape != shape for array in arrays):
+            shapes = [array.shape for array in arrays]
+            raise ValueError(
+                f"{self.source} needs a state of {len(parts)} arrays of shape {shape} ({', '.join(parts)}), got {shapes}"
+            )
+        if episode_start is not None:
+            keep = 1.0 - np.asarray(episode_start, dtype=np.float32).reshape(1, rows, 1)
+            arrays = [array * keep for array in arrays]
+        return {f"{part}_in": array for part, array in zip(parts, arrays)}

@@ -1,0 +1,165 @@
+"""Exporting a trained policy's actor to ONNX, for :class:`~sb3_formation.runtime.OnnxPolicy` (``docs/export.md``).
+
+The graph computes what :meth:`TrainedPolicy.predict <sb3_formation.sb3.trained.TrainedPolicy.predict>` computes
+deterministically, from one agent's raw observation: the frozen normaliser (in float64, as numpy does it), the actor
+(dense layers, or dense, recurrent and dense layers with the state as input and output), the bounded mean action and
+the clip to the action space. Only the actor is exported: a team critic is a training device (the actor reads the
+agent's own observation). A residual policy's controller stays numpy: the graph is the correction, and the metadata
+name the controller, its gains and the scale, which the runtime composes (``docs/export.md`` says why).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.torch_layers import FlattenExtractor
+from torch import nn
+
+from sb3_formation.controllers import CONTROLLERS
+from sb3_formation.controllers.base import TeamPolicy
+from sb3_formation.controllers.residual import ResidualPolicy
+from sb3_formation.runtime.onnx_policy import PolicyMetadata
+from sb3_formation.sb3.normalization import observation_offset, observation_scale
+from sb3_formation.sb3.policies import FormationPolicy
+from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
+from sb3_formation.sb3.trained import TrainedPolicy
+from sb3_formation.utils.files import atomic_path
+
+#: The ONNX opset the graph is written in (onnxruntime 1.14 and later run it).
+DEFAULT_OPSET = 18
+#: Rows of the example batch the graph is traced with (its batch dimension stays free).
+EXAMPLE_ROWS = 2
+
+
+class ActorGraph(nn.Module):
+    """A trained policy's deterministic actor on raw observations: what the exported graph computes.
+
+    :param trained: the trained policy (an MLP :class:`FormationPolicy`, with or without a team critic, or a
+        :class:`RecurrentFormationPolicy`)
+    :raises ValueError: a policy of another kind, or with a features extractor other than SB3's flattening one
+    """
+
+    def __init__(self, trained: TrainedPolicy) -> None:
+        super().__init__()
+        policy = trained.policy
+        if not isinstance(policy, (FormationPolicy, RecurrentFormationPolicy)):
+            raise ValueError(
+                f"export_onnx exports FormationPolicy and RecurrentFormationPolicy models, not {type(policy).__name__}"
+            )
+        if not isinstance(policy.features_extractor, FlattenExtractor):
+            raise ValueError(f"cannot export a policy whose features extractor is {type(policy.features_extractor).__name__}")
+        state = trained.normalizer_state
+        offset = observation_offset(state)
+        self.register_buffer("scale", th.as_tensor(observation_scale(state), dtype=th.float64))
+        self.register_buffer(
+            "offset", th.as_tensor(np.zeros_like(state["var"]) if offset is None else offset, dtype=th.float64)
+        )
+        clip = float(state["clip_obs"])
+        self.clip = None if math.isnan(clip) else clip
+        self.recurrent = isinstance(policy, RecurrentFormationPolicy)
+        if self.recurrent:
+            self.before, self.rnn, self.after = policy.actor.before, policy.actor.rnn, policy.actor.after
+            self.cell, self.hidden = policy.actor.cell, policy.actor.hidden
+        else:
+            self.body = policy.mlp_extractor.policy_net  # MlpExtractor's, or TeamCriticExtractor's on the own block
+        self.action_net, self.action_scale = policy.action_net, policy.action_scale
+        self.register_buffer("low", th.as_tensor(policy.action_space.low, dtype=th.float32))
+        self.register_buffer("high", th.as_tensor(policy.action_space.high, dtype=th.float32))
+
+    def forward(self, observation: th.Tensor, *state: th.Tensor) -> th.Tensor | tuple[th.Tensor, ...]:
+        """The clipped mean action of each row (and, recurrent, the actor's next state).
+
+        :param observation: ``(batch, obs_dim)`` float32 raw observations
+        :param state: a recurrent actor's state, ``(1, batch, hidden)`` each (``h``; ``h, c`` for an LSTM)
+        """
+        scaled = (observation.double() - self.offset) / self.scale
+        if self.clip is not None:
+            scaled = scaled.clamp(-self.clip, self.clip)
+        scaled = scaled.float()
+        if self.recurrent:
+            outputs, final = self.rnn(self.before(scaled).unsqueeze(0), state[0] if self.cell == "gru" else state)
+            latent = self.after(outputs[0])
+        else:
+            latent = self.body(scaled)
+        action = th.clamp(self.action_scale * th.tanh(self.action_net(latent)), self.low, self.high)
+        if not self.recurrent:
+            return action
+        return (action, final) if self.cell == "gru" else (action, *final)
+
+
+def _parts(policy: TeamPolicy) -> tuple[TrainedPolicy, dict[str, Any] | None]:
+    """The trained policy to export and, for a residual policy, its ``controller``, ``gains`` and ``scale``."""
+    residual = None
+    if isinstance(policy, ResidualPolicy):
+        names = [name for name, kind in CONTROLLERS.items() if type(policy.base) is kind]
+        if not names:
+            raise ValueError(
+                f"the residual policy's controller {type(policy.base).__name__} is not one of {sorted(CONTROLLERS)}"
+            )
+        residual = {"controller": names[0], "gains": dict(policy.base.gains), "scale": policy.scale}
+        policy = policy.correction
+    if not isinstance(policy, TrainedPolicy):
+        raise ValueError(
+            f"only trained policies can be exported to ONNX, not {type(policy).__name__} (controllers are numpy code)"
+        )
+    return policy, residual
+
+
+def export_onnx(policy: TeamPolicy, path: str | os.PathLike[str], opset: int = DEFAULT_OPSET) -> Path:
+    """Write a trained policy's actor as an ONNX model that :class:`~sb3_formation.runtime.OnnxPolicy` runs.
+
+    :param policy: a :class:`TrainedPolicy` or a residual policy around one (what ``load_policy`` returns for a run
+        folder, a model file or ``pretrained:<name>``)
+    :param path: the ``.onnx`` file to write (replaced only once complete)
+    :param opset: the ONNX opset
+    :return: ``path``
+    :raises ValueError: a policy that is not a trained one, or of a kind the graph cannot hold
+    :raises ImportError: onnx or onnxscript (which torch's exporter needs) is not installed
+    """
+    try:
+        import onnx
+        import onnxscript  # noqa: F401  (torch.onnx's exporter imports it; say so before tracing)
+    except ImportError:
+        raise ImportError("exporting to ONNX needs onnx and onnxscript: pip install 'sb3-formation[export]'") from None
+    trained, residual = _parts(policy)
+    graph = ActorGraph(trained).cpu().eval()
+    recurrent = {"cell": graph.cell, "hidden": graph.hidden} if graph.recurrent else None
+    metadata = PolicyMetadata(trained.config, tuple(trained.team_sizes), residual, recurrent)
+    batch = th.export.Dim("batch")
+    observation = th.zeros(EXAMPLE_ROWS, metadata.observation_dim)
+    state = tuple(th.zeros(1, EXAMPLE_ROWS, graph.hidden) for _ in metadata.state_parts)
+    dynamic_shapes = ({0: batch}, tuple({1: batch} for _ in state)) if state else ({0: batch},)
+    exporter_log = logging.getLogger("torch.onnx")
+    level = exporter_log.level
+    with warnings.catch_warnings(), th.no_grad():
+        warnings.simplefilter("ignore")  # the exporter's notes on its own internals (and on torchvision's operators)
+        exporter_log.setLevel(logging.ERROR)
+        try:
+            program = th.onnx.export(
+                graph,
+                (observation, *state),
+                dynamo=True,
+                dynamic_shapes=dynamic_shapes,
+                input_names=metadata.input_names,
+                output_names=metadata.output_names,
+                opset_version=opset,
+                verbose=False,
+            )
+        finally:
+            exporter_log.setLevel(level)
+    model = program.model_proto
+    written = next(entry.version for entry in model.opset_import if entry.domain in ("", "ai.onnx"))
+    metadata = PolicyMetadata(trained.config, metadata.team_sizes, residual, recurrent, opset=written)
+    onnx.helper.set_model_props(model, metadata.to_properties())
+    model.producer_name = "sb3-formation"
+    path = Path(path)
+    with atomic_path(path) as temporary:
+        onnx.save_model(model, str(temporary))
+    return path
