@@ -46,8 +46,8 @@ pretrained: setup
 # mypy reads its settings from pyproject.toml ([tool.mypy]: strict for sb3_formation.utils, default elsewhere; `files`
 # are the packages `make lint` checks). `make typecheck` checks the whole package.
 lint: setup
-	$(BIN)/ruff check src tests benchmarks docs
-	$(BIN)/ruff format --check src tests benchmarks docs
+	$(BIN)/ruff check src tests benchmarks docs/hooks.py
+	$(BIN)/ruff format --check src tests benchmarks docs/hooks.py
 	$(BIN)/mypy
 
 typecheck: setup
@@ -81,8 +81,8 @@ test-integrations: $(INT_VENV)/.installed
 	$(INT_BIN)/python -m pytest -m integrations tests/test_integrations.py
 
 format: setup
-	$(BIN)/ruff format src tests benchmarks docs
-	$(BIN)/ruff check --fix src tests benchmarks docs
+	$(BIN)/ruff format src tests benchmarks docs/hooks.py
+	$(BIN)/ruff check --fix src tests benchmarks docs/hooks.py
 
 bench: setup
 	$(BIN)/python benchmarks/env_throughput.py

@@ -5,7 +5,7 @@ Figures on the site come from the files that commands and benchmarks wrote, not 
 - ``<!-- output: sb3-formation <command> -->`` on a line of its own is replaced by what the command prints (only the
   commands of :data:`COMMANDS`, which read the package's files, print and write nothing);
 - ``<!-- tables: docs/results/<file> -->`` is replaced by the Markdown tables of that benchmark output file (its
-  lines that start with ``|``), in order, each block as one table.
+  lines that start with ``|``), in order, each block as one table (blocks without rows are left out).
 
 Whole output files are included with ``pymdownx.snippets`` (``--8<-- "docs/results/<file>"`` inside a fence).
 """
@@ -52,7 +52,7 @@ def file_tables(path: str) -> str:
             blocks[-1].append(line)
         elif blocks[-1]:
             blocks.append([])
-    tables = ["\n".join(block) for block in blocks if block]
+    tables = ["\n".join(block) for block in blocks if len(block) > 2]  # a heading and a rule without rows: no table
     if not tables:
         raise ValueError(f"{path} holds no Markdown table")
     return "\n\n".join(tables)

@@ -24,8 +24,8 @@ TASKS = ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing"]
 
 @pytest.mark.parametrize("preset", TASKS)
 def test_torchrl_wraps_checks_and_rolls_out_every_preset(preset: str) -> None:
-    """docs/libraries.md "Using it with other libraries": TorchRL's ``PettingZooWrapper`` builds, ``check_env_specs`` passes and
-    a 50-step rollout runs; the flat reward terms arrive as one tensor each."""
+    """docs/libraries.md: TorchRL's ``PettingZooWrapper`` builds, ``check_env_specs`` passes and a 50-step rollout
+    runs; the flat reward terms arrive as one tensor each."""
     from torchrl.envs.libs.pettingzoo import PettingZooWrapper
     from torchrl.envs.utils import check_env_specs
 
