@@ -1,10 +1,11 @@
-# Two entry points: `make run` (main job) and `make test` (lint + full test suite).
+# Two entry points: `make run` (main job) and `make test` (lint, types and the full test suite). docs/contributing.md
+# lists every target.
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup run test test-integrations lint format bench clean pretrained
+.PHONY: setup run test test-fast test-integrations lint typecheck format docs bench clean pretrained
 
 setup: $(STAMP)
 
@@ -31,7 +32,7 @@ run: setup
 	$(BIN)/sb3-formation evaluate "$$(ls -td $(RUN_LOGDIR)/*/ | head -n 1)" --episodes 20 --n-envs 10 --seed 0
 	@echo "Training curves: tensorboard --logdir runs   (tensorboard is in $(BIN)/)"
 
-# Rebuild the shipped policies (README "Shipped policies"): train experiments/pretrained-<task>.yaml (seed 0) into
+# Rebuild the shipped policies (docs/pretrained.md): train experiments/pretrained-<task>.yaml (seed 0) into
 # runs/pretrained-<task>/ (replacing an earlier one) and export it into src/sb3_formation/pretrained/<task>/.
 PRETRAINED := ch5-bearing ch5-angle ch4-individual ch4-team mixed-ch5-bearing
 
@@ -42,17 +43,32 @@ pretrained: setup
 	  $(BIN)/sb3-formation pretrained --export runs/pretrained-$$task --name $$task || exit 1; \
 	done
 
+# mypy reads its settings from pyproject.toml ([tool.mypy]: strict for sb3_formation.utils, default elsewhere; `files`
+# are the packages `make lint` checks). `make typecheck` checks the whole package.
 lint: setup
-	$(BIN)/ruff check src tests benchmarks
-	$(BIN)/ruff format --check src tests benchmarks
+	$(BIN)/ruff check src tests benchmarks docs/hooks.py
+	$(BIN)/ruff format --check src tests benchmarks docs/hooks.py
+	$(BIN)/mypy
+
+typecheck: setup
+	$(BIN)/mypy src/sb3_formation
 
 test: lint
 	$(BIN)/python -m pytest -n 2 --durations=15 tests
 
-# RLlib with one shared policy, SB3's VecVideoRecorder (README "Using it with other libraries") and BenchMARL
-# (docs/export.md): their pins clash with the main environment's, so they get an environment of their own, and only their
-# tests run there. BenchMARL needs torchvision, and PyPI's torchvision does not import beside torch 2.13.0 (CPU): this
-# environment takes torch 2.14.1 with torchvision 0.29.1 (about 5.5 GB; pip finds both on this machine's disk).
+# The suite without the tests marked slow (end-to-end and learning checks), while iterating.
+test-fast: setup
+	$(BIN)/python -m pytest -n 2 -m "not slow" tests
+
+# The documentation site (docs/, mkdocs.yml) into site/; --strict fails on a broken link or an unreadable docstring.
+docs: setup
+	$(BIN)/python -m pip install --quiet -e '.[docs]'
+	$(BIN)/mkdocs build --strict
+
+# RLlib with one shared policy, SB3's VecVideoRecorder and BenchMARL (docs/libraries.md, docs/export.md): their pins
+# clash with the main environment's, so they get an environment of their own, and only their tests run there. BenchMARL
+# needs torchvision, and PyPI's torchvision does not import beside torch 2.13.0 (CPU): this environment takes torch
+# 2.14.1 with torchvision 0.29.1 (about 5.5 GB; pip finds both on this machine's disk).
 INT_VENV := .venv-integrations
 INT_BIN := $(INT_VENV)/bin
 
@@ -67,8 +83,8 @@ test-integrations: $(INT_VENV)/.installed
 	$(INT_BIN)/python -m pytest -m integrations tests/test_integrations.py
 
 format: setup
-	$(BIN)/ruff format src tests benchmarks
-	$(BIN)/ruff check --fix src tests benchmarks
+	$(BIN)/ruff format src tests benchmarks docs/hooks.py
+	$(BIN)/ruff check --fix src tests benchmarks docs/hooks.py
 
 bench: setup
 	$(BIN)/python benchmarks/env_throughput.py
@@ -77,4 +93,4 @@ bench: setup
 	$(BIN)/python benchmarks/onnx_latency.py
 
 clean:
-	rm -rf $(VENV) runs .pytest_cache .ruff_cache
+	rm -rf $(VENV) runs site .pytest_cache .ruff_cache .mypy_cache

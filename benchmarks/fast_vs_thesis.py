@@ -6,6 +6,13 @@ one of figs 5.1-5.2, which costs about 4x per step. Both final models play the s
 deterministic actions). It prints each recipe's stage plan, training wall time and success rate.
 
     python benchmarks/fast_vs_thesis.py --fast fast-ch5-bearing --thesis ch5-bearing --steps 800000 --teams 8 --thesis-mlp
+
+``--small-world`` is the comparison the test suite ran until it moved here (it took about 12 minutes of the suite):
+the chapter-5 bearing task with 3 agents, v_max 0.2 m/s and 400-step episodes, 600,000 agent-steps of each recipe on 8
+teams, the thesis recipe with the MLP policy, torch on one thread, 40 episodes; it also says whether the fast recipe's
+success rate is at least 20 points above the thesis recipe's, the margin the test asserted.
+
+    python benchmarks/fast_vs_thesis.py --small-world
 """
 
 from __future__ import annotations
@@ -14,11 +21,19 @@ import argparse
 import time
 from pathlib import Path
 
+import torch
+
 from sb3_formation.cli.common import assignment
 from sb3_formation.experiment.evaluation import evaluate
 from sb3_formation.experiment.runs import load_trained
 from sb3_formation.experiment.settings import layered_settings
 from sb3_formation.experiment.training import train
+
+#: The world of ``--small-world``: the chapter-5 bearing task (Table 5.1) with 3 agents, four times the thesis's v_max
+#: (6 cm per step, 3 cm per sub-step < R_a) and 400-step episodes.
+SMALL_WORLD = {"n_agents": 3, "v_max": 0.2, "max_steps": 400}
+#: Points of success rate by which the fast recipe is expected to beat the thesis recipe with ``--small-world``.
+SMALL_WORLD_MARGIN = 0.2
 
 
 def main() -> None:
@@ -33,18 +48,32 @@ def main() -> None:
                         help="a FormationConfig override for both recipes, e.g. n_agents=3 (repeatable)")  # fmt: skip
     parser.add_argument("--thesis-mlp", action="store_true", help="the thesis recipe with the MLP policy")
     parser.add_argument("--logdir", type=Path, default=Path("runs/benchmark-fast-vs-thesis"), help="folder of the runs")
+    parser.add_argument("--small-world", action="store_true",
+                        help="the small-world comparison: 3 agents, v_max 0.2, 400-step episodes, 600,000 agent-steps, "
+                             "8 teams, the thesis recipe with the MLP policy, one torch thread")  # fmt: skip
     args = parser.parse_args()
+    if args.small_world:
+        args.env = [*SMALL_WORLD.items(), *args.env]
+        args.steps, args.teams, args.thesis_mlp = 600_000, 8, True
+        torch.set_num_threads(1)
     budget = {"steps": args.steps, "n_envs": args.teams, "seed": args.seed, "progress_bar": False, "env": dict(args.env)}
     fast = layered_settings(recipe=args.fast, logdir=str(args.logdir), **budget)
     thesis = layered_settings(recipe=args.thesis, recurrent=False if args.thesis_mlp else None, logdir=str(args.logdir),
                            **budget)  # fmt: skip
+    rates = []
     for settings in (fast, thesis):
         started = time.perf_counter()
         run = train(settings, command=f"benchmarks/fast_vs_thesis.py {settings.recipe.name}")
         seconds = time.perf_counter() - started
         summary = evaluate(load_trained(run), episodes=args.episodes, stage=3, seed=0).summary
+        rates.append(summary["success_rate"])
         print(f"{settings.recipe.name}: stages {list(settings.recipe.stage_iterations())}, trained {seconds / 60:.1f} min, "
               f"success {summary['success_rate']:.1%} of {args.episodes}", flush=True)  # fmt: skip
+    margin = rates[0] - rates[1]
+    print(f"fast minus thesis: {margin * 100:+.1f} points of success", flush=True)
+    if args.small_world:
+        met = "met" if margin >= SMALL_WORLD_MARGIN else "NOT met"
+        print(f"expected margin >= {SMALL_WORLD_MARGIN * 100:.0f} points: {met}", flush=True)
 
 
 if __name__ == "__main__":

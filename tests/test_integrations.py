@@ -24,8 +24,8 @@ TASKS = ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing"]
 
 @pytest.mark.parametrize("preset", TASKS)
 def test_torchrl_wraps_checks_and_rolls_out_every_preset(preset: str) -> None:
-    """README "Using it with other libraries": TorchRL's ``PettingZooWrapper`` builds, ``check_env_specs`` passes and
-    a 50-step rollout runs; the flat reward terms arrive as one tensor each."""
+    """docs/libraries.md: TorchRL's ``PettingZooWrapper`` builds, ``check_env_specs`` passes and a 50-step rollout
+    runs; the flat reward terms arrive as one tensor each."""
     from torchrl.envs.libs.pettingzoo import PettingZooWrapper
     from torchrl.envs.utils import check_env_specs
 
@@ -79,9 +79,13 @@ def test_a_saved_normaliser_loads_through_vec_normalize_api(tmp_path: Path) -> N
     assert np.array_equal(loaded.obs_rms.var, env.obs_rms.var) and loaded.obs_rms.count == env.obs_rms.count
 
 
-def readme_snippets(heading: str) -> list[str]:
-    """The ```python blocks under a README heading (## or deeper), up to the next heading, in order."""
-    text = (Path(__file__).parents[1] / "README.md").read_text()
+#: The documentation page whose snippets these tests run (docs/libraries.md, "Using it with other libraries").
+LIBRARIES_PAGE = Path(__file__).parents[1] / "docs" / "libraries.md"
+
+
+def page_snippets(heading: str) -> list[str]:
+    """The ```python blocks under a heading (## or deeper) of the libraries page, up to the next heading, in order."""
+    text = LIBRARIES_PAGE.read_text()
     body = re.split(rf"\n#{{2,6}} {re.escape(heading)}\n", text, maxsplit=1)[1]
     body = re.split(r"\n#{2,6} ", body, maxsplit=1)[0]  # headings, not comments in code
     return re.findall(r"```python\n(.*?)```", body, flags=re.DOTALL)
@@ -93,13 +97,13 @@ def run_snippets(snippets: list[str]) -> dict[str, Any]:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         for snippet in snippets:
-            exec(snippet, namespace)  # the README's own code
+            exec(snippet, namespace)  # the documentation's own code
     return namespace
 
 
-def test_the_readme_snippets_for_other_libraries_run_and_say_what_they_measure() -> None:
-    """Issue 16, points 4 and 6: the README's snippets, as written, in one namespace; then what they claim."""
-    snippets = readme_snippets("In the package's environment")
+def test_the_snippets_for_other_libraries_run_and_say_what_they_measure() -> None:
+    """The libraries page's snippets, as written, in one namespace; then what they claim."""
+    snippets = page_snippets("In the package's environment")
     assert len(snippets) == 4
     namespace = run_snippets(snippets)
     assert namespace["rollout"]["next", "agent", "reward"].shape == (50, 6, 1)
@@ -126,7 +130,7 @@ def test_the_readme_snippets_for_other_libraries_run_and_say_what_they_measure()
 
 
 @pytest.mark.integrations
-def test_the_readme_snippets_for_rllib_and_video_recording_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_the_snippets_for_rllib_and_video_recording_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Issue 16, point 6, in ``make test-integrations``'s environment: RLlib trains one shared module for one
     iteration on the PettingZoo env, its wrapper renders, and SB3's ``VecVideoRecorder`` writes the episode's frames."""
     pytest.importorskip("ray.rllib", reason="RLlib is in the integrations extra: make test-integrations runs this")
@@ -136,7 +140,7 @@ def test_the_readme_snippets_for_rllib_and_video_recording_run(tmp_path: Path, m
     from ray.rllib.env.wrappers.pettingzoo_env import ParallelPettingZooEnv
 
     monkeypatch.chdir(tmp_path)  # the video goes to ./videos
-    rllib_snippet, video_snippet = readme_snippets("In a separate environment: RLlib and SB3's `VecVideoRecorder`")
+    rllib_snippet, video_snippet = page_snippets("In a separate environment: RLlib and SB3's `VecVideoRecorder`")
     try:
         namespace = run_snippets([rllib_snippet])
     finally:

@@ -1,6 +1,6 @@
 """The package's layers: each imports only from the layers below it, and the environment layer loads no learning stack.
 
-Layers, bottom to top: utils, env, controllers, runtime, sb3, experiment, viz, cli (``docs/design.md`` "Layers").
+Layers, bottom to top: utils, env, controllers, runtime, sb3, experiment, viz, cli (docs/contributing.md, "Layers").
 """
 
 from __future__ import annotations

@@ -50,7 +50,7 @@ def test_physics_and_observations_stay_in_bounds(task: str, n_agents: int, stage
             break
 
 
-#: The fuzz test's examples: bounded in ``make test``; a soak sets SB3_FORMATION_FUZZ_EXAMPLES (README "Guarantees").
+#: The fuzz test's examples: bounded in ``make test``; a soak sets SB3_FORMATION_FUZZ_EXAMPLES (docs/guarantees.md).
 FUZZ_EXAMPLES = int(os.environ.get("SB3_FORMATION_FUZZ_EXAMPLES", "40"))
 
 

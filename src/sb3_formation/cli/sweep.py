@@ -40,8 +40,8 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print("sb3-formation: sweep interrupted; run the same command again to finish it", file=sys.stderr)
         return 130
-    for seed, error in result.failed.items():
-        print(f"sb3-formation: trial seed {seed} failed: {error}", file=sys.stderr)
+    for seed, failure in result.failed.items():
+        print(f"sb3-formation: trial seed {seed} failed: {failure}", file=sys.stderr)
     curves = save_sweep_curves(result)
     if curves is not None:
         print(f"training curves: {curves}")

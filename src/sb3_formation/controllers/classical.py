@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from typing import Any, cast
 
 import numpy as np
 
@@ -80,7 +81,7 @@ class ClassicalController(Controller):
     :param gains: keyword values of :class:`ClassicalGains` (unknown names are an error)
     """
 
-    def __init__(self, config: FormationConfig, **gains: float) -> None:
+    def __init__(self, config: FormationConfig, **gains: Any) -> None:
         super().__init__(config)
         unknown = sorted(set(gains) - set(ClassicalGains.__dataclass_fields__))
         if unknown:
@@ -92,7 +93,7 @@ class ClassicalController(Controller):
         self._fit_task()
 
     def fit(self, config: FormationConfig) -> ClassicalController:
-        fitted = super().fit(config)
+        fitted = cast(ClassicalController, super().fit(config))  # Controller.fit returns a copy of self
         if fitted is not self:
             fitted._fit_task()
         return fitted

@@ -10,6 +10,7 @@ import os
 import platform
 import shutil
 from pathlib import Path
+from typing import cast
 
 import stable_baselines3
 import torch
@@ -71,7 +72,7 @@ def export_pretrained(
         export_onnx(shipped, folder / ONNX_FILE)
         result = evaluate(shipped, **{**protocol, "record": 0}, progress_bar=progress_bar)
         # the summary names the shipped model (its SHA-256), not the temporary folder it was evaluated in
-        result = dataclasses.replace(result, model={**result.model, "file": f"pretrained:{name}"})
+        result = dataclasses.replace(result, model={**cast("dict[str, str]", result.model), "file": f"pretrained:{name}"})
         result.save((folder / SUMMARY_PATH).parent)
         card = {
             "name": name,

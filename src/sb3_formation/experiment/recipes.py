@@ -22,7 +22,7 @@ import inspect
 import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from stable_baselines3 import PPO
 from stable_baselines3.common.type_aliases import Schedule
@@ -146,7 +146,7 @@ class Recipe:
         if self.env.get("task") not in TASKS:
             raise ValueError(f"{where}: env: task must be one of {sorted(TASKS)}, got {self.env.get('task')!r}")
         self.config()  # validates the env overrides
-        iterations = self.curriculum.get("iterations")
+        iterations: Any = self.curriculum.get("iterations")
         valid = isinstance(iterations, (list, tuple)) and len(iterations) == 3 and all(is_count(i) for i in iterations)
         if not valid or sum(iterations) < 1:
             raise ValueError(f"{where}: curriculum: iterations must be three integers >= 0, not all 0, got {iterations!r}")
@@ -182,11 +182,11 @@ class Recipe:
             raise ValueError(f"{where}: policy: recurrent must be true or false, team_critic true, false or unset")
         if self.policy.get("cell") is not None and not self.recurrent:
             raise ValueError(f"{where}: policy: cell {self.policy['cell']!r} applies to recurrent policies only")
-        valid = PPO_KEYS | ({"max_sequence_length"} if self.recurrent else set())
-        unknown = sorted(set(self.ppo) - valid)
+        valid_keys = PPO_KEYS | ({"max_sequence_length"} if self.recurrent else set())
+        unknown = sorted(set(self.ppo) - valid_keys)
         if unknown:
             hint = "; policy keyword arguments go under policy:" if "policy_kwargs" in unknown else ""
-            raise ValueError(f"{where}: unknown ppo settings {unknown}; valid: {sorted(valid)}{hint}")
+            raise ValueError(f"{where}: unknown ppo settings {unknown}; valid: {sorted(valid_keys)}{hint}")
         for name in ("learning_rate", "clip_range", "clip_range_vf"):
             if self.ppo.get(name) is not None:
                 schedule(self.ppo[name], f"{where}: ppo: {name}")
@@ -319,7 +319,7 @@ class Recipe:
     @property
     def iterations(self) -> tuple[int, int, int]:
         """The curriculum's iterations of stages 1, 2 and 3 (with a budget, their proportions)."""
-        return tuple(int(value) for value in self.curriculum["iterations"])
+        return cast("tuple[int, int, int]", tuple(int(value) for value in self.curriculum["iterations"]))  # three: validated
 
     @property
     def success_threshold(self) -> float | None:

@@ -1,4 +1,4 @@
-"""Evaluation summaries as Markdown tables (``sb3-formation compare``, ``sweep``, the README's result tables)."""
+"""Evaluation summaries as Markdown tables (``sb3-formation compare``, ``sweep``, the result tables of the docs)."""
 
 from __future__ import annotations
 

@@ -49,7 +49,7 @@ class PlayJob:
 
 def play_episodes(
     job: PlayJob,
-    on_episode: Callable[[], None] | None = None,
+    on_episode: Callable[[], object] | None = None,
     on_step: Callable[[TeamState, int], None] | None = None,
 ) -> tuple[list[dict[str, Any]], list[tuple[int, EpisodeRecorder, bool]]]:
     """Play ``job.episodes`` on ``job.n_envs`` teams; a team that ends an episode starts the next one left (teams in

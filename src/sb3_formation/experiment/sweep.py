@@ -17,7 +17,7 @@ import os
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -94,8 +94,8 @@ def aggregate(summaries: list[dict[str, Any]], over: str = "successful") -> dict
     rates = np.array([summary["success_rate"] for summary in summaries])
     table["success_rate"] = {"mean": float(rates.mean()), "std": float(rates.std()), "seeds": len(rates)}
     for name in EPISODE_METRICS:
-        values = [summary[f"{over}_episodes"][name]["mean"] for summary in summaries]
-        values = np.array([value for value in values if value is not None], dtype=np.float64)
+        means = [summary[f"{over}_episodes"][name]["mean"] for summary in summaries]
+        values = np.array([value for value in means if value is not None], dtype=np.float64)
         table[name] = (
             {"mean": float(values.mean()), "std": float(values.std()), "seeds": len(values)}
             if len(values)
@@ -115,8 +115,9 @@ def aggregate_markdown(name: str, tables: dict[str, dict[str, dict[str, float | 
             if mean is None:
                 cells.append("-")
             else:
+                sd = cast(float, std)  # a mean always comes with its std
                 cells.append(
-                    f"{mean:.1%} ± {std:.1%}" if metric == "success_rate" else f"{table_number(mean)} ± {table_number(std)}"
+                    f"{mean:.1%} ± {sd:.1%}" if metric == "success_rate" else f"{table_number(mean)} ± {table_number(sd)}"
                 )
         lines.append("| " + " | ".join(cells) + " |")
     return (

@@ -12,7 +12,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch as th
@@ -122,7 +122,7 @@ class CurriculumCallback(BaseCallback):
     @property
     def total_iterations(self) -> int | None:
         """Iterations of the whole curriculum (``None`` if its last stage is open-ended)."""
-        return None if self.iterations_per_stage[2] is None else sum(self.iterations_per_stage)
+        return None if self.iterations_per_stage[2] is None else sum(cast("Sequence[int]", self.iterations_per_stage))
 
     def state_dict(self) -> dict[str, Any]:
         """What a checkpoint must keep to resume the curriculum where it was."""
@@ -170,9 +170,10 @@ class CurriculumCallback(BaseCallback):
             self._next_stage(reason)
 
     def _stage_done(self) -> bool:
-        if self.time_shares is None:
-            return self.stage_iteration >= self.iterations_per_stage[self.stage - 1]
-        return self.clock.seconds >= self.time_shares[self.stage - 1] * self.clock.budget
+        if self.time_shares is None:  # stages of counted iterations (an open-ended stage 3 is never done)
+            return self.stage_iteration >= cast(int, self.iterations_per_stage[self.stage - 1])
+        clock = cast(TrainingClock, self.clock)  # time shares come with a clock
+        return clock.seconds >= self.time_shares[self.stage - 1] * cast(float, clock.budget)
 
     def _next_stage(self, reason: str) -> None:
         self.stage += 1

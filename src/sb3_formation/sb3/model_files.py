@@ -152,7 +152,7 @@ def policy_class_of(data: dict[str, Any]) -> type[BasePolicy] | None:
     return POLICY_CLASSES.get(policy_class_name(data) or "")
 
 
-def algorithm_for(policy: type) -> type[PPO]:
+def algorithm_for(policy: type | None) -> type[PPO]:
     """The PPO class that trains ``policy``: :class:`RecurrentFormationPPO` for a recurrent policy, else SB3's ``PPO``."""
     return RecurrentFormationPPO if isinstance(policy, type) and issubclass(policy, RecurrentFormationPolicy) else PPO
 
@@ -187,7 +187,7 @@ def _schedule_from_node(node: ast.AST) -> Schedule | None:
     if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in SCHEDULES):
         return None
     arguments = [_schedule_from_node(item) or ast.literal_eval(item) for item in node.args]
-    keywords = {}
+    keywords: dict[str, Any] = {}
     for keyword in node.keywords:
         values = ast.literal_eval(keyword.value)
         keywords.update(values if keyword.arg is None else {keyword.arg: values})
@@ -257,7 +257,9 @@ def load_model(path: Path, device: str = "auto", trusted: bool | None = None, en
     config = recorded_config(path, data)
     policy_class = policy_class_of(data)
     kwargs = data.get("policy_kwargs", {})
-    model = algorithm_for(policy_class)(policy=policy_class, env=None, device=device, _init_setup_model=False)
+    # SB3 builds an algorithm without an env when _init_setup_model is False, and unreadable_settings has checked the
+    # policy class; SB3's annotations ask for an env and an ActorCriticPolicy class
+    model = algorithm_for(policy_class)(policy=policy_class, env=None, device=device, _init_setup_model=False)  # type: ignore[arg-type]
     model.__dict__.update(
         {name: value for name, value in data.items() if name not in CONSTRUCTED and not is_serialized(value)}
     )

@@ -21,9 +21,11 @@ class ModeOnChange:
     mode is read from the policy itself, which ``train(mode)`` sets together with its sub-modules.
     """
 
+    training: bool  # the torch module's flag, in the policy class this is mixed into
+
     def set_training_mode(self, mode: bool) -> None:
         if mode != self.training:
-            super().set_training_mode(mode)
+            super().set_training_mode(mode)  # type: ignore[misc]  # SB3's BasePolicy, after this mixin in the MRO
 
 
 def mlp(input_dim: int, widths: list[int], activation_fn: type[nn.Module]) -> tuple[nn.Sequential, int]:

@@ -17,7 +17,7 @@ from __future__ import annotations
 import os
 from copy import deepcopy
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from gymnasium import spaces
@@ -69,8 +69,11 @@ class ScaleNormalizeVecEnv(VecNormalize):
         bound, which slows supervised fitting of the actor)
     """
 
-    obs_rms: RunningMeanStd
-    old_obs: np.ndarray | None
+    # Observations are arrays here, never the dicts of observations SB3's VecNormalize also accepts; clip_obs may be
+    # None (no clipping), which VecNormalize does not offer.
+    obs_rms: RunningMeanStd  # type: ignore[assignment]
+    old_obs: np.ndarray | None  # type: ignore[assignment]
+    clip_obs: float | None  # type: ignore[assignment]
 
     def __init__(
         self,
@@ -143,7 +146,7 @@ class ScaleNormalizeVecEnv(VecNormalize):
         if own.shape[0] > 0:
             self.obs_rms.update(own)
 
-    def normalize_obs(self, obs: np.ndarray) -> np.ndarray:
+    def normalize_obs(self, obs: np.ndarray) -> np.ndarray:  # type: ignore[override]  # arrays only, as above
         """
         Normalise observations with the current statistics, without updating them.
 
@@ -158,7 +161,7 @@ class ScaleNormalizeVecEnv(VecNormalize):
         state |= {"binary_mask": self.binary_mask, "center": self.center}
         return scale_observations(obs, observation_scale(state), self.clip_obs, observation_offset(state))
 
-    def unnormalize_obs(self, obs: np.ndarray) -> np.ndarray:
+    def unnormalize_obs(self, obs: np.ndarray) -> np.ndarray:  # type: ignore[override]  # arrays only, as above
         """
         Undo :meth:`normalize_obs` (up to clipping) with the current statistics.
 
@@ -287,7 +290,7 @@ class ScaleNormalizeVecEnv(VecNormalize):
         :param save_path: the path to save to; its folder must exist
         """
         with atomic_path(save_path) as temporary, open(temporary, "wb") as stream:
-            np.savez(stream, **self.state_dict())
+            np.savez(stream, **cast("dict[str, Any]", self.state_dict()))  # numpy's stubs read the keys as options
 
     @staticmethod
     def load(

@@ -17,12 +17,12 @@ from __future__ import annotations
 
 import math
 import numbers
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.distributions import Distribution
+from stable_baselines3.common.distributions import DiagGaussianDistribution, Distribution
 from stable_baselines3.common.policies import ActorCriticPolicy, BasePolicy
 from stable_baselines3.common.type_aliases import Schedule
 from stable_baselines3.common.utils import get_device
@@ -227,7 +227,8 @@ class FormationPolicy(ModeOnChange, ActorCriticPolicy):
 
     def _get_action_dist_from_latent(self, latent_pi: th.Tensor) -> Distribution:
         """Gaussian with mean :meth:`_mean_actions` and the (fixed or learned) ``log_std``."""
-        return gaussian_actions(self.action_dist, self._mean_actions(latent_pi), self.log_std)
+        gaussian = cast(DiagGaussianDistribution, self.action_dist)  # the action space is a Box
+        return gaussian_actions(gaussian, self._mean_actions(latent_pi), self.log_std)
 
     def deterministic_actions(self, observations: np.ndarray) -> np.ndarray:
         """What ``predict(observations, deterministic=True)`` returns, the same numbers, without building the action
@@ -240,6 +241,7 @@ class FormationPolicy(ModeOnChange, ActorCriticPolicy):
         tensor, _ = self.obs_to_tensor(observations)
         with th.no_grad():
             features = BasePolicy.extract_features(self, tensor, self.pi_features_extractor)
-            actions = self._mean_actions(self.mlp_extractor.forward_actor(features))
-        actions = actions.cpu().numpy().reshape((-1, *self.action_space.shape))
-        return np.clip(actions, self.action_space.low, self.action_space.high)
+            means = self._mean_actions(self.mlp_extractor.forward_actor(features))
+        box = cast(spaces.Box, self.action_space)
+        actions = means.cpu().numpy().reshape((-1, *box.shape))
+        return np.clip(actions, box.low, box.high)

@@ -9,7 +9,7 @@ stepped by :class:`~sb3_formation.env.blocks.EngineBlocks` (the engine, in one o
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, cast
 
 import gymnasium
 import numpy as np
@@ -127,7 +127,7 @@ class FormationVecEnv(VecEnv):
         self._actions = self.checked_actions(actions)
 
     def step_wait(self) -> VecEnvStepReturn:
-        step = self.blocks.step(self._actions)
+        step = self.blocks.step(cast(np.ndarray, self._actions))  # set by step_async
         infos = agent_infos(step.info_values, step.contacts, step.success)
         for ended in step.episodes:
             slot = ended.first_slot

@@ -22,7 +22,7 @@ import time
 from collections.abc import Callable, Sequence
 from multiprocessing import shared_memory
 from multiprocessing.connection import Connection, wait
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeAlias, cast
 
 import cloudpickle
 import numpy as np
@@ -36,11 +36,19 @@ MAIN_GUARD_HINT = (
 )
 
 
-def worker_context(start_method: str | None = None) -> multiprocessing.context.BaseContext:
+if TYPE_CHECKING:
+    #: The contexts :func:`worker_context` returns: those that can start a ``Process`` (typeshed's ``BaseContext`` has
+    #: no ``Process``).
+    WorkerContext: TypeAlias = (
+        multiprocessing.context.ForkServerContext | multiprocessing.context.SpawnContext | multiprocessing.context.ForkContext
+    )
+
+
+def worker_context(start_method: str | None = None) -> WorkerContext:
     """The multiprocessing context for workers: ``start_method``, else ``forkserver`` where available, else ``spawn``."""
     if start_method is None:
         start_method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
-    return multiprocessing.get_context(start_method)
+    return cast("WorkerContext", multiprocessing.get_context(start_method))
 
 
 def _ready(remotes: list[Connection], spin: float) -> list[Connection]:
@@ -51,9 +59,9 @@ def _ready(remotes: list[Connection], spin: float) -> list[Connection]:
         while time.perf_counter() < deadline:
             ready = wait(remotes, 0.0)
             if ready:
-                return ready
+                return cast("list[Connection]", ready)
             os.sched_yield()  # let a process that has work run on this core
-    return wait(remotes)
+    return cast("list[Connection]", wait(remotes))
 
 
 def _serve(remote: Connection, parent_remote: Connection, payload: bytes, spin: float) -> None:  # pragma: no cover
@@ -118,7 +126,7 @@ class WorkerProcess:
         factory: Callable[..., Any],
         arguments: Sequence[Any] = (),
         name: str = "worker",
-        context: multiprocessing.context.BaseContext | None = None,
+        context: WorkerContext | None = None,
         spin: float = 0.0,
     ) -> None:
         if getattr(multiprocessing.current_process(), "_inheriting", False):  # importing the parent's script
@@ -231,8 +239,8 @@ def wait_started(workers: Sequence[WorkerProcess], spin: float = 0.0) -> None:
     """Return once every worker has built its object (they start side by side).
 
     :param spin: seconds to poll for each reply before sleeping on the pipes
-    :raises: the first worker's error in building its object; ``RuntimeError`` for a worker that died starting (with
-        a word on the ``__main__`` guard)
+    :raises Exception: the first worker's error in building its object
+    :raises RuntimeError: a worker died starting (the message has a word on the ``__main__`` guard)
     """
     pending = {worker.remote: index for index, worker in enumerate(workers) if not worker.started}
     while pending:
@@ -271,14 +279,14 @@ class SharedArrays:
         self._memory = shared_memory.SharedMemory(name=name, create=self._owner, size=max(end, 1) if self._owner else 0)
         # frombuffer views hold the block's buffer, so the block stays mapped while any view lives
         self.arrays = {
-            key: np.frombuffer(self._memory.buf, dtype, int(np.prod(shape)), offsets[key]).reshape(shape)
+            key: np.frombuffer(cast(memoryview, self._memory.buf), dtype, int(np.prod(shape)), offsets[key]).reshape(shape)
             for key, (shape, dtype) in self.layout.items()
         }
 
     def __getitem__(self, key: str) -> np.ndarray:
         return self.arrays[key]
 
-    def __reduce__(self) -> tuple[type, tuple]:
+    def __reduce__(self) -> tuple[type[SharedArrays], tuple[Any, ...]]:
         return SharedArrays, (self.layout, self._memory.name)
 
     def unlink(self) -> None:

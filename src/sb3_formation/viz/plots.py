@@ -27,7 +27,7 @@ from sb3_formation.sb3.metrics import EPISODE_METRICS, SUCCESS_RATE_TAG
 from sb3_formation.utils.files import atomic_files
 
 #: Colours of agents (agent i: colour i mod 10) and of policies or recipes in comparisons: matplotlib's tab10.
-COLOURS: tuple[tuple[float, float, float], ...] = tuple(tuple(channel / 255 for channel in rgb) for rgb in AGENT_COLOURS)
+COLOURS: tuple[tuple[float, float, float], ...] = tuple((r / 255, g / 255, b / 255) for r, g, b in AGENT_COLOURS)
 #: TensorBoard scalar tag -> name of the curve returned by :func:`load_training_curves`.
 TRAINING_SCALARS: dict[str, str] = {"rollout/ep_rew_mean": "episode_reward", SUCCESS_RATE_TAG: "success_rate"}
 #: Curve name -> y-axis label in :func:`plot_training_curves`.
@@ -237,7 +237,7 @@ def plot_evaluation_bars(summaries: Mapping[str, dict], over: str = "successful"
                 ax.text(position, 0.0, missing, rotation=90, ha="center", va="bottom", fontsize="x-small", color="dimgray")
                 continue
             yerr = None if std is None else [[std], [std]]
-            ax.bar(position, mean, yerr=yerr, color=_colour(position), capsize=3, width=0.7, label=policy)
+            ax.bar(position, mean, yerr=yerr, color=_colour(int(position)), capsize=3, width=0.7, label=policy)
         title, ylabel = EPISODE_METRICS[name].title, EPISODE_METRICS[name].axis
         ax.set_ylim(bottom=0.0)  # every metric is >= 0
         ax.set_title(title)
@@ -247,7 +247,7 @@ def plot_evaluation_bars(summaries: Mapping[str, dict], over: str = "successful"
         rate = float(_summary_value(summaries, policy, "success_rate"))
         low, high = (float(bound) for bound in _summary_value(summaries, policy, "success_rate_ci95"))
         yerr = [[max(rate - low, 0.0)], [max(high - rate, 0.0)]]
-        ax.bar(position, rate, yerr=yerr, color=_colour(position), capsize=3, width=0.7, label=policy)
+        ax.bar(position, rate, yerr=yerr, color=_colour(int(position)), capsize=3, width=0.7, label=policy)
     ax.set_ylim(0.0, 1.05)
     ax.set_title("success rate (95 % CI)")
     ax.set_ylabel("success rate")

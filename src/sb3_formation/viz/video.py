@@ -16,7 +16,7 @@ import os
 import subprocess
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import IO, Any, cast
 
 import numpy as np
 import torch
@@ -141,11 +141,12 @@ class _Mp4Stream:
         h264 = ["-c:v", "libx264", "-pix_fmt", "yuv420p", "-crf", str(crf), "-movflags", "+faststart"]
         command = [imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-v", "error", *raw, "-i", "-", "-an", *h264, str(path)]
         self.process = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL)
+        self.stdin = cast(IO[bytes], self.process.stdin)  # a pipe (stdin=PIPE), never None
 
     def write(self, frame: np.ndarray) -> None:
         frame = np.pad(frame, self.pad, mode="edge") if any(after for _, after in self.pad) else frame
         try:
-            self.process.stdin.write(np.ascontiguousarray(frame).data)
+            self.stdin.write(np.ascontiguousarray(frame).data)
         except OSError:  # a broken pipe: ffmpeg stopped
             status = self.process.wait()
             raise RuntimeError(f"ffmpeg stopped writing {self.target} (exit status {status}; its message is above)") from None
@@ -156,7 +157,7 @@ class _Mp4Stream:
         :raises RuntimeError: ffmpeg failed (e.g. a full disk); its message is on stderr
         """
         with contextlib.suppress(OSError):  # a broken pipe: the exit status tells
-            self.process.stdin.close()
+            self.stdin.close()
         status = self.process.wait()
         if status != 0:
             raise RuntimeError(f"ffmpeg failed writing {self.target} (exit status {status}; its message is above)")
@@ -165,7 +166,7 @@ class _Mp4Stream:
         """Stop ffmpeg without finishing the file."""
         self.process.kill()
         with contextlib.suppress(OSError):
-            self.process.stdin.close()
+            self.stdin.close()
         self.process.wait()
 
 
@@ -236,7 +237,8 @@ class VideoWriter:
             else:
                 self._stream = _Mp4Stream(self._temporary, size, self.fps, self.crf, self.path)
         elif size != self.size:
-            raise ValueError(f"frame {self.frames} is {size[0]}x{size[1]} px, the first was {self.size[0]}x{self.size[1]}")
+            first = cast("tuple[int, int]", self.size)  # set with the stream
+            raise ValueError(f"frame {self.frames} is {size[0]}x{size[1]} px, the first was {first[0]}x{first[1]}")
         self._stream.write(frame)
         self.frames += 1
 

@@ -29,11 +29,11 @@ class SequenceBatch(NamedTuple):
 class SequenceLayout(NamedTuple):
     """How a rollout of ``T`` steps and ``N`` slots splits into sequences (slot-major: slot 0's sequences first).
 
-    :param sequence: ``(N * T,)`` sequence of each step, steps in slot-major order (index ``slot * T + t``)
-    :param position: ``(N * T,)`` position of each step within its sequence
-    :param lengths: ``(S,)`` sequence lengths
-    :param slots: ``(S,)`` slot of each sequence
-    :param first_steps: ``(S,)`` time step at which each sequence starts
+    :ivar sequence: ``(N * T,)`` sequence of each step, steps in slot-major order (index ``slot * T + t``)
+    :ivar position: ``(N * T,)`` position of each step within its sequence
+    :ivar lengths: ``(S,)`` sequence lengths
+    :ivar slots: ``(S,)`` slot of each sequence
+    :ivar first_steps: ``(S,)`` time step at which each sequence starts
     """
 
     sequence: np.ndarray
