@@ -23,7 +23,7 @@ ROOT = Path(__file__).parents[1]
 README = ROOT / "README.md"
 DOCS = ROOT / "docs"
 #: Pages whose ```python blocks run here, as written (the libraries page's run in tests/test_integrations.py).
-RUN_PAGES = [README, DOCS / "getting-started.md", DOCS / "environment.md", DOCS / "evaluation.md"]
+RUN_PAGES = [README, DOCS / "getting-started.md", DOCS / "environment.md", DOCS / "scenes.md", DOCS / "evaluation.md"]
 #: Modules without an API section: the deprecated alias of experiment.recipes and the ``python -m`` entry point.
 NOT_IN_API = {"sb3_formation.experiment.setups", "sb3_formation.cli.__main__"}
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from typing import cast
 
 import numpy as np
 
@@ -99,7 +100,7 @@ class PrivilegedPlanner(Controller):
         self.plans: dict[int, TeamPlan] = {}
 
     def fit(self, config: FormationConfig) -> PrivilegedPlanner:
-        fitted = super().fit(config)
+        fitted = cast(PrivilegedPlanner, super().fit(config))  # Controller.fit returns a copy of self
         if fitted is not self:
             fitted.plans = {}
         return fitted

@@ -76,10 +76,10 @@ class Trajectories:
     collisions_obstacle: np.ndarray
     collisions_agent: np.ndarray
     goal_distance: np.ndarray
-    walls: np.ndarray | None = None
+    walls: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0, 5)))
 
     def __post_init__(self) -> None:
-        if self.walls is None:
+        if len(self.walls) != len(self.episodes):  # a file written before walls existed: none
             self.walls = np.zeros((len(self.episodes), 0, 5))
 
     def __len__(self) -> int:
