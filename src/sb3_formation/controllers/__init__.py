@@ -9,6 +9,7 @@ from sb3_formation.controllers.base import Controller, TeamPolicy
 from sb3_formation.controllers.classical import ClassicalController, ClassicalGains
 from sb3_formation.controllers.planner import PlannerGains, PrivilegedPlanner
 from sb3_formation.controllers.random import RandomController
+from sb3_formation.controllers.shrinking import ShrinkingController, ShrinkingGains
 from sb3_formation.env.config import FormationConfig
 
 #: Controllers by name: ``controller:<name>`` on the command line, :func:`sb3_formation.load_policy` in Python.
@@ -16,6 +17,7 @@ CONTROLLERS: dict[str, type[Controller]] = {
     "classical": ClassicalController,
     "random": RandomController,
     "privileged-planner": PrivilegedPlanner,
+    "shrinking": ShrinkingController,
 }
 
 
@@ -43,6 +45,8 @@ __all__ = [
     "PlannerGains",
     "PrivilegedPlanner",
     "RandomController",
+    "ShrinkingController",
+    "ShrinkingGains",
     "TeamPolicy",
     "controller_from_spec",
 ]

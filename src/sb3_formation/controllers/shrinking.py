@@ -1,0 +1,284 @@
+"""The shrinking controller: a decentralised formation that shrinks to the free space it sees and follows obstacles
+on a side the whole team agrees on, without communication.
+
+Every agent acts from its own observation row (Table 3.1), its index i and the config, plus its own memory of its
+own past observations (the ``state`` of :meth:`ShrinkingController.predict`, reset on ``episode_start``). Agreement
+comes from values every agent of a team observes identically: the centroid-goal offset c_g and its change
+Delta c_g. Each agent knows its own offset from the centroid, o_i = p_i - p_c = c_g - d_g.
+
+- **Team heading** (shared memory). The centroid moves at ``v_c = V R(sigma phi) c_g / |c_g|``, V = k_goal v_max:
+  the goal direction turned by phi >= 0 to the side sigma in {-1, +1}. The team's progress along the last heading
+  h, ``P <- (1 - a) P + a (-Delta c_g . h) / (V dt)``, acts as a bump sensor: while P < p_block (blocked) the
+  heading turns away, ``phi <- phi + omega_block``; while free it turns back, ``phi <- max(phi - omega_free, 0)``.
+  The team so follows an obstacle's boundary on the side sigma and leaves it where the way to the goal is free.
+  When a detour starts (phi leaves 0), sigma is the side the centroid drifts to,
+  ``sigma = sign(c_g x (-Delta c_g))`` (its running mean; +1 on a tie), and the anchor ``d_a = |c_g|`` is kept; the
+  side flips (sigma <- -sigma, d_a <- |c_g|) when the detour leads away from the goal, ``|c_g| > d_a + D_flip``, or
+  turns past phi_max (a dead end). Every input is shared, so every agent holds the same phi, sigma and d_a.
+- **Scale** (per agent, agreed with the neighbours). From the obstacle lidar's gaps g_k (m): the proximity scale
+  ``s_p = s_min + (1 - s_min) clip((min_k g_k - g_lo) / (g_hi - g_lo), 0, 1)`` and the width scale
+  ``s_w = (w / 2 - R_a - m_w) / r_0`` with ``w = min_k (g_k + g_{k+b/2} + 2 R_a)`` over opposite rays that both see
+  something (the width of the opening the agent stands in); the neighbours' scale is what their distances show,
+  ``s_n = min_j |d_j| / L + delta``. Then ``s_i <- clip(min(s_p, s_w, s_n, s_i + rho), s_min, 1)``: a neighbour that
+  shrinks pulls the side in and the whole ring follows; the team grows back by at most rho per step.
+  ``s_min = (2 R_a + gap_min) / L``.
+- **Agent command**: ``v_i = v_c + k_place (s_i r_0 u_i - o_i) + k_obstacle F_lidar(g; s_0) + k_agent (F_agents +
+  F_neighbours)``, with u_i the unit vertex i of the reference n-gon, r_0 and L the starting circumradius and side,
+  F the 1/s - 1/s_0 lidar repulsion of :mod:`~sb3_formation.controllers.classical` (obstacles within s_0, other
+  agents within l_s) and ``F_neighbours`` pushing from a neighbour whose surface gap is below ``neighbour_range``.
+  The placement terms sum to zero over a team, so the centroid moves at v_c plus the mean of the repulsions.
+- **Actuation**: :func:`~sb3_formation.controllers.classical.force_action`, ``F = m (v* - v) / dt``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any, cast
+
+import numpy as np
+
+from sb3_formation.controllers.base import Controller
+from sb3_formation.controllers.classical import MIN_GAP, force_action, lidar_repulsion, unit
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.geometry import reference_polygon
+from sb3_formation.env.sensors import ray_directions
+from sb3_formation.utils.checks import is_number
+
+#: Columns of one agent's memory (a row of the ``state`` array of :meth:`ShrinkingController.predict`).
+MEMORY_FIELDS = ("phi", "sigma", "anchor", "scale", "progress", "lateral", "heading_x", "heading_y", "started")
+_PHI, _SIGMA, _ANCHOR, _SCALE, _PROGRESS, _LATERAL, _HX, _HY, _STARTED = range(len(MEMORY_FIELDS))
+
+
+@dataclass(frozen=True)
+class ShrinkingGains:
+    """Gains of :class:`ShrinkingController` (see the module docstring); defaults tuned on seeds 0-39 of every family
+    and of stage 3, teams of 4, 6 and 8, apart from the benchmark's seeds.
+
+    :param k_goal: team speed V as a fraction of v_max
+    :param k_place: gain (1/s) from the distance to the agent's place in the formation to its speed
+    :param k_obstacle: obstacle and wall repulsion (m^2/s per radian of rays)
+    :param k_agent: repulsion of other agents (lidar) and of close neighbours (m^2/s)
+    :param repulsion_range: reach s_0 (m) of the obstacle repulsion
+    :param neighbour_range: reach (m) of a neighbour's repulsion, surface to surface
+    :param progress_rate: a, the weight of the last step in the running progress P
+    :param block_progress: p_block: the team is blocked while P is below this fraction of V dt
+    :param turn_block_deg: omega_block (deg per step), the heading's turn away while blocked
+    :param turn_free_deg: omega_free (deg per step), its turn back while free
+    :param max_turn_deg: phi_max (deg): turning further is a dead end, the side flips
+    :param flip_distance: D_flip (m): a detour that takes the centroid this much further from the goal flips side
+    :param gap_low: g_lo (m): an obstacle this close shrinks the agent's scale to s_min
+    :param gap_high: g_hi (m): an obstacle farther than this does not shrink it
+    :param width_margin: m_w (m): room each side of the formation in an opening
+    :param min_side_gap: gap_min (m): the smallest formation's neighbours keep this much room between surfaces
+    :param scale_slack: delta: a scale at most this much above what the neighbours' distances show
+    :param scale_relax: rho: the most the scale grows per step
+    """
+
+    k_goal: float = 0.9
+    k_place: float = 0.3
+    k_obstacle: float = 0.004
+    k_agent: float = 0.002
+    repulsion_range: float = 0.4
+    neighbour_range: float = 0.15
+    progress_rate: float = 0.1
+    block_progress: float = 0.5
+    turn_block_deg: float = 1.0
+    turn_free_deg: float = 0.5
+    max_turn_deg: float = 200.0
+    flip_distance: float = 4.0
+    gap_low: float = 0.2
+    gap_high: float = 0.8
+    width_margin: float = 0.05
+    min_side_gap: float = 0.1
+    scale_slack: float = 0.05
+    scale_relax: float = 0.002
+
+    def __post_init__(self) -> None:
+        for name, value in asdict(self).items():
+            if not (is_number(value) and value >= 0):
+                raise ValueError(f"ShrinkingGains.{name}={value!r} is invalid: it must be a finite number >= 0")
+        if self.gap_high <= self.gap_low:
+            raise ValueError(f"ShrinkingGains.gap_high={self.gap_high!r} must exceed gap_low={self.gap_low!r}")
+        if not 0 < self.progress_rate <= 1:
+            raise ValueError(f"ShrinkingGains.progress_rate={self.progress_rate!r} must lie in (0, 1]")
+
+
+class ShrinkingController(Controller):
+    """A formation that shrinks to the free space and follows obstacles on an agreed side (see the module docstring),
+    decentralised, with a memory per agent of its own past observations.
+
+    :meth:`predict` takes and returns the memory as SB3's ``state``: a float array ``(k, len(MEMORY_FIELDS))``, one
+    row per observation row, reset where ``episode_start`` is true (or when ``state`` is ``None``).
+    :meth:`act` without memory acts as on the first step of an episode.
+
+    :param config: the task configuration
+    :param gains: keyword values of :class:`ShrinkingGains`
+    """
+
+    def __init__(self, config: FormationConfig, **gains: Any) -> None:
+        super().__init__(config)
+        unknown = sorted(set(gains) - set(ShrinkingGains.__dataclass_fields__))
+        if unknown:
+            raise ValueError(
+                f"unknown gains {unknown} of the shrinking controller; gains: {list(ShrinkingGains.__dataclass_fields__)}"
+            )
+        self.settings = ShrinkingGains(**gains)
+        self.gains = asdict(self.settings)
+        self._fit_task()
+
+    def fit(self, config: FormationConfig) -> ShrinkingController:
+        fitted = cast(ShrinkingController, super().fit(config))
+        if fitted is not self:
+            fitted._fit_task()
+        return fitted
+
+    def _fit_task(self) -> None:
+        config = self.config
+        self.side_length = config.start_side_length
+        self.circumradius = config.start_circumradius
+        self.vertices = reference_polygon(config.n_agents, 1.0)
+        self.directions = ray_directions(config.lidar_rays)
+        self.min_scale = min(1.0, (2 * config.agent_radius + self.settings.min_side_gap) / self.side_length)
+
+    # Memory ------------------------------------------------------------------------------------------------------
+
+    def initial_memory(self, rows: int) -> np.ndarray:
+        """The memory of ``rows`` agents at the start of an episode: heading on the goal, full scale, progress free."""
+        memory = np.zeros((rows, len(MEMORY_FIELDS)))
+        memory[:, _SCALE] = 1.0
+        memory[:, _PROGRESS] = 1.0
+        return memory
+
+    def predict(
+        self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """SB3's signature: actions for every row (row k: agent k % n), and the agents' memory as the next state."""
+        observation = np.asarray(observation, dtype=np.float64)
+        rows = observation.reshape(-1, observation.shape[-1])
+        memory = self.initial_memory(len(rows))
+        if state is not None:
+            memory = np.array(state, dtype=np.float64).reshape(len(rows), len(MEMORY_FIELDS))
+            if episode_start is not None:
+                starts = np.asarray(episode_start, dtype=bool).reshape(-1)
+                memory[starts] = self.initial_memory(int(starts.sum()))
+        agents = np.arange(len(rows)) % self.config.n_agents
+        actions, memory = self.step(rows, agents, memory)
+        actions = np.clip(actions, -1.0, 1.0).astype(np.float32)
+        return actions.reshape(*observation.shape[:-1], 2), memory
+
+    def act(self, observations: np.ndarray, agents: np.ndarray, deterministic: bool) -> np.ndarray:
+        return self.step(observations, agents, self.initial_memory(len(observations)))[0]
+
+    def step(self, observations: np.ndarray, agents: np.ndarray, memory: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Actions ``(k, 2)`` and the next memory for rows of agents with their memory (``(k, len(MEMORY_FIELDS))``).
+
+        :param observations: ``(k, obs_dim)`` raw observations
+        :param agents: ``(k,)`` each row's agent index in its team
+        :param memory: ``(k, len(MEMORY_FIELDS))`` each agent's memory (not changed)
+        """
+        layout, gains, config = self.layout, self.settings, self.config
+        memory = memory.copy()
+        heading = self.team_heading(
+            observations[:, layout["centroid_goal_offset"]], observations[:, layout["centroid_goal_offset_change"]], memory
+        )
+        obstacles = observations[:, layout["lidar_obstacles"]]
+        offsets = observations[:, layout["neighbour_offsets"]].reshape(-1, 2, 2)
+        memory[:, _SCALE] = self.agreed_scale(obstacles, offsets, memory[:, _SCALE])
+        own = observations[:, layout["centroid_goal_offset"]] - observations[:, layout["goal_offset"]]
+        places = memory[:, _SCALE, None] * self.circumradius * self.vertices[agents]
+        velocity = gains.k_goal * config.v_max * heading + gains.k_place * (places - own)
+        velocity += gains.k_obstacle * lidar_repulsion(obstacles, config, self.directions, gains.repulsion_range)
+        velocity += gains.k_agent * lidar_repulsion(observations[:, layout["lidar_agents"]], config, self.directions)
+        velocity += gains.k_agent * close_neighbour_repulsion(offsets, config.agent_radius, gains.neighbour_range)
+        return force_action(velocity, observations[:, layout["velocity"]], config), memory
+
+    # Parts -------------------------------------------------------------------------------------------------------
+
+    def team_heading(self, goal: np.ndarray, goal_change: np.ndarray, memory: np.ndarray) -> np.ndarray:
+        """The unit heading of the centroid, updating the shared part of ``memory`` in place (phi, sigma, anchor,
+        progress, lateral drift, last heading) from the shared c_g and Delta c_g only.
+
+        :param goal: ``(k, 2)`` centroid-to-goal offsets c_g (m)
+        :param goal_change: ``(k, 2)`` their change over the last step (m)
+        :param memory: ``(k, len(MEMORY_FIELDS))`` memories, updated
+        """
+        gains, config = self.settings, self.config
+        step_length = max(gains.k_goal * config.v_max * config.dt, 1e-300)
+        direction = unit(goal)
+        distance = np.linalg.norm(goal, axis=1)
+        moved = -goal_change
+        started = memory[:, _STARTED] > 0
+        last = memory[:, [_HX, _HY]]
+        progress = (moved * last).sum(axis=1) / step_length
+        lateral = (direction[:, 0] * moved[:, 1] - direction[:, 1] * moved[:, 0]) / step_length
+        rate = gains.progress_rate
+        memory[:, _PROGRESS] = np.where(started, (1 - rate) * memory[:, _PROGRESS] + rate * progress, memory[:, _PROGRESS])
+        memory[:, _LATERAL] = np.where(started, (1 - rate) * memory[:, _LATERAL] + rate * lateral, memory[:, _LATERAL])
+        blocked = started & (memory[:, _PROGRESS] < gains.block_progress)
+        phi, sigma, anchor = memory[:, _PHI], memory[:, _SIGMA], memory[:, _ANCHOR]
+        begins = blocked & (phi <= 0)
+        side = np.where(memory[:, _LATERAL] < 0, -1.0, 1.0)
+        sigma[:] = np.where(begins, side, sigma)
+        anchor[:] = np.where(begins, distance, anchor)
+        turn_block, turn_free = math.radians(gains.turn_block_deg), math.radians(gains.turn_free_deg)
+        phi[:] = np.where(blocked, phi + turn_block, np.maximum(phi - turn_free, 0.0))
+        flips = (phi > 0) & ((distance > anchor + gains.flip_distance) | (phi > math.radians(gains.max_turn_deg)))
+        phi[:] = np.where(flips, np.abs(math.pi - phi), phi)  # turned by pi: the team goes back the way it came
+        sigma[:] = np.where(flips, -sigma, sigma)
+        anchor[:] = np.where(flips, distance, anchor)
+        heading = rotate(direction, np.where(phi > 0, sigma, 0.0) * phi)
+        memory[:, [_HX, _HY]] = heading
+        memory[:, _STARTED] = 1.0
+        return heading
+
+    def agreed_scale(self, obstacles: np.ndarray, offsets: np.ndarray, previous: np.ndarray) -> np.ndarray:
+        """Each agent's formation scale: the least of what its obstacle lidar allows (:meth:`lidar_scale`), what its
+        neighbours' distances show plus delta, and its last scale plus rho, within [s_min, 1].
+
+        :param obstacles: ``(k, rays)`` obstacle lidar readings (fractions of the range)
+        :param offsets: ``(k, 2, 2)`` neighbour offsets (m)
+        :param previous: ``(k,)`` the agents' last scales
+        """
+        gains = self.settings
+        neighbours = np.linalg.norm(offsets, axis=-1).min(axis=1) / self.side_length + gains.scale_slack
+        scale = np.minimum(np.minimum(self.lidar_scale(obstacles), neighbours), previous + gains.scale_relax)
+        return np.clip(scale, self.min_scale, 1.0)
+
+    def lidar_scale(self, obstacles: np.ndarray) -> np.ndarray:
+        """The scale the obstacle lidar allows: the least of the proximity scale s_p and the width scale s_w.
+
+        :param obstacles: ``(k, rays)`` obstacle lidar readings (fractions of the range)
+        """
+        gains, config = self.settings, self.config
+        gaps = obstacles * config.lidar_range
+        nearest = gaps.min(axis=1)
+        proximity = self.min_scale + (1 - self.min_scale) * np.clip(
+            (nearest - gains.gap_low) / (gains.gap_high - gains.gap_low), 0.0, 1.0
+        )
+        half = gaps.shape[1] // 2
+        seen = obstacles < 1.0
+        both = seen[:, :half] & seen[:, half : 2 * half]
+        widths = np.where(both, gaps[:, :half] + gaps[:, half : 2 * half], np.inf).min(axis=1) + 2 * config.agent_radius
+        width = (widths / 2 - config.agent_radius - gains.width_margin) / self.circumradius
+        return np.minimum(proximity, width)
+
+
+def rotate(vectors: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """Rows of ``vectors`` turned anti-clockwise by ``angles`` (rad)."""
+    cos, sin = np.cos(angles), np.sin(angles)
+    return np.stack([cos * vectors[:, 0] - sin * vectors[:, 1], sin * vectors[:, 0] + cos * vectors[:, 1]], axis=1)
+
+
+def close_neighbour_repulsion(offsets: np.ndarray, agent_radius: float, reach: float) -> np.ndarray:
+    """Push ``(1/s - 1/reach)`` away from each designated neighbour whose surface gap s is below ``reach`` (m).
+
+    :param offsets: ``(k, 2, 2)`` neighbour offsets (m)
+    :param agent_radius: R_a (m)
+    :param reach: reach (m) of the push
+    """
+    if reach <= 0:
+        return np.zeros((len(offsets), 2))
+    gaps = np.maximum(np.linalg.norm(offsets, axis=-1) - 2 * agent_radius, MIN_GAP)
+    push = np.where(gaps < reach, 1.0 / gaps - 1.0 / reach, 0.0)
+    return -(push[..., None] * unit(offsets)).sum(axis=1)
