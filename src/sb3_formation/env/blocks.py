@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable, Sequence
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import numpy as np
 
@@ -144,6 +144,7 @@ class EngineBlock:
         observations = self._slot_observations(step.observations, int(engine.sizes[0]))  # team critics: one size
         ended = step.terminated | step.truncated
         episodes = []
+        success: bool | np.ndarray  # a team's in the loop, then the slots'
         for team in np.flatnonzero(ended).tolist():
             rows = engine.team_rows(team)
             success = bool(step.terminated[team])
@@ -162,6 +163,7 @@ class EngineBlock:
     def step_shared(self) -> list[TeamEpisode]:
         """:meth:`step` with the actions read from ``shared`` and the arrays written to it: only the ended episodes
         (few, and rarely any) go through the worker's pipe."""
+        assert self.shared is not None  # a worker's block, made with its shared arrays
         step = self.step(self.shared["actions"])
         for field in ARRAY_FIELDS:
             self.shared[field][...] = getattr(step, field)
@@ -176,7 +178,7 @@ class EngineBlock:
         for team in teams:
             setattr(self.envs[team], name, value)
 
-    def env_method(self, name: str, teams: Iterable[int], args: tuple, kwargs: dict[str, Any]) -> list[Any]:
+    def env_method(self, name: str, teams: Iterable[int], args: tuple[Any, ...], kwargs: dict[str, Any]) -> list[Any]:
         """Call method ``name`` of each of ``teams``' envs."""
         return [getattr(self.envs[team], name)(*args, **kwargs) for team in teams]
 
@@ -184,7 +186,7 @@ class EngineBlock:
         """Snapshots of ``teams`` now."""
         return [self.engine.team_state(team) for team in teams]
 
-    def get_images(self) -> list[np.ndarray]:
+    def get_images(self) -> list[np.ndarray | None]:
         """One ``rgb_array`` frame per team."""
         return [env.render() for env in self.envs]
 
@@ -240,7 +242,7 @@ class EngineBlocks:
                 self.shared[block] = shared = SharedArrays(step_layout(sum(sizes[team] for team in teams), dim))
                 arguments = ([configs[team] for team in teams], team_observations, auto_reset, render_mode, shared)
                 self.blocks.append(WorkerProcess(EngineBlock, arguments, "engine worker", context, WORKER_SPIN))
-            wait_started(self.blocks[1:])
+            wait_started(cast("list[WorkerProcess]", self.blocks[1:]))  # every block after the first
             for shared in self.shared.values():  # every process has mapped its block: no name to leave behind
                 shared.unlink()
         except BaseException:
@@ -283,7 +285,7 @@ class EngineBlocks:
     @property
     def local(self) -> EngineBlock:
         """The block this process steps."""
-        return self.blocks[0]
+        return cast(EngineBlock, self.blocks[0])
 
     def _per_block(self, teams: Iterable[int]) -> list[tuple[int, list[int]]]:
         """Group teams by block: (block, indices within the block), blocks in order of first appearance."""
@@ -294,7 +296,7 @@ class EngineBlocks:
                     grouped.setdefault(block, []).append(team - block_teams[0])
         return list(grouped.items())
 
-    def run(self, command: str, arguments: dict[int, tuple], worker_command: str | None = None) -> dict[int, Any]:
+    def run(self, command: str, arguments: dict[int, tuple[Any, ...]], worker_command: str | None = None) -> dict[int, Any]:
         """Call ``command`` on the blocks in ``arguments`` (block -> arguments), the workers' while this process runs
         its own block's.
 
@@ -302,13 +304,15 @@ class EngineBlocks:
         """
         workers = [block for block in arguments if block > 0]
         for block in workers:
-            self.blocks[block].send(worker_command or command, *arguments[block])
+            cast(WorkerProcess, self.blocks[block]).send(worker_command or command, *arguments[block])  # block > 0
         results = {}
         try:
             if 0 in arguments:
                 results[0] = getattr(self.blocks[0], command)(*arguments[0])
         finally:  # read the workers' replies even after an error here, so none is left in a pipe
-            results.update(zip(workers, gather([self.blocks[block] for block in workers], spin=WORKER_SPIN)))
+            results.update(
+                zip(workers, gather([cast(WorkerProcess, self.blocks[block]) for block in workers], spin=WORKER_SPIN))
+            )
         return results
 
     def call_teams(self, command: str, teams: Iterable[int], *data: Any) -> dict[int, Any]:
@@ -352,8 +356,9 @@ class EngineBlocks:
         for block, shared in self.shared.items():
             shared["actions"][...] = rows[block]
         results = self.run("step", {0: (rows[0],), **{block: () for block in self.shared}}, "step_shared")
-        steps = [results[0]] + [
-            BlockStep(*(shared[field] for field in ARRAY_FIELDS), results[block]) for block, shared in self.shared.items()
+        steps: list[BlockStep] = [results[0]] + [
+            BlockStep(*(shared[field] for field in ARRAY_FIELDS), results[block])  # type: ignore[call-arg, arg-type]  # mypy cannot count a star argument's items
+            for block, shared in self.shared.items()
         ]
         episodes = []
         for teams, block_step in zip(self.team_blocks, steps):
@@ -363,7 +368,7 @@ class EngineBlocks:
         if len(steps) == 1:
             return steps[0]
         # copies the shared arrays, which the next step overwrites
-        return BlockStep(*(np.concatenate([getattr(block, field) for block in steps]) for field in ARRAY_FIELDS), episodes)
+        return BlockStep(*(np.concatenate([getattr(block, field) for block in steps]) for field in ARRAY_FIELDS), episodes)  # type: ignore[call-arg, arg-type]  # mypy cannot count a star argument's items
 
     def close(self) -> None:
         for block in self.blocks:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import heapq
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import numba
 import numpy as np
@@ -70,7 +71,8 @@ class ClearanceMap:
         """``(rows, columns)`` bool: the cells whose centre lies within ``radius`` (m) of ``goal``."""
         rows, columns = self.gaps.shape
         ys, xs = (np.arange(rows) + 0.5) * self.spacing, (np.arange(columns) + 0.5) * self.spacing
-        return np.hypot(xs[None, :] - goal[0], ys[:, None] - goal[1]) <= radius
+        cells: np.ndarray = np.hypot(xs[None, :] - goal[0], ys[:, None] - goal[1]) <= radius
+        return cells
 
 
 def reachable(clearance: ClearanceMap, start: np.ndarray, goal: np.ndarray, goal_radius: float, footprint: float) -> bool:
@@ -113,7 +115,7 @@ def shortest_path(
         return None
     cells = [(end_row, end_column)]
     while cells[-1] != first:
-        cells.append(tuple(int(value) for value in came_from[cells[-1]]))
+        cells.append(cast("tuple[int, int]", tuple(int(value) for value in came_from[cells[-1]])))  # a (row, column)
     path = np.array([clearance.point(cell) for cell in reversed(cells)])
     path[0] = start
     return path

@@ -211,6 +211,7 @@ class FormationConfig:
             if unknown:
                 raise ValueError(f"stage_disabled_terms names unknown reward terms {unknown}; valid: {list(REWARD_TERMS)}")
         object.__setattr__(self, "stage_disabled_terms", disabled)
+        assert self.physics_substeps is not None  # an int from here on: set from substeps above
         if self.physics_substeps < self.substeps_needed:
             raise ValueError(
                 f"physics_substeps={self.physics_substeps} lets agents move {self.v_max * self.dt / self.physics_substeps:.4f}"
@@ -243,7 +244,7 @@ class FormationConfig:
         sub-step before the solver stops them, and over a step Pymunk removes the share 1 - bias^dt of an overlap
         (:data:`COLLISION_BIAS`), taken as at most :data:`MAX_OVERLAP_REMOVAL`; the move keeps this balance within the
         tolerance (checked for 3-16 agents, radii 0.1-0.3 m, v_max 0.05-1 m/s, dt 0.05-0.5 s by the fuzz test)."""
-        removal = min(1.0 - COLLISION_BIAS**self.dt, MAX_OVERLAP_REMOVAL)
+        removal: float = min(1.0 - COLLISION_BIAS**self.dt, MAX_OVERLAP_REMOVAL)  # float ** float is typed Any
         return OVERLAP_TOLERANCE * self.agent_radius * removal / 2.0
 
     @property

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import numba
 import numpy as np
@@ -223,7 +223,8 @@ class FormationEngine:
         self.previous_offsets[team] = self.goals[team] - self.centroids[team]
         no_terms = np.zeros(_N_TERMS * len(self.previous_rewards))
         self._observe(active, self.observations, self.info_values, no_terms, np.zeros(self.n_teams), accumulate=False)
-        return self.observations[rows].copy()
+        observations: np.ndarray = self.observations[rows].copy()
+        return observations
 
     def _load_lidar_layout(self, team: int, lidar: Lidar) -> None:
         circles, visible, channels = lidar.layout
@@ -248,6 +249,7 @@ class FormationEngine:
             agents one after the other; the rows of teams that are not live are ignored
         """
         everyone = bool(self.live.all())
+        pick: slice | np.ndarray
         if everyone:  # as in every VecEnv step: no team to leave out
             active, teams, pick, stepped = self._every_team, self._every_team_list, slice(None), None
         else:
@@ -262,8 +264,9 @@ class FormationEngine:
         previous_velocities = self.velocities
         previous_goal_distances = self.goal_distances
         commanded = clamp_speed(self.velocities + (actions * config.force_max) * (config.dt / config.agent_mass), config.v_max)
-        moved = [(team, self.worlds[team].advance(commanded[starts[team] : starts[team + 1]])) for team in teams]
-        positions, velocities = split_state(np.concatenate([self.worlds[team].agent_states for team in teams]), config.v_max)
+        worlds = cast("list[World]", self.worlds)  # a live team has been reset, so has a world
+        moved = [(team, worlds[team].advance(commanded[starts[team] : starts[team + 1]])) for team in teams]
+        positions, velocities = split_state(np.concatenate([worlds[team].agent_states for team in teams]), config.v_max)
         self.positions = self._new_rows(self.positions, positions, stepped)
         self.velocities = self._new_rows(self.velocities, velocities, stepped)
         contacts = np.zeros((len(actions), 2), dtype=np.int64) if everyone else self.contacts.copy()
@@ -324,7 +327,7 @@ class FormationEngine:
         """
         if rows is None:
             return new.copy() if select else new
-        merged = old.copy()
+        merged: np.ndarray = old.copy()
         merged[rows] = new[rows] if select else new
         return merged
 
@@ -463,13 +466,14 @@ class FormationEngine:
             raise RuntimeError(f"team {team} has not been reset")
         rows = self.team_rows(team)
         values = self.info_values[rows]
+        scenario = cast(Scenario, self.scenarios[team])  # placed with the team's world
         return TeamState(
             step=int(self.step_counts[team]),
             positions=self.positions[rows],
             velocities=self.velocities[rows],
             goal=self.goals[team],
-            obstacles=self.scenarios[team].obstacles,
-            walls=self.scenarios[team].walls,
+            obstacles=cast(np.ndarray, scenario.obstacles),  # arrays once the scenario is built
+            walls=cast(np.ndarray, scenario.walls),
             neighbours=self.neighbours[rows],
             contacts_agent=self.contacts[rows, 0],
             contacts_obstacle=self.contacts[rows, 1],
@@ -518,7 +522,8 @@ def agent_infos(values: np.ndarray, contacts: np.ndarray, success: np.ndarray) -
 def _row_means(rows: np.ndarray) -> np.ndarray:
     """The mean of each row, as ``rows.mean(axis=1)`` computes it (numpy's sum, then one division) without the
     wrapper's checks, which cost more than the sum for a handful of agents."""
-    return np.add.reduce(rows, axis=1) / rows.shape[1]
+    means: np.ndarray = np.add.reduce(rows, axis=1) / rows.shape[1]
+    return means
 
 
 def _widened(array: np.ndarray, size: int) -> np.ndarray:

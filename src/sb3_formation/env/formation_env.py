@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NoReturn, cast
 
 import gymnasium
 import numpy as np
@@ -12,7 +12,7 @@ from pettingzoo import ParallelEnv
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.engine import FormationEngine
 from sb3_formation.env.geometry import reference_bearings, ring_neighbours
-from sb3_formation.env.observations import observation_layout
+from sb3_formation.env.observations import ObservationField, observation_layout
 from sb3_formation.env.rendering import HumanWindow, render_frame
 from sb3_formation.env.scenarios import Scenario
 from sb3_formation.env.sensors import Lidar
@@ -22,7 +22,7 @@ from sb3_formation.env.world import World
 AgentID = str
 
 
-class FormationEnv(ParallelEnv):
+class FormationEnv(ParallelEnv):  # type: ignore[misc]  # pettingzoo ships no type information: ParallelEnv is Any
     """A team of n holonomic second-order agents that must bring its centroid to a goal, in formation, around obstacles.
 
     Thesis: chapters 3-5; every interpretation is pinned in ``docs/design.md``. Agents are ``"agent_0"`` ...
@@ -148,6 +148,9 @@ class FormationEnv(ParallelEnv):
         self.render_mode = render_mode
         self.render_lidar = render_lidar
         self.possible_agents: list[AgentID] = [f"agent_{index}" for index in range(config.n_agents)]
+        fields: (
+            list[ObservationField] | list[tuple[str, int, np.ndarray, np.ndarray, str]]
+        )  # the observation's, then the state's
         fields = engine.observation_fields
         self.observation_layout: dict[str, slice] = observation_layout(fields)
         low = np.concatenate([field.low for field in fields]).astype(np.float32)
@@ -228,17 +231,18 @@ class FormationEnv(ParallelEnv):
 
     @property
     def goal(self) -> np.ndarray:
-        return self.engine.goals[self.team].copy()
+        goal: np.ndarray = self.engine.goals[self.team].copy()
+        return goal
 
     @property
     def obstacles(self) -> np.ndarray:
         """``(m, 3)`` obstacle x, y, radius (m) of the episode."""
-        return np.zeros((0, 3)) if self.scenario is None else self.scenario.obstacles
+        return np.zeros((0, 3)) if self.scenario is None else cast(np.ndarray, self.scenario.obstacles)  # an array once built
 
     @property
     def walls(self) -> np.ndarray:
         """``(w, 5)`` walls x0, y0, x1, y1, thickness (m) of the episode (:mod:`~sb3_formation.env.shapes`)."""
-        return np.zeros((0, 5)) if self.scenario is None else self.scenario.walls
+        return np.zeros((0, 5)) if self.scenario is None else cast(np.ndarray, self.scenario.walls)  # an array once built
 
     @property
     def step_count(self) -> int:
@@ -256,7 +260,15 @@ class FormationEnv(ParallelEnv):
         observations = self.engine.reset(self.team, seed=seed, scenario=scenario)
         return dict(zip(self.possible_agents, observations)), dict(zip(self.possible_agents, self.engine.infos(self.team)))
 
-    def step(self, actions: dict[AgentID, np.ndarray]) -> tuple[dict, dict, dict, dict, dict]:
+    def step(
+        self, actions: dict[AgentID, np.ndarray]
+    ) -> tuple[
+        dict[AgentID, np.ndarray],
+        dict[AgentID, float],
+        dict[AgentID, bool],
+        dict[AgentID, bool],
+        dict[AgentID, dict[str, Any]],
+    ]:
         if not self.agents:
             raise RuntimeError("step() called on a finished episode (or before reset()); call reset() first")
         agents = self.agents
@@ -319,7 +331,7 @@ class FormationEnv(ParallelEnv):
             raise ValueError(f"action of {bad} is not finite: {np.asarray(actions[bad]).tolist()}")
         return np.minimum(np.maximum(array, -1.0), 1.0)
 
-    def _raise_for_actions(self, actions: dict[AgentID, np.ndarray]) -> None:
+    def _raise_for_actions(self, actions: dict[AgentID, np.ndarray]) -> NoReturn:
         missing = [agent for agent in self.agents if agent not in actions]
         if missing:
             raise ValueError(f"no action given for {missing}")

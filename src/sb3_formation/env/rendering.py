@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from PIL import Image, ImageDraw
 
@@ -54,7 +56,7 @@ def render_frame(
     def pixel(point: np.ndarray) -> tuple[float, float]:
         return float(point[0] * pixels_per_metre), float(height - point[1] * pixels_per_metre)
 
-    def circle(centre: np.ndarray, radius: float, **style: object) -> None:
+    def circle(centre: np.ndarray, radius: float, **style: Any) -> None:
         x, y = pixel(centre)
         r = radius * pixels_per_metre
         draw.ellipse((x - r, y - r, x + r, y + r), **style)

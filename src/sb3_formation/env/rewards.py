@@ -54,13 +54,15 @@ def angle_term(angle_error_deg: float, m_ang_deg: float) -> float:  # pragma: no
 @numba.njit(cache=True)
 def bearing_term(bearing_errors: np.ndarray) -> float:  # pragma: no cover - compiled
     """Eq. 35: -0.5 / n(N_2^i) * sum_j |g_j^{i,ref} - g_j^i|, given the norms |g_ref - g| to the neighbours."""
-    return -0.5 * bearing_errors.sum() / bearing_errors.size
+    term: float = -0.5 * bearing_errors.sum() / bearing_errors.size
+    return term
 
 
 @numba.njit(cache=True)
 def distance_term(neighbour_distances: np.ndarray, d_ref: float, m_dist: float) -> float:  # pragma: no cover
     """Eqs 22 / 36: -1 / n(N^i) * sum_j max(d_j^i - d^ref, 0) / m_dist (distances in m)."""
-    return -np.maximum(neighbour_distances - d_ref, 0.0).sum() / neighbour_distances.size / m_dist
+    term: float = -np.maximum(neighbour_distances - d_ref, 0.0).sum() / neighbour_distances.size / m_dist
+    return term
 
 
 @numba.njit(cache=True)
@@ -218,4 +220,5 @@ def combine_rewards(terms: np.ndarray, coefficients: np.ndarray, clip: float) ->
     :return: ``(n,)`` rewards, or ``(teams, n)``
     """
     sums = (coefficients[..., None, :] @ terms)[..., 0, :]
-    return np.minimum(np.maximum(sums, -clip), clip)
+    rewards: np.ndarray = np.minimum(np.maximum(sums, -clip), clip)
+    return rewards

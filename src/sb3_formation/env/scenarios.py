@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any, cast
 
 import numpy as np
 
@@ -33,8 +34,8 @@ class Scenario:
 
     agent_positions: np.ndarray
     goal: np.ndarray
-    obstacles: np.ndarray | tuple = ()
-    walls: np.ndarray | tuple = ()
+    obstacles: np.ndarray | tuple[Any, ...] = ()
+    walls: np.ndarray | tuple[Any, ...] = ()
 
     def __post_init__(self) -> None:
         obstacles = np.array(self.obstacles, dtype=np.float64)
@@ -53,6 +54,7 @@ class Scenario:
                 raise ValueError(f"Scenario.{name} contains NaN or infinite values")
             array.setflags(write=False)
             object.__setattr__(self, name, array)
+        assert isinstance(self.obstacles, np.ndarray) and isinstance(self.walls, np.ndarray)  # set just above
         if np.any(self.obstacles[:, 2] <= 0):
             bad = int(np.flatnonzero(self.obstacles[:, 2] <= 0)[0])
             raise ValueError(f"Scenario obstacle {bad} has radius {self.obstacles[bad, 2]} m; radii must be > 0")
@@ -63,7 +65,8 @@ class Scenario:
     @property
     def centroid(self) -> np.ndarray:
         """Centroid (m) of the starting positions."""
-        return self.agent_positions.mean(axis=0)
+        centroid: np.ndarray = self.agent_positions.mean(axis=0)
+        return centroid
 
     def validate(self, config: FormationConfig) -> None:
         """Raise ``ValueError`` saying which agent is misplaced if the scenario does not fit ``config``.
@@ -151,7 +154,10 @@ class CurriculumLayout:
             self,
             goal_x=tuple(x * sx for x in self.goal_x),
             start_x=tuple(x * sx for x in self.start_x),
-            stage1_obstacle_x=tuple((low * sx, high * sx) for low, high in self.stage1_obstacle_x),
+            stage1_obstacle_x=cast(  # two ranges, as in self
+                "tuple[tuple[float, float], tuple[float, float]]",
+                tuple((low * sx, high * sx) for low, high in self.stage1_obstacle_x),
+            ),
             stage3_obstacle_x=(self.stage3_obstacle_x[0] * sx, self.stage3_obstacle_x[1] * sx),
             goal_y=(self.goal_y[0] * sy, self.goal_y[1] * sy),
             start_y=(self.start_y[0] * sy, self.start_y[1] * sy),
@@ -193,7 +199,7 @@ def start_formation(config: FormationConfig, centroid: np.ndarray, order: np.nda
     :param centroid: ``(2,)`` centroid (m)
     :param order: permutation of the agents over the vertices; ``None`` keeps agent i on vertex i
     """
-    vertices = reference_polygon(config.n_agents, config.start_circumradius) + centroid
+    vertices: np.ndarray = reference_polygon(config.n_agents, config.start_circumradius) + centroid
     if order is None:
         return vertices
     positions = np.empty_like(vertices)

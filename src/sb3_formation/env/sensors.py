@@ -12,6 +12,8 @@ cast): with numpy the many tiny array operations of a 6-agent scan cost ~150 us,
 
 from __future__ import annotations
 
+from typing import Any
+
 import numba
 import numpy as np
 
@@ -125,7 +127,7 @@ class Lidar:
         self._agent_visibility = agent_visibility(len(neighbours), neighbours)
         self.set_obstacles(np.zeros((0, 3)))
 
-    def set_obstacles(self, obstacles: np.ndarray, walls: np.ndarray | tuple = ()) -> None:
+    def set_obstacles(self, obstacles: np.ndarray | tuple[Any, ...], walls: np.ndarray | tuple[Any, ...] = ()) -> None:
         """Use ``obstacles`` (``(m, 3)``: x, y, radius in m) and ``walls`` (``(w, 5)``, see
         :mod:`~sb3_formation.env.shapes`) from now on."""
         self.walls = as_walls(walls)

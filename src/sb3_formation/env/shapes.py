@@ -13,6 +13,7 @@ from a shape's surface), and :func:`shape_gaps` (every point against every shape
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numba
 import numpy as np
@@ -100,13 +101,15 @@ def wall_gap(px: float, py: float, wall: np.ndarray) -> float:  # pragma: no cov
     dx, dy = bx - ax, by - ay
     squared = dx * dx + dy * dy
     along = 0.0 if squared == 0.0 else min(max(((px - ax) * dx + (py - ay) * dy) / squared, 0.0), 1.0)
-    return math.hypot(px - ax - along * dx, py - ay - along * dy) - 0.5 * wall[4]
+    gap: float = math.hypot(px - ax - along * dx, py - ay - along * dy) - 0.5 * wall[4]
+    return gap
 
 
 @numba.njit(cache=True)
 def circle_gap(px: float, py: float, circle: np.ndarray) -> float:  # pragma: no cover - compiled
     """Distance (m) from the point p to the circle's surface (< 0 inside)."""
-    return math.hypot(circle[0] - px, circle[1] - py) - circle[2]
+    gap: float = math.hypot(circle[0] - px, circle[1] - py) - circle[2]
+    return gap
 
 
 @numba.njit(cache=True)
@@ -134,7 +137,7 @@ def shape_gaps(
     return gaps
 
 
-def as_walls(walls: np.ndarray | tuple | list) -> np.ndarray:
+def as_walls(walls: np.ndarray | tuple[Any, ...] | list[Any]) -> np.ndarray:
     """``walls`` as a float ``(w, 5)`` array (an empty input gives ``(0, 5)``)."""
     array = np.array(walls, dtype=np.float64)
     return array.reshape(0, len(WALL_COLUMNS)) if array.size == 0 else array
@@ -142,4 +145,5 @@ def as_walls(walls: np.ndarray | tuple | list) -> np.ndarray:
 
 def wall_lengths(walls: np.ndarray) -> np.ndarray:
     """``(w,)`` lengths (m) of the walls' segments."""
-    return np.hypot(walls[:, 2] - walls[:, 0], walls[:, 3] - walls[:, 1])
+    lengths: np.ndarray = np.hypot(walls[:, 2] - walls[:, 0], walls[:, 3] - walls[:, 1])
+    return lengths

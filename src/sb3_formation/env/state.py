@@ -72,7 +72,8 @@ class TeamState:
     def neighbour_distances(self) -> np.ndarray:
         """``(n, 2)`` distance (m) from each agent to its preceding and succeeding neighbour."""
         offsets = self.positions[self.neighbours] - self.positions[:, None, :]
-        return np.hypot(offsets[..., 0], offsets[..., 1])
+        distances: np.ndarray = np.hypot(offsets[..., 0], offsets[..., 1])
+        return distances
 
 
 def state_fields(config: FormationConfig) -> list[tuple[str, int, np.ndarray, np.ndarray, str]]:

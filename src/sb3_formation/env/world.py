@@ -13,7 +13,7 @@ sub-step, which made a step 1.7x as long when agents press on walls (``benchmark
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, cast
 
 import numba
 import numpy as np
@@ -48,7 +48,7 @@ def clamp_speed(velocities: np.ndarray, v_max: float) -> np.ndarray:  # pragma: 
     :param v_max: speed limit (m/s)
     :return: a new ``(n, 2)`` array
     """
-    clamped = velocities.copy()
+    clamped: np.ndarray = velocities.copy()
     for index in range(velocities.shape[0]):
         speed = math.hypot(velocities[index, 0], velocities[index, 1])
         if speed > v_max:
@@ -125,7 +125,7 @@ class World:
         self._read_buffer, self._read = self._buffer_and_query(_STATE_FIELDS)
         self._write_buffer, self._write = self._buffer_and_query(_VELOCITY_FIELD)
         self._arbiter_buffer, self._arbiter_query = self._buffer_and_query(_ARBITER_FIELDS)
-        self._substep = config.dt / config.physics_substeps
+        self._substep = config.dt / cast(int, config.physics_substeps)  # an int once the config is built
         self.place(scenario)
 
     def place(self, scenario: Scenario) -> None:
@@ -221,7 +221,7 @@ class World:
         self._write_buffer._float_arr.num = 0  # the position Pymunk reads from
         chipmunk.cpSpaceEachBody(space, _SET_BODIES, self._write)
         arbiters.num = 0
-        for _ in range(config.physics_substeps):
+        for _ in range(cast(int, config.physics_substeps)):  # an int once the config is built
             chipmunk.cpSpaceStep(space, substep)  # Space.step without its Python bookkeeping (see place())
             chipmunk.cpSpaceEachCachedArbiter(space, _GET_ARBITERS, self._arbiter_query)
         self._read_states()
