@@ -46,8 +46,8 @@ from sb3_formation.env.sensors import ray_directions
 from sb3_formation.utils.checks import is_number
 
 #: Columns of one agent's memory (a row of the ``state`` array of :meth:`ShrinkingController.predict`).
-MEMORY_FIELDS = ("phi", "sigma", "anchor", "scale", "progress", "lateral", "heading_x", "heading_y", "started")
-_PHI, _SIGMA, _ANCHOR, _SCALE, _PROGRESS, _LATERAL, _HX, _HY, _STARTED = range(len(MEMORY_FIELDS))
+MEMORY_FIELDS = ("phi", "sigma", "anchor", "scale", "progress", "lateral", "heading_x", "heading_y", "flips", "hit", "started")
+_PHI, _SIGMA, _ANCHOR, _SCALE, _PROGRESS, _LATERAL, _HX, _HY, _FLIPS, _HIT, _STARTED = range(len(MEMORY_FIELDS))
 
 
 @dataclass(frozen=True)
@@ -67,6 +67,8 @@ class ShrinkingGains:
     :param turn_free_deg: omega_free (deg per step), its turn back while free
     :param max_turn_deg: phi_max (deg): turning further is a dead end, the side flips
     :param flip_distance: D_flip (m): a detour that takes the centroid this much further from the goal flips side
+    :param leave_margin: the detour (its side and flips) ends when the centroid is this much (m) closer to the goal
+        than where it began, heading on the goal
     :param gap_low: g_lo (m): an obstacle this close shrinks the agent's scale to s_min
     :param gap_high: g_hi (m): an obstacle farther than this does not shrink it
     :param width_margin: m_w (m): room each side of the formation in an opening
@@ -75,7 +77,7 @@ class ShrinkingGains:
     :param scale_relax: rho: the most the scale grows per step
     """
 
-    k_goal: float = 0.9
+    k_goal: float = 1.0
     k_place: float = 0.3
     k_obstacle: float = 0.004
     k_agent: float = 0.002
@@ -86,7 +88,8 @@ class ShrinkingGains:
     turn_block_deg: float = 1.0
     turn_free_deg: float = 0.5
     max_turn_deg: float = 200.0
-    flip_distance: float = 4.0
+    flip_distance: float = 2.0
+    leave_margin: float = 0.5
     gap_low: float = 0.2
     gap_high: float = 0.8
     width_margin: float = 0.05
@@ -217,13 +220,20 @@ class ShrinkingController(Controller):
         memory[:, _LATERAL] = np.where(started, (1 - rate) * memory[:, _LATERAL] + rate * lateral, memory[:, _LATERAL])
         blocked = started & (memory[:, _PROGRESS] < gains.block_progress)
         phi, sigma, anchor = memory[:, _PHI], memory[:, _SIGMA], memory[:, _ANCHOR]
-        begins = blocked & (phi <= 0)
+        hit, flipped = memory[:, _HIT], memory[:, _FLIPS]
+        ends = (hit > 0) & (phi <= 0) & (distance < hit - gains.leave_margin)
+        hit[:] = np.where(ends, 0.0, hit)
+        begins = blocked & (hit <= 0)
         side = np.where(memory[:, _LATERAL] < 0, -1.0, 1.0)
         sigma[:] = np.where(begins, side, sigma)
         anchor[:] = np.where(begins, distance, anchor)
+        hit[:] = np.where(begins, distance, np.where(blocked & (hit > 0), np.minimum(hit, distance), hit))
+        flipped[:] = np.where(begins, 0.0, flipped)
         turn_block, turn_free = math.radians(gains.turn_block_deg), math.radians(gains.turn_free_deg)
         phi[:] = np.where(blocked, phi + turn_block, np.maximum(phi - turn_free, 0.0))
-        flips = (phi > 0) & ((distance > anchor + gains.flip_distance) | (phi > math.radians(gains.max_turn_deg)))
+        away = distance > anchor + gains.flip_distance * 2.0**flipped
+        flips = (hit > 0) & (phi > 0) & (away | (phi > math.radians(gains.max_turn_deg)))
+        flipped[:] = np.where(flips, flipped + 1, flipped)
         phi[:] = np.where(flips, np.abs(math.pi - phi), phi)  # turned by pi: the team goes back the way it came
         sigma[:] = np.where(flips, -sigma, sigma)
         anchor[:] = np.where(flips, distance, anchor)
