@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -86,18 +86,19 @@ def play_episodes(
         started = [team for team in teams if current[team] is not None]
         if not started:
             return
-        reset = blocks.reset(started, [job.seed + current[team] for team in started], [None] * len(started))
+        # (the episodes of the started teams are ints; mypy does not narrow list items)
+        reset = blocks.reset(started, [job.seed + cast(int, current[team]) for team in started], [None] * len(started))
         privileged = isinstance(job.policy, PrivilegedPolicy)
-        watched = started if on_step is not None or privileged else [t for t in started if current[t] < job.record]
+        watched = started if on_step is not None or privileged else [t for t in started if cast(int, current[t]) < job.record]
         states = blocks.call_teams("team_states", watched) if watched else {}
         if privileged:  # the map, for a policy that reads it
-            job.policy.start_episodes(started, [states[team] for team in started])
+            cast(PrivilegedPolicy, job.policy).start_episodes(started, [states[team] for team in started])
         for team in started:
             observations[slots(team)] = reset[team]
             episode_starts[slots(team)] = True
-            recorders[team] = EpisodeRecorder(states[team]) if current[team] < job.record else None
+            recorders[team] = EpisodeRecorder(states[team]) if cast(int, current[team]) < job.record else None
             if on_step is not None:
-                on_step(states[team], current[team])
+                on_step(states[team], cast(int, current[team]))
 
     try:
         start(list(range(n_teams)))
@@ -112,9 +113,9 @@ def play_episodes(
             step = blocks.step(actions)
             for team in playing:
                 if recorders[team] is not None:
-                    recorders[team].add(step, slots(team), actions)
+                    cast(EpisodeRecorder, recorders[team]).add(step, slots(team), actions)
                 if on_step is not None:
-                    on_step(blocks.local.engine.team_state(team), current[team])
+                    on_step(blocks.local.engine.team_state(team), cast(int, current[team]))  # a playing team's
             ended = {episode.team: episode for episode in step.episodes}
             for team in playing:
                 if team not in ended:
@@ -126,7 +127,7 @@ def play_episodes(
                 rows.append(
                     {
                         "episode": current[team],
-                        "seed": job.seed + current[team],
+                        "seed": job.seed + cast(int, current[team]),  # a playing team's
                         "team": team,
                         **summary,
                         "comm_exceeded_fraction": episode.comm_exceeded_steps / summary["length"],
@@ -135,7 +136,7 @@ def play_episodes(
                     }
                 )
                 if recorders[team] is not None:
-                    recorded.append((current[team], recorders[team], episode.success))
+                    recorded.append((cast(int, current[team]), cast(EpisodeRecorder, recorders[team]), episode.success))
                 if on_episode is not None:
                     on_episode()
             start(sorted(ended))

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 from stable_baselines3 import PPO
@@ -53,12 +54,12 @@ def save_model(model: PPO, env: VecEnv, folder: Path, model_file: str, normalize
     record_episode_windows(model)  # as plain data, for a resume that unpickles nothing
     with atomic_path(folder / model_file) as temporary:
         model.save(temporary)
-    unwrap_vec_wrapper(env, ScaleNormalizeVecEnv).save(folder / normalizer_file)
+    cast(ScaleNormalizeVecEnv, unwrap_vec_wrapper(env, ScaleNormalizeVecEnv)).save(folder / normalizer_file)  # see :param env:
     rewards = reward_normalizer(env)
     if rewards is not None:
         statistics = {key: np.asarray(getattr(rewards.ret_rms, key), dtype=np.float64) for key in REWARD_STATE_KEYS}
         with atomic_path(folder / reward_normalizer_file(normalizer_file)) as temporary, open(temporary, "wb") as stream:
-            np.savez(stream, **statistics)
+            np.savez(stream, **cast("dict[str, Any]", statistics))  # numpy's stubs read the keys as options
 
 
 def reward_normalizer(env: VecEnv) -> VecNormalize | None:
@@ -139,4 +140,5 @@ def load_trained(path: str | os.PathLike[str], device: str = "auto", trusted: bo
     team_sizes = tuple(getattr(model, "team_sizes", None) or ())  # files saved before mixed teams: the config's
     trained = TrainedPolicy(model, config, normalizer_state, source=model_path, team_sizes=team_sizes)
     residual = getattr(model, "residual", None)  # a correction of a controller (a recipe's residual)
-    return residual_policy(residual, trained) if residual else trained
+    # ResidualPolicy's config is a read-only property where TeamPolicy (controllers/base.py) declares a settable attribute
+    return residual_policy(residual, trained) if residual else trained  # type: ignore[return-value]

@@ -13,7 +13,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import yaml
@@ -76,6 +76,8 @@ class RunCheckpointCallback(BaseCallback):
     :param keep: checkpoints kept on disk
     """
 
+    model: PPO  # the run's model (BaseCallback declares any algorithm)
+
     def __init__(self, run_dir: Path, curriculum: CurriculumCallback, clock: TrainingClock, every: int, keep: int = 3) -> None:
         super().__init__()
         self.run_dir = run_dir
@@ -101,12 +103,13 @@ class RunCheckpointCallback(BaseCallback):
         the same state, and replacing it would open the window of a folder swap for nothing.
         """
         iteration = self.curriculum.iteration
-        self.model.num_timesteps = iteration * self.model.n_steps * self.model.get_env().num_envs  # drop a partial rollout
+        # drop a partial rollout (the model was made with its env)
+        self.model.num_timesteps = iteration * self.model.n_steps * cast(VecEnv, self.model.get_env()).num_envs
         target = self.run_dir / "checkpoints" / f"iteration_{iteration:06d}"
         if (target / STATE_FILE).is_file():
             return target
         with atomic_directory(target) as folder:
-            save_model(self.model, self.model.get_env(), folder, MODEL_FILE, NORMALIZER_FILE)
+            save_model(self.model, cast(VecEnv, self.model.get_env()), folder, MODEL_FILE, NORMALIZER_FILE)
             state = {
                 "num_timesteps": self.model.num_timesteps,
                 "curriculum": self.curriculum.state_dict(),
@@ -143,6 +146,8 @@ class PeriodicEvaluation(BaseCallback):
     :param episodes: episodes per evaluation
     """
 
+    model: PPO  # the run's model (BaseCallback declares any algorithm)
+
     def __init__(
         self, run_dir: Path, settings: TrainSettings, curriculum: CurriculumCallback, every: int, episodes: int
     ) -> None:
@@ -167,12 +172,13 @@ class PeriodicEvaluation(BaseCallback):
         if iteration == self.evaluated:
             return
         self.evaluated = iteration
-        env = self.model.get_env()
-        policy: TeamPolicy = TrainedPolicy(
-            self.model.policy, self.config, unwrap_vec_wrapper(env, ScaleNormalizeVecEnv).state_dict()
-        )
+        env = cast(VecEnv, self.model.get_env())  # the model was made with its env
+        normalizer = cast(ScaleNormalizeVecEnv, unwrap_vec_wrapper(env, ScaleNormalizeVecEnv))  # every training env's
+        policy: TeamPolicy = TrainedPolicy(self.model.policy, self.config, normalizer.state_dict())
         if getattr(self.model, "residual", None):
-            policy = residual_policy(self.model.residual, policy)
+            # attr-defined: see recipe_model; assignment: ResidualPolicy's config is a read-only property where TeamPolicy
+            # (controllers/base.py) declares a settable attribute
+            policy = residual_policy(self.model.residual, policy)  # type: ignore[attr-defined, assignment]
         summary = evaluate(policy, self.episodes, stage=3, seed=PERIODIC_EVALUATION_SEED, n_envs=min(8, self.episodes)).summary
         self.logger.record("eval/success_rate", summary["success_rate"])
         for name, statistics in summary["all_episodes"].items():
@@ -228,6 +234,7 @@ def make_training_env(settings: TrainSettings, stage: int, normalizer_path: Path
     the rewards by a running std of the discounted return on top of it.
     """
     config = settings.recipe.config().replace(stage=stage)
+    venv: FormationVecEnv | ResidualVecEnv
     venv = FormationVecEnv(
         config,
         n_envs=settings.recipe.n_envs,
@@ -320,9 +327,10 @@ def recipe_model(settings: TrainSettings, env: VecEnv) -> PPO:
     model = algorithm_for(kwargs["policy"])(
         env=env, seed=settings.run.seed, device=settings.run.device, verbose=0, **with_schedules(kwargs)
     )
-    model.formation_config = settings.recipe.config().to_dict()
-    model.residual = settings.recipe.residual  # the model file says how its actions are meant (load_trained)
-    model.team_sizes = sorted(set(settings.recipe.sizes))  # and which team sizes it acts in
+    # attributes of this package's own, saved with the model (SB3's classes do not declare them)
+    model.formation_config = settings.recipe.config().to_dict()  # type: ignore[attr-defined]
+    model.residual = settings.recipe.residual  # type: ignore[attr-defined]  # the model file says how its actions are meant (load_trained)
+    model.team_sizes = sorted(set(settings.recipe.sizes))  # type: ignore[attr-defined]  # and which team sizes it acts in
     return model
 
 
@@ -340,6 +348,7 @@ def _start(
     imitation = settings.recipe.imitation_settings()
     if imitation is not None:
         teacher = settings.recipe.teacher(settings.recipe.config())
+        assert teacher is not None  # a recipe with an imitation block has a teacher
         records = pretrain_actor(model, teacher, imitation, seed=settings.run.seed, log=_print_imitation_round)
         atomic_write(run_dir / IMITATION_FILE, json.dumps(records, indent=2))
     _learn(model, settings, run_dir, curriculum, clock)
@@ -460,7 +469,7 @@ def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: Curri
     total = curriculum.total_iterations
     if settings.run.progress_bar:
         callbacks.append(IterationProgressCallback(total, curriculum, curriculum.iteration))
-    steps_per_iteration = model.n_steps * model.get_env().num_envs
+    steps_per_iteration = model.n_steps * cast(VecEnv, model.get_env()).num_envs  # the model was made with its env
     # an open-ended curriculum (total None) trains until the time budget ends it
     remaining = sys.maxsize // 2 if total is None else (total - curriculum.iteration) * steps_per_iteration
     with stop_on_signals(checkpoint):
@@ -482,4 +491,4 @@ def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: Curri
         print(f"time budget of {minutes:g} min reached after {curriculum.iteration} iterations")
     if checkpoint.stop_signal is not None:
         raise TrainingStopped(checkpoint.stop_signal, run_dir, latest_checkpoint(run_dir))
-    save_model(model, model.get_env(), run_dir, FINAL_MODEL, FINAL_NORMALIZER)
+    save_model(model, cast(VecEnv, model.get_env()), run_dir, FINAL_MODEL, FINAL_NORMALIZER)

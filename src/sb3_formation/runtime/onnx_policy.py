@@ -16,7 +16,7 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -257,7 +257,7 @@ class OnnxPolicy:
         first, *new_state = self.session.run(self.metadata.output_names, feeds)
         if self.controller is not None:
             base = self.controller.agent_actions(rows, np.asarray(agents).reshape(-1))
-            first = add_correction(base.astype(np.float64), first, self.scale)
+            first = add_correction(base.astype(np.float64), first, cast(float, self.scale))  # set with the controller
         return first, (tuple(new_state) if new_state else state)
 
     def _rows(self, observation: np.ndarray) -> np.ndarray:
@@ -275,7 +275,8 @@ class OnnxPolicy:
         parts = self.metadata.state_parts
         if not parts:
             return {}
-        shape = (1, rows, self.metadata.recurrent["hidden"])
+        recurrent = cast("dict[str, Any]", self.metadata.recurrent)  # a recurrent actor's: it has state parts
+        shape = (1, rows, recurrent["hidden"])
         arrays = [np.zeros(shape, np.float32) for _ in parts] if state is None else [np.asarray(a, np.float32) for a in state]
         if len(arrays) != len(parts) or any(array.shape != shape for array in arrays):
             shapes = [array.shape for array in arrays]

@@ -12,13 +12,13 @@ iterations, while the critic learns the values of the pretrained actor.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch as th
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.vec_env import unwrap_vec_wrapper
+from stable_baselines3.common.vec_env import VecEnv, unwrap_vec_wrapper
 
 from sb3_formation.controllers.base import Controller
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
@@ -70,8 +70,8 @@ def collect(
 
     :param teacher_share: probability that a step is flown by the teacher (else by the student's mean action)
     """
-    env = model.get_env()
-    normalizer = unwrap_vec_wrapper(env, ScaleNormalizeVecEnv)
+    env = cast(VecEnv, model.get_env())  # a training env, whose normaliser is a ScaleNormalizeVecEnv
+    normalizer = cast(ScaleNormalizeVecEnv, unwrap_vec_wrapper(env, ScaleNormalizeVecEnv))
     width = normalizer.agent_obs_dim
     observations = env.reset()
     raw_rows, labels = [], []
@@ -83,7 +83,7 @@ def collect(
         if rng.random() < teacher_share:
             actions = label
         else:
-            actions = model.policy.predict(observations, deterministic=True)[0]
+            actions = model.policy.predict(cast(np.ndarray, observations), deterministic=True)[0]  # a Box's observations
         observations, *_ = env.step(actions)
     return np.concatenate(raw_rows), np.concatenate(labels)
 
@@ -91,7 +91,8 @@ def collect(
 def fit_actor(model: PPO, raw: np.ndarray, labels: np.ndarray, settings: ImitationSettings, rng: np.random.Generator) -> float:
     """Fit the actor's mean action to ``labels`` for ``settings.epochs`` passes; return the last epoch's mean loss."""
     policy = model.policy
-    normalizer = unwrap_vec_wrapper(model.get_env(), ScaleNormalizeVecEnv)
+    # as in collect
+    normalizer = cast(ScaleNormalizeVecEnv, unwrap_vec_wrapper(cast(VecEnv, model.get_env()), ScaleNormalizeVecEnv))
     observations = th.as_tensor(normalizer.normalize_obs(raw), device=policy.device)
     targets = th.as_tensor(labels, device=policy.device)
     optimizer = th.optim.Adam(actor_parameters(policy), lr=settings.learning_rate)
@@ -127,7 +128,7 @@ def pretrain_actor(
     # SB3 initialises the action head with gain 0.01 (near-zero first actions); that small head also scales down the
     # gradients reaching the hidden layers, which then barely move for hundreds of steps: start the fit from gain 1
     with th.no_grad():
-        th.nn.init.orthogonal_(model.policy.action_net.weight, gain=1.0)
+        th.nn.init.orthogonal_(cast(th.Tensor, model.policy.action_net.weight), gain=1.0)  # a Linear layer's
     raw_sets, label_sets, records = [], [], []
     for round_index in range(settings.rounds):
         share = 0.5**round_index

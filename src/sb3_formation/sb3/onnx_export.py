@@ -15,10 +15,11 @@ import math
 import os
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch as th
+from gymnasium import spaces
 from stable_baselines3.common.torch_layers import FlattenExtractor
 from torch import nn
 
@@ -46,6 +47,12 @@ class ActorGraph(nn.Module):
     :raises ValueError: a policy of another kind, or with a features extractor other than SB3's flattening one
     """
 
+    # buffers (register_buffer)
+    scale: th.Tensor
+    offset: th.Tensor
+    low: th.Tensor
+    high: th.Tensor
+
     def __init__(self, trained: TrainedPolicy) -> None:
         super().__init__()
         policy = trained.policy
@@ -65,13 +72,15 @@ class ActorGraph(nn.Module):
         self.clip = None if math.isnan(clip) else clip
         self.recurrent = isinstance(policy, RecurrentFormationPolicy)
         if self.recurrent:
-            self.before, self.rnn, self.after = policy.actor.before, policy.actor.rnn, policy.actor.after
-            self.cell, self.hidden = policy.actor.cell, policy.actor.hidden
-        else:
-            self.body = policy.mlp_extractor.policy_net  # MlpExtractor's, or TeamCriticExtractor's on the own block
+            actor = cast(RecurrentFormationPolicy, policy).actor
+            self.before, self.rnn, self.after = actor.before, actor.rnn, actor.after
+            self.cell, self.hidden = actor.cell, actor.hidden
+        else:  # MlpExtractor's, or TeamCriticExtractor's on the own block
+            self.body = cast(FormationPolicy, policy).mlp_extractor.policy_net
         self.action_net, self.action_scale = policy.action_net, policy.action_scale
-        self.register_buffer("low", th.as_tensor(policy.action_space.low, dtype=th.float32))
-        self.register_buffer("high", th.as_tensor(policy.action_space.high, dtype=th.float32))
+        box = cast(spaces.Box, policy.action_space)  # Gaussian actions
+        self.register_buffer("low", th.as_tensor(box.low, dtype=th.float32))
+        self.register_buffer("high", th.as_tensor(box.high, dtype=th.float32))
 
     def forward(self, observation: th.Tensor, *state: th.Tensor) -> th.Tensor | tuple[th.Tensor, ...]:
         """The clipped mean action of each row (and, recurrent, the actor's next state).
@@ -154,6 +163,7 @@ def export_onnx(policy: TeamPolicy, path: str | os.PathLike[str], opset: int = D
             )
         finally:
             exporter_log.setLevel(level)
+    assert program is not None  # dynamo=True returns the program
     model = program.model_proto
     written = next(entry.version for entry in model.opset_import if entry.domain in ("", "ai.onnx"))
     metadata = PolicyMetadata(trained.config, metadata.team_sizes, residual, recurrent, opset=written)

@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, cast
+
 import numpy as np
-from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
+from stable_baselines3.common.vec_env import VecEnvWrapper
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepReturn
 
 from sb3_formation.controllers.base import Controller
 from sb3_formation.controllers.residual import add_correction, check_residual_scale
 from sb3_formation.env.config import FormationConfig
+
+if TYPE_CHECKING:
+    from sb3_formation.sb3.vec_env import FormationVecEnv
 
 
 class ResidualVecEnv(VecEnvWrapper):
@@ -22,7 +27,9 @@ class ResidualVecEnv(VecEnvWrapper):
     :param scale: the correction's bound, a fraction of F_max
     """
 
-    def __init__(self, venv: VecEnv, base: Controller, scale: float) -> None:
+    venv: FormationVecEnv
+
+    def __init__(self, venv: FormationVecEnv, base: Controller, scale: float) -> None:
         super().__init__(venv)
         self.base, self.scale = base, check_residual_scale(scale)
         self.agent_obs_dim: int = venv.agent_observation_dim
@@ -34,7 +41,7 @@ class ResidualVecEnv(VecEnvWrapper):
         self._observations: np.ndarray | None = None
 
     def reset(self) -> VecEnvObs:
-        self._observations = self.venv.reset()
+        self._observations = cast(np.ndarray, self.venv.reset())  # a Box's observations
         return self._observations
 
     def step_async(self, actions: np.ndarray) -> None:
@@ -49,5 +56,5 @@ class ResidualVecEnv(VecEnvWrapper):
 
     def step_wait(self) -> VecEnvStepReturn:
         observations, rewards, dones, infos = self.venv.step_wait()
-        self._observations = observations
+        self._observations = cast(np.ndarray, observations)  # a Box's observations
         return observations, rewards, dones, infos

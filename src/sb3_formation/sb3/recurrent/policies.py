@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import numpy as np
 import torch as th
@@ -150,7 +150,8 @@ class RecurrentFormationPolicy(ModeOnChange, BasePolicy):
         self.net_arch = {**DEFAULT_RECURRENT_NET_ARCH, **(net_arch or {})}
         self.cell, self.activation_fn, self.ortho_init = cell, activation_fn, ortho_init
         self.sigma, self.learn_sigma, self.action_scale = float(sigma), bool(learn_sigma), float(action_scale)
-        arch, obs_dim, action_dim = self.net_arch, observation_space.shape[0], action_space.shape[0]
+        action_shape = cast(spaces.Box, action_space).shape  # checked above
+        arch, obs_dim, action_dim = self.net_arch, observation_space.shape[0], action_shape[0]
         self.actor = RecurrentHead(obs_dim, arch["pi"], arch["pi_recurrent"], arch["pi_after"], cell, activation_fn)
         self.critic = RecurrentHead(obs_dim, arch["vf"], arch["vf_recurrent"], arch["vf_after"], cell, activation_fn)
         self.action_net = nn.Linear(self.actor.output_dim, action_dim)
@@ -159,7 +160,7 @@ class RecurrentFormationPolicy(ModeOnChange, BasePolicy):
         self.action_dist = DiagGaussianDistribution(action_dim)
         if ortho_init:
             for module, gain in ((self.actor, math.sqrt(2)), (self.critic, math.sqrt(2)), (self.action_net, 0.01)):
-                module.apply(lambda layer, gain=gain: self.init_weights(layer, gain))
+                module.apply(lambda layer, gain=gain: self.init_weights(layer, gain))  # type: ignore[misc]  # mypy cannot type a lambda's default
             self.value_net.apply(lambda layer: self.init_weights(layer, 1.0))
             for rnn in (self.actor.rnn, self.critic.rnn):
                 for name, parameter in rnn.named_parameters():
@@ -168,7 +169,8 @@ class RecurrentFormationPolicy(ModeOnChange, BasePolicy):
                     else:
                         nn.init.zeros_(parameter)
         trainable = [parameter for parameter in self.parameters() if parameter.requires_grad]
-        self.optimizer = self.optimizer_class(trainable, lr=lr_schedule(1), **self.optimizer_kwargs)
+        # optimizer_class is an Optimizer that takes lr (Adam by default), as SB3's policies call it
+        self.optimizer = self.optimizer_class(trainable, lr=lr_schedule(1), **self.optimizer_kwargs)  # type: ignore[call-arg]
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
@@ -230,13 +232,13 @@ class RecurrentFormationPolicy(ModeOnChange, BasePolicy):
         critic_output, _ = self.critic(features, states.vf)
         distribution = self._distribution(actor_output.flatten(0, 1))  # SB3 sums log-probabilities over dim 1
         log_prob = distribution.log_prob(actions.flatten(0, 1)).unflatten(0, (length, batch))
-        entropy = distribution.entropy().unflatten(0, (length, batch))
+        entropy = cast(th.Tensor, distribution.entropy()).unflatten(0, (length, batch))  # a Gaussian's is never None
         return self.value_net(critic_output).squeeze(-1), log_prob, entropy
 
-    def _predict(self, observation: th.Tensor, deterministic: bool = False) -> th.Tensor:
+    def _predict(self, observation: th.Tensor | dict[str, th.Tensor], deterministic: bool = False) -> th.Tensor:
         raise NotImplementedError("a recurrent policy acts through predict(observation, state, episode_start)")
 
-    def predict(
+    def predict(  # type: ignore[override]  # flat Box observations only (checked in __init__), not dicts
         self,
         observation: np.ndarray,
         state: tuple[np.ndarray, ...] | None = None,
@@ -254,8 +256,9 @@ class RecurrentFormationPolicy(ModeOnChange, BasePolicy):
         self.set_training_mode(False)
         observation = np.asarray(observation, dtype=np.float32)
         single = observation.ndim == 1
-        batch = observation.reshape(-1, self.observation_space.shape[0])
+        batch = observation.reshape(-1, cast(spaces.Box, self.observation_space).shape[0])
         n = batch.shape[0]
+        actions: th.Tensor | np.ndarray  # a tensor, then its clipped numpy values
         with th.no_grad():
             pi_state = (
                 self.actor.initial_state(n, self.device)
@@ -267,5 +270,6 @@ class RecurrentFormationPolicy(ModeOnChange, BasePolicy):
             features = self.extract_features(th.as_tensor(batch, device=self.device), self.features_extractor)
             actor_output, pi_state = self.actor(features.unsqueeze(0), pi_state)
             actions = self._distribution(actor_output[0]).get_actions(deterministic=deterministic)
-        actions = np.clip(actions.cpu().numpy(), self.action_space.low, self.action_space.high)
+        box = cast(spaces.Box, self.action_space)  # checked in __init__
+        actions = cast(np.ndarray, np.clip(actions.cpu().numpy(), box.low, box.high))
         return (actions[0] if single else actions), tuple(tensor.cpu().numpy() for tensor in pi_state)

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch as th
+from gymnasium import spaces
 from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.type_aliases import Schedule
 from stable_baselines3.common.utils import explained_variance, obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
 
@@ -38,7 +40,8 @@ class RecurrentFormationPPO(PPO):
     :param kwargs: SB3 ``PPO`` arguments
     """
 
-    policy: RecurrentFormationPolicy
+    # SB3's OnPolicyAlgorithm declares an ActorCriticPolicy; this algorithm's policy is a BasePolicy of its own
+    policy: RecurrentFormationPolicy  # type: ignore[assignment]
     rollout_buffer: RecurrentRolloutBuffer
 
     def __init__(
@@ -58,7 +61,7 @@ class RecurrentFormationPPO(PPO):
         if kwargs.get("rollout_buffer_class") not in (None, RecurrentRolloutBuffer):
             raise ValueError("RecurrentFormationPPO needs its RecurrentRolloutBuffer")
         kwargs["rollout_buffer_class"] = RecurrentRolloutBuffer
-        super().__init__(policy, env, **kwargs)
+        super().__init__(policy, env, **kwargs)  # type: ignore[arg-type]  # a BasePolicy, not an ActorCriticPolicy (above)
 
     def _setup_model(self) -> None:
         super()._setup_model()
@@ -86,7 +89,8 @@ class RecurrentFormationPPO(PPO):
                 entering = self._last_states.masked(1.0 - starts)  # reset where an episode starts
                 actions, values, log_probs, self._last_states = self.policy(obs_tensor, entering, starts)
             actions = actions.cpu().numpy()
-            clipped_actions = np.clip(actions, self.action_space.low, self.action_space.high)
+            box = cast(spaces.Box, self.action_space)  # the formation env's actions
+            clipped_actions = np.clip(actions, box.low, box.high)
             new_obs, rewards, dones, infos = env.step(clipped_actions)
             self.num_timesteps += env.num_envs
             callback.update_locals(locals())
@@ -104,16 +108,21 @@ class RecurrentFormationPPO(PPO):
                 rows = th.as_tensor(timeouts, device=self.device)
                 with th.no_grad():
                     terminal_values = self.policy.predict_values(
-                        terminal, self._last_states.select(rows).vf, th.zeros(len(timeouts), device=self.device)
+                        cast(th.Tensor, terminal),
+                        self._last_states.select(rows).vf,
+                        th.zeros(len(timeouts), device=self.device),
                     )
                 rewards[timeouts] += self.gamma * terminal_values.squeeze(-1).cpu().numpy()
             rollout_buffer.add_states(entering)
-            rollout_buffer.add(self._last_obs, actions, rewards, self._last_episode_starts, values, log_probs)
-            self._last_obs = new_obs
+            observed = cast(np.ndarray, self._last_obs)  # Box observations
+            started = cast(np.ndarray, self._last_episode_starts)  # set in _setup_model
+            rollout_buffer.add(observed, actions, rewards, started, values, log_probs)
+            self._last_obs = cast(np.ndarray, new_obs)
             self._last_episode_starts = dones
         with th.no_grad():
             starts = th.as_tensor(dones, dtype=th.float32, device=self.device)
-            values = self.policy.predict_values(obs_as_tensor(new_obs, self.device), self._last_states.vf, starts)
+            last_obs = cast(th.Tensor, obs_as_tensor(cast(np.ndarray, new_obs), self.device))  # Box observations
+            values = self.policy.predict_values(last_obs, self._last_states.vf, starts)
         rollout_buffer.compute_returns_and_advantage(last_values=values, dones=dones)
         callback.update_locals(locals())
         callback.on_rollout_end()
@@ -123,8 +132,11 @@ class RecurrentFormationPPO(PPO):
         """PPO's clipped update over minibatches of whole sequences (see the class docstring)."""
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
-        clip_range = self.clip_range(self._current_progress_remaining)
-        clip_range_vf = None if self.clip_range_vf is None else self.clip_range_vf(self._current_progress_remaining)
+        # SB3 declares float | Schedule; _setup_model made them schedules
+        clip_range = cast(Schedule, self.clip_range)(self._current_progress_remaining)
+        clip_range_vf = (
+            None if self.clip_range_vf is None else cast(Schedule, self.clip_range_vf)(self._current_progress_remaining)
+        )
         entropy_losses, pg_losses, value_losses, clip_fractions = [], [], [], []
         continue_training = True
         for epoch in range(self.n_epochs):
