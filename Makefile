@@ -43,8 +43,8 @@ pretrained: setup
 	  $(BIN)/sb3-formation pretrained --export runs/pretrained-$$task --name $$task || exit 1; \
 	done
 
-# mypy reads its settings from pyproject.toml ([tool.mypy]: strict for sb3_formation.utils, default elsewhere; `files`
-# are the packages `make lint` checks). `make typecheck` checks the whole package.
+# mypy reads its settings from pyproject.toml ([tool.mypy]: strict for sb3_formation.utils and sb3_formation.env,
+# default elsewhere; `files` is the whole package). `make typecheck` runs the same check on its own.
 lint: setup
 	$(BIN)/ruff check src tests benchmarks docs/hooks.py
 	$(BIN)/ruff format --check src tests benchmarks docs/hooks.py
