@@ -8,13 +8,19 @@ Delta c_g. Each agent knows its own offset from the centroid, o_i = p_i - p_c = 
 
 - **Team heading** (shared memory). The centroid moves at ``v_c = V R(sigma phi) c_g / |c_g|``, V = k_goal v_max:
   the goal direction turned by phi >= 0 to the side sigma in {-1, +1}. The team's progress along the last heading
-  h, ``P <- (1 - a) P + a (-Delta c_g . h) / (V dt)``, acts as a bump sensor: while P < p_block (blocked) the
-  heading turns away, ``phi <- phi + omega_block``; while free it turns back, ``phi <- max(phi - omega_free, 0)``.
-  The team so follows an obstacle's boundary on the side sigma and leaves it where the way to the goal is free.
-  When a detour starts (phi leaves 0), sigma is the side the centroid drifts to,
-  ``sigma = sign(c_g x (-Delta c_g))`` (its running mean; +1 on a tie), and the anchor ``d_a = |c_g|`` is kept; the
-  side flips (sigma <- -sigma, d_a <- |c_g|) when the detour leads away from the goal, ``|c_g| > d_a + D_flip``, or
-  turns past phi_max (a dead end). Every input is shared, so every agent holds the same phi, sigma and d_a.
+  h, ``P <- (1 - a) P + a (-Delta c_g . h) / (V dt)``, is a bump sensor: while P < p_block (blocked) the heading
+  turns away, ``phi <- phi + omega_block`` (on the way to the goal, phi = 0, only after ``patience`` blocked steps,
+  time for the formation to shrink into an opening); while free it turns back, ``phi <- max(phi - omega_free, 0)``
+  (``omega_back`` while phi > 90 deg: round the end of an obstacle). The team so follows an obstacle's boundary on
+  the side sigma and leaves it where the way to the goal is free.
+- **Detour** (shared memory, Bug2-like). A detour starts when the team is first blocked: sigma is the side the
+  centroid drifts to, ``sigma = sign(c_g x (-Delta c_g))`` (its running mean; +1 on a tie), and the hit distance
+  ``d_h = |c_g|`` and the anchor ``d_a = |c_g|`` are kept; d_h is lowered to |c_g| whenever the team is blocked
+  closer. After k flips, the detour flips when it has led ``D_flip 2^k`` further from the goal than the anchor,
+  ``|c_g| > d_a + D_flip 2^k``, or turned past phi_max: the team turns back the way it came (``phi <- |pi - phi|``,
+  ``sigma <- -sigma``, ``d_a <- |c_g|``), the doubling search of a wall's unknown end. The detour ends, freeing
+  sigma for the next obstacle, once the heading is back on the goal (phi = 0) and ``|c_g| < d_h - leave_margin``.
+  Every input is shared, so every agent of a team holds the same phi, sigma, d_h, d_a and k.
 - **Scale** (per agent, agreed with the neighbours). From the obstacle lidar's gaps g_k (m): the proximity scale
   ``s_p = s_min + (1 - s_min) clip((min_k g_k - g_lo) / (g_hi - g_lo), 0, 1)`` and the width scale
   ``s_w = (w / 2 - R_a - m_w) / r_0`` with ``w = min_k (g_k + g_{k+b/2} + 2 R_a)`` over opposite rays that both see
@@ -46,8 +52,21 @@ from sb3_formation.env.sensors import ray_directions
 from sb3_formation.utils.checks import is_number
 
 #: Columns of one agent's memory (a row of the ``state`` array of :meth:`ShrinkingController.predict`).
-MEMORY_FIELDS = ("phi", "sigma", "anchor", "scale", "progress", "lateral", "heading_x", "heading_y", "flips", "hit", "started")
-_PHI, _SIGMA, _ANCHOR, _SCALE, _PROGRESS, _LATERAL, _HX, _HY, _FLIPS, _HIT, _STARTED = range(len(MEMORY_FIELDS))
+MEMORY_FIELDS = (
+    "phi",
+    "sigma",
+    "anchor",
+    "scale",
+    "progress",
+    "lateral",
+    "heading_x",
+    "heading_y",
+    "flips",
+    "hit",
+    "waited",
+    "started",
+)
+_PHI, _SIGMA, _ANCHOR, _SCALE, _PROGRESS, _LATERAL, _HX, _HY, _FLIPS, _HIT, _WAITED, _STARTED = range(len(MEMORY_FIELDS))
 
 
 @dataclass(frozen=True)
@@ -63,8 +82,11 @@ class ShrinkingGains:
     :param neighbour_range: reach (m) of a neighbour's repulsion, surface to surface
     :param progress_rate: a, the weight of the last step in the running progress P
     :param block_progress: p_block: the team is blocked while P is below this fraction of V dt
+    :param patience: steps a team blocked on its way to the goal waits (shrinking) before it turns aside
     :param turn_block_deg: omega_block (deg per step), the heading's turn away while blocked
     :param turn_free_deg: omega_free (deg per step), its turn back while free
+    :param turn_back_deg: omega_back (deg per step), its turn back while free and turned by more than 90 deg (going
+        round the end of an obstacle)
     :param max_turn_deg: phi_max (deg): turning further is a dead end, the side flips
     :param flip_distance: D_flip (m): a detour that takes the centroid this much further from the goal flips side
     :param leave_margin: the detour (its side and flips) ends when the centroid is this much (m) closer to the goal
@@ -85,15 +107,17 @@ class ShrinkingGains:
     neighbour_range: float = 0.15
     progress_rate: float = 0.1
     block_progress: float = 0.5
+    patience: float = 40.0
     turn_block_deg: float = 1.0
     turn_free_deg: float = 0.5
+    turn_back_deg: float = 2.0
     max_turn_deg: float = 200.0
-    flip_distance: float = 2.0
+    flip_distance: float = 3.0
     leave_margin: float = 0.5
     gap_low: float = 0.2
     gap_high: float = 0.8
-    width_margin: float = 0.05
-    min_side_gap: float = 0.1
+    width_margin: float = 0.02
+    min_side_gap: float = 0.05
     scale_slack: float = 0.05
     scale_relax: float = 0.002
 
@@ -229,8 +253,12 @@ class ShrinkingController(Controller):
         anchor[:] = np.where(begins, distance, anchor)
         hit[:] = np.where(begins, distance, np.where(blocked & (hit > 0), np.minimum(hit, distance), hit))
         flipped[:] = np.where(begins, 0.0, flipped)
-        turn_block, turn_free = math.radians(gains.turn_block_deg), math.radians(gains.turn_free_deg)
-        phi[:] = np.where(blocked, phi + turn_block, np.maximum(phi - turn_free, 0.0))
+        turn_block = math.radians(gains.turn_block_deg)
+        turn_free = np.radians(np.where(phi > math.pi / 2, gains.turn_back_deg, gains.turn_free_deg))
+        waited = memory[:, _WAITED]
+        waited[:] = np.where(blocked, waited + 1, 0.0)
+        turning = blocked & ((phi > 0) | (waited > gains.patience))
+        phi[:] = np.where(turning, phi + turn_block, np.where(blocked, phi, np.maximum(phi - turn_free, 0.0)))
         away = distance > anchor + gains.flip_distance * 2.0**flipped
         flips = (hit > 0) & (phi > 0) & (away | (phi > math.radians(gains.max_turn_deg)))
         flipped[:] = np.where(flips, flipped + 1, flipped)
