@@ -177,7 +177,7 @@ class ShrinkingController(Controller):
         memory[:, _PROGRESS] = 1.0
         return memory
 
-    def predict(
+    def predict(  # type: ignore[override]  # Controller.predict declares no state; this controller keeps memory
         self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
     ) -> tuple[np.ndarray, np.ndarray]:
         """SB3's signature: actions for every row (row k: agent k % n), and the agents' memory as the next state."""
