@@ -14,13 +14,17 @@ from __future__ import annotations
 import copy
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
-from typing import Any, Protocol, runtime_checkable
+from dataclasses import fields
+from typing import Any, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.observations import observation_fields, observation_layout
 from sb3_formation.env.state import TeamState
+from sb3_formation.utils.checks import is_number
+
+GainsT = TypeVar("GainsT")
 
 
 @runtime_checkable
@@ -62,6 +66,21 @@ class PrivilegedPolicy(TeamPolicy, Protocol):
         ...
 
 
+def check_gains(gains: Any) -> None:
+    """Refuse a gains dataclass any of whose values is not a finite number >= 0 (a bool where its default is one).
+
+    :raises ValueError: naming the gain and what it must be
+    """
+    for item in fields(gains):
+        value = getattr(gains, item.name)
+        if isinstance(item.default, bool):
+            valid, allowed = isinstance(value, bool), "true or false"
+        else:
+            valid, allowed = is_number(value) and value >= 0, "a finite number >= 0"
+        if not valid:
+            raise ValueError(f"{type(gains).__name__}.{item.name}={value!r} is invalid: it must be {allowed}")
+
+
 class Controller(ABC):
     """Base class of hand-written controllers: each agent acts from its own raw observation and its index.
 
@@ -80,6 +99,19 @@ class Controller(ABC):
         self.layout: dict[str, slice] = observation_layout(observation_fields(config))
         self.gains: dict[str, Any] = {}
 
+    def _take_gains(self, kind: type[GainsT], gains: dict[str, Any]) -> GainsT:
+        """The gains dataclass ``kind`` built from keyword values, recorded in :attr:`gains`.
+
+        :raises ValueError: a name that is not one of ``kind``'s fields (the valid ones are listed)
+        """
+        names = [item.name for item in fields(kind)]  # type: ignore[arg-type]  # kind is a dataclass
+        unknown = sorted(set(gains) - set(names))
+        if unknown:
+            raise ValueError(f"unknown gains {unknown} of {type(self).__name__}; gains: {names}")
+        settings = kind(**gains)
+        self.gains = {name: getattr(settings, name) for name in names}
+        return settings
+
     def fit(self, config: FormationConfig) -> Controller:
         """The same controller (a shallow copy: same gains, same generator) acting in envs of ``config``."""
         if config == self.config:
@@ -91,7 +123,7 @@ class Controller(ABC):
 
     def predict(
         self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
-    ) -> tuple[np.ndarray, None]:
+    ) -> tuple[np.ndarray, Any]:
         """SB3's signature: :meth:`act` on every row, actions clipped to [-1, 1]; controllers keep no state."""
         observation = np.asarray(observation, dtype=np.float64)
         rows = observation.reshape(-1, observation.shape[-1])

@@ -25,16 +25,15 @@ Every agent computes a velocity command from its own observation (Table 3.1), it
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any, cast
 
 import numpy as np
 
-from sb3_formation.controllers.base import Controller
+from sb3_formation.controllers.base import Controller, check_gains
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.geometry import reference_bearings
 from sb3_formation.env.sensors import ray_directions
-from sb3_formation.utils.checks import is_number
 
 #: Smallest surface gap (m) used in a 1/s repulsion, so touching bodies push hard but finitely.
 MIN_GAP = 0.01
@@ -65,13 +64,7 @@ class ClassicalGains:
     use_bearings: bool = True
 
     def __post_init__(self) -> None:
-        for name, value in asdict(self).items():
-            if name == "use_bearings":
-                valid, allowed = isinstance(value, bool), "true or false"
-            else:
-                valid, allowed = is_number(value) and value >= 0, "a finite number >= 0"
-            if not valid:
-                raise ValueError(f"ClassicalGains.{name}={value!r} is invalid: it must be {allowed}")
+        check_gains(self)
 
 
 class ClassicalController(Controller):
@@ -83,13 +76,7 @@ class ClassicalController(Controller):
 
     def __init__(self, config: FormationConfig, **gains: Any) -> None:
         super().__init__(config)
-        unknown = sorted(set(gains) - set(ClassicalGains.__dataclass_fields__))
-        if unknown:
-            raise ValueError(
-                f"unknown gains {unknown} of the classical controller; gains: {list(ClassicalGains.__dataclass_fields__)}"
-            )
-        self.settings = ClassicalGains(**gains)
-        self.gains = asdict(self.settings)
+        self.settings = self._take_gains(ClassicalGains, gains)
         self._fit_task()
 
     def fit(self, config: FormationConfig) -> ClassicalController:

@@ -21,18 +21,17 @@ not a baseline that a decentralised policy could match with its own sensors.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import cast
 
 import numpy as np
 
-from sb3_formation.controllers.base import Controller
+from sb3_formation.controllers.base import Controller, check_gains
 from sb3_formation.controllers.classical import force_action
 from sb3_formation.env.clearance import ClearanceMap, shortest_path, shrunk_footprint
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.geometry import reference_polygon
 from sb3_formation.env.state import TeamState
-from sb3_formation.utils.checks import is_number
 
 
 @dataclass(frozen=True)
@@ -57,9 +56,7 @@ class PlannerGains:
     behind: float = 1.0
 
     def __post_init__(self) -> None:
-        for name, value in asdict(self).items():
-            if not (is_number(value) and value >= 0):
-                raise ValueError(f"PlannerGains.{name}={value!r} is invalid: it must be a finite number >= 0")
+        check_gains(self)
 
 
 @dataclass
@@ -92,11 +89,7 @@ class PrivilegedPlanner(Controller):
 
     def __init__(self, config: FormationConfig, **gains: float) -> None:
         super().__init__(config)
-        unknown = sorted(set(gains) - set(PlannerGains.__dataclass_fields__))
-        if unknown:
-            raise ValueError(f"unknown gains {unknown} of the planner; gains: {list(PlannerGains.__dataclass_fields__)}")
-        self.settings = PlannerGains(**gains)
-        self.gains = asdict(self.settings)
+        self.settings = self._take_gains(PlannerGains, gains)
         self.plans: dict[int, TeamPlan] = {}
 
     def fit(self, config: FormationConfig) -> PrivilegedPlanner:

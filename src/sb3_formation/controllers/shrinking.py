@@ -39,17 +39,16 @@ Delta c_g. Each agent knows its own offset from the centroid, o_i = p_i - p_c = 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any, cast
 
 import numpy as np
 
-from sb3_formation.controllers.base import Controller
+from sb3_formation.controllers.base import Controller, check_gains
 from sb3_formation.controllers.classical import MIN_GAP, force_action, lidar_repulsion, unit
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.geometry import reference_polygon
 from sb3_formation.env.sensors import ray_directions
-from sb3_formation.utils.checks import is_number
 
 #: Columns of one agent's memory (a row of the ``state`` array of :meth:`ShrinkingController.predict`).
 MEMORY_FIELDS = (
@@ -125,9 +124,7 @@ class ShrinkingGains:
     scale_relax: float = 0.002
 
     def __post_init__(self) -> None:
-        for name, value in asdict(self).items():
-            if not (is_number(value) and value >= 0):
-                raise ValueError(f"ShrinkingGains.{name}={value!r} is invalid: it must be a finite number >= 0")
+        check_gains(self)
         if self.gap_high <= self.gap_low:
             raise ValueError(f"ShrinkingGains.gap_high={self.gap_high!r} must exceed gap_low={self.gap_low!r}")
         if not 0 < self.progress_rate <= 1:
@@ -148,13 +145,7 @@ class ShrinkingController(Controller):
 
     def __init__(self, config: FormationConfig, **gains: Any) -> None:
         super().__init__(config)
-        unknown = sorted(set(gains) - set(ShrinkingGains.__dataclass_fields__))
-        if unknown:
-            raise ValueError(
-                f"unknown gains {unknown} of the shrinking controller; gains: {list(ShrinkingGains.__dataclass_fields__)}"
-            )
-        self.settings = ShrinkingGains(**gains)
-        self.gains = asdict(self.settings)
+        self.settings = self._take_gains(ShrinkingGains, gains)
         self._fit_task()
 
     def fit(self, config: FormationConfig) -> ShrinkingController:
@@ -180,7 +171,7 @@ class ShrinkingController(Controller):
         memory[:, _PROGRESS] = 1.0
         return memory
 
-    def predict(  # type: ignore[override]  # Controller.predict declares no state; this controller keeps memory
+    def predict(
         self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
     ) -> tuple[np.ndarray, np.ndarray]:
         """SB3's signature: actions for every row (row k: agent k % n), and the agents' memory as the next state."""
