@@ -11,6 +11,7 @@ from sb3_formation.controllers.base import PrivilegedPolicy
 from sb3_formation.controllers.planner import PlannerGains, PrivilegedPlanner
 from sb3_formation.env.geometry import reference_polygon
 from sb3_formation.env.scenarios import Scenario, start_formation
+from sb3_formation.env.shapes import shape_gaps
 from sb3_formation.experiment.evaluation import evaluate
 
 CONFIG = FormationConfig.task("ch5-bearing", stage=3)  # n = 6, R_a 0.2 m, r_0 = 1.08 m, v_max 0.05 m/s
@@ -78,3 +79,26 @@ def test_it_solves_every_family(scenes: str) -> None:
     result = evaluate(planner, episodes=4, stage=3, seed=500, n_envs=4, record=0)
     assert result.summary["successes"] == 4
     assert result.summary["all_episodes"]["collisions_obstacle"]["mean"] <= 5
+
+
+def test_it_plans_and_flies_through_a_small_maze() -> None:
+    """Two walls from alternate sides force an S: the plan runs over the first wall's end and under the second's,
+    every point of it clear of the walls by the smallest footprint plus the margin, and the team reaches the goal."""
+    config = CONFIG.replace(max_steps=3000)
+    walls = [[5.0, 0.0, 5.0, 7.0, 0.2], [10.0, 3.0, 10.0, 10.0, 0.2]]
+    scenario = Scenario(start_formation(config, np.array([2.0, 3.0])), [13.0, 7.0], walls=walls)
+    env = FormationEnv(config)
+    observations, _ = env.reset(options={"scenario": scenario})
+    planner = PrivilegedPlanner(config)
+    plan = planner.plan(env.team_state())
+    at_first, at_second = np.argmin(np.abs(plan.path[:, 0] - 5.0)), np.argmin(np.abs(plan.path[:, 0] - 10.0))
+    assert plan.path[at_first, 1] > 7.1 and plan.path[at_second, 1] < 2.9
+    gaps = shape_gaps(plan.path[1:-1], np.zeros((0, 3)), np.array(walls), config.world_width, config.world_height)
+    assert gaps.min() >= 0.6 + 0.08 - 1e-9
+    planner.start_episodes([0], [env.team_state()])
+    for _ in range(config.max_steps):
+        actions, _ = planner.predict(np.stack([observations[agent] for agent in env.possible_agents]))
+        observations, _, terminated, truncated, _ = env.step(dict(zip(env.possible_agents, actions)))
+        if any(terminated.values()) or any(truncated.values()):
+            break
+    assert env.team_state().goal_distance <= config.eta_g
