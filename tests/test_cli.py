@@ -17,6 +17,7 @@ import pytest
 import torch
 import yaml
 from PIL import Image
+from terminal import default_ctrl_c
 
 from sb3_formation import FormationConfig, FormationEnv
 from sb3_formation.cli import main
@@ -218,6 +219,7 @@ def test_ctrl_c_ends_evaluations_at_once_with_one_line(arguments: list[str], tmp
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
+        preexec_fn=default_ctrl_c,
     )
     time.sleep(5.0)  # imports, workers started, episodes under way
     assert process.poll() is None, process.communicate()

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from terminal import default_ctrl_c
 
 from sb3_formation.cli import main
 from sb3_formation.experiment.recipes import load_recipe
@@ -121,7 +122,8 @@ def test_ray_sweep_skips_finished_trials_after_a_kill_and_aggregates(tmp_path: P
     experiment.write_text(yaml.safe_dump(TINY))
     logdir = tmp_path / "logs"
     command = [sys.executable, "-m", "sb3_formation.cli", "sweep", str(experiment), "--logdir", str(logdir)]
-    process = subprocess.Popen([*command, "--max-concurrent", "1"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    pipes = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True, "preexec_fn": default_ctrl_c}
+    process = subprocess.Popen([*command, "--max-concurrent", "1"], **pipes)
     first = logdir / "tiny" / "seed_0"
     # the second trial has started (its config.yaml is its first file): the sweep is killed while it runs
     wait_for(lambda: (logdir / "tiny" / "seed_1" / "config.yaml").exists())
