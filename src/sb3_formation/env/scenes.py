@@ -253,13 +253,13 @@ def draw_scene(config: FormationConfig, rng: np.random.Generator) -> Scenario:
 
 def _fits(config: FormationConfig, positions: np.ndarray, goal: np.ndarray, circles: np.ndarray, walls: np.ndarray) -> bool:
     """The formation inside the world and :data:`PLACEMENT_ROOM` clear of every shape and the border, the goal area
-    clear of every shape, every wall's ends in the world."""
+    (eta_g around the goal) clear of every shape and the border, every wall's ends in the world."""
     width, height = config.world_width, config.world_height
     ends = walls[:, :4].reshape(-1, 2)
     if np.any(ends < 0) or np.any(ends > [width, height]):
         return False
     agents = shape_gaps(positions, circles, walls, width, height)
-    goal_gap = shape_gaps(goal[None, :], circles, walls, math.inf, math.inf)[0]
+    goal_gap = shape_gaps(goal[None, :], circles, walls, width, height)[0]
     inside = 0 <= goal[0] <= width and 0 <= goal[1] <= height
     return bool(inside and np.all(agents >= config.agent_radius + PLACEMENT_ROOM) and goal_gap >= config.eta_g)
 
