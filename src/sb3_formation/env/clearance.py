@@ -19,7 +19,7 @@ import numpy as np
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.shapes import shape_gaps
 
-#: Grid spacing (m) of clearance maps: an eighth of the thesis's 0.4 m agent diameter is more than the maps need.
+#: Grid spacing (m) of clearance maps: a quarter of the thesis's 0.4 m agent diameter.
 GRID_SPACING = 0.1
 
 
