@@ -113,13 +113,20 @@ class Controller(ABC):
         return settings
 
     def fit(self, config: FormationConfig) -> Controller:
-        """The same controller (a shallow copy: same gains, same generator) acting in envs of ``config``."""
+        """The same controller (a shallow copy: same gains, same generator) acting in envs of ``config``; the copy's
+        :meth:`_fit_task` derives what depends on the task."""
         if config == self.config:
             return self
         fitted = copy.copy(self)
         fitted.config = config
         fitted.layout = observation_layout(observation_fields(config))
+        fitted._fit_task()
         return fitted
+
+    def _fit_task(self) -> None:
+        """Derive what the controller keeps of its task (called by subclasses' ``__init__`` and by :meth:`fit`); a
+        controller that keeps nothing of it leaves this as it is."""
+        return
 
     def predict(
         self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True

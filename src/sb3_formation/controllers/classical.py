@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 
@@ -78,12 +78,6 @@ class ClassicalController(Controller):
         super().__init__(config)
         self.settings = self._take_gains(ClassicalGains, gains)
         self._fit_task()
-
-    def fit(self, config: FormationConfig) -> ClassicalController:
-        fitted = cast(ClassicalController, super().fit(config))  # Controller.fit returns a copy of self
-        if fitted is not self:
-            fitted._fit_task()
-        return fitted
 
     def _fit_task(self) -> None:
         config = self.config

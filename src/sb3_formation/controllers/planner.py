@@ -22,7 +22,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import cast
 
 import numpy as np
 
@@ -90,13 +89,10 @@ class PrivilegedPlanner(Controller):
     def __init__(self, config: FormationConfig, **gains: float) -> None:
         super().__init__(config)
         self.settings = self._take_gains(PlannerGains, gains)
-        self.plans: dict[int, TeamPlan] = {}
+        self._fit_task()
 
-    def fit(self, config: FormationConfig) -> PrivilegedPlanner:
-        fitted = cast(PrivilegedPlanner, super().fit(config))  # Controller.fit returns a copy of self
-        if fitted is not self:
-            fitted.plans = {}
-        return fitted
+    def _fit_task(self) -> None:
+        self.plans: dict[int, TeamPlan] = {}  # by team; none carried over from another task
 
     def start_episodes(self, teams: Sequence[int], states: Sequence[TeamState]) -> None:
         """Plan the new episodes of ``teams`` from their states after the reset (the map: shapes and goal).

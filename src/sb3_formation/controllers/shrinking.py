@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 
@@ -147,12 +147,6 @@ class ShrinkingController(Controller):
         super().__init__(config)
         self.settings = self._take_gains(ShrinkingGains, gains)
         self._fit_task()
-
-    def fit(self, config: FormationConfig) -> ShrinkingController:
-        fitted = cast(ShrinkingController, super().fit(config))
-        if fitted is not self:
-            fitted._fit_task()
-        return fitted
 
     def _fit_task(self) -> None:
         config = self.config

@@ -68,6 +68,7 @@ def play_episodes(
     if on_step is not None and job.n_workers > 1:
         raise ValueError("on_step reads every team in this process: play with n_workers=1")
     blocks = EngineBlocks([config] * n_teams, job.n_workers, auto_reset=False)
+    privileged = isinstance(job.policy, PrivilegedPolicy)  # it reads each team's map when its episode starts
     queue = list(reversed(job.episodes))
     current: list[int | None] = [None] * n_teams
     recorders: list[EpisodeRecorder | None] = [None] * n_teams
@@ -88,7 +89,6 @@ def play_episodes(
             return
         # (the episodes of the started teams are ints; mypy does not narrow list items)
         reset = blocks.reset(started, [job.seed + cast(int, current[team]) for team in started], [None] * len(started))
-        privileged = isinstance(job.policy, PrivilegedPolicy)
         watched = started if on_step is not None or privileged else [t for t in started if cast(int, current[t]) < job.record]
         states = blocks.call_teams("team_states", watched) if watched else {}
         if privileged:  # the map, for a policy that reads it
