@@ -29,11 +29,12 @@ import time
 
 import numpy as np
 import pymunk
-from reference import cpu_name, reference_checkout
+from reference import reference_checkout
 
 from sb3_formation import FormationConfig, FormationEnv
 from sb3_formation.env.world import World
 from sb3_formation.sb3.vec_env import FormationVecEnv
+from sb3_formation.utils.machine import machine_line
 
 CONFIG = FormationConfig.task("ch5-bearing", stage=3)
 
@@ -121,7 +122,7 @@ def main() -> None:
     parser.add_argument("--teams", type=int, default=14)
     parser.add_argument("--reference", help="a commit whose own env_throughput.py runs right after, for the ratios")
     args = parser.parse_args()
-    print(f"{time.strftime('%Y-%m-%d')}, {cpu_name()}, {os.cpu_count()} cores")
+    print(machine_line())
     n, teams, steps = CONFIG.n_agents, args.teams, args.steps
     team_by_team_seconds(1, 5, 0)  # compile the kernels outside the timings
     # every measurement once per repeat, interleaved, so that each ratio sees the same machine

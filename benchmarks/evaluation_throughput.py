@@ -25,7 +25,9 @@ import time
 from contextlib import ExitStack
 from pathlib import Path
 
-from reference import ROOT, cpu_name, reference_checkout
+from reference import ROOT, reference_checkout
+
+from sb3_formation.utils.machine import machine_line
 
 COMMAND = "import sys; from sb3_formation.cli import main; sys.exit(main())"
 VARIANTS = {"default": [], "--workers 2": ["--workers", "2"]}
@@ -52,10 +54,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
-    print(
-        f"{time.strftime('%Y-%m-%d')}, {cpu_name()}, {os.cpu_count()} cores; {args.episodes} episodes, "
-        f"medians of {args.repeats} runs"
-    )
+    print(f"{machine_line()}; {args.episodes} episodes, medians of {args.repeats} runs")
     with tempfile.TemporaryDirectory() as folder, ExitStack() as stack:
         trees = {"this checkout": ROOT / "src"}
         if args.reference:

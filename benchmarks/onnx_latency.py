@@ -13,9 +13,7 @@ Usage: ``python benchmarks/onnx_latency.py [--calls 3000] [--note "machine share
 from __future__ import annotations
 
 import argparse
-import datetime
 import statistics
-import subprocess
 import tempfile
 import time
 from collections.abc import Callable
@@ -32,15 +30,7 @@ from sb3_formation.runtime import OnnxPolicy
 from sb3_formation.sb3.onnx_export import export_onnx
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
 from sb3_formation.sb3.trained import TrainedPolicy
-
-
-def cpu_model() -> str:
-    """lscpu's model name, or ``unknown``."""
-    try:
-        output = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-    return next((line.split(":", 1)[1].strip() for line in output.splitlines() if line.startswith("Model name")), "unknown")
+from sb3_formation.utils.machine import machine_line
 
 
 def median_seconds(act: Callable[[np.ndarray], object], observations: np.ndarray, calls: int, warm_up: int) -> float:
@@ -82,7 +72,7 @@ def main() -> None:
     parser.add_argument("--note", default="", help="a line to print with the header (e.g. what else ran)")
     args = parser.parse_args()
     th.set_num_threads(1)
-    print(f"onnx_latency: one agent's action, one core; {datetime.date.today().isoformat()}; CPU {cpu_model()}")
+    print(f"onnx_latency: one agent's action, one core; {machine_line()}")
     print(f"  torch {th.__version__} (1 thread), onnxruntime {onnxruntime.__version__} (intra_op_num_threads 1)")
     if args.note:
         print(f"  note: {args.note}")

@@ -27,11 +27,3 @@ def reference_checkout(rev: str) -> Iterator[Path]:
             yield worktree
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(worktree)], check=False)
-
-
-def cpu_name() -> str:
-    """The CPU's model name (``/proc/cpuinfo``)."""
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return "unknown CPU"

@@ -18,9 +18,10 @@ import os
 import statistics
 import subprocess
 import sys
-import time
 
-from reference import ROOT, cpu_name, reference_checkout
+from reference import ROOT, reference_checkout
+
+from sb3_formation.utils.machine import machine_line
 
 #: What one process runs: builds the kind of env with the API both checkouts have, and prints us per team-step.
 PROCESS = """
@@ -67,7 +68,7 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=8)
     parser.add_argument("--steps", type=int, default=2500)
     args = parser.parse_args()
-    print(f"{time.strftime('%Y-%m-%d')}, {cpu_name()}, {os.cpu_count()} cores; {args.rounds} alternating rounds")
+    print(f"{machine_line()}; {args.rounds} alternating rounds")
     with reference_checkout(args.reference) as tree:
         sources = {"this checkout": str(ROOT / "src"), f"reference {args.reference}": str(tree / "src")}
         times: dict[tuple[str, str], list[float]] = {(name, kind): [] for name in sources for kind in KINDS}

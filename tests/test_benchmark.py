@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import json
+import math
+import shlex
 from pathlib import Path
 
 import pytest
 
+from sb3_formation import __version__
 from sb3_formation.cli import main
 from sb3_formation.experiment.benchmark import BENCHMARK_SCENES
 from sb3_formation.experiment.evaluation import load_summary
@@ -25,11 +28,20 @@ def test_benchmark_writes_the_table_evaluations_and_figures(tmp_path: Path, caps
     assert [row.split(" | ")[1] for row in rows] == list(BENCHMARK_SCENES)
     assert table.strip() in printed
     results = json.loads((out / "benchmark.json").read_text())
-    assert [row["scenes"] for row in results] == list(BENCHMARK_SCENES)
-    for row in results:
+    run = results["run"]
+    assert run["command"] == shlex.join(["sb3-formation", *arguments, "--no-progress", "--labels", "classical"])
+    assert table.startswith(f"sb3-formation {__version__} benchmark, {run['machine']}: `{run['command']}`")
+    assert "2 episodes per scene set from seed 10000" in table.splitlines()[1]
+    assert [row["scenes"] for row in results["rows"]] == list(BENCHMARK_SCENES)
+    for row, line in zip(results["rows"], rows):
+        assert row["seconds"] > 0 and line.split(" | ")[-1] == f"{row['seconds']:.0f} |"
         summary = load_summary(out / "classical" / row["scenes"])
         assert summary["scenes"] == row["scenes"] and summary["seed"] == 10_000 and summary["episodes"] == 2
         assert row["success_rate"] == summary["success_rate"]
+        # Wilson's 95 % interval of 2 episodes, by its formula
+        z, p = 1.959964, row["success_rate"]
+        centre, half = (p + z * z / 4) / (1 + z * z / 2), z / (1 + z * z / 2) * math.sqrt(p * (1 - p) / 2 + z * z / 16)
+        assert row["success_rate_ci95"] == pytest.approx([centre - half, centre + half], abs=1e-5)
         assert row["shape_error"] == summary["successful_episodes"]["bearing_error"]["mean"]
         assert row["obstacle_contacts"] == summary["all_episodes"]["collisions_obstacle"]["mean"]
         assert (out / "figures" / f"classical_{row['scenes']}.png").stat().st_size > 10_000

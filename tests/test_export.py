@@ -212,6 +212,18 @@ def test_export_and_evaluate_from_the_command_line(tmp_path: Path, capsys: pytes
     assert main(["evaluate", f"onnx:{out}", "--episodes", "2", "--n-envs", "2", "--no-progress", "--trajectories", "0"]) == 0
     summary = json.loads((tmp_path / "eval_policy" / "summary.json").read_text())
     assert summary["episodes"] == 2 and summary["model"]["file"] == str(out)
+    # render, compare (on a scene family) and benchmark take the exported file as any target
+    assert main(["render", str(out), "--max-steps", "5", "--out", str(tmp_path / "v.gif")]) == 0
+    assert (tmp_path / "v.gif").stat().st_size > 0
+    compare = ["compare", f"onnx:{out}", "pretrained:ch4-individual", "--scenes", "passage", "--episodes", "2"]
+    assert main([*compare, "--n-envs", "2", "--no-progress", "--out", str(tmp_path / "compare")]) == 0
+    rows = [line.split(" | ")[0] for line in capsys.readouterr().out.splitlines() if line.startswith("| ")]
+    assert rows[1:] == ["| policy", "| pretrained:ch4-individual"]  # the file's name labels it
+    assert json.loads((tmp_path / "eval_policy-passage" / "summary.json").read_text())["scenes"] == "passage"
+    benchmark = ["benchmark", f"onnx:{out}", "--episodes", "1", "--workers", "1", "--no-progress"]
+    assert main([*benchmark, "--labels", "exported", "--out", str(tmp_path / "bench")]) == 0
+    rows = json.loads((tmp_path / "bench" / "benchmark.json").read_text())["rows"]
+    assert [row["target"] for row in rows] == ["exported"] * 5 and rows[0]["n_agents"] == 3
 
 
 def bad_inputs(tmp_path: Path) -> dict[str, tuple[Path, str]]:

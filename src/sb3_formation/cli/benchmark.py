@@ -19,7 +19,6 @@ from sb3_formation.experiment.benchmark import (
     BENCHMARK_SCENES,
     BENCHMARK_SEED,
     TABLE_FILE,
-    benchmark_table,
     run_benchmark,
 )
 from sb3_formation.experiment.targets import load_policy, target_kind
@@ -76,6 +75,7 @@ def run(args: argparse.Namespace) -> int:
             recipe=args.recipe,
             device=args.device,
             progress_bar=not args.no_progress,
+            command=args.command_line,
         )
     from sb3_formation.viz.plots import plot_trajectory, save_figures  # matplotlib: only where a figure is drawn
 
@@ -85,6 +85,6 @@ def run(args: argparse.Namespace) -> int:
         if row.result.trajectories is not None
     }
     save_figures(figures)
-    print(benchmark_table(rows))
+    print((args.out / TABLE_FILE).read_text().rstrip())
     print(f"table written to {args.out / TABLE_FILE}, figures to {args.out / 'figures'}")
     return 0

@@ -13,7 +13,7 @@ from sb3_formation.env.scenes import SCENES
 from sb3_formation.experiment.evaluation import EVALUATION_TEAMS, evaluate_target
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE
 from sb3_formation.experiment.settings import MAX_SEED
-from sb3_formation.experiment.targets import evaluation_folder, target_kind
+from sb3_formation.experiment.targets import evaluation_folder, run_folder, target_kind, target_path
 from sb3_formation.sb3.model_files import trust_pickle
 from sb3_formation.utils.deprecation import warn_renamed
 from sb3_formation.utils.yaml_files import read_yaml
@@ -150,12 +150,6 @@ def add_protocol_arguments(parser: argparse.ArgumentParser) -> None:
     add_trust_pickle_option(parser)
 
 
-def run_folder(target: str | Path) -> Path:
-    """The folder of a run (or of a model file)."""
-    target = Path(target)
-    return target if target.is_dir() else target.parent
-
-
 def print_summary(summary: dict) -> None:
     """An evaluation summary: the success rate with its interval, then each metric's mean and std."""
     low, high = summary["success_rate_ci95"]
@@ -195,10 +189,20 @@ def scene_overrides(args: argparse.Namespace) -> dict[str, Any]:
     return {name: value for name, value in overrides.items() if value is not None}
 
 
+def target_label(target: str | Path) -> str:
+    """A target's default label (see :func:`target_labels`)."""
+    if target_kind(target):
+        return str(target)
+    folder = run_folder(target)
+    path = target_path(target).resolve()
+    return folder.resolve().name if folder is not None else path.stem if path.is_file() else path.name
+
+
 def target_labels(text: str | None, targets: Sequence[str | Path]) -> list[str]:
-    """One label per target: from ``--labels`` (comma-separated), else the run folder's name or the target itself."""
+    """One label per target: from ``--labels`` (comma-separated), else a ``<kind>:<name>`` target itself, the name of
+    the run folder a path belongs to, or the path's own name (``policy.onnx`` -> ``policy``)."""
     if text is None:
-        return [str(target) if target_kind(target) else run_folder(target).name for target in targets]
+        return [target_label(target) for target in targets]
     labels = [label.strip() for label in text.split(",")]
     if len(labels) != len(targets):
         raise ValueError(f"--labels gives {len(labels)} labels for {len(targets)} runs")

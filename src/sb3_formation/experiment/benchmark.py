@@ -11,21 +11,28 @@ target's own size unless ``n_agents`` is given. A row reports:
   that passes in single file or loses its shape shows it;
 - agent and obstacle contacts per episode (over all episodes; a touching pair of agents counts once per step, an
   agent touching a shape or the border once per step);
-- steps per episode over the successful episodes.
+- steps per episode over the successful episodes;
+- seconds: the evaluation's wall time.
+
+``benchmark.md`` opens with the run's provenance (date, CPU, cores, package version, command, protocol), then the
+table; ``benchmark.json`` holds the same as data (``run`` and ``rows``).
 """
 
 from __future__ import annotations
 
 import json
 import os
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from sb3_formation import __version__
 from sb3_formation.experiment.evaluation import EvaluationResult, evaluate_target
 from sb3_formation.experiment.targets import target_kind
 from sb3_formation.utils.files import atomic_write
+from sb3_formation.utils.machine import machine_line
 
 #: The scene sets of the benchmark: the thesis's stage 3 ("curriculum"), then every family.
 BENCHMARK_SCENES: tuple[str, ...] = ("curriculum", "passage", "corridor", "trap", "clutter")
@@ -44,12 +51,14 @@ class BenchmarkRow:
     :param scenes: the scene set
     :param result: its evaluation
     :param folder: where its evaluation files are
+    :param seconds: the evaluation's wall time (s)
     """
 
     label: str
     scenes: str
     result: EvaluationResult
     folder: Path
+    seconds: float
 
     def cells(self) -> dict[str, Any]:
         """The row's figures (see the module docstring), as plain data."""
@@ -66,6 +75,7 @@ class BenchmarkRow:
             "agent_contacts": everything["collisions_agent"]["mean"],
             "obstacle_contacts": everything["collisions_obstacle"]["mean"],
             "steps": successful["length"]["mean"],
+            "seconds": self.seconds,
         }
 
 
@@ -82,6 +92,7 @@ def run_benchmark(
     device: str = "auto",
     progress_bar: bool = False,
     scenes: Sequence[str] = BENCHMARK_SCENES,
+    command: str = "",
 ) -> list[BenchmarkRow]:
     """Evaluate every target on every scene set; write each evaluation under ``out/<label>/<scenes>/``, then the table
     (``benchmark.md``) and its figures as data (``benchmark.json``).
@@ -98,6 +109,7 @@ def run_benchmark(
     :param device: torch device of learned targets
     :param progress_bar: show each evaluation's progress bar
     :param scenes: the scene sets (default :data:`BENCHMARK_SCENES`)
+    :param command: the command line that ran the benchmark, recorded with the table
     """
     if len(labels) != len(targets) or len(set(labels)) != len(labels):
         raise ValueError(f"give one distinct label per target, got {list(labels)} for {len(targets)} targets")
@@ -120,17 +132,31 @@ def run_benchmark(
             }
             folder = out / label / scene_set
             own_recipe = recipe if target_kind(target) == "controller" else None  # others act in their own task
+            started = time.perf_counter()
             result = evaluate_target(target, protocol, own_recipe, device=device, progress_bar=progress_bar, out=folder)
-            rows.append(BenchmarkRow(label, scene_set, result, folder))
-    atomic_write(out / TABLE_FILE, benchmark_table(rows) + "\n")
-    atomic_write(out / RESULTS_FILE, json.dumps([row.cells() for row in rows], indent=2) + "\n")
+            rows.append(BenchmarkRow(label, scene_set, result, folder, time.perf_counter() - started))
+    run = {
+        "machine": machine_line(),
+        "version": __version__,
+        "command": command,
+        "protocol": f"{episodes} episodes per scene set from seed {seed}, stage 3, deterministic actions, "
+        f"{min(n_envs, episodes)} teams at once, {workers} worker(s)",
+    }
+    atomic_write(out / TABLE_FILE, benchmark_header(run) + "\n\n" + benchmark_table(rows) + "\n")
+    atomic_write(out / RESULTS_FILE, json.dumps({"run": run, "rows": [row.cells() for row in rows]}, indent=2) + "\n")
     return rows
+
+
+def benchmark_header(run: dict[str, str]) -> str:
+    """The lines that open ``benchmark.md``: where, when and how the table was measured."""
+    command = f"`{run['command']}`" if run["command"] else "run from Python"
+    return f"sb3-formation {run['version']} benchmark, {run['machine']}: {command}.  \n{run['protocol']}."
 
 
 def benchmark_table(rows: Sequence[BenchmarkRow]) -> str:
     """The Markdown table of a benchmark: a line per target and scene set."""
     headings = ["target", "scenes", "n", "episodes", "success (95 % CI)", "shape error", "agent contacts"]
-    headings += ["obstacle contacts", "steps"]
+    headings += ["obstacle contacts", "steps", "seconds"]
     lines = ["| " + " | ".join(headings) + " |", "|" + "|".join(["---"] * 2 + ["---:"] * (len(headings) - 2)) + "|"]
     for row in rows:
         cells = row.cells()
@@ -141,5 +167,6 @@ def benchmark_table(rows: Sequence[BenchmarkRow]) -> str:
         line += [
             "-" if value is None else f"{value:.3f}" if index == 0 else f"{value:.1f}" for index, value in enumerate(figures)
         ]
+        line.append(f"{cells['seconds']:.0f}")
         lines.append("| " + " | ".join(line) + " |")
     return "\n".join(lines)
