@@ -18,8 +18,10 @@ Every agent computes a velocity command from its own observation (Table 3.1), it
   d_j implies ``d_j - L g_j^ref`` (Table 5.2 bearings at the starting side length L); without them (angle rewards)
   the two neighbours imply the apex of the isosceles triangle on them with apex angle beta^ref, on the side that
   keeps the polygon anti-clockwise, plus ``k_spacing (|d_j| - L)`` along each d_j to hold the side length;
-- actuation: the command's speed is clipped to v_max and turned into the force that reaches it in one step,
-  ``F = m (v* - v) / dt``, as a fraction of F_max, scaled down (direction kept) to fit the [-1, 1]^2 action box.
+- actuation (:func:`command_action`): the command's speed is clipped to v_max and turned into the force that reaches
+  it in one step, ``F = m (v* - v) / dt``, as a fraction of F_max, scaled down (direction kept) to fit the [-1, 1]^2
+  action box. A unicycle follows the command by feedback linearisation (:func:`unicycle_action`), so every controller
+  of the package drives holonomic and unicycle agents alike.
 """
 
 from __future__ import annotations
@@ -98,7 +100,7 @@ class ClassicalController(Controller):
         )
         velocity += gains.k_agent * lidar_repulsion(observations[:, layout["lidar_agents"]], config, self.directions)
         velocity += gains.k_agent * neighbour_repulsion(offsets, config)
-        return force_action(velocity, observations[:, layout["velocity"]], config)
+        return command_action(velocity, observations, layout, config)
 
     def goal_velocity(self, goal: np.ndarray, goal_change: np.ndarray) -> np.ndarray:
         """The goal attraction (m/s), turned aside by the detour angle when the team makes no progress.
@@ -205,3 +207,44 @@ def force_action(command: np.ndarray, velocity: np.ndarray, config: FormationCon
     action = config.agent_mass * (command - velocity) / config.dt / config.force_max
     largest = np.abs(action).max(axis=-1, keepdims=True)
     return action / np.maximum(largest, 1.0)
+
+
+def command_action(
+    command: np.ndarray, observations: np.ndarray, layout: dict[str, slice], config: FormationConfig
+) -> np.ndarray:
+    """The action that follows commanded world-frame velocities with the task's dynamics: :func:`force_action` for
+    holonomic agents, :func:`unicycle_action` for unicycles.
+
+    :param command: ``(k, 2)`` commanded velocities (m/s)
+    :param observations: ``(k, obs_dim)`` the agents' raw observations (their velocity, and a unicycle's heading)
+    :param layout: the observation's field name -> slice
+    :param config: the task
+    """
+    velocity = observations[:, layout["velocity"]]
+    if config.dynamics == "unicycle":
+        return unicycle_action(command, velocity, observations[:, layout["heading"]], config)
+    return force_action(command, velocity, config)
+
+
+def unicycle_action(command: np.ndarray, velocity: np.ndarray, heading: np.ndarray, config: FormationConfig) -> np.ndarray:
+    """A unicycle's action (forward force, turn rate) that moves a point ahead of its axle at the commanded velocity
+    (feedback linearisation): the point at ``l = v_max / w_max`` ahead moves at ``v h + l w h_perp`` for forward speed
+    v and turn rate w (h the heading, h_perp h turned by +90 deg), so ``v = v* . h`` and ``w = (v* . h_perp) / l``;
+    the look-ahead l lets a sideways command of v_max turn the unicycle at its limit w_max. The forward force reaches v
+    in one step, ``F = m (v - v_f) / dt`` with v_f = velocity . h, as a share of F_max; the turn action is w / w_max;
+    both clipped to [-1, 1].
+
+    :param command: ``(k, 2)`` commanded velocities (m/s), their speed clipped to v_max first
+    :param velocity: ``(k, 2)`` current velocities (m/s), along the headings
+    :param heading: ``(k, 2)`` the headings' (cos, sin)
+    :param config: the task (v_max, max_turn_rate, m, dt, F_max)
+    """
+    speed = np.linalg.norm(command, axis=-1, keepdims=True)
+    command = command * np.minimum(1.0, config.v_max / np.maximum(speed, 1e-300))
+    forward = (command * heading).sum(axis=-1)
+    sideways = command[:, 1] * heading[:, 0] - command[:, 0] * heading[:, 1]
+    lookahead = config.v_max / config.max_turn_rate
+    current = (velocity * heading).sum(axis=-1)
+    push = config.agent_mass * (forward - current) / config.dt / config.force_max
+    turn = sideways / lookahead / config.max_turn_rate
+    return np.clip(np.stack([push, turn], axis=-1), -1.0, 1.0)

@@ -15,7 +15,7 @@ not a baseline that a decentralised policy could match with its own sensors.
   projected on the path (never backwards); the carrot is the path point ``lookahead`` further on (the goal at the end).
   Agent i's command is ``v_i = v_c + k_position (c + r u_i - p_i)``, with ``v_c = speed v_max`` towards the carrot and
   u_i the unit vertex i of the reference n-gon (its shape and orientation are the task's), turned into a force as the
-  classical controller does (:func:`~sb3_formation.controllers.classical.force_action`).
+  classical controller does (:func:`~sb3_formation.controllers.classical.command_action`).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sb3_formation.controllers.base import Controller, check_gains
-from sb3_formation.controllers.classical import force_action
+from sb3_formation.controllers.classical import command_action
 from sb3_formation.env.clearance import ClearanceMap, shortest_path, shrunk_footprint
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.geometry import reference_polygon
@@ -134,8 +134,7 @@ class PrivilegedPlanner(Controller):
                 continue
             rows = slice(team * n_agents, (team + 1) * n_agents)
             positions = plan.goal - observations[rows, layout["goal_offset"]]
-            velocities = observations[rows, layout["velocity"]]
-            actions[rows] = force_action(self.commands(plan, positions), velocities, self.config)
+            actions[rows] = command_action(self.commands(plan, positions), observations[rows], layout, self.config)
         return actions
 
     def commands(self, plan: TeamPlan, positions: np.ndarray) -> np.ndarray:

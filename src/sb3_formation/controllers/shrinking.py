@@ -33,7 +33,8 @@ Delta c_g. Each agent knows its own offset from the centroid, o_i = p_i - p_c = 
   F the 1/s - 1/s_0 lidar repulsion of :mod:`~sb3_formation.controllers.classical` (obstacles within s_0, other
   agents within l_s) and ``F_neighbours`` pushing from a neighbour whose surface gap is below ``neighbour_range``.
   The placement terms sum to zero over a team, so the centroid moves at v_c plus the mean of the repulsions.
-- **Actuation**: :func:`~sb3_formation.controllers.classical.force_action`, ``F = m (v* - v) / dt``.
+- **Actuation**: :func:`~sb3_formation.controllers.classical.command_action`, ``F = m (v* - v) / dt`` (a unicycle
+  follows v* by feedback linearisation).
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ from typing import Any
 import numpy as np
 
 from sb3_formation.controllers.base import Controller, check_gains
-from sb3_formation.controllers.classical import MIN_GAP, force_action, lidar_repulsion, unit
+from sb3_formation.controllers.classical import MIN_GAP, command_action, lidar_repulsion, unit
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.geometry import reference_polygon
 from sb3_formation.env.sensors import ray_directions
@@ -206,7 +207,7 @@ class ShrinkingController(Controller):
         velocity += gains.k_obstacle * lidar_repulsion(obstacles, config, self.directions, gains.repulsion_range)
         velocity += gains.k_agent * lidar_repulsion(observations[:, layout["lidar_agents"]], config, self.directions)
         velocity += gains.k_agent * close_neighbour_repulsion(offsets, config.agent_radius, gains.neighbour_range)
-        return force_action(velocity, observations[:, layout["velocity"]], config), memory
+        return command_action(velocity, observations, layout, config), memory
 
     # Parts -------------------------------------------------------------------------------------------------------
 

@@ -54,6 +54,8 @@ INFO_KEYS: tuple[str, ...] = (
 
 #: Names of the curriculum placement layouts (see :mod:`sb3_formation.env.scenarios`).
 LAYOUTS: tuple[str, ...] = ("ch4", "ch5")
+#: Agent dynamics (:attr:`FormationConfig.dynamics`): the thesis's holonomic point (eq. 19), or a unicycle.
+DYNAMICS: tuple[str, ...] = ("holonomic", "unicycle")
 
 
 @dataclass(frozen=True)
@@ -68,6 +70,12 @@ class FormationConfig:
     :param v_max: maximum agent speed (m/s); speeds are clamped to it
     :param max_force: force F_max (N) produced by an action of 1; ``None`` means m * v_max / dt,
         so a full action reaches v_max from rest in one step
+    :param dynamics: ``"holonomic"`` (the thesis's, eq. 19: the action is a force (x, y) in the world frame) or
+        ``"unicycle"`` (a differential-drive robot: state x, y, heading theta; the action is a forward force, a share
+        of F_max along the heading, and a turn-rate command, a share of ``max_turn_rate``; no sideways motion; the
+        forward speed is limited to [-v_max, v_max]; see :mod:`sb3_formation.env.world`). A unicycle's observation
+        ends with its heading (cos, sin), and its start faces the goal unless the scenario gives headings
+    :param max_turn_rate: the unicycle's turn-rate limit (rad/s), reached by a turn action of 1
     :param dt: environment step Delta t (s)
     :param physics_substeps: Pymunk sub-steps inside one environment step; ``None`` (default) becomes the fewest, and
         at least the thesis's 2, that keep overlaps within :data:`OVERLAP_TOLERANCE` (:attr:`substeps_needed`). A
@@ -120,6 +128,8 @@ class FormationConfig:
     agent_mass: float = 1.0
     v_max: float = 0.05
     max_force: float | None = None
+    dynamics: Literal["holonomic", "unicycle"] = "holonomic"
+    max_turn_rate: float = 0.5
     dt: float = 0.3
     physics_substeps: int | None = None
     lidar_rays: int = 90
@@ -164,8 +174,8 @@ class FormationConfig:
 
     def __post_init__(self) -> None:
         positive = (
-            "world_width world_height agent_radius agent_mass v_max dt lidar_range d_ref d_comm eta_c eta_g "
-            "m_ang_deg m_dist reward_clip"
+            "world_width world_height agent_radius agent_mass v_max max_turn_rate dt lidar_range d_ref d_comm eta_c "
+            "eta_g m_ang_deg m_dist reward_clip"
         ).split()
         for name in positive:
             _check(name, getattr(self, name), "a finite number > 0", lambda v: is_number(v) and v > 0)
@@ -196,6 +206,7 @@ class FormationConfig:
         object.__setattr__(self, "physics_substeps", self.substeps_needed if substeps is None else int(substeps))
         _check("formation_scale", self.formation_scale, "in (0, 1)", lambda v: is_real(v) and 0 < v < 1)
         _check("layout", self.layout, f"one of {LAYOUTS}", lambda v: v in LAYOUTS)
+        _check("dynamics", self.dynamics, f"one of {DYNAMICS}", lambda v: v in DYNAMICS)
         from sb3_formation.env.scenes import SCENES  # the families import this module
 
         _check("scenes", self.scenes, f"one of {SCENES}", lambda v: isinstance(v, str) and v in SCENES)

@@ -28,7 +28,7 @@ from gymnasium.utils import seeding
 from sb3_formation.env.config import INFO_KEYS, REWARD_TERMS, FormationConfig
 from sb3_formation.env.episodes import episode_summary
 from sb3_formation.env.geometry import FormationState, _measure, agent_errors, reference_bearings, ring_neighbours
-from sb3_formation.env.observations import _fill_observations, observation_fields
+from sb3_formation.env.observations import _fill_observations, observation_fields, observation_layout
 from sb3_formation.env.rewards import _reward_terms, combine_rewards, nearest_gaps, reward_constants
 from sb3_formation.env.scenarios import Scenario
 from sb3_formation.env.scenes import check_scenes_fit, draw_scenario
@@ -82,6 +82,7 @@ class FormationEngine:
         #: the fields of an agent's observation (Table 3.1), in order
         self.observation_fields = observation_fields(config)
         self.observation_dim = dim = sum(field.size for field in self.observation_fields)
+        self._heading_column = observation_layout(self.observation_fields).get("heading", slice(0)).start
         #: team size -> (teams of that size, their agents' rows in team order): the groups of the stacked numpy work
         self._groups = {
             int(size): (teams, np.concatenate([np.arange(self.starts[t], self.starts[t + 1]) for t in teams]))
@@ -117,6 +118,9 @@ class FormationEngine:
         self.info_values = np.zeros((n_slots, INFO_VALUES))
         self.positions = np.zeros((n_slots, 2))
         self.velocities = np.zeros((n_slots, 2))
+        # unicycles' headings (rad) and forward speeds (m/s); holonomic agents keep 0
+        self.headings, self.forward_speeds = np.zeros(n_slots), np.zeros(n_slots)
+        self.unicycle = config.dynamics == "unicycle"
         self.previous_actions = np.zeros((n_slots, 2))
         self.previous_rewards = np.zeros(n_slots)
         self.contacts = np.zeros((n_slots, 2), dtype=np.int64)  # agents, obstacles touched in the last step
@@ -209,6 +213,9 @@ class FormationEngine:
             setattr(self, name, getattr(self, name).copy())
         self.positions[rows] = world.positions
         self.velocities[rows] = world.velocities
+        if self.unicycle:
+            self.headings, self.forward_speeds = self.headings.copy(), self.forward_speeds.copy()
+            self.headings[rows], self.forward_speeds[rows] = world.headings, 0.0
         self.previous_actions[rows] = 0.0
         self.previous_rewards[rows] = 0.0
         self.contacts[rows] = 0
@@ -263,10 +270,25 @@ class FormationEngine:
         config, starts = self.config, self.starts
         previous_velocities = self.velocities
         previous_goal_distances = self.goal_distances
-        commanded = clamp_speed(self.velocities + (actions * config.force_max) * (config.dt / config.agent_mass), config.v_max)
         worlds = cast("list[World]", self.worlds)  # a live team has been reset, so has a world
-        moved = [(team, worlds[team].advance(commanded[starts[team] : starts[team + 1]])) for team in teams]
-        positions, velocities = split_state(np.concatenate([worlds[team].agent_states for team in teams]), config.v_max)
+        pushes = (actions * config.force_max) * (config.dt / config.agent_mass)  # velocity changes (m/s)
+        if self.unicycle:  # the forward force along the heading, the turn action a share of the turn-rate limit
+            forward = np.clip(self.forward_speeds + pushes[:, 0], -config.v_max, config.v_max)
+            turns = actions[:, 1] * config.max_turn_rate
+            moved = [
+                (team, worlds[team].drive(forward[starts[team] : starts[team + 1]], turns[starts[team] : starts[team + 1]]))
+                for team in teams
+            ]
+            positions = np.concatenate([worlds[team].agent_states[:, :2] for team in teams])
+            headings = np.concatenate([worlds[team].headings for team in teams])
+            speeds = np.concatenate([worlds[team].forward_speeds for team in teams])
+            velocities = speeds[:, None] * np.stack([np.cos(headings), np.sin(headings)], axis=1)
+            self.headings = self._new_rows(self.headings, headings, stepped)
+            self.forward_speeds = self._new_rows(self.forward_speeds, speeds, stepped)
+        else:
+            commanded = clamp_speed(self.velocities + pushes, config.v_max)
+            moved = [(team, worlds[team].advance(commanded[starts[team] : starts[team + 1]])) for team in teams]
+            positions, velocities = split_state(np.concatenate([worlds[team].agent_states for team in teams]), config.v_max)
         self.positions = self._new_rows(self.positions, positions, stepped)
         self.velocities = self._new_rows(self.velocities, velocities, stepped)
         contacts = np.zeros((len(actions), 2), dtype=np.int64) if everyone else self.contacts.copy()
@@ -423,6 +445,11 @@ class FormationEngine:
             self.episode_terms,
             self.episode_comm_exceeded,
         )
+        if self.unicycle:  # the heading's cosine and sine (observation_fields)
+            rows = np.concatenate([np.arange(self.starts[team], self.starts[team + 1]) for team in active])
+            column = self._heading_column
+            observations[rows, column] = np.cos(self.headings[rows])
+            observations[rows, column + 1] = np.sin(self.headings[rows])
 
     def _combine(self, terms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every agent's reward (:func:`~sb3_formation.env.rewards.combine_rewards`, the teams of one size at once)
@@ -484,6 +511,7 @@ class FormationEngine:
             goal_distance=float(self.goal_distances[team]),
             lidar_obstacles=self.lidar[0, rows],
             lidar_agents=self.lidar[1, rows],
+            headings=self.headings[rows] if self.unicycle else None,
         )
 
     def infos(self, team: int) -> list[dict[str, Any]]:

@@ -23,7 +23,8 @@ AgentID = str
 
 
 class FormationEnv(ParallelEnv):  # type: ignore[misc]  # pettingzoo ships no type information: ParallelEnv is Any
-    """A team of n holonomic second-order agents that must bring its centroid to a goal, in formation, around obstacles.
+    """A team of n agents (holonomic second-order points, or unicycles) that must bring its centroid to a goal, in
+    formation, around obstacles.
 
     Thesis: chapters 3-5; every interpretation is pinned in ``docs/design.md``. Agents are ``"agent_0"`` ...
     ``"agent_{n-1}"``; agent_0 is the thesis's agent 1. Agent i's designated neighbours are agents i - 1 and i + 1
@@ -31,8 +32,10 @@ class FormationEnv(ParallelEnv):  # type: ignore[misc]  # pettingzoo ships no ty
 
     ## Action Space
 
-    ``Box(-1, 1, (2,), float32)`` per agent: the force (F_x, F_y) as a fraction of F_max (N), eq. 19.
-    Actions outside [-1, 1] are clipped; NaN, infinite or wrongly shaped actions raise ``ValueError``.
+    ``Box(-1, 1, (2,), float32)`` per agent: the force (F_x, F_y) as a fraction of F_max (N), eq. 19. For unicycles
+    (``dynamics="unicycle"``): the forward force along the heading as a fraction of F_max, and the turn rate as a
+    fraction of ``max_turn_rate`` (rad/s) (:mod:`~sb3_formation.env.world`). Actions outside [-1, 1] are clipped; NaN,
+    infinite or wrongly shaped actions raise ``ValueError``.
 
     ## Observation Space
 
@@ -63,7 +66,9 @@ class FormationEnv(ParallelEnv):  # type: ignore[misc]  # pettingzoo ships no ty
 
     With ``observe_reference_bearings`` (a departure from Table 3.1, for policies acting in teams of several sizes)
     four values follow: ``reference_bearings``, the unit reference bearings g_j^{i,ref} (Table 5.2) towards the
-    preceding (x, y) then succeeding neighbour, which depend on the agent's index and on n.
+    preceding (x, y) then succeeding neighbour, which depend on the agent's index and on n. A unicycle's observation
+    (an extension of Table 3.1) has two more values before those: ``heading``, (cos theta^i, sin theta^i) of its
+    heading in the world frame; its other fields stay in the world frame, and its velocity is along the heading.
 
     ## Rewards
 

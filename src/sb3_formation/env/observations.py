@@ -68,6 +68,8 @@ def observation_fields(config: FormationConfig) -> list[ObservationField]:
         ("previous_action", "a_t-1^i", 2, -1.0, 1.0, "fraction of F_max"),
         ("previous_reward", "r_t-1^i", 1, -config.reward_clip, config.reward_clip, "reward"),
     ]
+    if config.dynamics == "unicycle":  # an extension of Table 3.1: the unicycle's heading, in the world frame
+        specs.append(("heading", "(cos theta^i, sin theta^i)", 2, -1.0, 1.0, "unit"))
     if config.observe_reference_bearings:  # a departure from Table 3.1 (FormationConfig.observe_reference_bearings)
         specs.append(("reference_bearings", "g_j^{i,ref} (preceding x, y; succeeding x, y)", 4, -1.0, 1.0, "unit"))
     return [
@@ -117,7 +119,8 @@ def _fill_observations(
     previous_rewards: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """Every agent's observation, written into ``out``: one row per agent, fields in the order of
-    :func:`observation_fields` (the reference bearings, when observed, are written by the caller)."""
+    :func:`observation_fields` (the reference bearings and a unicycle's heading, when observed, are written by the
+    caller)."""
     n_rays = lidar_obstacles.shape[1]
     for agent in range(out.shape[0]):
         row = out[agent]

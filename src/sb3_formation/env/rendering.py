@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -38,7 +39,8 @@ AGENT_COLOURS = [
 def render_frame(
     state: TeamState, config: FormationConfig, draw_lidar: bool = False, pixels_per_metre: int = PIXELS_PER_METRE
 ) -> np.ndarray:
-    """Draw a team's state: obstacles and walls, the goal ring, neighbour links, agents by index, the centroid.
+    """Draw a team's state: obstacles and walls, the goal ring, neighbour links, agents by index (a unicycle's heading
+    as a line from its centre to its rim), the centroid.
 
     A pure function of the state and the config, so a recorded trajectory can be drawn without the env.
 
@@ -85,6 +87,10 @@ def render_frame(
         draw.line([pixel(positions[index]), pixel(positions[succeeding])], fill=LINK, width=2)
     for index, position in enumerate(positions):
         circle(position, config.agent_radius, fill=AGENT_COLOURS[index % len(AGENT_COLOURS)], outline=(0, 0, 0))
+    if state.headings is not None:  # a unicycle's heading: a black line from its centre to its rim
+        for position, heading in zip(positions, state.headings):
+            nose = position + config.agent_radius * np.array([math.cos(heading), math.sin(heading)])
+            draw.line([pixel(position), pixel(nose)], fill=(0, 0, 0), width=max(2, pixels_per_metre // 20))
     cx, cy = pixel(state.centroid)
     arm = pixels_per_metre * 0.15
     draw.line([(cx - arm, cy), (cx + arm, cy)], fill=CENTROID, width=3)

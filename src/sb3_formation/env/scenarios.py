@@ -30,12 +30,15 @@ class Scenario:
     :param obstacles: ``(m, 3)`` static circles as (x, y, radius); may be empty
     :param walls: ``(w, 5)`` static walls as (x0, y0, x1, y1, thickness), capsules (:mod:`~sb3_formation.env.shapes`);
         may be empty
+    :param headings: ``(n,)`` unicycle agents' starting headings (rad, anti-clockwise from +x); empty: every agent
+        faces the goal from the starting centroid (holonomic agents have none, and ignore them)
     """
 
     agent_positions: np.ndarray
     goal: np.ndarray
     obstacles: np.ndarray | tuple[Any, ...] = ()
     walls: np.ndarray | tuple[Any, ...] = ()
+    headings: np.ndarray | tuple[Any, ...] = ()
 
     def __post_init__(self) -> None:
         obstacles = np.array(self.obstacles, dtype=np.float64)
@@ -44,11 +47,16 @@ class Scenario:
             "goal": np.array(self.goal, dtype=np.float64),
             "obstacles": obstacles.reshape(0, 3) if obstacles.size == 0 else obstacles,
             "walls": as_walls(self.walls),
+            "headings": np.array(self.headings, dtype=np.float64),
         }
-        shapes = {"agent_positions": "(n, 2)", "goal": "(2,)", "obstacles": "(m, 3)", "walls": "(w, 5)"}
+        shapes = {"agent_positions": "(n, 2)", "goal": "(2,)", "obstacles": "(m, 3)", "walls": "(w, 5)", "headings": "(n,)"}
+        columns = {"agent_positions": 2, "obstacles": 3, "walls": 5}
         for name, array in arrays.items():
-            expected_ndim = 1 if name == "goal" else 2
-            if array.ndim != expected_ndim or array.shape[-1] != (2, 2, 3, 5)[list(shapes).index(name)]:
+            if name in columns:
+                fits = array.ndim == 2 and array.shape[1] == columns[name]
+            else:
+                fits = array.ndim == 1 and (name == "headings" or len(array) == 2)
+            if not fits:
                 raise ValueError(f"Scenario.{name} must have shape {shapes[name]}, got {array.shape}")
             if not np.all(np.isfinite(array)):
                 raise ValueError(f"Scenario.{name} contains NaN or infinite values")
@@ -78,6 +86,8 @@ class Scenario:
         n_agents, radius = config.n_agents, config.agent_radius
         if len(self.agent_positions) != n_agents:
             raise ValueError(f"Scenario has {len(self.agent_positions)} agent positions but n_agents={n_agents}")
+        if len(self.headings) not in (0, n_agents):
+            raise ValueError(f"Scenario has {len(self.headings)} headings but n_agents={n_agents} (give n or none)")
         for index, (x, y) in enumerate(self.agent_positions):
             if not (radius <= x <= config.world_width - radius and radius <= y <= config.world_height - radius):
                 raise ValueError(

@@ -6,6 +6,7 @@ rebuilt from a recorded trajectory (without lidar readings), so a saved episode 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -37,6 +38,7 @@ class TeamState:
     :param lidar_agents: ``(n, rays)`` agent-channel readings, or ``None``
     :param walls: ``(w, 5)`` walls x0, y0, x1, y1, thickness (m) (:mod:`~sb3_formation.env.shapes`); the world's
         border is not listed
+    :param headings: ``(n,)`` unicycle agents' headings (rad, anti-clockwise from +x), or ``None`` for holonomic agents
     """
 
     step: int
@@ -55,6 +57,7 @@ class TeamState:
     lidar_obstacles: np.ndarray | None = None
     lidar_agents: np.ndarray | None = None
     walls: np.ndarray = field(default_factory=lambda: np.zeros((0, len(WALL_COLUMNS))))
+    headings: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         for name, value in vars(self).items():
@@ -79,14 +82,16 @@ class TeamState:
 def state_fields(config: FormationConfig) -> list[tuple[str, int, np.ndarray, np.ndarray, str]]:
     """The fields of the global state vector, in order: (name, size, low, high, unit). The obstacle and wall fields
     have room for the most circles and walls a scene of ``config.scenes`` has (:func:`~sb3_formation.env.scenes.scene_slots`:
-    4 and 0 for the thesis's curriculum)."""
+    4 and 0 for the thesis's curriculum); unicycles' headings follow the velocities."""
     n, (slots, wall_slots) = config.n_agents, scene_slots(config)
     width, height, v = config.world_width, config.world_height, config.v_max * (1 + 1e-9)
     corner = np.array([width, height])
     largest_radius = max(width, height)
+    headings = [("headings", n, np.full(n, -math.pi), np.full(n, math.pi), "rad, agent 0 first")]
     return [
         ("positions", 2 * n, np.zeros(2 * n), np.tile(corner, n), "m, agent 0 (x, y) first"),
         ("velocities", 2 * n, np.full(2 * n, -v), np.full(2 * n, v), "m/s, agent 0 (x, y) first"),
+        *(headings if config.dynamics == "unicycle" else []),
         ("goal", 2, np.zeros(2), corner, "m"),
         (
             "obstacles",
@@ -130,5 +135,6 @@ def state_vector(state: TeamState, config: FormationConfig) -> np.ndarray:
     obstacles, walls = np.zeros((slots, 3)), np.zeros((wall_slots, 5))
     obstacles[: len(state.obstacles)] = state.obstacles
     walls[: len(state.walls)] = state.walls
-    parts = [state.positions.ravel(), state.velocities.ravel(), state.goal, obstacles.ravel(), walls.ravel()]
+    headings = [] if state.headings is None or config.dynamics != "unicycle" else [state.headings]
+    parts = [state.positions.ravel(), state.velocities.ravel(), *headings, state.goal, obstacles.ravel(), walls.ravel()]
     return np.concatenate([*parts, [float(state.step)]]).astype(np.float32)

@@ -4,7 +4,19 @@ Agents are dynamic circles that do not rotate; obstacles are static circles and 
 radius: capsules); the world's border is four thick static segments. Each environment step applies the agents'
 forces as the second-order integrator of eq. 19 (semi-implicit Euler, as Pymunk itself integrates): v <- v + F / m *
 dt, then the speed is clamped to v_max, then Pymunk moves the bodies over ``config.physics_substeps`` sub-steps and
-resolves contacts (inelastic, frictionless). Contacts are counted once per pair per environment step: after each
+resolves contacts (inelastic, frictionless).
+
+Unicycle agents (``config.dynamics == "unicycle"``, :meth:`World.drive`) also have a heading theta, kept here (Pymunk's
+bodies still do not rotate). The engine turns the forward force into a forward speed v in [-v_max, v_max] and the turn
+action into a turn rate w; then, in every sub-step of length h, an agent is given the velocity that carries it along
+the arc of (v, w), the chord ``v sinc(w h / 2)`` in the direction ``theta + w h / 2`` (so that without contacts its
+path is exactly a circle of radius v / w), and Pymunk moves it and resolves contacts. The no-sideways constraint is
+part of Pymunk's solve: each unicycle's centre runs in a groove (a ``GrooveJoint``) along the chord's direction,
+carried by a body of its own that is put on the agent at the start of every sub-step, so contacts can slow or stop an
+agent along its heading but cannot push it sideways (as wheels that do not skid). The velocity Pymunk leaves along the
+chord is the next forward speed; what is left across it is the solver's residual, dropped, and the largest such speed
+of a step is :attr:`World.sideways_speed` (:data:`SIDEWAYS_TOLERANCE` bounds it, tested with agents pressing on walls
+and on each other). Theta advances by w h per sub-step. Contacts are counted once per pair per environment step: after each
 sub-step the space's touching pairs are read in one call of Pymunk's batch API (every obstacle and wall hangs on its
 own static body, so a pair of bodies names the obstacle), not through a Python collision callback per contact and
 sub-step, which made a step 1.7x as long when agents press on walls (``benchmarks/env_throughput.py``).
@@ -38,6 +50,11 @@ _GET_BODIES = pymunk.batch.ffi.addressof(pymunk.batch.lib, "pmSpaceBodyGetIterat
 _SET_BODIES = pymunk.batch.ffi.addressof(pymunk.batch.lib, "pmSpaceBodySetIteratorFuncBatched")
 _GET_ARBITERS = pymunk.batch.ffi.addressof(pymunk.batch.lib, "pmSpaceArbiterIteratorFuncBatched")
 _SPARE_VALUES = 8  #: values past the end of a world's state array (see World.place)
+#: Half-length (m) of a unicycle's groove: far more than an agent moves in a sub-step.
+GROOVE_HALF_LENGTH = 1.0
+#: The most sideways speed (m/s per m/s of v_max) a unicycle keeps after a sub-step's solve: the solver's residual
+#: (measured below 1e-6 of v_max with agents pressing on walls and on each other, tests/test_unicycle.py).
+SIDEWAYS_TOLERANCE = 1e-3
 
 
 @numba.njit(cache=True)
@@ -106,6 +123,12 @@ def count_contacts(
     return agents, obstacles
 
 
+def wrap_angles(angles: np.ndarray) -> np.ndarray:
+    """Angles (rad) wrapped into (-pi, pi]."""
+    wrapped: np.ndarray = math.pi - np.mod(math.pi - angles, 2 * math.pi)
+    return wrapped
+
+
 class World:
     """One team's Pymunk space, built from a :class:`Scenario`; :meth:`place` puts the next episode's in the same space.
 
@@ -137,7 +160,7 @@ class World:
         :param scenario: placement of agents, goal and obstacles (validated by the caller)
         """
         config = self.config
-        self.space.remove(*self.space.shapes, *self.space.bodies)
+        self.space.remove(*self.space.constraints, *self.space.shapes, *self.space.bodies)
         # each wall and obstacle hangs on a static body of its own, of this episode (the space's own static body would
         # keep every old shape); a contact's pair of bodies then names the obstacle
         self._obstacle_bodies: list[pymunk.Body] = []
@@ -147,11 +170,31 @@ class World:
         for x0, y0, x1, y1, thickness in scenario.walls:  # capsules, as the scene's walls are
             self._add_obstacle(pymunk.Segment(None, (float(x0), float(y0)), (float(x1), float(y1)), float(thickness) / 2))
         self.agent_bodies: list[pymunk.Body] = []
+        goal_direction = scenario.goal - scenario.centroid
+        facing = math.atan2(float(goal_direction[1]), float(goal_direction[0]))
+        #: unicycles' headings (rad, anti-clockwise from +x, in (-pi, pi]) and forward speeds (m/s)
+        self.headings = (
+            wrap_angles(np.array(scenario.headings)) if len(scenario.headings) else np.full(config.n_agents, facing)
+        )
+        self.forward_speeds = np.zeros(config.n_agents)
+        self._half_turns = np.zeros(config.n_agents)  # w h / 2 of the arc the agents' velocities follow
+        #: the largest sideways speed (m/s) a unicycle had after a sub-step's contact solve, over the last step
+        self.sideways_speed = 0.0
         for x, y in scenario.agent_positions:
             body = pymunk.Body(config.agent_mass, float("inf"))
             body.position = (float(x), float(y))
             self.space.add(body, pymunk.Circle(body, config.agent_radius))
             self.agent_bodies.append(body)
+        #: unicycles' groove carriers (kinematic bodies without shapes, at rest; see the module docstring)
+        self._carriers: list[pymunk.Body] = []
+        if config.dynamics == "unicycle":
+            for body in self.agent_bodies:
+                carrier = pymunk.Body(body_type=pymunk.Body.KINEMATIC)
+                carrier.position = body.position
+                groove = pymunk.GrooveJoint(carrier, body, (-GROOVE_HALF_LENGTH, 0), (GROOVE_HALF_LENGTH, 0), (0, 0))
+                groove.max_bias = 0.0
+                self.space.add(carrier, groove)
+                self._carriers.append(carrier)
         ids = [body.id for body in self.agent_bodies] + [body.id for body in self._obstacle_bodies]
         roles = list(range(len(self.agent_bodies))) + [-1 - index for index in range(len(self._obstacle_bodies))]
         order = np.argsort(ids)
@@ -215,20 +258,67 @@ class World:
         :param commanded: ``(n, 2)`` velocities (m/s) after the forces of the step, already clamped to v_max
         :return: ``None`` when no agent touched anything, else the contact counts of :meth:`step` as two int arrays
         """
-        config = self.config
         self._body_velocities[self._agent_rows] = commanded
-        space, substep, arbiters = self.space._space, self._substep, self._arbiter_buffer._int_arr
-        self._write_buffer._float_arr.num = 0  # the position Pymunk reads from
-        chipmunk.cpSpaceEachBody(space, _SET_BODIES, self._write)
-        arbiters.num = 0
-        for _ in range(cast(int, config.physics_substeps)):  # an int once the config is built
-            chipmunk.cpSpaceStep(space, substep)  # Space.step without its Python bookkeeping (see place())
-            chipmunk.cpSpaceEachCachedArbiter(space, _GET_ARBITERS, self._arbiter_query)
+        self._write_velocities()
+        self._arbiter_buffer._int_arr.num = 0
+        for _ in range(cast(int, self.config.physics_substeps)):  # an int once the config is built
+            self._substep_once()
         self._read_states()
-        if arbiters.num == 0:  # no pair of shapes near each other
+        return self._contacts()
+
+    def drive(self, forward: np.ndarray, turn_rates: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """A unicycle step (see the module docstring): drive the agents at forward speeds ``forward`` while they turn
+        at ``turn_rates``; updates :attr:`headings`, :attr:`forward_speeds` and :attr:`sideways_speed`.
+
+        :param forward: ``(n,)`` forward speeds (m/s) after the forces of the step, within [-v_max, v_max]
+        :param turn_rates: ``(n,)`` turn rates (rad/s), held over the step
+        :return: as :meth:`advance`
+        """
+        config, substep = self.config, self._substep
+        half_turns = 0.5 * turn_rates * substep
+        chords = np.sinc(half_turns / math.pi)  # sin(w h / 2) / (w h / 2): the chord's share of the arc
+        speeds, sideways = np.asarray(forward, dtype=np.float64), 0.0
+        self._arbiter_buffer._int_arr.num = 0
+        for _ in range(cast(int, config.physics_substeps)):
+            # Pymunk first moves the agents with the velocity its last solve left, along the arc that began at the
+            # heading; then it solves the velocity of the next arc, which the force sets and the groove holds
+            turned = self.headings + 2 * self._half_turns
+            middle = turned + half_turns
+            directions = np.stack([np.cos(middle), np.sin(middle)], axis=1)
+            targets = (speeds * chords)[:, None] * directions
+            forces = config.agent_mass * (targets - self.agent_states[:, 2:]) / substep
+            moving = zip(
+                self.agent_bodies, self._carriers, self.agent_states[:, :2].tolist(), middle.tolist(), forces.tolist()
+            )
+            for body, carrier, position, angle, force in moving:
+                carrier.position, carrier.angle, body.force = position, angle, force
+            self._substep_once()
+            self._read_states()
+            self.headings, self._half_turns = wrap_angles(turned), half_turns
+            velocities = self.agent_states[:, 2:]
+            along = velocities[:, 0] * directions[:, 0] + velocities[:, 1] * directions[:, 1]
+            across = velocities[:, 1] * directions[:, 0] - velocities[:, 0] * directions[:, 1]
+            sideways = max(sideways, float(np.abs(across).max()))
+            speeds = np.clip(along / chords, -config.v_max, config.v_max)
+        self.forward_speeds, self.sideways_speed = speeds, sideways
+        return self._contacts()
+
+    def _write_velocities(self) -> None:
+        """Give every body the velocity of its row of ``_body_velocities`` (static bodies: 0)."""
+        self._write_buffer._float_arr.num = 0  # the position Pymunk reads from
+        chipmunk.cpSpaceEachBody(self.space._space, _SET_BODIES, self._write)
+
+    def _substep_once(self) -> None:
+        """One Pymunk sub-step, and the touching pairs after it appended to the arbiter buffer."""
+        chipmunk.cpSpaceStep(self.space._space, self._substep)  # Space.step without its Python bookkeeping (see place())
+        chipmunk.cpSpaceEachCachedArbiter(self.space._space, _GET_ARBITERS, self._arbiter_query)
+
+    def _contacts(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The contact counts of the sub-steps since the arbiter buffer was emptied (see :meth:`advance`)."""
+        if self._arbiter_buffer._int_arr.num == 0:  # no pair of shapes near each other
             return None
         records = np.frombuffer(self._arbiter_buffer.int_buf(), dtype=np.uintp).reshape(-1, 3)
-        return count_contacts(records, self._body_ids, self._body_roles, config.n_agents, len(self._obstacle_bodies))
+        return count_contacts(records, self._body_ids, self._body_roles, self.config.n_agents, len(self._obstacle_bodies))
 
     def _read_states(self) -> None:
         """Read every body's position and velocity from Pymunk into :attr:`agent_states`' array."""
