@@ -203,7 +203,10 @@ def test_a_policy_trained_on_several_team_sizes_fits_any_size_and_others_refuse(
         single.fit(single.config.replace(lidar_rays=12))
 
 
-def test_export_and_evaluate_from_the_command_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_export_and_evaluate_from_the_command_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)  # compare writes the shipped policy's evaluation under ./evaluations
     out = tmp_path / "policy.onnx"
     assert main(["export", "pretrained:ch4-individual", "--onnx", str(out)]) == 0
     assert "opset 18" in capsys.readouterr().out
@@ -220,6 +223,7 @@ def test_export_and_evaluate_from_the_command_line(tmp_path: Path, capsys: pytes
     rows = [line.split(" | ")[0] for line in capsys.readouterr().out.splitlines() if line.startswith("| ")]
     assert rows[1:] == ["| policy", "| pretrained:ch4-individual"]  # the file's name labels it
     assert json.loads((tmp_path / "eval_policy-passage" / "summary.json").read_text())["scenes"] == "passage"
+    assert (tmp_path / "evaluations" / "pretrained-ch4-individual_residual-ch4-individual-passage").is_dir()
     benchmark = ["benchmark", f"onnx:{out}", "--episodes", "1", "--workers", "1", "--no-progress"]
     assert main([*benchmark, "--labels", "exported", "--out", str(tmp_path / "bench")]) == 0
     rows = json.loads((tmp_path / "bench" / "benchmark.json").read_text())["rows"]

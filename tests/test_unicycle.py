@@ -200,3 +200,24 @@ def test_the_classical_controller_drives_unicycles_to_the_goal() -> None:
         if terminated or truncated:
             break
     assert terminated and env.team_state().goal_distance <= config.eta_g
+
+
+def test_the_batched_vec_env_steps_unicycles_as_the_single_env_does() -> None:
+    """Two teams in the SB3 VecEnv, stepped by two processes, give each team the observations a FormationEnv of the
+    same seed gives (a single env is a batch of one)."""
+    from sb3_formation import make_formation_vec_env
+
+    vec_env = make_formation_vec_env(
+        "ch5-bearing", n_envs=2, stage=3, seed=11, n_workers=2, normalize=False, dynamics="unicycle", n_agents=3
+    )
+    try:
+        batched = [vec_env.reset()]
+        actions = np.random.default_rng(1).uniform(-1, 1, (30, 6, 2)).astype(np.float32)
+        batched += [vec_env.step(action)[0] for action in actions]
+    finally:
+        vec_env.close()
+    for team in range(2):
+        env = FormationEnv(CONFIG)
+        single = [np.stack(list(env.reset(seed=11 + 3 * team)[0].values()))]
+        single += [env.step_array(action[3 * team : 3 * team + 3])[0] for action in actions]
+        np.testing.assert_array_equal(np.stack(batched)[:, 3 * team : 3 * team + 3], np.stack(single))
