@@ -36,6 +36,7 @@ from sb3_formation.experiment.evaluation import evaluate_target
 from sb3_formation.experiment.reports import table_number
 from sb3_formation.experiment.settings import layered_settings
 from sb3_formation.experiment.training import train
+from sb3_formation.utils.machine import machine_line
 from sb3_formation.viz.plots import save_figure
 
 #: The thesis's published results (thesis 4.4 and 5.4): success rate; mean angle error around 30 deg.
@@ -88,6 +89,7 @@ def main() -> None:
     parser.add_argument("--logdir", type=Path, default=Path("runs/benchmark-learning"), help="folder of the runs")
     parser.add_argument("--out", type=Path, default=Path("learning.png"), help="success-against-time figure")
     args = parser.parse_args()
+    print(f"learning benchmark, {machine_line()}", flush=True)
     budget = ("steps", args.steps) if args.minutes is None else ("minutes", args.minutes)
     rows, curves = [], {}
     protocol = {"episodes": args.episodes, "stage": 3, "seed": 0, "n_envs": 8}

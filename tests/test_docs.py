@@ -18,6 +18,7 @@ from typing import Any
 import pytest
 
 from sb3_formation.cli import _attach_negative_values, build_parser, main
+from sb3_formation.experiment.pretrained import pretrained_names
 
 ROOT = Path(__file__).parents[1]
 README = ROOT / "README.md"
@@ -97,7 +98,7 @@ def test_the_readmes_shipped_policies_table_is_what_the_command_prints() -> None
     with contextlib.redirect_stdout(printed):
         assert main(["pretrained"]) == 0
     table = printed.getvalue().strip().splitlines()
-    assert len(table) == 2 + 5
+    assert len(table) == 2 + len(pretrained_names())
     readme = README.read_text().splitlines()
     start = readme.index(table[0])
     assert readme[start : start + len(table)] == table

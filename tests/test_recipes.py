@@ -34,6 +34,7 @@ def test_the_four_thesis_recipes_are_shipped_with_their_citations() -> None:
         "imitate-ch5-bearing",
         "mixed-ch5-bearing",
         *(f"residual-{name}" for name in thesis),
+        "residual-ch5-bearing-unicycle",
     ]
     thesis_ppo = {"n_steps": 128, "batch_size": 512, "n_epochs": 10, "learning_rate": 5e-5, "gamma": 0.995}
     thesis_ppo |= {"gae_lambda": 0.95, "clip_range": 0.2, "clip_range_vf": 20.0, "target_kl": 0.03}
@@ -271,3 +272,10 @@ def test_ppo_settings_that_sb3_would_reject_late_are_one_line_errors() -> None:
         with pytest.raises(ValueError, match=message):
             recipe.with_changes({"ppo": change})
     assert recipe.with_changes({"ppo": {"gamma": 1, "batch_size": 2}}).ppo["gamma"] == 1
+
+
+def test_the_unicycle_recipe_changes_only_the_dynamics_of_its_base() -> None:
+    unicycle, base = load_recipe("residual-ch5-bearing-unicycle"), load_recipe("residual-ch5-bearing")
+    assert unicycle.config() == base.config().replace(dynamics="unicycle")
+    holonomic = unicycle.with_changes({"env": {"dynamics": "holonomic"}}).to_dict()
+    assert holonomic == {**base.to_dict(), "name": unicycle.name, "description": unicycle.description}

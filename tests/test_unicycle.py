@@ -221,3 +221,17 @@ def test_the_batched_vec_env_steps_unicycles_as_the_single_env_does() -> None:
         single = [np.stack(list(env.reset(seed=11 + 3 * team)[0].values()))]
         single += [env.step_array(action[3 * team : 3 * team + 3])[0] for action in actions]
         np.testing.assert_array_equal(np.stack(batched)[:, 3 * team : 3 * team + 3], np.stack(single))
+
+
+def test_the_shipped_unicycle_policy_acts_only_on_unicycles() -> None:
+    """pretrained:ch5-bearing-unicycle flies its own task (an episode's observations carry the heading field) and is
+    refused, naming the dynamics, in the holonomic task."""
+    from sb3_formation import load_pretrained
+    from sb3_formation.experiment.evaluation import evaluate
+
+    policy = load_pretrained("ch5-bearing-unicycle")
+    assert policy.config.dynamics == "unicycle"
+    result = evaluate(policy, episodes=1, n_envs=1, env_overrides={"max_steps": 5}, record=0)
+    assert result.episodes[0]["length"] == 5
+    with pytest.raises(ValueError, match=r"dynamics='holonomic' \(trained with 'unicycle'\)"):
+        load_pretrained("ch5-bearing-unicycle", recipe="ch5-bearing")

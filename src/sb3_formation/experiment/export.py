@@ -16,7 +16,7 @@ import stable_baselines3
 import torch
 
 from sb3_formation import __version__
-from sb3_formation.experiment.evaluation import evaluate
+from sb3_formation.experiment.evaluation import EVALUATION_TEAMS, evaluate
 from sb3_formation.experiment.pretrained import CARD_FILE, ONNX_FILE, PRETRAINED_DIR, SUMMARY_PATH, numerics_fingerprint
 from sb3_formation.experiment.runs import (
     FINAL_MODEL,
@@ -91,6 +91,7 @@ def export_pretrained(
                 "python": platform.python_version(),
             },
             "exported": datetime.date.today().isoformat(),
+            "evaluation_teams": protocol.get("n_envs", EVALUATION_TEAMS),  # teams played at once: a replay plays as many
             "numerics": numerics_fingerprint(),  # where a machine's is the same, the stored episodes replay exactly
         }
         (folder / CARD_FILE).write_text(json.dumps(card, indent=2) + "\n")
