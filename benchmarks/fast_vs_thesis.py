@@ -28,6 +28,7 @@ from sb3_formation.experiment.evaluation import evaluate
 from sb3_formation.experiment.runs import load_trained
 from sb3_formation.experiment.settings import layered_settings
 from sb3_formation.experiment.training import train
+from sb3_formation.utils.machine import machine_line
 
 #: The world of ``--small-world``: the chapter-5 bearing task (Table 5.1) with 3 agents, four times the thesis's v_max
 #: (6 cm per step, 3 cm per sub-step < R_a) and 400-step episodes.
@@ -52,6 +53,7 @@ def main() -> None:
                         help="the small-world comparison: 3 agents, v_max 0.2, 400-step episodes, 600,000 agent-steps, "
                              "8 teams, the thesis recipe with the MLP policy, one torch thread")  # fmt: skip
     args = parser.parse_args()
+    print(f"fast_vs_thesis, {machine_line()}", flush=True)
     if args.small_world:
         args.env = [*SMALL_WORLD.items(), *args.env]
         args.steps, args.teams, args.thesis_mlp = 600_000, 8, True

@@ -8,15 +8,18 @@ resolves contacts (inelastic, frictionless).
 
 Unicycle agents (``config.dynamics == "unicycle"``, :meth:`World.drive`) also have a heading theta, kept here (Pymunk's
 bodies still do not rotate). The engine turns the forward force into a forward speed v in [-v_max, v_max] and the turn
-action into a turn rate w; then, in every sub-step of length h, an agent is given the velocity that carries it along
-the arc of (v, w), the chord ``v sinc(w h / 2)`` in the direction ``theta + w h / 2`` (so that without contacts its
-path is exactly a circle of radius v / w), and Pymunk moves it and resolves contacts. The no-sideways constraint is
-part of Pymunk's solve: each unicycle's centre runs in a groove (a ``GrooveJoint``) along the chord's direction,
-carried by a body of its own that is put on the agent at the start of every sub-step, so contacts can slow or stop an
-agent along its heading but cannot push it sideways (as wheels that do not skid). The velocity Pymunk leaves along the
-chord is the next forward speed; what is left across it is the solver's residual, dropped, and the largest such speed
-of a step is :attr:`World.sideways_speed` (:data:`SIDEWAYS_TOLERANCE` bounds it, tested with agents pressing on walls
-and on each other). Theta advances by w h per sub-step. Contacts are counted once per pair per environment step: after each
+action into a turn rate w. In every sub-step of length h an agent moves along the arc of (v, w): its velocity is the
+chord ``v sinc(w h / 2)`` in the direction ``theta + w h / 2``, so that without contacts its path is exactly a circle
+of radius v / w, and theta advances by w h. Pymunk moves positions with the velocity its last solve left before it
+solves the next one, so each sub-step sets the next arc's velocity as a force and lets Pymunk solve it with the
+contacts (a command therefore acts from the next sub-step on). The no-sideways constraint is part of that solve: each
+unicycle's centre runs in a groove (a ``GrooveJoint`` without positional correction) along the next chord, carried by
+a body of its own that is put on the agent at the start of every sub-step, so contacts can slow or stop an agent along
+its heading but cannot push it sideways (as wheels that do not skid). The solved velocity along the chord is the next
+forward speed; what is left across it is the solver's residual, dropped, and the largest such speed of a step is
+:attr:`World.sideways_speed` (:data:`SIDEWAYS_TOLERANCE` bounds it). Only Pymunk's overlap correction, which pushes
+overlapping bodies apart along the contact normal, can still move a jammed agent sideways, by millimetres.
+Contacts are counted once per pair per environment step: after each
 sub-step the space's touching pairs are read in one call of Pymunk's batch API (every obstacle and wall hangs on its
 own static body, so a pair of bodies names the obstacle), not through a Python collision callback per contact and
 sub-step, which made a step 1.7x as long when agents press on walls (``benchmarks/env_throughput.py``).
@@ -53,7 +56,7 @@ _SPARE_VALUES = 8  #: values past the end of a world's state array (see World.pl
 #: Half-length (m) of a unicycle's groove: far more than an agent moves in a sub-step.
 GROOVE_HALF_LENGTH = 1.0
 #: The most sideways speed (m/s per m/s of v_max) a unicycle keeps after a sub-step's solve: the solver's residual
-#: (measured below 1e-6 of v_max with agents pressing on walls and on each other, tests/test_unicycle.py).
+#: (measured about 1e-16 m/s with agents pressing on walls and on each other, tests/test_unicycle.py).
 SIDEWAYS_TOLERANCE = 1e-3
 
 
