@@ -55,10 +55,9 @@ def test_constant_forward_speed_and_turn_rate_trace_a_circle_of_radius_v_over_w(
         swept = np.linalg.norm(positions[-1, agent] - start)
         assert swept > 3.0  # far round the circle (400 steps: 3 rad)
     last = states[-1]
-    tangent = np.stack([-np.sin(last.headings), np.cos(last.headings)], axis=1)  # d/dt of (R sin, -R cos) about centre
+    to_centre = np.stack([-np.sin(last.headings), np.cos(last.headings)], axis=1)  # the heading turned left by 90 deg
     to_agent = last.positions - (np.array(starts) + radius * np.stack([-np.sin(headings), np.cos(headings)], axis=1))
-    np.testing.assert_allclose((to_agent * tangent).sum(axis=1), -radius, atol=1e-9)  # heading tangent to the circle
-    np.testing.assert_allclose(last.velocities, CONFIG.v_max * np.stack([np.cos(last.headings), np.sin(last.headings)], 1))
+    np.testing.assert_allclose((to_agent * to_centre).sum(axis=1), -radius, atol=1e-9)  # the heading is the tangent
 
 
 def test_a_pure_turn_does_not_translate() -> None:
@@ -82,19 +81,24 @@ def test_no_sideways_speed_in_any_sub_step_with_agents_pressing_on_walls_and_on_
     SIDEWAYS_TOLERANCE v_max, the observed velocity is always along the heading, and the agent at the wall stops there
     instead of creeping along it (wheels that do not skid)."""
     wall = [[9.0, 3.0, 9.0, 7.0, 0.2]]
-    env = place([[0.8, 5.0], [8.3, 4.8], [8.3, 5.3]], [0.8 * math.pi, 0.25 * math.pi, -0.25 * math.pi], walls=wall)
-    world = env.engine.worlds[0]
-    touched = np.zeros(2, dtype=int)
+    headings = np.array([0.8 * math.pi, 0.25 * math.pi, -0.25 * math.pi])  # no turn actions: they stay
+    env = place([[0.8, 5.0], [8.3, 4.8], [8.3, 5.3]], list(headings), walls=wall)
+    world, before = env.engine.worlds[0], env.team_state().positions
+    touched, slips = np.zeros(2, dtype=int), []
     for step in range(150):
         env.step_array(np.array([[1.0, 0.0]] * 3))
         assert world.sideways_speed <= SIDEWAYS_TOLERANCE * CONFIG.v_max, step
         state = env.team_state()
-        across = state.velocities[:, 1] * np.cos(state.headings) - state.velocities[:, 0] * np.sin(state.headings)
-        np.testing.assert_allclose(across, 0.0, atol=1e-15)
+        moved = state.positions - before  # each step's displacement, across the (fixed) heading
+        slips.append(np.abs(moved[:, 1] * np.cos(headings) - moved[:, 0] * np.sin(headings)))
+        before = state.positions
         touched += [state.contacts_obstacle.sum(), state.contacts_agent.sum()]
         if step == 100:
             at_wall = state.positions[0].copy()
     assert touched.min() > 50  # they did press on the walls and on each other
+    slips = np.array(slips)
+    assert slips[:, 0].max() < 1e-12  # the agent at the wall never slid along it
+    assert slips.max() < 2e-3  # the jammed pair: only Pymunk's overlap correction, within its 1 mm slop and a step's sink
     assert at_wall[0] == pytest.approx(CONFIG.agent_radius, abs=2e-3)  # at the wall, within Pymunk's overlap
     np.testing.assert_allclose(env.team_state().positions[0], at_wall, atol=1e-6)  # and it stays there
 
@@ -115,6 +119,9 @@ def test_the_heading_is_observed_and_in_the_state() -> None:
     np.testing.assert_allclose(
         rows[:, layout["heading"]], np.stack([np.cos(state.headings), np.sin(state.headings)], 1), atol=1e-7
     )
+    speeds = env.engine.forward_speeds[:, None]  # the velocity field: the forward speed along the heading
+    np.testing.assert_allclose(rows[:, layout["velocity"]], speeds * rows[:, layout["heading"]], atol=1e-7)
+    assert np.abs(speeds).max() > 0.01
     global_state = env.state()
     assert env.state_space.contains(global_state)
     np.testing.assert_allclose(global_state[env.state_layout["headings"]], state.headings, atol=1e-6)
@@ -235,3 +242,24 @@ def test_the_shipped_unicycle_policy_acts_only_on_unicycles() -> None:
     assert result.episodes[0]["length"] == 5
     with pytest.raises(ValueError, match=r"dynamics='holonomic' \(trained with 'unicycle'\)"):
         load_pretrained("ch5-bearing-unicycle", recipe="ch5-bearing")
+
+
+def test_an_engine_of_two_team_sizes_steps_one_live_team_as_a_single_env() -> None:
+    """Teams of 3 and 5 unicycles that also observe their reference bearings, in one engine; only the second is reset,
+    so every step takes the path for some live teams. Its rows are what a FormationEnv of 5 gives, bit for bit, with
+    the heading before the reference bearings."""
+    from sb3_formation.env.engine import FormationEngine
+
+    config = CONFIG.replace(observe_reference_bearings=True)
+    engine = FormationEngine([config, config.replace(n_agents=5)])
+    env = FormationEnv(config.replace(n_agents=5))
+    rows = engine.reset(1, seed=4)
+    np.testing.assert_array_equal(rows, np.stack(list(env.reset(seed=4)[0].values())))
+    layout = env.observation_layout
+    assert layout["heading"].stop == layout["reference_bearings"].start
+    actions = np.random.default_rng(2).uniform(-1, 1, (40, 8, 2))
+    for action in actions:
+        step = engine.step(action)
+        single = env.step_array(action[3:])[0]
+        np.testing.assert_array_equal(step.observations[3:], single)
+    assert not engine.live[0]

@@ -193,14 +193,16 @@ def target_label(target: str | Path) -> str:
     """A target's default label (see :func:`target_labels`)."""
     if target_kind(target):
         return str(target)
-    folder = run_folder(target)
     path = target_path(target).resolve()
-    return folder.resolve().name if folder is not None else path.stem if path.is_file() else path.name
+    if path.is_file() and run_folder(path) is None:  # a model file of no run: its own name
+        return path.stem
+    return (path if path.is_dir() else path.parent).name  # a run folder, or the folder of a run's model file
 
 
 def target_labels(text: str | None, targets: Sequence[str | Path]) -> list[str]:
-    """One label per target: from ``--labels`` (comma-separated), else a ``<kind>:<name>`` target itself, the name of
-    the run folder a path belongs to, or the path's own name (``policy.onnx`` -> ``policy``)."""
+    """One label per target: from ``--labels`` (comma-separated), else a ``<kind>:<name>`` target itself, a folder's
+    name, the name of the folder holding a run's model file (``run/checkpoints/iteration_10/model.zip`` ->
+    ``iteration_10``), or the name of a model file of no run (``policy.onnx`` -> ``policy``)."""
     if text is None:
         return [target_label(target) for target in targets]
     labels = [label.strip() for label in text.split(",")]

@@ -202,8 +202,7 @@ def force_action(command: np.ndarray, velocity: np.ndarray, config: FormationCon
     :param velocity: ``(k, 2)`` current velocities (m/s)
     :param config: the task (v_max, m, dt, F_max)
     """
-    speed = np.linalg.norm(command, axis=-1, keepdims=True)
-    command = command * np.minimum(1.0, config.v_max / np.maximum(speed, 1e-300))
+    command = clip_speed(command, config.v_max)
     action = config.agent_mass * (command - velocity) / config.dt / config.force_max
     largest = np.abs(action).max(axis=-1, keepdims=True)
     return action / np.maximum(largest, 1.0)
@@ -231,20 +230,24 @@ def unicycle_action(command: np.ndarray, velocity: np.ndarray, heading: np.ndarr
     (feedback linearisation): the point at ``l = v_max / w_max`` ahead moves at ``v h + l w h_perp`` for forward speed
     v and turn rate w (h the heading, h_perp h turned by +90 deg), so ``v = v* . h`` and ``w = (v* . h_perp) / l``;
     the look-ahead l lets a sideways command of v_max turn the unicycle at its limit w_max. The forward force reaches v
-    in one step, ``F = m (v - v_f) / dt`` with v_f = velocity . h, as a share of F_max; the turn action is w / w_max;
-    both clipped to [-1, 1].
+    in one step, ``F = m (v - v_f) / dt`` with v_f = velocity . h, as a share of F_max clipped to [-1, 1]; the turn
+    action is w / w_max, within [-1, 1] since the command's speed is at most v_max.
 
     :param command: ``(k, 2)`` commanded velocities (m/s), their speed clipped to v_max first
     :param velocity: ``(k, 2)`` current velocities (m/s), along the headings
     :param heading: ``(k, 2)`` the headings' (cos, sin)
     :param config: the task (v_max, max_turn_rate, m, dt, F_max)
     """
-    speed = np.linalg.norm(command, axis=-1, keepdims=True)
-    command = command * np.minimum(1.0, config.v_max / np.maximum(speed, 1e-300))
+    command = clip_speed(command, config.v_max)
     forward = (command * heading).sum(axis=-1)
     sideways = command[:, 1] * heading[:, 0] - command[:, 0] * heading[:, 1]
-    lookahead = config.v_max / config.max_turn_rate
     current = (velocity * heading).sum(axis=-1)
-    push = config.agent_mass * (forward - current) / config.dt / config.force_max
-    turn = sideways / lookahead / config.max_turn_rate
-    return np.clip(np.stack([push, turn], axis=-1), -1.0, 1.0)
+    push = np.clip(config.agent_mass * (forward - current) / config.dt / config.force_max, -1.0, 1.0)
+    return np.stack([push, sideways / config.v_max], axis=-1)  # w / w_max = (v* . h_perp) / (l w_max), l w_max = v_max
+
+
+def clip_speed(command: np.ndarray, v_max: float) -> np.ndarray:
+    """Commanded velocities ``(k, 2)`` (m/s) scaled down, direction kept, to at most ``v_max``."""
+    speed = np.linalg.norm(command, axis=-1, keepdims=True)
+    clipped: np.ndarray = command * np.minimum(1.0, v_max / np.maximum(speed, 1e-300))
+    return clipped

@@ -74,8 +74,10 @@ class FormationConfig:
         ``"unicycle"`` (a differential-drive robot: state x, y, heading theta; the action is a forward force, a share
         of F_max along the heading, and a turn-rate command, a share of ``max_turn_rate``; no sideways motion; the
         forward speed is limited to [-v_max, v_max]; see :mod:`sb3_formation.env.world`). A unicycle's observation
-        ends with its heading (cos, sin), and its start faces the goal unless the scenario gives headings
-    :param max_turn_rate: the unicycle's turn-rate limit (rad/s), reached by a turn action of 1
+        has its heading (cos, sin) after ``previous_reward`` (before any reference bearings), and its start faces the
+        goal unless the scenario gives headings
+    :param max_turn_rate: the unicycle's turn-rate limit (rad/s), reached by a turn action of 1; below pi per Pymunk
+        sub-step (an arc's chord vanishes at a full turn)
     :param dt: environment step Delta t (s)
     :param physics_substeps: Pymunk sub-steps inside one environment step; ``None`` (default) becomes the fewest, and
         at least the thesis's 2, that keep overlaps within :data:`OVERLAP_TOLERANCE` (:attr:`substeps_needed`). A
@@ -229,6 +231,12 @@ class FormationConfig:
                 f" m per Pymunk sub-step, more than the {self.max_substep_travel:.4f} m that keeps overlaps within "
                 f"{OVERLAP_TOLERANCE:.0%} of agent_radius: give physics_substeps >= {self.substeps_needed}, or leave it "
                 "unset (chosen from v_max, dt and agent_radius)"
+            )
+        if self.max_turn_rate * self.dt / self.physics_substeps >= math.pi:
+            raise ValueError(
+                f"max_turn_rate={self.max_turn_rate:g} rad/s turns a unicycle by pi or more in one of the "
+                f"{self.physics_substeps} Pymunk sub-steps of dt={self.dt:g} s: lower it below "
+                f"{math.pi * self.physics_substeps / self.dt:.4g} rad/s"
             )
         side = self.start_side_length
         if side <= 2 * self.agent_radius:

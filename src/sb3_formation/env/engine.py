@@ -82,7 +82,6 @@ class FormationEngine:
         #: the fields of an agent's observation (Table 3.1), in order
         self.observation_fields = observation_fields(config)
         self.observation_dim = dim = sum(field.size for field in self.observation_fields)
-        self._heading_column = observation_layout(self.observation_fields).get("heading", slice(0)).start
         #: team size -> (teams of that size, their agents' rows in team order): the groups of the stacked numpy work
         self._groups = {
             int(size): (teams, np.concatenate([np.arange(self.starts[t], self.starts[t + 1]) for t in teams]))
@@ -118,9 +117,11 @@ class FormationEngine:
         self.info_values = np.zeros((n_slots, INFO_VALUES))
         self.positions = np.zeros((n_slots, 2))
         self.velocities = np.zeros((n_slots, 2))
-        # unicycles' headings (rad) and forward speeds (m/s); holonomic agents keep 0
+        # unicycles' headings (rad) and forward speeds (m/s), and the heading's columns of an observation (cos, sin)
         self.headings, self.forward_speeds = np.zeros(n_slots), np.zeros(n_slots)
         self.unicycle = config.dynamics == "unicycle"
+        if self.unicycle:
+            self._heading_column = observation_layout(self.observation_fields)["heading"].start
         self.previous_actions = np.zeros((n_slots, 2))
         self.previous_rewards = np.zeros(n_slots)
         self.contacts = np.zeros((n_slots, 2), dtype=np.int64)  # agents, obstacles touched in the last step
@@ -446,7 +447,9 @@ class FormationEngine:
             self.episode_comm_exceeded,
         )
         if self.unicycle:  # the heading's cosine and sine (observation_fields)
-            rows = np.concatenate([np.arange(self.starts[team], self.starts[team + 1]) for team in active])
+            rows: slice | np.ndarray = slice(None)
+            if len(active) < self.n_teams:
+                rows = np.concatenate([np.arange(self.starts[team], self.starts[team + 1]) for team in active])
             column = self._heading_column
             observations[rows, column] = np.cos(self.headings[rows])
             observations[rows, column + 1] = np.sin(self.headings[rows])

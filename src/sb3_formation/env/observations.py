@@ -46,6 +46,7 @@ def observation_fields(config: FormationConfig) -> list[ObservationField]:
     width, height, diagonal = config.world_width, config.world_height, config.world_diagonal
     speed = config.v_max * (1 + ROUNDING_SLACK)
     extent = np.array([width, height])
+    action_unit = "fraction of F_max" if config.dynamics == "holonomic" else "forward: of F_max; turn: of max_turn_rate"
     angle_low, angle_high = config.beta_ref_deg - 360.0, config.beta_ref_deg
     specs = [
         ("lidar_obstacles", "l (obstacles, walls)", rays, 0.0, 1.0, "fraction of range"),
@@ -65,7 +66,7 @@ def observation_fields(config: FormationConfig) -> list[ObservationField]:
         ("flag_orientation", "f: beta^i in (0, 180)", 1, 0.0, 1.0, "0/1"),
         ("flag_range", "f: all neighbours within d^ref", 1, 0.0, 1.0, "0/1"),
         ("time_step", "t", 1, 0.0, float(config.max_steps), "steps"),
-        ("previous_action", "a_t-1^i", 2, -1.0, 1.0, "fraction of F_max"),
+        ("previous_action", "a_t-1^i", 2, -1.0, 1.0, action_unit),
         ("previous_reward", "r_t-1^i", 1, -config.reward_clip, config.reward_clip, "reward"),
     ]
     if config.dynamics == "unicycle":  # an extension of Table 3.1: the unicycle's heading, in the world frame

@@ -23,7 +23,7 @@ CM = 0.01  #: one thesis pixel (m)
 
 @dataclass(frozen=True)
 class Scenario:
-    """A complete placement, in metres: ``Scenario(agent_positions, goal, obstacles, walls)``.
+    """A complete placement, in metres: ``Scenario(agent_positions, goal, obstacles, walls, headings)``.
 
     :param agent_positions: ``(n, 2)`` agent centres; row i is agent i
     :param goal: ``(2,)`` goal centre

@@ -123,7 +123,8 @@ def state_layout(config: FormationConfig) -> dict[str, slice]:
 def state_vector(state: TeamState, config: FormationConfig) -> np.ndarray:
     """The flat float32 global state of :func:`state_fields` (PettingZoo's ``state()``).
 
-    :raises ValueError: the scenario has more obstacles or walls than the vector has slots (a hand-made scenario)
+    :raises ValueError: the scenario has more obstacles or walls than the vector has slots (a hand-made scenario), or
+        a state of unicycles has no headings
     """
     slots, wall_slots = scene_slots(config)
     for kind, shapes, room in (("obstacles", state.obstacles, slots), ("walls", state.walls, wall_slots)):
@@ -135,6 +136,8 @@ def state_vector(state: TeamState, config: FormationConfig) -> np.ndarray:
     obstacles, walls = np.zeros((slots, 3)), np.zeros((wall_slots, 5))
     obstacles[: len(state.obstacles)] = state.obstacles
     walls[: len(state.walls)] = state.walls
-    headings = [] if state.headings is None or config.dynamics != "unicycle" else [state.headings]
+    if config.dynamics == "unicycle" and state.headings is None:
+        raise ValueError("the global state of unicycles holds their headings, and this state has none (a recording?)")
+    headings = [] if config.dynamics != "unicycle" else [state.headings]
     parts = [state.positions.ravel(), state.velocities.ravel(), *headings, state.goal, obstacles.ravel(), walls.ravel()]
     return np.concatenate([*parts, [float(state.step)]]).astype(np.float32)

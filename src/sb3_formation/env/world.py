@@ -18,7 +18,8 @@ a body of its own that is put on the agent at the start of every sub-step, so co
 its heading but cannot push it sideways (as wheels that do not skid). The solved velocity along the chord is the next
 forward speed; what is left across it is the solver's residual, dropped, and the largest such speed of a step is
 :attr:`World.sideways_speed` (:data:`SIDEWAYS_TOLERANCE` bounds it). Only Pymunk's overlap correction, which pushes
-overlapping bodies apart along the contact normal, can still move a jammed agent sideways, by millimetres.
+overlapping bodies apart along the contact normal, can still move a jammed agent sideways (about a millimetre per step
+at most, tested).
 Contacts are counted once per pair per environment step: after each
 sub-step the space's touching pairs are read in one call of Pymunk's batch API (every obstacle and wall hangs on its
 own static body, so a pair of bodies names the obstacle), not through a Python collision callback per contact and
@@ -127,7 +128,7 @@ def count_contacts(
 
 
 def wrap_angles(angles: np.ndarray) -> np.ndarray:
-    """Angles (rad) wrapped into (-pi, pi]."""
+    """Angles (rad) wrapped into (-pi, pi] (-pi itself where rounding puts a tiny negative angle a full turn away)."""
     wrapped: np.ndarray = math.pi - np.mod(math.pi - angles, 2 * math.pi)
     return wrapped
 
@@ -250,6 +251,8 @@ class World:
             obstacles or walls, each agent touched during the step (each pair counted once)
         """
         config = self.config
+        if config.dynamics != "holonomic":
+            raise ValueError(f"World.step moves holonomic agents; {config.dynamics} agents move with World.drive")
         contacts = self.advance(clamp_speed(self.velocities + forces * (config.dt / config.agent_mass), config.v_max))
         if contacts is None:
             return [0] * config.n_agents, [0] * config.n_agents

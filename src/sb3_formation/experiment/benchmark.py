@@ -140,7 +140,7 @@ def run_benchmark(
         "version": __version__,
         "command": command,
         "protocol": f"{episodes} episodes per scene set from seed {seed}, stage 3, deterministic actions, "
-        f"{min(n_envs, episodes)} teams at once, {workers} worker(s)",
+        f"{min(n_envs, episodes)} teams at once, {min(workers, n_envs, episodes)} worker(s)",
     }
     atomic_write(out / TABLE_FILE, benchmark_header(run) + "\n\n" + benchmark_table(rows) + "\n")
     atomic_write(out / RESULTS_FILE, json.dumps({"run": run, "rows": [row.cells() for row in rows]}, indent=2) + "\n")
