@@ -18,8 +18,8 @@ a body of its own that is put on the agent at the start of every sub-step, so co
 its heading but cannot push it sideways (as wheels that do not skid). The solved velocity along the chord is the next
 forward speed; what is left across it is the solver's residual, dropped, and the largest such speed of a step is
 :attr:`World.sideways_speed` (:data:`SIDEWAYS_TOLERANCE` bounds it). Only Pymunk's overlap correction, which pushes
-overlapping bodies apart along the contact normal, can still move a jammed agent sideways (about a millimetre per step
-at most, tested).
+overlapping bodies apart along the contact normal, can still move a jammed agent sideways (less than 2 mm per step in
+the test of a jam).
 Contacts are counted once per pair per environment step: after each
 sub-step the space's touching pairs are read in one call of Pymunk's batch API (every obstacle and wall hangs on its
 own static body, so a pair of bodies names the obstacle), not through a Python collision callback per contact and
@@ -57,7 +57,7 @@ _SPARE_VALUES = 8  #: values past the end of a world's state array (see World.pl
 #: Half-length (m) of a unicycle's groove: far more than an agent moves in a sub-step.
 GROOVE_HALF_LENGTH = 1.0
 #: The most sideways speed (m/s per m/s of v_max) a unicycle keeps after a sub-step's solve: the solver's residual
-#: (measured about 1e-16 m/s with agents pressing on walls and on each other, tests/test_unicycle.py).
+#: (asserted with agents pressing on walls and on each other, tests/test_unicycle.py).
 SIDEWAYS_TOLERANCE = 1e-3
 
 
