@@ -11,7 +11,7 @@ import yaml
 from PIL import Image
 
 from sb3_formation.cli import main
-from sb3_formation.controllers import ClassicalController
+from sb3_formation.controllers import ClassicalController, ShrinkingController
 from sb3_formation.controllers.residual import ResidualPolicy, add_correction
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.formation_env import FormationEnv
@@ -46,20 +46,47 @@ def test_a_correction_is_bounded_and_the_sum_clipped() -> None:
         ResidualPolicy(ClassicalController(CH5), ConstantPolicy(CH5, (0, 0)), 0.0)
 
 
-def test_a_zero_correction_acts_exactly_as_the_controller() -> None:
-    controller = ClassicalController(CH5)
+@pytest.mark.parametrize("kind", [ClassicalController, ShrinkingController])
+def test_a_zero_correction_acts_exactly_as_the_controller(kind: type) -> None:
+    """Also for a controller with memory: the residual policy carries it in its state and resets it at episode starts."""
+    controller = kind(CH5)
     zero = ResidualPolicy(controller, ConstantPolicy(CH5, (0.0, 0.0)), 0.3)
     shifted = ResidualPolicy(controller, ConstantPolicy(CH5, (0.5, 0.0)), 0.3)
     env = FormationEnv(CH5)
     rows = np.stack(list(env.reset(seed=2)[0].values()))
+    memory = zero_state = shifted_state = None
     for _ in range(40):
-        actions = controller.predict(rows)[0]
-        np.testing.assert_array_equal(zero.predict(rows)[0], actions)
-        np.testing.assert_allclose(shifted.predict(rows)[0], np.clip(actions + np.array([0.15, 0.0]), -1, 1), atol=1e-6)
+        actions, memory = controller.predict(rows, memory)
+        zero_actions, zero_state = zero.predict(rows, zero_state)
+        shifted_actions, shifted_state = shifted.predict(rows, shifted_state)
+        np.testing.assert_array_equal(zero_actions, actions)
+        np.testing.assert_allclose(shifted_actions, np.clip(actions + np.array([0.15, 0.0]), -1, 1), atol=1e-6)
         rows, *_ = env.step_array(actions)
     # evaluated episodes are the controller's, bit for bit
-    protocol = {"episodes": 2, "stage": 3, "seed": 5, "n_envs": 2, "env_overrides": {"max_steps": 150}, "record": 0}
+    protocol = {"episodes": 3, "stage": 3, "seed": 5, "n_envs": 2, "env_overrides": {"max_steps": 150}, "record": 0}
     assert evaluate(zero, **protocol).episodes == evaluate(controller, **protocol).episodes
+
+
+def test_the_training_env_carries_a_controllers_memory_and_resets_it_when_an_episode_ends() -> None:
+    """With zero corrections the residual VecEnv steps as the shrinking controller does when its memory is carried
+    from step to step and reset where an episode ended (SB3's predict contract), through two episodes of a passage."""
+    config = CH5.replace(scenes="passage", max_steps=60)
+    controller = ShrinkingController(config)
+    residual = ResidualVecEnv(FormationVecEnv(config, n_envs=2), controller, 0.3)
+    plain = FormationVecEnv(config, n_envs=2)
+    residual.seed(3)
+    plain.seed(3)
+    observations, expected = residual.reset(), plain.reset()
+    memory, starts, forgetful = None, np.ones(12, dtype=bool), 0
+    for _ in range(130):  # episodes end at steps 60 and 120
+        np.testing.assert_array_equal(observations, expected)
+        actions, memory = controller.predict(expected, memory, starts)
+        forgetful += not np.array_equal(actions, controller.predict(expected)[0])  # memory changes the actions
+        observations, *_ = residual.step(np.zeros((12, 2), dtype=np.float32))
+        expected, _, starts, _ = plain.step(actions)
+    assert forgetful > 60
+    residual.close()
+    plain.close()
 
 
 def test_the_training_env_adds_the_controller_to_the_agent_action() -> None:
@@ -186,3 +213,5 @@ def test_residual_setups_are_checked() -> None:
         ValueError, match="residual: the residual scale must be a number in \\(0, 2\\] \\(a fraction of F_max\\), got 3"
     ):
         Recipe("bad", **values, residual={"controller": "classical", "scale": 3})
+    with pytest.raises(ValueError, match="controller 'privileged-planner' reads the map \\(privileged\\)"):
+        Recipe("bad", **values, residual={"controller": "privileged-planner", "scale": 0.3})

@@ -131,11 +131,32 @@ class Controller(ABC):
     def predict(
         self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
     ) -> tuple[np.ndarray, Any]:
-        """SB3's signature: :meth:`act` on every row, actions clipped to [-1, 1]; controllers keep no state."""
+        """SB3's signature: :meth:`agent_step` on every row (row k: agent k % n), actions clipped to [-1, 1]."""
         observation = np.asarray(observation, dtype=np.float64)
         rows = observation.reshape(-1, observation.shape[-1])
-        actions = self.agent_actions(rows, np.arange(len(rows)) % self.config.n_agents, deterministic)
-        return actions.reshape(*observation.shape[:-1], 2), None
+        agents = np.arange(len(rows)) % self.config.n_agents
+        actions, state = self.agent_step(rows, agents, state, episode_start, deterministic)
+        return actions.reshape(*observation.shape[:-1], 2), state
+
+    def agent_step(
+        self,
+        observations: np.ndarray,
+        agents: np.ndarray,
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, Any]:
+        """Actions ``(k, 2)`` (as :meth:`agent_actions`) for rows of any agents, and the controller's next state: what
+        every caller that carries a controller's memory (evaluation, a residual policy, its training env) calls. A
+        memoryless controller returns ``None``; one with memory overrides this.
+
+        :param observations: ``(k, obs_dim)`` raw observations
+        :param agents: ``(k,)`` each row's agent index in its team
+        :param state: what the previous call returned for these rows (``None`` at the start)
+        :param episode_start: ``(k,)`` flags: these rows start an episode (their memory is reset)
+        :param deterministic: act without noise
+        """
+        return self.agent_actions(observations, agents, deterministic), None
 
     def agent_actions(self, observations: np.ndarray, agents: np.ndarray, deterministic: bool = True) -> np.ndarray:
         """:meth:`act` on rows of any agents (e.g. one robot's), clipped to [-1, 1], as float32 ``(k, 2)``.

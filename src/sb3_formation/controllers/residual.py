@@ -68,7 +68,9 @@ class ResidualPolicy:
     def predict(
         self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
     ) -> tuple[np.ndarray, Any]:
-        """The controller's actions plus the scaled corrections; the state is the correction's."""
-        correction, state = self.correction.predict(observation, state, episode_start, deterministic)
-        base, _ = self.base.predict(observation, deterministic=deterministic)
-        return add_correction(base.astype(np.float64), correction, self.scale), state
+        """The controller's actions plus the scaled corrections; the state is the pair (the correction's, the
+        controller's)."""
+        correction_state, base_state = (None, None) if state is None else state
+        correction, correction_state = self.correction.predict(observation, correction_state, episode_start, deterministic)
+        base, base_state = self.base.predict(observation, base_state, episode_start, deterministic)
+        return add_correction(base.astype(np.float64), correction, self.scale), (correction_state, base_state)

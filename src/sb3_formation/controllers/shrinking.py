@@ -136,8 +136,9 @@ class ShrinkingController(Controller):
     """A formation that shrinks to the free space and follows obstacles on an agreed side (see the module docstring),
     decentralised, with a memory per agent of its own past observations.
 
-    :meth:`predict` takes and returns the memory as SB3's ``state``: a float array ``(k, len(MEMORY_FIELDS))``, one
-    row per observation row, reset where ``episode_start`` is true (or when ``state`` is ``None``).
+    :meth:`predict` (and :meth:`agent_step`) take and return the memory as SB3's ``state``: a float array
+    ``(k, len(MEMORY_FIELDS))``, one row per observation row, reset where ``episode_start`` is true (or when ``state``
+    is ``None``).
     :meth:`act` without memory acts as on the first step of an episode.
 
     :param config: the task configuration
@@ -166,22 +167,24 @@ class ShrinkingController(Controller):
         memory[:, _PROGRESS] = 1.0
         return memory
 
-    def predict(
-        self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
+    def agent_step(
+        self,
+        observations: np.ndarray,
+        agents: np.ndarray,
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = True,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """SB3's signature: actions for every row (row k: agent k % n), and the agents' memory as the next state."""
-        observation = np.asarray(observation, dtype=np.float64)
-        rows = observation.reshape(-1, observation.shape[-1])
-        memory = self.initial_memory(len(rows))
+        """Actions for rows of any agents and their memory as the next state (reset where ``episode_start``)."""
+        observations = np.asarray(observations, dtype=np.float64)
+        memory = self.initial_memory(len(observations))
         if state is not None:
-            memory = np.array(state, dtype=np.float64).reshape(len(rows), len(MEMORY_FIELDS))
+            memory = np.array(state, dtype=np.float64).reshape(len(observations), len(MEMORY_FIELDS))
             if episode_start is not None:
                 starts = np.asarray(episode_start, dtype=bool).reshape(-1)
                 memory[starts] = self.initial_memory(int(starts.sum()))
-        agents = np.arange(len(rows)) % self.config.n_agents
-        actions, memory = self.step(rows, agents, memory)
-        actions = np.clip(actions, -1.0, 1.0).astype(np.float32)
-        return actions.reshape(*observation.shape[:-1], 2), memory
+        actions, memory = self.step(observations, np.asarray(agents), memory)
+        return np.clip(actions, -1.0, 1.0).astype(np.float32), memory
 
     def act(self, observations: np.ndarray, agents: np.ndarray, deterministic: bool) -> np.ndarray:
         return self.step(observations, agents, self.initial_memory(len(observations)))[0]

@@ -457,8 +457,15 @@ def residual_base(spec: dict[str, Any], config: FormationConfig) -> tuple[Contro
 
     :param spec: ``controller``, ``scale`` and optional ``gains`` (see :class:`Recipe`)
     :param config: the task the controller acts in
+    :raises ValueError: the controller reads the map (a residual policy is decentralised, like its controller)
     """
-    return controller_from_spec(spec, config), check_residual_scale(spec["scale"])
+    controller = controller_from_spec(spec, config)
+    if getattr(controller, "privileged", False):
+        raise ValueError(
+            f"controller {spec['controller']!r} reads the map (privileged): a residual policy's controller must be "
+            "decentralised"
+        )
+    return controller, check_residual_scale(spec["scale"])
 
 
 def residual_policy(spec: dict[str, Any], correction: TeamPolicy) -> ResidualPolicy:

@@ -245,20 +245,26 @@ class OnnxPolicy:
 
         :param observations: ``(k, obs_dim)`` (or one ``(obs_dim,)``) raw observations
         :param agents: ``(k,)`` each row's agent index in its team (a residual policy's controller needs it)
-        :param state: a recurrent policy's state for these rows, as returned before (``None``: zeros)
-        :param episode_start: ``(k,)`` flags: reset these rows' recurrent state first
+        :param state: what the previous call returned for these rows (``None`` at the start): a recurrent graph's
+            state; for a residual policy the pair (the graph's state, the controller's memory)
+        :param episode_start: ``(k,)`` flags: reset these rows' state first
         :param deterministic: must be True: the graph holds the mean action only
         :raises ValueError: observations of the wrong size, a state of the wrong shape, or ``deterministic=False``
         """
         if not deterministic:
             raise ValueError(f"{self.source} acts deterministically only (its graph holds the mean action): drop --stochastic")
         rows = self._rows(observations)
-        feeds = {OBSERVATION_INPUT: rows, **self._state_feeds(state, episode_start, len(rows))}
+        graph_state, controller_state = (state, None) if self.controller is None or state is None else state
+        feeds = {OBSERVATION_INPUT: rows, **self._state_feeds(graph_state, episode_start, len(rows))}
         first, *new_state = self.session.run(self.metadata.output_names, feeds)
-        if self.controller is not None:
-            base = self.controller.agent_actions(rows, np.asarray(agents).reshape(-1))
-            first = add_correction(base.astype(np.float64), first, cast(float, self.scale))  # set with the controller
-        return first, (tuple(new_state) if new_state else state)
+        graph_state = tuple(new_state) if new_state else graph_state
+        if self.controller is None:
+            return first, graph_state
+        base, controller_state = self.controller.agent_step(
+            rows, np.asarray(agents).reshape(-1), controller_state, episode_start
+        )
+        first = add_correction(base.astype(np.float64), first, cast(float, self.scale))  # set with the controller
+        return first, (graph_state, controller_state)
 
     def _rows(self, observation: np.ndarray) -> np.ndarray:
         """``observation`` as float32 rows of one agent's observation each."""

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 from stable_baselines3.common.vec_env import VecEnvWrapper
@@ -38,10 +38,14 @@ class ResidualVecEnv(VecEnvWrapper):
         for team, config in enumerate(venv.team_configs):
             slots.setdefault(config, []).extend(range(venv.num_envs)[venv.team_slots(team)])
         self._controllers = [(base.fit(config), np.array(team_slots)) for config, team_slots in slots.items()]
+        #: each controller's state (its memory of its slots, ``None`` for a memoryless one), carried across steps
+        self._states: list[Any] = [None] * len(self._controllers)
         self._observations: np.ndarray | None = None
+        self._starts = np.ones(venv.num_envs, dtype=bool)  # the slots whose observation starts an episode
 
     def reset(self) -> VecEnvObs:
         self._observations = cast(np.ndarray, self.venv.reset())  # a Box's observations
+        self._starts[:] = True
         return self._observations
 
     def step_async(self, actions: np.ndarray) -> None:
@@ -50,11 +54,12 @@ class ResidualVecEnv(VecEnvWrapper):
         actions = self.venv.checked_actions(actions)
         own = self._observations[:, : self.agent_obs_dim]
         base = np.empty((len(own), 2))
-        for controller, slots in self._controllers:
-            base[slots], _ = controller.predict(own[slots])
+        for group, (controller, slots) in enumerate(self._controllers):
+            base[slots], self._states[group] = controller.predict(own[slots], self._states[group], self._starts[slots])
         self.venv.step_async(add_correction(base, actions, self.scale))
 
     def step_wait(self) -> VecEnvStepReturn:
         observations, rewards, dones, infos = self.venv.step_wait()
         self._observations = cast(np.ndarray, observations)  # a Box's observations
+        self._starts = np.asarray(dones, dtype=bool).copy()  # an ended episode's slot now shows the next one's start
         return observations, rewards, dones, infos
