@@ -15,6 +15,7 @@ import torch
 from gymnasium import spaces
 
 from sb3_formation.cli import main
+from sb3_formation.controllers import ShrinkingController
 from sb3_formation.controllers.residual import ResidualPolicy
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.engine import FormationEngine
@@ -142,6 +143,33 @@ def test_a_recurrent_export_carries_its_state_over_a_100_step_episode(cell: str,
         observations = step.observations
     assert forgetful_gap > 1e-2  # the state matters, so carrying it is what made the actions agree
     assert [array.shape for array in onnx_state] == [(1, config.n_agents, 32)] * len(parts)
+
+
+def test_a_residual_on_a_controller_with_memory_carries_the_memory_beside_the_graph(tmp_path: Path) -> None:
+    """A correction of controller:shrinking: the runtime's state is (graph state, controller memory); fed back, it acts
+    as the torch residual policy through a passage episode, episode starts reset it, and without it the actions differ."""
+    config = FormationConfig.task("ch5-bearing", stage=3).replace(scenes="passage")
+    residual = ResidualPolicy(ShrinkingController(config), untrained(config, None, seed=6), 0.3)
+    runtime = OnnxPolicy(export_onnx(residual, tmp_path / "shrinking.onnx"), threads=1)
+    assert isinstance(runtime.controller, ShrinkingController) and runtime.scale == 0.3
+    engine = FormationEngine([config])
+    observations = engine.reset(0, seed=2)
+    starts = np.ones(config.n_agents, dtype=bool)
+    torch_state = onnx_state = None
+    forgetful_gap = 0.0
+    for step_index in range(300):
+        if step_index == 150:  # a new episode in the same rows: both reset the memory
+            observations, starts[:] = engine.reset(0, seed=3), True
+        expected, torch_state = residual.predict(observations, torch_state, starts)
+        actions, onnx_state = runtime.predict(observations, onnx_state, starts)
+        assert np.abs(actions - expected).max() <= TOLERANCE
+        np.testing.assert_array_equal(onnx_state[1], torch_state[1])  # the same memory, computed in numpy by both
+        forgetful, _ = runtime.predict(observations, None, starts)
+        forgetful_gap = max(forgetful_gap, float(np.abs(forgetful - actions).max()))
+        starts[:] = False
+        observations = engine.step(expected.astype(np.float64)).observations
+    assert onnx_state[0] is None  # a feed-forward graph has no state of its own
+    assert forgetful_gap > 1e-2
 
 
 @pytest.mark.parametrize("name", SHIPPED)
