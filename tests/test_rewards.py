@@ -74,18 +74,25 @@ def test_centroid_term() -> None:
 def test_goal_term_progress() -> None:
     """Eq. 38 with v_max = 0.05, dt = 0.3 (full-speed step 0.015 m): k1 + progress / 0.015."""
     # 0.015 m closer: -1.1 + 0.015 / 0.015 = -0.1
-    assert goal_term(3.0, 2.985, 0.4, 4.0, -1.1, 0.3, 0.05) == pytest.approx(-0.1, abs=1e-9)
+    assert goal_term(3.0, 2.985, 2.985, 0.4, 4.0, -1.1, 0.3, 0.05) == pytest.approx(-0.1, abs=1e-9)
     # 0.0075 m further: -1.1 - 0.0075 / 0.015 = -1.6
-    assert goal_term(3.0, 3.0075, 0.4, 4.0, -1.1, 0.3, 0.05) == pytest.approx(-1.6, abs=1e-9)
+    assert goal_term(3.0, 3.0075, 3.0075, 0.4, 4.0, -1.1, 0.3, 0.05) == pytest.approx(-1.6, abs=1e-9)
     # no progress: k1
-    assert goal_term(3.0, 3.0, 0.4, 4.0, -1.1, 0.3, 0.05) == pytest.approx(-1.1, abs=1e-12)
+    assert goal_term(3.0, 3.0, 3.0, 0.4, 4.0, -1.1, 0.3, 0.05) == pytest.approx(-1.1, abs=1e-12)
 
 
 def test_goal_term_reached() -> None:
     """Eq. 38: r_reached once the centroid is within eta_g (inclusive), whatever the progress."""
-    assert goal_term(0.5, 0.3, 0.4, 4.0, -1.1, 0.3, 0.05) == 4.0
-    assert goal_term(0.41, 0.4, 0.4, 4.0, -1.1, 0.3, 0.05) == 4.0
-    assert goal_term(0.42, 0.41, 0.4, 4.0, -1.1, 0.3, 0.05) == pytest.approx(-1.1 + 0.01 / 0.015, abs=1e-9)
+    assert goal_term(0.5, 0.3, 0.3, 0.4, 4.0, -1.1, 0.3, 0.05) == 4.0
+    assert goal_term(0.41, 0.4, 0.4, 0.4, 4.0, -1.1, 0.3, 0.05) == 4.0
+    assert goal_term(0.42, 0.41, 0.41, 0.4, 4.0, -1.1, 0.3, 0.05) == pytest.approx(-1.1 + 0.01 / 0.015, abs=1e-9)
+
+
+def test_goal_term_rewards_the_way_round_and_pays_on_the_straight_distance() -> None:
+    """goal_progress: geodesic: progress is the way's decrease (here 6.0 -> 5.985 m while the straight distance, 2 m,
+    grows), and r_reached is paid once the straight distance is within eta_g, whatever the way."""
+    assert goal_term(6.0, 5.985, 2.0, 0.4, 4.0, -1.1, 0.3, 0.05) == pytest.approx(-0.1, abs=1e-9)
+    assert goal_term(1.0, 0.99, 0.39, 0.4, 4.0, -1.1, 0.3, 0.05) == 4.0
 
 
 @pytest.mark.parametrize(

@@ -9,7 +9,15 @@ import pytest
 from pettingzoo.test import parallel_api_test
 
 from sb3_formation import FormationConfig, FormationEnv
-from sb3_formation.env.clearance import ClearanceMap, reachable, shortest_path, shrunk_footprint, start_footprint
+from sb3_formation.env.clearance import (
+    ClearanceMap,
+    goal_field,
+    path_distance,
+    reachable,
+    shortest_path,
+    shrunk_footprint,
+    start_footprint,
+)
 from sb3_formation.env.scenarios import PlacementError, Scenario, start_formation
 from sb3_formation.env.scenes import SCENE_FAMILIES, WALL_THICKNESS, check_scenes_fit, draw_scene, is_solvable
 from sb3_formation.env.shapes import shape_gaps, wall_lengths
@@ -157,3 +165,50 @@ def test_a_hand_made_scene_with_walls_is_placed_as_given() -> None:
         env.reset(options={"scenario": Scenario(positions, [12.0, 5.0], walls=[[9.0, 5.0, 16.0, 5.0, 0.2]])})
     with pytest.raises(ValueError, match=r"wall 0 has thickness 0\.0 m"):
         Scenario(positions, [12.0, 5.0], walls=[[9.0, 5.0, 10.0, 5.0, 0.0]])
+
+
+def test_the_way_round_a_wall_by_hand() -> None:
+    """A wall x = 7.5 from the floor to y = 6 (0.2 m thick) between a point and the goal (12, 3): the way is the straight
+    line to the wall's upper corner (7.6, 6.1) and on to the goal; in the open it is the straight distance. The
+    16-connected grid keeps both within 5 %, and a move towards the goal shortens the way by its length within 5 %."""
+    config = FormationConfig.task("ch5-bearing")
+    goal = np.array([12.0, 3.0])
+    clearance = ClearanceMap.of(config, np.zeros((0, 3)), np.array([[7.5, 0.0, 7.5, 6.0, 0.2]]))
+    field = goal_field(clearance, goal)
+    corner = np.array([7.4, 6.1])  # the wall's end seen from the left: its left face, its top
+    for point in ([3.0, 3.0], [5.0, 1.0], [6.0, 5.0]):
+        point = np.array(point)
+        by_hand = np.linalg.norm(corner - point) + np.linalg.norm(goal - np.array([7.6, 6.1])) + 0.2
+        assert path_distance(clearance, field, point) == pytest.approx(by_hand, rel=0.05)
+    for point in ([12.0, 8.0], [9.0, 3.0], [14.0, 1.0]):  # in sight of the goal
+        point = np.array(point)
+        assert path_distance(clearance, field, point) == pytest.approx(np.linalg.norm(goal - point), rel=0.05, abs=0.15)
+    for point in ([9.5, 7.0], [13.0, 8.5], [10.0, 1.0]):  # 0.3 m straight towards the goal shortens the way as much
+        point = np.array(point)
+        move = 0.3 * (goal - point) / np.linalg.norm(goal - point)
+        shortened = path_distance(clearance, field, point) - path_distance(clearance, field, point + move)
+        assert shortened == pytest.approx(0.3, rel=0.05)
+
+
+def test_the_geodesic_goal_term_rewards_going_round_the_wall() -> None:
+    """A team behind the wall, its goal straight ahead beyond it, moves up along the wall towards its end: the straight
+    distance grows (the thesis's goal term is below k_1), the way round shrinks (above k_1 with goal_progress:
+    geodesic). The goal term is k_1 + (w_t - w_t+1) / (dt v_max) of the engine's ways."""
+    walls = np.array([[7.5, 0.0, 7.5, 6.0, 0.2]])
+    terms = {}
+    for progress in ("euclidean", "geodesic"):
+        config = FormationConfig.task("ch5-bearing", stage=3).replace(goal_progress=progress)
+        scenario = Scenario(start_formation(config, np.array([5.0, 3.0])), [10.0, 3.0], walls=walls)
+        env = FormationEnv(config)
+        env.reset(seed=0, options={"scenario": scenario})
+        engine = env.engine
+        before = float(engine.ways[0])
+        up = np.tile([0.0, 1.0], (config.n_agents, 1))
+        _, _, _, _, infos = env.step_array(up)
+        after = float(engine.ways[0])
+        goal_term = infos[0]["reward_goal"]
+        assert goal_term == pytest.approx(config.k1 + (before - after) / (config.dt * config.v_max), abs=1e-9)
+        terms[progress] = goal_term
+        if progress == "euclidean":  # the thesis's: the way is the goal distance itself
+            assert after == float(engine.goal_distances[0])
+    assert terms["euclidean"] < FormationConfig.task("ch5-bearing").k1 < terms["geodesic"]

@@ -1,7 +1,8 @@
 """Clearance maps: how far each point of a grid over the world is from the nearest shape, and paths through them.
 
 The scene families use a map to refuse scenes that no team can solve (:func:`reachable`); the privileged planner
-plans its centroid path on one (:func:`shortest_path`). A team's *footprint* is the disc around its centroid that
+plans its centroid path on one (:func:`shortest_path`); the goal term of ``goal_progress: geodesic`` measures the way
+round the shapes on one (:func:`goal_field`, :func:`path_distance`). A team's *footprint* is the disc around its centroid that
 holds all its agents: a formation of circumradius r has footprint radius r + R_a, and the smallest a team can take
 (:func:`shrunk_footprint`) is the n-gon whose neighbours touch, of circumradius R_a / sin(pi / n).
 """
@@ -149,3 +150,77 @@ def _dijkstra(
                     came_from[nr, nc, 0], came_from[nr, nc, 1] = r, c
                     heapq.heappush(queue, (candidate, nr, nc))
     return -1, -1, came_from
+
+
+#: Reach (m) of :func:`path_distance`: the cells it goes straight to from a point lie within this distance.
+PATH_REACH = 0.5
+
+
+def goal_field(clearance: ClearanceMap, goal: np.ndarray) -> np.ndarray:
+    """The length (m) of the shortest 16-connected way from each cell's centre to ``goal`` through cells whose centre
+    lies outside every shape (Dijkstra from the goal's cell); ``inf`` where there is none (inside a shape).
+
+    :param clearance: the scene's map
+    :param goal: ``(2,)`` the goal (m)
+    """
+    row, column = clearance.cell(goal)
+    start = float(np.hypot(*(clearance.point((row, column)) - goal))) / clearance.spacing
+    return _distances_from(clearance.gaps > 0.0, row, column, start) * clearance.spacing
+
+
+def path_distance(clearance: ClearanceMap, field: np.ndarray, point: np.ndarray) -> float:
+    """The way (m) from ``point`` to the goal of ``field`` (:func:`goal_field` of ``clearance``): the least, over the
+    cells the point sees, of the straight distance to a cell's centre plus the cell's way. The point sees the cells
+    within :data:`PATH_REACH` of it and inside the free disc around it (closer than its cell's gap less a cell's
+    diagonal), so no straight part crosses a shape; this far from the grid's cells, a small move changes the way by
+    nearly the move's share towards the goal.
+
+    :param clearance: the scene's map
+    :param field: its :func:`goal_field`
+    :param point: ``(2,)`` the point (m), e.g. a team's centroid
+    :return: the way (m); a shape's neighbour cells are used where the point sees none (it touches a shape)
+    """
+    spacing = clearance.spacing
+    row, column = clearance.cell(point)
+    reach = min(PATH_REACH, float(clearance.gaps[row, column]) - math.sqrt(2) * spacing)
+    cells = max(int(reach / spacing), 1)
+    low_row, low_column = max(row - cells, 0), max(column - cells, 0)
+    block = field[low_row : row + cells + 1, low_column : column + cells + 1]
+    ys = (np.arange(low_row, low_row + block.shape[0]) + 0.5) * spacing
+    xs = (np.arange(low_column, low_column + block.shape[1]) + 0.5) * spacing
+    straight = np.hypot(xs[None, :] - point[0], ys[:, None] - point[1])
+    seen = straight <= max(reach, 1.5 * spacing)
+    return float(np.where(seen, block + straight, np.inf).min())
+
+
+#: The moves of :func:`_distances_from`: to the 8 neighbours and the 8 knight's-move cells (16-connected: in the
+#: open a way shortens within 5 % of the straight distance covered, against 8 % with 8 neighbours).
+MOVES = np.array([(dr, dc) for dr in range(-2, 3) for dc in range(-2, 3) if max(abs(dr), abs(dc)) == 1 or abs(dr * dc) == 2])
+
+
+@numba.njit(cache=True)
+def _distances_from(free: np.ndarray, row: int, column: int, start: float) -> np.ndarray:  # pragma: no cover - compiled
+    """Dijkstra over the free cells from (row, column), whose cost is ``start`` (in cells): every free cell's cost.
+    A knight's move also needs the two cells it passes between free."""
+    rows, columns = free.shape
+    cost = np.full(free.shape, np.inf)
+    cost[row, column] = start
+    queue = [(start, row, column)]
+    while len(queue) > 0:
+        current, r, c = heapq.heappop(queue)
+        if current > cost[r, c]:
+            continue
+        for move in range(MOVES.shape[0]):
+            dr, dc = MOVES[move, 0], MOVES[move, 1]
+            nr, nc = r + dr, c + dc
+            if nr < 0 or nr >= rows or nc < 0 or nc >= columns or not free[nr, nc]:
+                continue
+            if abs(dc) == 2 and not (free[r, c + dc // 2] and free[nr, c + dc // 2]):
+                continue
+            if abs(dr) == 2 and not (free[r + dr // 2, c] and free[r + dr // 2, nc]):
+                continue
+            candidate = current + math.sqrt(dr * dr + dc * dc)
+            if candidate < cost[nr, nc]:
+                cost[nr, nc] = candidate
+                heapq.heappush(queue, (candidate, nr, nc))
+    return cost

@@ -56,6 +56,8 @@ INFO_KEYS: tuple[str, ...] = (
 LAYOUTS: tuple[str, ...] = ("ch4", "ch5")
 #: Agent dynamics (:attr:`FormationConfig.dynamics`): the thesis's holonomic point (eq. 19), or a unicycle.
 DYNAMICS: tuple[str, ...] = ("holonomic", "unicycle")
+#: What the goal term measures progress along (:attr:`FormationConfig.goal_progress`).
+GOAL_PROGRESS: tuple[str, ...] = ("euclidean", "geodesic")
 
 
 @dataclass(frozen=True)
@@ -106,6 +108,10 @@ class FormationConfig:
     :param r_reached: goal reward r_reached
     :param r_late: reward r_late at step T_s
     :param k1: constant k_1 of the goal term
+    :param goal_progress: the distance whose decrease the goal term rewards (eqs. 23 / 38): ``"euclidean"`` (the
+        thesis's, the straight centroid-goal distance c_g) or ``"geodesic"`` (a departure for scenes whose walls block
+        the straight way: the length of the shortest way round the shapes, :func:`~sb3_formation.env.clearance.path_distance`).
+        The goal is reached, and r_reached paid, within eta_g of c_g in both
     :param r_o: obstacle-collision reward r_o
     :param r_j: agent-collision reward r_j
     :param d_safe: safe gap d_safe (m) between an agent's surface and an obstacle's (walls included)
@@ -158,6 +164,7 @@ class FormationConfig:
     r_reached: float = 4.0
     r_late: float = -10.0
     k1: float = -1.1
+    goal_progress: Literal["euclidean", "geodesic"] = "euclidean"
     r_o: float = -5.0
     r_j: float = -1.0
     d_safe: float = 0.05
@@ -209,6 +216,7 @@ class FormationConfig:
         _check("formation_scale", self.formation_scale, "in (0, 1)", lambda v: is_real(v) and 0 < v < 1)
         _check("layout", self.layout, f"one of {LAYOUTS}", lambda v: v in LAYOUTS)
         _check("dynamics", self.dynamics, f"one of {DYNAMICS}", lambda v: v in DYNAMICS)
+        _check("goal_progress", self.goal_progress, f"one of {GOAL_PROGRESS}", lambda v: v in GOAL_PROGRESS)
         from sb3_formation.env.scenes import SCENES  # the families import this module
 
         _check("scenes", self.scenes, f"one of {SCENES}", lambda v: isinstance(v, str) and v in SCENES)

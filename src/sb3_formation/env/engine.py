@@ -25,6 +25,7 @@ import numba
 import numpy as np
 from gymnasium.utils import seeding
 
+from sb3_formation.env.clearance import ClearanceMap, goal_field, path_distance
 from sb3_formation.env.config import INFO_KEYS, REWARD_TERMS, FormationConfig
 from sb3_formation.env.episodes import episode_summary
 from sb3_formation.env.geometry import FormationState, _measure, agent_errors, reference_bearings, ring_neighbours
@@ -137,6 +138,10 @@ class FormationEngine:
         self._wall_counts = np.zeros(n_teams, dtype=np.int64)
         self.step_counts = np.zeros(n_teams, dtype=np.int64)
         self.goal_distances = np.zeros(n_teams)
+        #: the way (m) to the goal whose decrease the goal term rewards: the goal distance, or with ``goal_progress:
+        #: geodesic`` the way round the shapes on the team's goal field (computed at its reset)
+        self.ways = np.zeros(n_teams)
+        self._goal_fields: list[tuple[ClearanceMap, np.ndarray] | None] = [None] * n_teams
         self.previous_offsets = np.zeros((n_teams, 2))  # c_g^v one step earlier
         #: teams in an episode (reset and not ended since)
         self.live = np.zeros(n_teams, dtype=bool)
@@ -228,11 +233,22 @@ class FormationEngine:
         active = np.array([team])
         self._measure(active)
         self.goal_distances[team] = math.hypot(*(self.goals[team] - self.centroids[team]).tolist())
+        if config.goal_progress == "geodesic":
+            clearance = ClearanceMap.of(config, cast(np.ndarray, scenario.obstacles), cast(np.ndarray, scenario.walls))
+            self._goal_fields[team] = clearance, goal_field(clearance, scenario.goal)
+        self.ways[team] = self._way(team)
         self.previous_offsets[team] = self.goals[team] - self.centroids[team]
         no_terms = np.zeros(_N_TERMS * len(self.previous_rewards))
         self._observe(active, self.observations, self.info_values, no_terms, np.zeros(self.n_teams), accumulate=False)
         observations: np.ndarray = self.observations[rows].copy()
         return observations
+
+    def _way(self, team: int) -> float:
+        """The team's way (m) to its goal now (:attr:`ways`)."""
+        field = self._goal_fields[team]
+        if self.configs[team].goal_progress == "euclidean" or field is None:
+            return float(self.goal_distances[team])
+        return path_distance(*field, self.centroids[team])
 
     def _load_lidar_layout(self, team: int, lidar: Lidar) -> None:
         circles, visible, channels = lidar.layout
@@ -270,7 +286,6 @@ class FormationEngine:
             stepped = np.repeat(self.live, self.sizes)  # the rows of the live teams
         config, starts = self.config, self.starts
         previous_velocities = self.velocities
-        previous_goal_distances = self.goal_distances
         worlds = cast("list[World]", self.worlds)  # a live team has been reset, so has a world
         pushes = (actions * config.force_max) * (config.dt / config.agent_mass)  # velocity changes (m/s)
         if self.unicycle:  # the forward force along the heading, the turn action a share of the turn-rate limit
@@ -305,6 +320,9 @@ class FormationEngine:
         self.goal_distances = goal_distances = self.goal_distances.copy()
         for team, (x, y) in zip(teams, (self.goals[pick] - self.centroids[pick]).tolist()):
             goal_distances[team] = math.hypot(x, y)  # Python's hypot: numba's and numpy's round otherwise
+        previous_ways, self.ways = self.ways, self.ways.copy()
+        for team in teams:
+            self.ways[team] = self._way(team)
         terms = np.empty(_N_TERMS * len(actions)) if everyone else np.zeros(_N_TERMS * len(actions))
         _team_terms(
             terms,
@@ -315,7 +333,8 @@ class FormationEngine:
             self.bearing_errors,
             self.neighbour_distances,
             self.centroid_distances,
-            previous_goal_distances,
+            previous_ways,
+            self.ways,
             goal_distances,
             previous_velocities,
             self.velocities,
@@ -638,7 +657,8 @@ def _team_terms(
     bearing_errors: np.ndarray,
     neighbour_distances: np.ndarray,
     centroid_distances: np.ndarray,
-    previous_goal_distances: np.ndarray,
+    previous_ways: np.ndarray,
+    ways: np.ndarray,
     goal_distances: np.ndarray,
     previous_velocities: np.ndarray,
     velocities: np.ndarray,
@@ -660,7 +680,8 @@ def _team_terms(
             bearing_errors[start:end],
             neighbour_distances[start:end],
             centroid_distances[start:end],
-            previous_goal_distances[team],
+            previous_ways[team],
+            ways[team],
             goal_distances[team],
             previous_velocities[start:end],
             velocities[start:end],

@@ -73,12 +73,21 @@ def centroid_term(centroid_distance: float, eta_c: float, r_c: float) -> float: 
 
 @numba.njit(cache=True)
 def goal_term(
-    previous_goal_distance: float, goal_distance: float, eta_g: float, r_reached: float, k1: float, dt: float, v_max: float
+    previous_way: float,
+    way: float,
+    goal_distance: float,
+    eta_g: float,
+    r_reached: float,
+    k1: float,
+    dt: float,
+    v_max: float,
 ) -> float:  # pragma: no cover - compiled
-    """Eqs 23 / 38: r_reached once the centroid is within eta_g of the goal, else k_1 + (c_g,t - c_g,t+1) / (dt v_max)."""
+    """Eqs 23 / 38: r_reached once the centroid is within eta_g of the goal (``goal_distance``, c_g,t+1), else
+    k_1 + (w_t - w_t+1) / (dt v_max), w the way to the goal: c_g itself (the thesis's) or the way round the shapes
+    (``goal_progress: geodesic``)."""
     if goal_distance <= eta_g:
         return r_reached
-    return k1 + (previous_goal_distance - goal_distance) / (dt * v_max)
+    return k1 + (previous_way - way) / (dt * v_max)
 
 
 @numba.njit(cache=True)
@@ -121,7 +130,8 @@ def _reward_terms(
     bearing_errors: np.ndarray,
     neighbour_distances: np.ndarray,
     centroid_distances: np.ndarray,
-    previous_goal_distance: float,
+    previous_way: float,
+    way: float,
     goal_distance: float,
     previous_velocities: np.ndarray,
     velocities: np.ndarray,
@@ -152,7 +162,7 @@ def _reward_terms(
         for row in (_ANGLE, _BEARING, _DIST, _CENTROID, _MOVE, _VELOCITY):
             terms[row, :] = terms[row].mean()
         terms[_COLL, :] = collision_term(agent_contact.any(), obstacle_near.any(), r_j, r_o)
-    terms[_GOAL, :] = goal_term(previous_goal_distance, goal_distance, eta_g, r_reached, k1, dt, v_max)
+    terms[_GOAL, :] = goal_term(previous_way, way, goal_distance, eta_g, r_reached, k1, dt, v_max)
     terms[_TIME, :] = time_term(step, max_steps, r_late)
     return terms
 
@@ -175,6 +185,7 @@ def reward_terms(
     nearest_agent_distances: np.ndarray,
     nearest_obstacle_gaps: np.ndarray,
     constants: np.ndarray | None = None,
+    ways: tuple[float, float] | None = None,
 ) -> np.ndarray:
     """Every reward term of one step, before coefficients.
 
@@ -189,16 +200,20 @@ def reward_terms(
     :param nearest_agent_distances: ``(n,)`` centre distance (m) to the nearest other agent
     :param nearest_obstacle_gaps: ``(n,)`` surface gap (m) to the nearest obstacle or wall
     :param constants: ``reward_constants(config)``, if already packed
+    :param ways: the way (m) to the goal before and after the step whose decrease the goal term rewards
+        (``goal_progress: geodesic``); ``None``: the centroid-goal distances (the thesis's)
     Arrays are float64 unless said otherwise.
     :return: ``(len(REWARD_TERMS), n)`` array; row ``TERM_ROW[name]`` holds term ``name``
     """
+    previous_way, way = (previous_goal_distance, goal_distance) if ways is None else ways
     return _reward_terms(
         step,
         formation.angle_errors_deg,
         formation.bearing_errors,
         formation.neighbour_distances,
         formation.centroid_distances,
-        float(previous_goal_distance),
+        float(previous_way),
+        float(way),
         float(goal_distance),
         previous_velocities,
         velocities,
