@@ -190,6 +190,16 @@ def test_the_way_round_a_wall_by_hand() -> None:
         assert shortened == pytest.approx(0.3, rel=0.05)
 
 
+def test_the_way_from_inside_a_circle_is_finite() -> None:
+    """A team can ring a circle, its centroid inside it: the way is then the straight distance to the nearest cells
+    with a way (out of the circle) plus theirs, here the straight distance to the goal within 5 %."""
+    config = FormationConfig.task("ch5-bearing")
+    clearance = ClearanceMap.of(config, np.array([[5.0, 5.0, 0.5]]), np.zeros((0, 5)))
+    field = goal_field(clearance, np.array([12.0, 5.0]))
+    assert path_distance(clearance, field, np.array([5.0, 5.0])) == pytest.approx(7.0, rel=0.05)
+    assert path_distance(clearance, field, np.array([5.3, 5.1])) == pytest.approx(np.hypot(6.7, 0.1), rel=0.05)
+
+
 def test_the_geodesic_goal_term_rewards_going_round_the_wall() -> None:
     """A team behind the wall, its goal straight ahead beyond it, moves up along the wall towards its end: the straight
     distance grows (the thesis's goal term is below k_1), the way round shrinks (above k_1 with goal_progress:

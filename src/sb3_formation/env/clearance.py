@@ -178,7 +178,8 @@ def path_distance(clearance: ClearanceMap, field: np.ndarray, point: np.ndarray)
     :param clearance: the scene's map
     :param field: its :func:`goal_field`
     :param point: ``(2,)`` the point (m), e.g. a team's centroid
-    :return: the way (m); a shape's neighbour cells are used where the point sees none (it touches a shape)
+    :return: the way (m); where the point sees no cell with a way (it lies in a shape, as the centroid of a ring of
+        agents round a circle can), the least over every cell of the straight distance plus the cell's way
     """
     spacing = clearance.spacing
     row, column = clearance.cell(point)
@@ -190,7 +191,11 @@ def path_distance(clearance: ClearanceMap, field: np.ndarray, point: np.ndarray)
     xs = (np.arange(low_column, low_column + block.shape[1]) + 0.5) * spacing
     straight = np.hypot(xs[None, :] - point[0], ys[:, None] - point[1])
     seen = straight <= max(reach, 1.5 * spacing)
-    return float(np.where(seen, block + straight, np.inf).min())
+    way = float(np.where(seen, block + straight, np.inf).min())
+    if math.isinf(way):  # inside a shape (a ring of agents round a circle): the straight way to any cell
+        ys, xs = (np.arange(field.shape[0]) + 0.5) * spacing, (np.arange(field.shape[1]) + 0.5) * spacing
+        way = float((field + np.hypot(xs[None, :] - point[0], ys[:, None] - point[1])).min())
+    return way
 
 
 #: The moves of :func:`_distances_from`: to the 8 neighbours and the 8 knight's-move cells (16-connected: in the
