@@ -193,8 +193,8 @@ def path_distance(clearance: ClearanceMap, field: np.ndarray, point: np.ndarray)
     seen = straight <= max(reach, 1.5 * spacing)
     way = float(np.where(seen, block + straight, np.inf).min())
     if math.isinf(way):  # inside a shape (a ring of agents round a circle): the straight way to any cell
-        ys, xs = (np.arange(field.shape[0]) + 0.5) * spacing, (np.arange(field.shape[1]) + 0.5) * spacing
-        way = float((field + np.hypot(xs[None, :] - point[0], ys[:, None] - point[1])).min())
+        rows_y, columns_x = (np.arange(field.shape[0]) + 0.5) * spacing, (np.arange(field.shape[1]) + 0.5) * spacing
+        way = float((field + np.hypot(columns_x[None, :] - point[0], rows_y[:, None] - point[1])).min())
     return way
 
 
