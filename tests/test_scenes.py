@@ -205,7 +205,7 @@ def test_the_geodesic_goal_term_rewards_going_round_the_wall() -> None:
     distance grows (the thesis's goal term is below k_1), the way round shrinks (above k_1 with goal_progress:
     geodesic). The goal term is k_1 + (w_t - w_t+1) / (dt v_max) of the engine's ways."""
     walls = np.array([[7.5, 0.0, 7.5, 6.0, 0.2]])
-    terms = {}
+    terms, observations = {}, {}
     for progress in ("euclidean", "geodesic"):
         config = FormationConfig.task("ch5-bearing", stage=3).replace(goal_progress=progress)
         scenario = Scenario(start_formation(config, np.array([5.0, 3.0])), [10.0, 3.0], walls=walls)
@@ -214,7 +214,7 @@ def test_the_geodesic_goal_term_rewards_going_round_the_wall() -> None:
         engine = env.engine
         before = float(engine.ways[0])
         up = np.tile([0.0, 1.0], (config.n_agents, 1))
-        _, _, _, _, infos = env.step_array(up)
+        observations[progress], _, _, _, infos = env.step_array(up)
         after = float(engine.ways[0])
         goal_term = infos[0]["reward_goal"]
         assert goal_term == pytest.approx(config.k1 + (before - after) / (config.dt * config.v_max), abs=1e-9)
@@ -222,3 +222,5 @@ def test_the_geodesic_goal_term_rewards_going_round_the_wall() -> None:
         if progress == "euclidean":  # the thesis's: the way is the goal distance itself
             assert after == float(engine.goal_distances[0])
     assert terms["euclidean"] < FormationConfig.task("ch5-bearing").k1 < terms["geodesic"]
+    # only the training reward reads the map: the observed previous reward (Table 3.1) is the thesis's in both
+    np.testing.assert_array_equal(observations["euclidean"], observations["geodesic"])

@@ -22,10 +22,14 @@ from tensorboard_events import read_hparams
 
 from sb3_formation.cli import build_parser, main
 from sb3_formation.cli.train import settings_of as train_settings
+from sb3_formation.controllers import ShrinkingController
+from sb3_formation.controllers.residual import ResidualPolicy
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.formation_env import FormationEnv
 from sb3_formation.experiment.recipes import load_recipe, recipe_changes, thesis_recipe_for
 from sb3_formation.experiment.runs import FINAL_MODEL, STATE_FILE, latest_checkpoint, load_trained
 from sb3_formation.experiment.settings import TrainSettings, layered_settings
+from sb3_formation.experiment.targets import load_policy
 from sb3_formation.experiment.training import make_training_env
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
@@ -352,6 +356,54 @@ def test_killed_recurrent_run_resumes_evaluates_and_renders(tmp_path: Path) -> N
     assert json.loads((run_dir / "eval" / "summary.json").read_text())["episodes"] == 2
     assert main(["render", str(run_dir), "--max-steps", "4", "--out", str(tmp_path / "episode.gif")]) == 0
     assert Image.open(tmp_path / "episode.gif").n_frames == 5
+
+
+@pytest.mark.slow
+def test_the_scene_recipe_trains_through_a_kill_and_resumes(tmp_path: Path) -> None:
+    """residual-scenes-ch5-bearing (shrunk: small nets, short rollouts, one team, episodes of 60 steps) trains its one
+    stage, PPO on the correction of controller:shrinking in the scene families with the geodesic goal term, through a
+    SIGKILL after a checkpoint, and a resume finishes it with the budget's timesteps; it loads as that residual policy."""
+    setup = tmp_path / "scenes.yaml"
+    setup.write_text(
+        yaml.safe_dump(
+            {
+                "base": "residual-scenes-ch5-bearing",
+                "policy": {"net_arch": {"pi": [16], "vf": [16]}},
+                "ppo": {"n_steps": 32, "batch_size": 96, "n_epochs": 1},
+                "n_envs": 1,
+                "training": {"steps": 8 * 32 * 6, "eval_every": None},
+            }
+        )
+    )
+    arguments = ["train", "--recipe", str(setup), "--env", "max_steps=60", "--checkpoint-every", "1", "--no-progress"]
+    process = run_cli(*arguments, "--run-dir", "run", cwd=tmp_path)
+    run_dir = tmp_path / "run"
+    wait_for(lambda: latest_checkpoint(run_dir) is not None and latest_checkpoint(run_dir).name >= "iteration_000003")
+    process.send_signal(signal.SIGKILL)
+    process.wait(timeout=30)
+    killed_at = json.loads((latest_checkpoint(run_dir) / STATE_FILE).read_text())
+    assert not (run_dir / FINAL_MODEL).exists() and 3 <= killed_at["curriculum"]["iteration"] < 8
+    resumed = run_cli("train", "--resume", str(run_dir), cwd=tmp_path)
+    _, stderr = resumed.communicate(timeout=300)
+    assert resumed.returncode == 0, stderr
+    final = json.loads((latest_checkpoint(run_dir) / STATE_FILE).read_text())
+    assert final["curriculum"]["iteration"] == 8 and final["num_timesteps"] == 8 * 32 * 6
+    policy = load_policy(run_dir)
+    assert isinstance(policy, ResidualPolicy) and isinstance(policy.base, ShrinkingController)
+    assert policy.config.scenes == "mixed" and policy.config.goal_progress == "geodesic"
+    # decentralised: each agent's action and memory come from its own rows; other agents' rows replaced by noise, and
+    # the map (only the training reward reads it) changes nothing
+    env = FormationEnv(policy.config.replace(scenes="corridor"))
+    rows = np.stack(list(env.reset(seed=5)[0].values()))
+    state, rng = None, np.random.default_rng(0)
+    for _ in range(60):
+        actions, next_state = policy.predict(rows, state)
+        others = rows.copy()
+        others[1:] = rng.normal(0.0, 1.0, others[1:].shape)
+        alone, alone_state = policy.predict(others, state)
+        np.testing.assert_array_equal(alone[0], actions[0])
+        np.testing.assert_array_equal(alone_state[1][0], next_state[1][0])
+        rows, state = env.step_array(actions)[0], next_state
 
 
 @pytest.mark.slow

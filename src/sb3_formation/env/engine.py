@@ -30,7 +30,7 @@ from sb3_formation.env.config import INFO_KEYS, REWARD_TERMS, FormationConfig
 from sb3_formation.env.episodes import episode_summary
 from sb3_formation.env.geometry import FormationState, _measure, agent_errors, reference_bearings, ring_neighbours
 from sb3_formation.env.observations import _fill_observations, observation_fields, observation_layout
-from sb3_formation.env.rewards import _reward_terms, combine_rewards, nearest_gaps, reward_constants
+from sb3_formation.env.rewards import _reward_terms, combine_rewards, goal_term, nearest_gaps, reward_constants
 from sb3_formation.env.scenarios import Scenario
 from sb3_formation.env.scenes import check_scenes_fit, draw_scenario
 from sb3_formation.env.sensors import Lidar, lidar_ranges
@@ -38,6 +38,7 @@ from sb3_formation.env.state import TeamState
 from sb3_formation.env.world import World, clamp_speed, split_state
 
 _N_TERMS = len(REWARD_TERMS)
+_GOAL = REWARD_TERMS.index("goal")  # the goal term's row of a team's (terms, n) block
 #: columns of the info values of a step: the five errors and distances of :data:`INFO_KEYS`, then the reward terms
 #: (:func:`agent_infos` adds the contacts and success)
 INFO_VALUES = 5 + _N_TERMS
@@ -142,6 +143,7 @@ class FormationEngine:
         #: geodesic`` the way round the shapes on the team's goal field (computed at its reset)
         self.ways = np.zeros(n_teams)
         self._goal_fields: list[tuple[ClearanceMap, np.ndarray] | None] = [None] * n_teams
+        self._geodesic = any(team_config.goal_progress == "geodesic" for team_config in self.configs)
         self.previous_offsets = np.zeros((n_teams, 2))  # c_g^v one step earlier
         #: teams in an episode (reset and not ended since)
         self.live = np.zeros(n_teams, dtype=bool)
@@ -317,6 +319,7 @@ class FormationEngine:
         self.step_counts[pick] += 1
         self.previous_offsets[pick] = self.goals[pick] - self.centroids[pick]
         nearest_agent, nearest_obstacle = self._measure(active)  # rows of other teams: undefined
+        previous_goal_distances = self.goal_distances
         self.goal_distances = goal_distances = self.goal_distances.copy()
         for team, (x, y) in zip(teams, (self.goals[pick] - self.centroids[pick]).tolist()):
             goal_distances[team] = math.hypot(x, y)  # Python's hypot: numba's and numpy's round otherwise
@@ -354,7 +357,20 @@ class FormationEngine:
         self.success[pick] = terminated[pick]
         self.live = self.live & ~(terminated | truncated)
         self.previous_actions = self._new_rows(self.previous_actions, actions, stepped, select=True)
-        self.previous_rewards = self._new_rows(self.previous_rewards, rewards, stepped, select=True)
+        observed = rewards
+        if self._geodesic:  # an agent observes the reward of the thesis's goal term: the map stays out of observations
+            straight = terms.copy()
+            for team in teams:
+                team_config = self.configs[team]
+                block = straight[_N_TERMS * starts[team] : _N_TERMS * starts[team + 1]].reshape(_N_TERMS, -1)
+                block[_GOAL] = goal_term(
+                    previous_goal_distances[team],
+                    goal_distances[team],
+                    goal_distances[team],
+                    *(team_config.eta_g, team_config.r_reached, team_config.k1, team_config.dt, team_config.v_max),
+                )
+            observed = self._combine(straight)[0]
+        self.previous_rewards = self._new_rows(self.previous_rewards, observed, stepped, select=True)
         observations = np.empty_like(self.observations) if everyone else self.observations.copy()
         info_values = np.empty_like(self.info_values) if everyone else self.info_values.copy()
         self._observe(active, observations, info_values, terms, team_means, accumulate=True)
