@@ -323,9 +323,13 @@ class FormationEngine:
         self.goal_distances = goal_distances = self.goal_distances.copy()
         for team, (x, y) in zip(teams, (self.goals[pick] - self.centroids[pick]).tolist()):
             goal_distances[team] = math.hypot(x, y)  # Python's hypot: numba's and numpy's round otherwise
-        previous_ways, self.ways = self.ways, self.ways.copy()
-        for team in teams:
-            self.ways[team] = self._way(team)
+        previous_ways = self.ways
+        if self._geodesic:
+            self.ways = self.ways.copy()
+            for team in teams:
+                self.ways[team] = self._way(team)
+        else:  # the thesis's goal term: the way is the goal distance
+            self.ways = goal_distances
         terms = np.empty(_N_TERMS * len(actions)) if everyone else np.zeros(_N_TERMS * len(actions))
         _team_terms(
             terms,
@@ -367,7 +371,11 @@ class FormationEngine:
                     previous_goal_distances[team],
                     goal_distances[team],
                     goal_distances[team],
-                    *(team_config.eta_g, team_config.r_reached, team_config.k1, team_config.dt, team_config.v_max),
+                    team_config.eta_g,
+                    team_config.r_reached,
+                    team_config.k1,
+                    team_config.dt,
+                    team_config.v_max,
                 )
             observed = self._combine(straight)[0]
         self.previous_rewards = self._new_rows(self.previous_rewards, observed, stepped, select=True)
