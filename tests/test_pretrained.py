@@ -141,7 +141,7 @@ def test_the_policy_trained_on_several_team_sizes_takes_any_size_but_no_other_ta
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", [*THESIS_TASKS, "mixed-ch5-bearing", "ch5-bearing-unicycle"])
+@pytest.mark.parametrize("name", [*THESIS_TASKS, "mixed-ch5-bearing", "ch5-bearing-unicycle", "scenes-ch5-bearing"])
 def test_a_shipped_policy_reproduces_its_stored_episodes(name: str, tmp_path: Path) -> None:
     """Its first 20 stored evaluation episodes, replayed on this machine, give the same rows, digit for digit.
 
@@ -189,6 +189,8 @@ def test_pretrained_targets_work_with_every_command(tmp_path: Path, monkeypatch:
     for name in pretrained_names():
         rate = pretrained_card(name)["summary"]["success_rate"]
         assert f"| pretrained:{name} | {pretrained_card(name)['recipe']} |" in listing and f"| {rate:.1%} (" in listing
+    assert "| pretrained:ch5-bearing | residual-ch5-bearing | 6 | stage 3 |" in listing
+    assert "| pretrained:scenes-ch5-bearing | residual-scenes-ch5-bearing | 6 | mixed families |" in listing
     quick = ["--episodes", "2", "--n-envs", "2", "--no-progress"]
     assert main(["evaluate", "pretrained:ch5-bearing", *quick, "--trajectories", "1"]) == 0
     folder = tmp_path / "evaluations" / "pretrained-ch5-bearing_residual-ch5-bearing"

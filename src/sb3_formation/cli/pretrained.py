@@ -36,8 +36,8 @@ def run(args: argparse.Namespace) -> int:
         card = pretrained_card(args.name, folder.parent)
         print_summary(card["summary"])
         return 0
-    columns = "target | recipe | n | success (95 % CI) | angle error (deg) | bearing error | agent contacts | steps | training"
-    print(f"| {columns} |\n|---|---|---:|---:|---:|---:|---:|---:|---:|")
+    columns = "target | recipe | n | episodes | success (95 % CI) | angle error (deg) | bearing error | agent contacts | steps"
+    print(f"| {columns} | training |\n|---|---|---:|---|---:|---:|---:|---:|---:|---:|")
     for name in pretrained_names():
         card = pretrained_card(name)
         summary = card["summary"]
@@ -46,8 +46,10 @@ def run(args: argparse.Namespace) -> int:
         contacts = summary["all_episodes"]["collisions_agent"]["mean"]
         sizes = card.get("team_sizes", [card["n_agents"]])
         n = f"{card['n_agents']} (trained on {', '.join(map(str, sizes))})" if len(sizes) > 1 else card["n_agents"]
+        scenes = summary.get("scenes", "curriculum")  # summaries from before the scene families have none
+        episodes = f"stage {summary['stage']}" if scenes == "curriculum" else f"{scenes} families"
         print(
-            f"| pretrained:{name} | {card['recipe']} | {n} | {summary['success_rate']:.1%} "
+            f"| pretrained:{name} | {card['recipe']} | {n} | {episodes} | {summary['success_rate']:.1%} "
             f"({low:.1%}-{high:.1%}) | {means['angle_error_deg']:.2f} | {means['bearing_error']:.4f} | {contacts:.3g} | "
             f"{means['length']:.0f} | {card['training_seconds'] / 60:.1f} min |"
         )
