@@ -15,7 +15,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser = commands.add_parser(
         "pretrained",
         help="list the trained policies shipped with the package (pretrained:<name> targets), or export one",
-        description="List the shipped policies with their stored evaluation (the thesis protocol), or with --export "
+        description="List the shipped policies with their stored evaluation (their recipe's protocol), or with --export "
         "make one of a finished run: its model without optimiser state, its ONNX export, its normaliser, settings, a "
         "fresh evaluation of that model file and a card recording the command, seed, wall time and versions.",
     )
