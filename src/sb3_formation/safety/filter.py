@@ -1,0 +1,364 @@
+"""The safety filter: discrete-time control barrier functions, one small QP per agent, from its own observation row.
+
+``docs/safety.md`` has the equations; in short, for one agent, from its row of thesis Table 3.1 only:
+
+- **Model.** The agent controls a point: its centre (holonomic) or, for a unicycle, the point ``l = v_max / w_max``
+  ahead of its axle that the controllers already steer (:func:`~sb3_formation.controllers.classical.unicycle_action`).
+  Over a step the point moves by ``u dt``, u the velocity its action commands (holonomic: v' = clamp(v + a F_max dt / m);
+  unicycle: ``v' h + l w h_perp``). The filter chooses u.
+- **Barriers.** Each constraint is a barrier h >= 0 with the discrete-time condition ``h(t+1) >= (1 - gamma) h(t)``,
+  written linearly in u. A lidar return q (either channel) is a point of a body's surface: ``h = |q - P| - r - margin``,
+  P the controlled point and r the radius of the disc round P that holds the agent (R_a, or R_a + l for a unicycle);
+  since ``|q - P|`` is convex in P, ``g . u dt <= gamma h`` with g the unit vector from P to q keeps h's condition
+  (a conservative linearisation). A ring neighbour at offset d: ``h = |d| - 2 R_a - margin`` (no collision) and
+  ``h = d_comm - margin - |d|`` (stay within communication range, the thesis's formation constraint); agents share
+  these, each taking half of gamma h. The range barrier is concave in the offset, so its linearisation is corrected by
+  its largest second-order error ``(2 u_max dt)^2 / (2 |d|)``.
+- **Hard constraints.** The action bounds (holonomic: ``|a_x|, |a_y| <= 1``; unicycle: forward force and turn rate
+  within theirs) and the speed limit as a circumscribed polygon of ``speed_sides`` sides (the env's speed clamp only
+  shortens u, which keeps every constraint whose right-hand side is >= 0).
+- **QP.** The closest u to the proposed one with penalised slack (:mod:`sb3_formation.safety.qp`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numba
+import numpy as np
+
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.observations import observation_fields, observation_layout
+from sb3_formation.env.sensors import ray_directions
+from sb3_formation.safety.qp import solve_rows, solve_with_library
+from sb3_formation.utils.checks import is_integer, is_number
+
+#: Solvers of the filter's QP: ``fast`` (the compiled exact solver) or a solver of ``qpsolvers``.
+SOLVERS = ("fast", "daqp", "quadprog", "proxqp", "osqp", "clarabel")
+#: The most constraints one agent's QP can have beyond its lidar rays: 2 x 2 neighbour barriers, 4 action bounds,
+#: the speed polygon's sides and the slack's sign.
+_FIXED_CONSTRAINTS = 4 + 4 + 1
+
+
+@dataclass(frozen=True)
+class SafetyGains:
+    """Gains and margins of :class:`SafetyFilter` (``docs/safety.md``).
+
+    :param gamma: the barriers' decay rate in (0, 1]: ``h(t+1) >= (1 - gamma) h(t)``; smaller approaches more slowly
+    :param obstacle_margin: gap (m) kept from every obstacle and wall the lidar sees
+    :param agent_margin: gap (m) kept from every other agent
+    :param comm_margin: distance (m) kept inside the communication range d_comm from each ring neighbour
+    :param keep_comm_range: keep each ring neighbour within d_comm - comm_margin (the formation constraint)
+    :param slack_weight: rho, the penalty on the slack (in units of a step's travel v_max dt) against the change of
+        the commanded velocity (in units of v_max)
+    :param infeasible_slack: a step is reported infeasible when its QP needed more slack than this (fraction of v_max dt)
+    :param speed_sides: sides of the circumscribed polygon that stands for the speed limit
+    :param solver: ``"fast"`` (compiled, exact) or a ``qpsolvers`` solver name (:data:`SOLVERS`)
+    """
+
+    gamma: float = 0.5
+    obstacle_margin: float = 0.01
+    agent_margin: float = 0.01
+    comm_margin: float = 0.1
+    keep_comm_range: bool = True
+    slack_weight: float = 1e4
+    infeasible_slack: float = 1e-3
+    speed_sides: int = 16
+    solver: str = "fast"
+
+    def __post_init__(self) -> None:
+        for item in fields(self):
+            value = getattr(self, item.name)
+            if item.name == "keep_comm_range":
+                valid, allowed = isinstance(value, bool), "true or false"
+            elif item.name == "solver":
+                valid, allowed = value in SOLVERS, f"one of {list(SOLVERS)}"
+            elif item.name == "speed_sides":
+                valid, allowed = is_integer(value) and 4 <= value <= 64, "an integer from 4 to 64"
+            elif item.name == "gamma":
+                valid, allowed = is_number(value) and 0 < value <= 1, "a number in (0, 1]"
+            elif item.name == "slack_weight":
+                valid, allowed = is_number(value) and 1.0 <= value <= 1e8, "a number from 1 to 1e8"
+            else:
+                valid, allowed = is_number(value) and value >= 0, "a finite number >= 0"
+            if not valid:
+                raise ValueError(f"SafetyGains.{item.name}={value!r} is invalid: it must be {allowed}")
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any] | None) -> SafetyGains:
+        """Gains from a mapping of field names (a recipe's ``safety:`` section); ``None`` gives the defaults.
+
+        :raises ValueError: a name that is not a field (the valid ones are listed)
+        """
+        values = dict(values or {})
+        names = [item.name for item in fields(cls)]
+        unknown = sorted(set(values) - set(names))
+        if unknown:
+            raise ValueError(f"unknown safety filter setting(s) {unknown}; settings: {names}")
+        return cls(**values)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Every field as plain data."""
+        return {item.name: getattr(self, item.name) for item in fields(self)}
+
+
+@dataclass
+class FilterReport:
+    """What the filter did to a batch of rows.
+
+    :param changed: ``(k,)`` the action was changed
+    :param change: ``(k,)`` size of the change |a_safe - a| (fraction of F_max; 0 where unchanged)
+    :param infeasible: ``(k,)`` the constraints could not all be kept (the QP needed slack above ``infeasible_slack``)
+    :param separation: ``(k,)`` the smallest gap (m) the agent's sensors measure to an obstacle, a wall or an agent
+    """
+
+    changed: np.ndarray
+    change: np.ndarray
+    infeasible: np.ndarray
+    separation: np.ndarray
+
+
+@numba.njit(cache=True)
+def _add_row(
+    rows: np.ndarray, rhs: np.ndarray, count: int, projection: np.ndarray, direction: np.ndarray, bound: float
+) -> int:  # pragma: no cover - compiled
+    """Append the safety constraint ``direction . (projection u) - s <= bound``; return the new count."""
+    rows[count, 0] = direction[0] * projection[0, 0] + direction[1] * projection[1, 0]
+    rows[count, 1] = direction[0] * projection[0, 1] + direction[1] * projection[1, 1]
+    rows[count, 2] = -1.0
+    rhs[count] = bound
+    return count + 1
+
+
+@numba.njit(cache=True)
+def _build_constraints(
+    observations: np.ndarray,
+    targets: np.ndarray,
+    projections: np.ndarray,
+    bounds: np.ndarray,
+    directions: np.ndarray,
+    columns: np.ndarray,
+    lidar_range: float,
+    radius: float,
+    v_max: float,
+    dt: float,
+    d_comm: float,
+    gains: np.ndarray,
+    speed_normals: np.ndarray,
+    speed_limit: float,
+    rows: np.ndarray,
+    rhs: np.ndarray,
+    counts: np.ndarray,
+    separation: np.ndarray,
+) -> None:  # pragma: no cover - compiled; tested through its results
+    """Every agent's constraint rows (see the module docstring), in units of v_max (u) and v_max dt (h).
+
+    :param observations: ``(k, obs_dim)`` raw rows
+    :param targets: ``(k, 2)`` commanded velocities t (units of v_max), for the activation test only
+    :param projections: ``(k, 2, 2)`` the map from the controlled point's velocity to the centre's: the identity for
+        a holonomic agent, ``h h^T`` for a unicycle (its centre moves along its heading h with the forward speed h . u)
+    :param bounds: ``(k, 4, 3)`` each agent's four action-bound rows (a_x, a_y, b) in units of v_max
+    :param directions: ``(n_rays, 2)`` ray directions
+    :param columns: start columns of lidar_obstacles, lidar_agents, neighbour_offsets
+    :param radius: R_a (m)
+    :param gains: gamma, obstacle_margin, agent_margin, comm_margin, keep_comm_range (0/1)
+    :param speed_normals: ``(sides, 2)`` outward normals of the speed polygon
+    :param speed_limit: the polygon's apothem (units of v_max)
+    """
+    gamma, obstacle_margin, agent_margin, comm_margin, keep_comm = gains[0], gains[1], gains[2], gains[3], gains[4]
+    step = v_max * dt  # m: the unit of h
+    reach = speed_limit * step  # m: the longest move of the controlled point in a step
+    n_rays = directions.shape[0]
+    for agent in range(observations.shape[0]):
+        row = observations[agent]
+        projection = projections[agent]
+        count = 0
+        nearest = np.inf
+        for channel in range(2):
+            share = 1.0 if channel == 0 else 0.5  # agents share a barrier; obstacles do not move
+            margin = obstacle_margin if channel == 0 else agent_margin
+            for ray in range(n_rays):
+                reading = row[columns[channel] + ray]
+                if reading >= 1.0:
+                    continue
+                gap = reading * lidar_range
+                nearest = min(nearest, gap)
+                bound = share * gamma * (gap - margin)  # h = |q - p| - R_a - margin, |q - p| = R_a + gap
+                if bound < reach:  # else it cannot bind within a step's move
+                    count = _add_row(rows[agent], rhs[agent], count, projection, directions[ray], bound / step)
+        for side in range(2):  # the ring neighbours: exact offsets
+            offset = row[columns[2] + 2 * side : columns[2] + 2 * side + 2]
+            centres = math.hypot(offset[0], offset[1])
+            nearest = min(nearest, centres - 2 * radius)
+            if centres <= 0.0:
+                continue
+            direction = offset / centres
+            bound = 0.5 * gamma * (centres - 2 * radius - agent_margin)
+            if bound < reach:
+                count = _add_row(rows[agent], rhs[agent], count, projection, direction, bound / step)
+            if keep_comm > 0.5:
+                curvature = (2 * reach) ** 2 / (2 * centres)  # the linearisation's largest error (m)
+                bound = 0.5 * (gamma * (d_comm - comm_margin - centres) - curvature)
+                if bound < reach:
+                    count = _add_row(rows[agent], rhs[agent], count, projection, -direction, bound / step)
+        separation[agent] = nearest
+        for bound in range(4):
+            rows[agent, count, 0], rows[agent, count, 1], rows[agent, count, 2] = (
+                bounds[agent, bound, 0],
+                bounds[agent, bound, 1],
+                0.0,
+            )
+            rhs[agent, count] = bounds[agent, bound, 2]
+            count += 1
+        for side in range(speed_normals.shape[0]):
+            rows[agent, count, 0], rows[agent, count, 1], rows[agent, count, 2] = speed_normals[side, 0], speed_normals[side, 1], 0.0
+            rhs[agent, count] = speed_limit
+            count += 1
+        rows[agent, count, 0], rows[agent, count, 1], rows[agent, count, 2] = 0.0, 0.0, -1.0  # s >= 0
+        rhs[agent, count] = 0.0
+        count += 1
+        counts[agent] = count
+
+
+class SafetyFilter:
+    """The decentralised safety filter: the closest actions that keep each agent's barriers, from its own row.
+
+    :param config: the task (dynamics, sizes, lidar, v_max, dt, d_comm)
+    :param gains: gains and margins (defaults: :class:`SafetyGains`)
+    """
+
+    def __init__(self, config: FormationConfig, gains: SafetyGains | None = None) -> None:
+        self.config = config
+        self.gains = gains if gains is not None else SafetyGains()
+        observed = observation_fields(config)
+        layout = observation_layout(observed)
+        #: observation field name -> slice of a row, and a row's width
+        self.layout, self.observation_dim = layout, sum(item.size for item in observed)
+        self._columns = np.array(
+            [layout["lidar_obstacles"].start, layout["lidar_agents"].start, layout["neighbour_offsets"].start], dtype=np.int64
+        )
+        self._directions = ray_directions(config.lidar_rays)
+        self._unicycle = config.dynamics == "unicycle"
+        # the speed limit: a polygon round the disc for holonomic agents; a unicycle's action bounds are its limits
+        sides = 0 if self._unicycle else self.gains.speed_sides
+        angles = (np.arange(sides) + 0.5) * (2 * math.pi / max(sides, 1))
+        self._speed_normals = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+        #: apothem of the polygon round the unit disc (units of v_max)
+        self._speed_limit = 1.0 / math.cos(math.pi / self.gains.speed_sides) if sides else math.sqrt(2.0)
+        #: velocity change (m/s) of a unit force action over a step
+        self._push = config.force_max * config.dt / config.agent_mass
+        #: the unicycle's look-ahead l = v_max / w_max (m)
+        self.lookahead = config.v_max / config.max_turn_rate if self._unicycle else 0.0
+        g = self.gains
+        self._gain_vector = np.array([g.gamma, g.obstacle_margin, g.agent_margin, g.comm_margin, float(g.keep_comm_range)])
+        self._capacity = 2 * config.lidar_rays + _FIXED_CONSTRAINTS + sides
+
+    def filter(self, observations: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, FilterReport]:
+        """Safe actions ``(k, 2)`` float32 for ``(k, obs_dim)`` raw rows and their proposed ``(k, 2)`` actions, and what
+        the filter did. Each row is filtered from itself alone; rows whose actions keep every constraint come back as
+        they were (after clipping to [-1, 1]).
+
+        :raises ValueError: rows or actions of the wrong shape, or actions that are not finite
+        """
+        observations = np.asarray(observations, dtype=np.float64)
+        proposed = np.asarray(actions, dtype=np.float32)
+        width = self.observation_dim
+        if observations.ndim != 2 or observations.shape[1] != width:
+            raise ValueError(f"the safety filter takes (k, {width}) observation rows, got shape {observations.shape}")
+        if proposed.shape != (len(observations), 2):
+            raise ValueError(f"the safety filter takes ({len(observations)}, 2) actions, got shape {proposed.shape}")
+        if not np.isfinite(proposed).all():
+            raise ValueError("the safety filter got actions that are not finite (NaN or inf)")
+        proposed = np.clip(proposed, -1.0, 1.0)
+        v_max, dt = self.config.v_max, self.config.dt
+        velocity = observations[:, self.layout["velocity"]]
+        targets, projections, bounds, frames = self._model(observations, proposed.astype(np.float64), velocity)
+        count = len(observations)
+        rows = np.zeros((count, self._capacity, 3))
+        rhs = np.zeros((count, self._capacity))
+        counts = np.zeros(count, dtype=np.int64)
+        separation = np.zeros(count)
+        _build_constraints(
+            observations,
+            targets,
+            projections,
+            bounds,
+            self._directions,
+            self._columns,
+            self.config.lidar_range,
+            self.config.agent_radius,
+            v_max,
+            dt,
+            self.config.d_comm,
+            self._gain_vector,
+            self._speed_normals,
+            self._speed_limit,
+            rows,
+            rhs,
+            counts,
+            separation,
+        )
+        if self.gains.solver == "fast":
+            solutions = solve_rows(targets, self.gains.slack_weight, rows, rhs, counts)
+        else:
+            solutions = np.stack(
+                [
+                    solve_with_library(targets[k], self.gains.slack_weight, rows[k, : counts[k]], rhs[k, : counts[k]], self.gains.solver)
+                    for k in range(count)
+                ]
+            )
+        changed = (solutions[:, 0] != targets[:, 0]) | (solutions[:, 1] != targets[:, 1])
+        safe = proposed.copy()
+        if changed.any():
+            safe[changed] = self._actions(solutions[changed, :2], velocity[changed], frames[changed])
+        change = np.where(changed, np.linalg.norm(safe - proposed, axis=1), 0.0)
+        infeasible = solutions[:, 2] > self.gains.infeasible_slack
+        return safe, FilterReport(changed, change, infeasible, separation)
+
+    def _model(
+        self, observations: np.ndarray, proposed: np.ndarray, velocity: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The commanded velocities t of the proposed actions (units of v_max), the maps from a controlled point's
+        velocity to its centre's (identity; a unicycle's ``h h^T``), the action bounds as rows ``(a_x, a_y, b)`` on u, and
+        each row's frame (heading and its normal; identity for holonomic agents)."""
+        v_max, push = self.config.v_max, self._push
+        count = len(observations)
+        bounds = np.zeros((count, 4, 3))
+        if not self._unicycle:
+            commanded = velocity + push * proposed
+            speed = np.linalg.norm(commanded, axis=1, keepdims=True)
+            targets = commanded * np.minimum(1.0, v_max / np.maximum(speed, 1e-300)) / v_max  # the env's speed clamp
+            frames = np.tile(np.eye(2), (count, 1, 1))
+            low, high = (velocity - push) / v_max, (velocity + push) / v_max  # |a| <= 1 on each axis
+            for axis in range(2):
+                bounds[:, 2 * axis, axis], bounds[:, 2 * axis, 2] = 1.0, high[:, axis]
+                bounds[:, 2 * axis + 1, axis], bounds[:, 2 * axis + 1, 2] = -1.0, -low[:, axis]
+            return targets, frames, bounds, frames
+        heading = observations[:, self.layout["heading"]]
+        normal = np.stack([-heading[:, 1], heading[:, 0]], axis=1)
+        frames = np.stack([heading, normal], axis=1)  # rows: h, h_perp
+        current = (velocity * heading).sum(axis=1)
+        forward = np.clip(current + push * proposed[:, 0], -v_max, v_max)
+        turn = proposed[:, 1] * self.config.max_turn_rate
+        targets = (forward[:, None] * heading + (self.lookahead * turn)[:, None] * normal) / v_max
+        fast = np.minimum(v_max, current + push) / v_max
+        slow = np.maximum(-v_max, current - push) / v_max
+        sideways = self.lookahead * self.config.max_turn_rate / v_max
+        bounds[:, 0, :2], bounds[:, 0, 2] = heading, fast
+        bounds[:, 1, :2], bounds[:, 1, 2] = -heading, -slow
+        bounds[:, 2, :2], bounds[:, 2, 2] = normal, sideways
+        bounds[:, 3, :2], bounds[:, 3, 2] = -normal, sideways
+        return targets, heading[:, :, None] * heading[:, None, :], bounds, frames
+
+    def _actions(self, solutions: np.ndarray, velocity: np.ndarray, frames: np.ndarray) -> np.ndarray:
+        """The actions that command the velocities ``solutions`` (units of v_max), clipped to [-1, 1] (rounding)."""
+        commanded = solutions * self.config.v_max
+        if not self._unicycle:
+            actions = (commanded - velocity) / self._push
+        else:
+            along = np.einsum("kij,kj->ki", frames, commanded)  # (forward speed, l w)
+            current = np.einsum("kj,kj->k", frames[:, 0], velocity)
+            actions = np.stack([(along[:, 0] - current) / self._push, along[:, 1] / (self.lookahead * self.config.max_turn_rate)], axis=1)
+        return np.clip(actions, -1.0, 1.0).astype(np.float32)
