@@ -13,7 +13,7 @@ from sb3_formation.env.scenes import SCENES
 from sb3_formation.experiment.evaluation import EVALUATION_TEAMS, evaluate_target
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE
 from sb3_formation.experiment.settings import MAX_SEED
-from sb3_formation.experiment.targets import evaluation_folder, run_folder, target_kind, target_path
+from sb3_formation.experiment.targets import evaluation_folder, run_folder, target_kind, target_path, unfiltered_target
 from sb3_formation.sb3.model_files import trust_pickle
 from sb3_formation.utils.deprecation import warn_renamed
 from sb3_formation.utils.yaml_files import read_yaml
@@ -191,6 +191,9 @@ def scene_overrides(args: argparse.Namespace) -> dict[str, Any]:
 
 def target_label(target: str | Path) -> str:
     """A target's default label (see :func:`target_labels`)."""
+    inner, safe = unfiltered_target(target)
+    if safe and not target_kind(inner):
+        return f"safe-{target_label(inner)}"
     if target_kind(target):
         return str(target)
     path = target_path(target).resolve()

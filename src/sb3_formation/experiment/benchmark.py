@@ -11,8 +11,12 @@ target's own size unless ``n_agents`` is given. A row reports:
   that passes in single file or loses its shape shows it;
 - agent and obstacle contacts per episode (over all episodes; a touching pair of agents counts once per step, an
   agent touching a shape or the border once per step);
+- contact episodes: the episodes with any contact (agents or obstacles), so that "none in every episode" can be read;
 - steps per episode over the successful episodes;
-- seconds: the evaluation's wall time.
+- seconds: the evaluation's wall time;
+- for a policy behind the safety filter (``safe:<target>``): the share of agent-steps whose action the filter changed
+  and the mean size of a change (means over episodes), its infeasible agent-steps per episode, and the smallest
+  separation (m) the agents measured in any episode; "-" for an unfiltered policy.
 
 ``benchmark.md`` opens with the run's provenance (date, CPU, cores, package version, command, protocol), then the
 table; ``benchmark.json`` holds the same as data (``run`` and ``rows``).
@@ -74,8 +78,13 @@ class BenchmarkRow:
             "shape_error": successful["bearing_error"]["mean"],
             "agent_contacts": everything["collisions_agent"]["mean"],
             "obstacle_contacts": everything["collisions_obstacle"]["mean"],
+            "contact_episodes": summary["episodes_with_contacts"]["agent"] + summary["episodes_with_contacts"]["obstacle"],
             "steps": successful["length"]["mean"],
             "seconds": self.seconds,
+            "filter_changed": everything.get("filter_changed_fraction", {}).get("mean"),
+            "filter_change": everything.get("filter_change_mean", {}).get("mean"),
+            "infeasible_steps": everything.get("filter_infeasible_steps", {}).get("mean"),
+            "min_separation": summary.get("min_separation"),
         }
 
 
@@ -156,17 +165,17 @@ def benchmark_header(run: dict[str, str]) -> str:
 def benchmark_table(rows: Sequence[BenchmarkRow]) -> str:
     """The Markdown table of a benchmark: a line per target and scene set."""
     headings = ["target", "scenes", "n", "episodes", "success (95 % CI)", "shape error", "agent contacts"]
-    headings += ["obstacle contacts", "steps", "seconds"]
+    headings += ["obstacle contacts", "contact episodes", "steps", "seconds", "filter changed", "mean change"]
+    headings += ["infeasible steps", "min separation (m)"]
     lines = ["| " + " | ".join(headings) + " |", "|" + "|".join(["---"] * 2 + ["---:"] * (len(headings) - 2)) + "|"]
+    formats = {"shape_error": ".3f", "agent_contacts": ".2f", "obstacle_contacts": ".2f", "contact_episodes": "d"}
+    formats |= {"steps": ".0f", "seconds": ".0f", "filter_changed": ".2%", "filter_change": ".3f"}
+    formats |= {"infeasible_steps": ".2f", "min_separation": ".3f"}
     for row in rows:
         cells = row.cells()
         low, high = cells["success_rate_ci95"]
-        figures = [cells[name] for name in ("shape_error", "agent_contacts", "obstacle_contacts", "steps")]
         line = [cells["target"], cells["scenes"], str(cells["n_agents"]), str(cells["episodes"])]
         line.append(f"{cells['success_rate']:.0%} ({low:.0%} - {high:.0%})")
-        line += [
-            "-" if value is None else f"{value:.3f}" if index == 0 else f"{value:.1f}" for index, value in enumerate(figures)
-        ]
-        line.append(f"{cells['seconds']:.0f}")
+        line += ["-" if cells[name] is None else format(cells[name], spec) for name, spec in formats.items()]
         lines.append("| " + " | ".join(line) + " |")
     return "\n".join(lines)

@@ -27,7 +27,8 @@ from sb3_formation.experiment.statistics import mean_and_std, wilson_interval
 from sb3_formation.experiment.targets import default_protocol, evaluation_file, evaluation_folder, load_policy
 from sb3_formation.experiment.trajectories import Trajectories, stack_recordings
 from sb3_formation.sb3.callbacks import threads_beside_workers, torch_threads
-from sb3_formation.sb3.metrics import EPISODE_METRICS
+from sb3_formation.safety.policy import SafePolicy
+from sb3_formation.sb3.metrics import EPISODE_METRICS, SAFETY_METRICS
 from sb3_formation.utils.files import atomic_files, file_digest
 
 #: Columns of ``episodes.csv``, in order (``reward_<term>``: the term's mean per step and agent).
@@ -89,7 +90,12 @@ class EvaluationResult:
             "model": self.model,
             "successful_episodes": mean_and_std(successes),
             "all_episodes": mean_and_std(self.episodes),
+            "episodes_with_contacts": {
+                kind: sum(episode[f"collisions_{kind}"] > 0 for episode in self.episodes) for kind in ("agent", "obstacle")
+            },
         }
+        if self.episodes and "min_separation" in self.episodes[0]:  # a filtered policy's: the smallest over all
+            self.summary["min_separation"] = min(episode["min_separation"] for episode in self.episodes)
 
     def save(self, folder: str | os.PathLike[str]) -> dict[str, Path]:
         """Write the evaluation's set into ``folder`` as one unit: ``episodes.csv``, ``trajectories.npz`` (if recorded;
@@ -115,9 +121,11 @@ class EvaluationResult:
         return {kinds[name]: folder / name for name in names}
 
     def episode_table(self) -> str:
-        """The text of ``episodes.csv``: a header of :data:`EPISODE_COLUMNS`, then one row per episode."""
+        """The text of ``episodes.csv``: a header of :data:`EPISODE_COLUMNS` (and of the safety metrics, for a filtered
+        policy), then one row per episode."""
         table = io.StringIO()
-        writer = csv.DictWriter(table, fieldnames=EPISODE_COLUMNS, lineterminator="\n")
+        filtered = [name for name in SAFETY_METRICS if self.episodes and name in self.episodes[0]]
+        writer = csv.DictWriter(table, fieldnames=[*EPISODE_COLUMNS, *filtered], lineterminator="\n")
         writer.writeheader()
         writer.writerows(self.episodes)
         return table.getvalue()
@@ -132,6 +140,8 @@ def model_fingerprint(path: str | os.PathLike[str]) -> dict[str, str]:
 def policy_identity(policy: TeamPolicy) -> dict[str, Any] | None:
     """What an evaluation summary records of its policy: a model file with its SHA-256, or a controller with its gains
     (``None`` for anything else)."""
+    if isinstance(policy, SafePolicy):
+        return {"safety": policy.filter.gains.to_dict(), "policy": policy_identity(policy.policy)}
     source = getattr(policy, "source", None)
     if source is not None:
         return model_fingerprint(source)

@@ -69,6 +69,8 @@ def play_episodes(
         raise ValueError("on_step reads every team in this process: play with n_workers=1")
     blocks = EngineBlocks([config] * n_teams, job.n_workers, auto_reset=False)
     privileged = isinstance(job.policy, PrivilegedPolicy)  # it reads each team's map when its episode starts
+    # what a policy reports of an episode of its own (a filtered policy: what its filter did), by the team's rows
+    metrics: Callable[[slice], dict[str, float]] | None = getattr(job.policy, "episode_metrics", None)
     queue = list(reversed(job.episodes))
     current: list[int | None] = [None] * n_teams
     recorders: list[EpisodeRecorder | None] = [None] * n_teams
@@ -133,6 +135,7 @@ def play_episodes(
                         "comm_exceeded_fraction": episode.comm_exceeded_steps / summary["length"],
                         "final_goal_distance": float(step.info_values[episode.first_slot, 4]),
                         **{f"reward_{name}": value for name, value in terms.items()},
+                        **(metrics(slots(team)) if metrics is not None else {}),
                     }
                 )
                 if recorders[team] is not None:

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from sb3_formation.sb3.metrics import EPISODE_METRICS
+from sb3_formation.sb3.metrics import EPISODE_METRICS, SAFETY_METRICS
 
 
 def wilson_interval(successes: int, trials: int, z: float = 1.959963984540054) -> tuple[float, float]:
@@ -30,11 +30,13 @@ def wilson_interval(successes: int, trials: int, z: float = 1.959963984540054) -
 
 
 def mean_and_std(episodes: list[dict[str, Any]]) -> dict[str, dict[str, float | None]]:
-    """Mean and population std of each of :data:`EPISODE_METRICS` over ``episodes`` (``None`` when there are none)."""
+    """Mean and population std of each of :data:`EPISODE_METRICS` over ``episodes`` (``None`` when there are none), and
+    of each of :data:`SAFETY_METRICS` that the episodes have (a filtered policy's)."""
+    names = [*EPISODE_METRICS, *(name for name in SAFETY_METRICS if episodes and all(name in row for row in episodes))]
     return {
         name: {
             "mean": float(np.mean([episode[name] for episode in episodes])) if episodes else None,
             "std": float(np.std([episode[name] for episode in episodes])) if episodes else None,
         }
-        for name in EPISODE_METRICS
+        for name in names
     }

@@ -6,7 +6,9 @@
 - ``pretrained:<name>``: a policy shipped with the package (:mod:`~sb3_formation.experiment.pretrained`), acting in
   the task it was trained for (a ``recipe`` of another task is refused);
 - an exported ``.onnx`` file, or ``onnx:<path>``: run by :class:`~sb3_formation.runtime.OnnxPolicy` (no torch), in a
-  run folder or shipped policy folder like the model it was exported from.
+  run folder or shipped policy folder like the model it was exported from;
+- ``safe:<target>``: any of these behind the safety filter (:class:`~sb3_formation.safety.policy.SafePolicy`, default
+  gains); its evaluations go to the folder of ``<target>``'s with ``-safe`` added to its name.
 
 ``evaluate``, ``render``, ``plot`` and ``compare`` of the command line and :func:`load_policy` in Python resolve targets
 here; a new kind of target is a new entry of :data:`TARGET_KINDS`.
@@ -26,6 +28,7 @@ from sb3_formation.experiment.recipes import DEFAULT_RECIPE, Recipe, load_recipe
 from sb3_formation.experiment.runs import load_trained
 from sb3_formation.experiment.settings import load_settings
 from sb3_formation.runtime import OnnxPolicy
+from sb3_formation.safety.policy import SafePolicy
 from sb3_formation.sb3.model_files import trust_pickle
 from sb3_formation.utils.deprecation import warn_renamed
 
@@ -61,22 +64,37 @@ TARGET_KINDS: dict[str, TargetKind] = {
 
 #: Prefix of a target that names an exported ONNX file (the path alone works too when it ends in ``.onnx``).
 ONNX_PREFIX = "onnx:"
+#: Prefix of a target whose actions pass through the safety filter.
+SAFE_PREFIX = "safe:"
+
+
+def unfiltered_target(target: str | os.PathLike[str]) -> tuple[str | os.PathLike[str], bool]:
+    """A target without its ``safe:`` prefix, and whether it had one."""
+    if str(target).startswith(SAFE_PREFIX):
+        return str(target).removeprefix(SAFE_PREFIX), True
+    return target, False
 
 
 def target_kind(target: str | os.PathLike[str]) -> str | None:
-    """The kind of a ``<kind>:<name>`` target, or ``None`` for a path (``onnx:<path>`` included)."""
-    kind, separator, _ = str(target).partition(":")
+    """The kind of a ``<kind>:<name>`` target (behind ``safe:`` or not), or ``None`` for a path (``onnx:<path>``
+    included)."""
+    kind, separator, _ = str(unfiltered_target(target)[0]).partition(":")
     return kind if separator and kind in TARGET_KINDS else None
 
 
+def target_name(target: str | os.PathLike[str]) -> str:
+    """The name of a ``<kind>:<name>`` target (``safe:controller:classical`` -> ``classical``)."""
+    return str(unfiltered_target(target)[0]).partition(":")[2]
+
+
 def target_path(target: str | os.PathLike[str]) -> Path:
-    """The path a path target names (``onnx:<path>`` -> ``<path>``)."""
-    return Path(str(target).removeprefix(ONNX_PREFIX))
+    """The path a path target names (``onnx:<path>`` and ``safe:<path>`` -> ``<path>``)."""
+    return Path(str(unfiltered_target(target)[0]).removeprefix(ONNX_PREFIX))
 
 
 def is_onnx_target(target: str | os.PathLike[str]) -> bool:
     """Whether a target names an exported ONNX file (``onnx:<path>``, or a path ending in ``.onnx``)."""
-    return str(target).startswith(ONNX_PREFIX) or target_path(target).suffix == ".onnx"
+    return str(unfiltered_target(target)[0]).startswith(ONNX_PREFIX) or target_path(target).suffix == ".onnx"
 
 
 def load_policy(
@@ -100,10 +118,13 @@ def load_policy(
     if preset is not None:
         warn_renamed("load_policy(preset=...)", "load_policy(recipe=...)")
         recipe = preset
+    target, safe = unfiltered_target(target)
+    if safe:
+        return SafePolicy(load_policy(target, recipe, device, trusted=trusted))
     kind = target_kind(target)
     with trust_pickle(trusted):
         if kind is not None:
-            return TARGET_KINDS[kind].load(str(target).partition(":")[2], recipe, device)
+            return TARGET_KINDS[kind].load(target_name(target), recipe, device)
         if recipe is not None:
             raise ValueError(f"a recipe applies to controller targets only; {target} acts in the task it was trained in")
         if is_onnx_target(target):
@@ -128,7 +149,7 @@ def default_protocol(target: str | os.PathLike[str], recipe: str | None = None) 
     folder."""
     kind = target_kind(target)
     if kind is not None:
-        return dict(TARGET_KINDS[kind].recipe(str(target).partition(":")[2], recipe).evaluation)
+        return dict(TARGET_KINDS[kind].recipe(target_name(target), recipe).evaluation)
     folder = run_folder(target)
     if folder is None:
         return {}
@@ -140,10 +161,10 @@ def evaluation_folder(target: str | os.PathLike[str], recipe: str | None = None,
     ``eval_<stem>/`` beside an exported ``<stem>.onnx`` (not over its model's), and
     ``evaluations/<kind>-<name>_<recipe>/`` in the working folder for a ``<kind>:<name>`` target; an evaluation on a
     scene family (``scenes``) adds ``-<scenes>`` to the folder's name."""
-    suffix = "" if scenes == "curriculum" else f"-{scenes}"
+    suffix = ("" if scenes == "curriculum" else f"-{scenes}") + ("-safe" if unfiltered_target(target)[1] else "")
     kind = target_kind(target)
     if kind is not None:
-        name = str(target).partition(":")[2]
+        name = target_name(target)
         return Path("evaluations") / f"{kind}-{name}_{TARGET_KINDS[kind].recipe(name, recipe).name}{suffix}"
     path = target_path(target)
     if is_onnx_target(target):

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from sb3_formation.safety.policy import SAFETY_METRIC_KEYS
+
 
 @dataclass(frozen=True)
 class Metric:
@@ -47,3 +49,17 @@ EPISODE_METRICS: dict[str, Metric] = {
 }
 #: TensorBoard tag of the rolling success rate during training.
 SUCCESS_RATE_TAG = "episode/success_rate"
+#: What the safety filter did in an episode (:class:`~sb3_formation.safety.policy.SafePolicy`): only episodes of a
+#: filtered policy have them. The changed share is over agent-steps, the mean change over the changed ones (fraction of
+#: F_max), infeasible steps are agent-steps, and the separation is the smallest gap (m) the agents measured.
+SAFETY_METRICS: dict[str, Metric] = dict(
+    zip(
+        SAFETY_METRIC_KEYS,
+        (
+            Metric("filter changed", "actions the filter changed", "share of agent-steps", "safety/changed_fraction"),
+            Metric("mean change", "size of the filter's change", "fraction of F_max", "safety/change_mean"),
+            Metric("infeasible steps", "infeasible agent-steps", "agent-steps per episode", "safety/infeasible_steps"),
+            Metric("min separation (m)", "smallest separation", "gap (m)", "safety/min_separation"),
+        ),
+    )
+)

@@ -1,0 +1,106 @@
+"""Any policy behind the safety filter: :class:`SafePolicy`, a :class:`~sb3_formation.controllers.base.TeamPolicy` that
+passes another one's actions through :class:`~sb3_formation.safety.filter.SafetyFilter`, and keeps per-agent counts of
+what the filter did for the episode loop's rows."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from sb3_formation.controllers.base import TeamPolicy
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.safety.filter import FilterReport, SafetyFilter, SafetyGains
+
+#: Keys of the per-episode safety metrics (:meth:`SafePolicy.episode_metrics`, evaluation rows, TensorBoard).
+SAFETY_METRIC_KEYS = ("filter_changed_fraction", "filter_change_mean", "filter_infeasible_steps", "min_separation")
+
+
+class FilterTally:
+    """Running counts of a filter's reports, per row (agent slot): agent-steps, changed ones, the sum of the changes,
+    infeasible ones, and the smallest separation (m)."""
+
+    def __init__(self, rows: int = 0) -> None:
+        self.resize(rows)
+
+    def resize(self, rows: int) -> None:
+        """Start counting ``rows`` rows afresh."""
+        self.steps = np.zeros(rows, dtype=np.int64)
+        self.changed = np.zeros(rows, dtype=np.int64)
+        self.change = np.zeros(rows)
+        self.infeasible = np.zeros(rows, dtype=np.int64)
+        self.separation = np.full(rows, np.inf)
+
+    def restart(self, rows: np.ndarray | slice) -> None:
+        """Forget what ``rows`` counted (their episodes start)."""
+        self.steps[rows] = self.changed[rows] = self.infeasible[rows] = 0
+        self.change[rows] = 0.0
+        self.separation[rows] = np.inf
+
+    def add(self, report: FilterReport) -> None:
+        """Count one step of every row."""
+        self.steps += 1
+        self.changed += report.changed
+        self.change += report.change
+        self.infeasible += report.infeasible
+        np.minimum(self.separation, report.separation, out=self.separation)
+
+    def metrics(self, rows: np.ndarray | slice) -> dict[str, float]:
+        """The metrics of :data:`SAFETY_METRIC_KEYS` over ``rows``: the share of their agent-steps the filter changed,
+        the mean size of a change (fraction of F_max, over changed agent-steps; 0 if none), the infeasible agent-steps,
+        and the smallest separation (m) the agents measured."""
+        steps, changed = int(self.steps[rows].sum()), int(self.changed[rows].sum())
+        return {
+            "filter_changed_fraction": changed / max(steps, 1),
+            "filter_change_mean": float(self.change[rows].sum()) / max(changed, 1),
+            "filter_infeasible_steps": int(self.infeasible[rows].sum()),
+            "min_separation": float(self.separation[rows].min()),
+        }
+
+
+class SafePolicy:
+    """A policy whose actions pass through the safety filter; every other attribute is the wrapped policy's (so a
+    privileged policy stays one, and ``seed`` reaches it).
+
+    :param policy: the policy that proposes actions
+    :param gains: the filter's gains and margins (default :class:`SafetyGains`)
+    """
+
+    def __init__(self, policy: TeamPolicy, gains: SafetyGains | None = None) -> None:
+        self.policy = policy.policy if isinstance(policy, SafePolicy) else policy  # one filter is enough
+        self.filter = SafetyFilter(self.policy.config, gains)
+        self.tally = FilterTally()
+
+    @property
+    def config(self) -> FormationConfig:
+        """The task the wrapped policy acts in."""
+        return self.policy.config
+
+    def __getattr__(self, name: str) -> Any:
+        if name in ("policy", "filter", "tally"):  # not yet set (unpickling): no recursion
+            raise AttributeError(name)
+        return getattr(self.policy, name)
+
+    def fit(self, config: FormationConfig) -> SafePolicy:
+        """The wrapped policy fitted to ``config`` behind a filter of the same gains."""
+        fitted = self.policy.fit(config)
+        return self if fitted is self.policy else SafePolicy(fitted, self.filter.gains)
+
+    def predict(
+        self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
+    ) -> tuple[np.ndarray, Any]:
+        """The wrapped policy's actions for raw team rows, filtered, and its next state; counts what the filter did
+        (rows that start an episode start their counts afresh)."""
+        actions, state = self.policy.predict(observation, state, episode_start, deterministic)
+        rows = np.asarray(observation).reshape(-1, np.shape(observation)[-1])
+        safe, report = self.filter.filter(rows, np.asarray(actions).reshape(len(rows), 2))
+        if len(self.tally.steps) != len(rows):
+            self.tally.resize(len(rows))
+        elif episode_start is not None:
+            self.tally.restart(np.asarray(episode_start, dtype=bool).reshape(-1))
+        self.tally.add(report)
+        return safe.reshape(np.shape(actions)), state
+
+    def episode_metrics(self, rows: slice) -> dict[str, float]:
+        """What the filter did to ``rows`` (a team's) since their episode started (:meth:`FilterTally.metrics`)."""
+        return self.tally.metrics(rows)
