@@ -33,8 +33,11 @@ def test_benchmark_writes_the_table_evaluations_and_figures(tmp_path: Path, caps
     assert table.startswith(f"sb3-formation {__version__} benchmark, {run['machine']}: `{run['command']}`")
     assert "2 episodes per scene set from seed 10000" in table.splitlines()[1]
     assert [row["scenes"] for row in results["rows"]] == list(BENCHMARK_SCENES)
+    headings = table.splitlines()[3].strip("| ").split(" | ")
     for row, line in zip(results["rows"], rows):
-        assert row["seconds"] > 0 and line.split(" | ")[-1] == f"{row['seconds']:.0f} |"
+        cells = dict(zip(headings, line.strip("| ").split(" | ")))
+        assert row["seconds"] > 0 and cells["seconds"] == f"{row['seconds']:.0f}"
+        assert cells["filter changed"] == cells["min separation (m)"] == "-"  # not filtered
         summary = load_summary(out / "classical" / row["scenes"])
         assert summary["scenes"] == row["scenes"] and summary["seed"] == 10_000 and summary["episodes"] == 2
         assert row["success_rate"] == summary["success_rate"]
@@ -50,3 +53,21 @@ def test_benchmark_writes_the_table_evaluations_and_figures(tmp_path: Path, caps
     assert main([*arguments, "--no-progress"]) == 2
     assert "already holds files" in capsys.readouterr().err
     assert sorted(path.stat().st_mtime_ns for path in out.rglob("*")) == before
+
+
+def test_benchmark_reports_what_the_filter_did_for_a_safe_target(tmp_path: Path) -> None:
+    """A ``safe:`` target's rows give the filter's share of changed agent-steps, its mean change, infeasible steps and
+    the smallest separation, each the stored evaluation's; its contact episodes count the episodes with contacts."""
+    out = tmp_path / "bench"
+    arguments = ["benchmark", "safe:controller:random", "--episodes", "2", "--workers", "1", "--out", str(out)]
+    assert main([*arguments, "--no-progress", "--labels", "random", "--agents", "3"]) == 0
+    results = json.loads((out / "benchmark.json").read_text())
+    for row in results["rows"]:
+        summary = load_summary(out / "random" / row["scenes"])
+        episodes = summary["all_episodes"]
+        assert summary["model"]["safety"]["gamma"] == 0.5 and summary["model"]["policy"]["controller"] == "RandomController"
+        assert row["filter_changed"] == episodes["filter_changed_fraction"]["mean"]
+        assert row["filter_change"] == episodes["filter_change_mean"]["mean"]
+        assert row["infeasible_steps"] == episodes["filter_infeasible_steps"]["mean"]
+        assert row["min_separation"] == summary["min_separation"] > 0
+        assert row["contact_episodes"] == sum(summary["episodes_with_contacts"].values())

@@ -1,6 +1,6 @@
 """The package's layers: each imports only from the layers below it, and the environment layer loads no learning stack.
 
-Layers, bottom to top: utils, env, controllers, runtime, sb3, experiment, viz, cli (docs/contributing.md, "Layers").
+Layers, bottom to top: utils, env, controllers, safety, runtime, sb3, experiment, viz, cli (docs/contributing.md, "Layers").
 """
 
 from __future__ import annotations
@@ -14,11 +14,11 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "src" / "sb3_formation"
 #: Layer of each subpackage or top-level module, bottom (0) to top.
-LAYERS = {"utils": 0, "env": 1, "controllers": 2, "runtime": 3, "sb3": 4, "experiment": 5, "viz": 6, "cli": 7}
-#: Third-party packages the bottom layers (utils, env, controllers, runtime) must not import: the learning and plotting
+LAYERS = {"utils": 0, "env": 1, "controllers": 2, "safety": 3, "runtime": 4, "sb3": 5, "experiment": 6, "viz": 7, "cli": 8}
+#: Third-party packages the bottom layers (utils, env, controllers, safety, runtime) must not import: the learning and plotting
 #: stacks (the runtime runs an exported policy with numpy and onnxruntime only).
 HEAVY = {"torch", "stable_baselines3", "matplotlib", "tensorboard", "ray", "tqdm", "imageio_ffmpeg"}
-LIGHT_LAYERS = {"utils", "env", "controllers", "runtime"}
+LIGHT_LAYERS = {"utils", "env", "controllers", "safety", "runtime"}
 
 
 def layer(relative: Path) -> str:
@@ -120,7 +120,8 @@ def test_the_rule_catches_a_forbidden_import(module: str, added: str, expected: 
 
 
 @pytest.mark.parametrize(
-    "module", ["sb3_formation", "sb3_formation.env", "sb3_formation.controllers", "sb3_formation.runtime"]
+    "module",
+    ["sb3_formation", "sb3_formation.env", "sb3_formation.controllers", "sb3_formation.safety", "sb3_formation.runtime"],
 )
 def test_importing_the_light_layers_loads_no_learning_stack(module: str) -> None:
     """Measured in a fresh interpreter: importing the env, the runtime (or the package's top level) leaves torch and SB3

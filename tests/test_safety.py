@@ -100,7 +100,7 @@ def test_bad_actions_are_refused_with_one_line() -> None:
         safety.filter(free_row()[None], np.zeros((1, 3)))
     with pytest.raises(ValueError, match="observation rows"):
         safety.filter(np.zeros((1, 5)), np.zeros((1, 2)))
-    with pytest.raises(ValueError, match="SafetyGains.gamma"):
+    with pytest.raises(ValueError, match=r"SafetyGains\.gamma"):
         SafetyGains(gamma=0.0)
     with pytest.raises(ValueError, match="unknown safety filter setting"):
         SafetyGains.from_dict({"gama": 0.5})
@@ -214,7 +214,9 @@ def test_no_contacts_with_the_filter_on_except_on_reported_infeasible_steps(
         contacts = sum(info["collisions_agent"] + info["collisions_obstacle"] for info in infos)
         infeasible_steps += bool(report.infeasible.any())
         if contacts:
-            assert report.infeasible.any(), f"a contact on a step the filter did not report infeasible ({scenes}, n={n_agents})"
+            assert report.infeasible.any(), (
+                f"a contact on a step the filter did not report infeasible ({scenes}, n={n_agents})"
+            )
         if terminated or truncated:
             break
     assert infeasible_steps <= 20  # rare
@@ -224,13 +226,15 @@ def test_a_safe_policy_keeps_what_its_policy_is_and_reports_per_episode() -> Non
     planner = CONTROLLERS["privileged-planner"](CONFIG)
     safe = SafePolicy(SafePolicy(planner))
     assert safe.policy is planner  # one filter, not two
-    assert isinstance(safe, PrivilegedPolicy) and not isinstance(SafePolicy(CONTROLLERS["classical"](CONFIG)), PrivilegedPolicy)
+    assert isinstance(safe, PrivilegedPolicy) and not isinstance(
+        SafePolicy(CONTROLLERS["classical"](CONFIG)), PrivilegedPolicy
+    )
     env = FormationEnv(CONFIG.replace(scenes="clutter"))
     rows = np.stack(list(env.reset(seed=0)[0].values()))
     safe.start_episodes([0], [env.team_state()])
     starts = np.ones(len(rows), dtype=bool)
     for _ in range(3):
-        actions, _ = safe.predict(rows, None, starts)
+        safe.predict(rows, None, starts)
         starts[:] = False
     metrics = safe.episode_metrics(slice(0, len(rows)))
     assert safe.tally.steps.tolist() == [3] * len(rows)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import math
 from collections.abc import Sequence
 from contextlib import AbstractContextManager
@@ -189,7 +190,7 @@ def scene_overrides(args: argparse.Namespace) -> dict[str, Any]:
     return {name: value for name, value in overrides.items() if value is not None}
 
 
-def target_label(target: str | Path) -> str:
+def target_label(target: str | os.PathLike[str]) -> str:
     """A target's default label (see :func:`target_labels`)."""
     inner, safe = unfiltered_target(target)
     if safe and not target_kind(inner):

@@ -26,8 +26,8 @@ from sb3_formation.experiment.rollouts import PlayJob, play_episodes, seed_polic
 from sb3_formation.experiment.statistics import mean_and_std, wilson_interval
 from sb3_formation.experiment.targets import default_protocol, evaluation_file, evaluation_folder, load_policy
 from sb3_formation.experiment.trajectories import Trajectories, stack_recordings
-from sb3_formation.sb3.callbacks import threads_beside_workers, torch_threads
 from sb3_formation.safety.policy import SafePolicy
+from sb3_formation.sb3.callbacks import threads_beside_workers, torch_threads
 from sb3_formation.sb3.metrics import EPISODE_METRICS, SAFETY_METRICS
 from sb3_formation.utils.files import atomic_files, file_digest
 

@@ -32,6 +32,7 @@ from sb3_formation.controllers import controller_from_spec
 from sb3_formation.controllers.base import Controller, TeamPolicy
 from sb3_formation.controllers.residual import ResidualPolicy, check_residual_scale
 from sb3_formation.env.config import TASKS, FormationConfig
+from sb3_formation.safety.filter import SafetyGains
 from sb3_formation.sb3.imitation import ImitationSettings
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import CELLS, RecurrentFormationPolicy
@@ -46,7 +47,7 @@ DEFAULT_RECIPE = "ch5-bearing"
 #: The key of a recipe file that holds the run options of an experiment or a run, not the recipe.
 RUN_KEY = "run"
 #: The sections of a recipe: mappings that a derived recipe merges key by key (:func:`merge_recipe`).
-SECTIONS = ("env", "policy", "ppo", "curriculum", "evaluation", "training", "residual", "imitation")
+SECTIONS = ("env", "policy", "ppo", "curriculum", "evaluation", "training", "residual", "imitation", "safety")
 #: Keys of a recipe's ``evaluation:`` (arguments of :func:`~sb3_formation.experiment.evaluation.evaluate`).
 EVALUATION_KEYS = ("episodes", "stage", "seed", "n_envs", "deterministic", "record")
 #: Keys of a recipe's ``policy:`` that choose the network rather than being passed to it.
@@ -117,6 +118,11 @@ class Recipe:
     :param imitation: optional: pretrain the actor on a controller's actions before PPO (``controller``, ``gains``,
         and the fields of :class:`~sb3_formation.sb3.imitation.ImitationSettings`: rounds, steps, epochs, batch_size,
         learning_rate, critic_warmup)
+    :param safety: optional: train behind the safety filter ("shielded" PPO, ``docs/safety.md``): the env applies the
+        filtered action, PPO keeps its own. ``penalty`` (>= 0, default 0) subtracts ``penalty |a_safe - a|`` from each
+        agent's reward, and any field of :class:`~sb3_formation.safety.filter.SafetyGains` sets the filter's gains; a
+        non-empty section turns the filter on (``safety: {penalty: 0}`` with the default gains). The trained policy acts
+        behind the same filter wherever it is loaded or exported
     :param team_sizes: optional: teams of several sizes in one rollout, taken in turn (team j has
         ``team_sizes[j % len(team_sizes)]`` agents; :class:`~sb3_formation.sb3.vec_env.FormationVecEnv`); without it
         every team has the task's ``n_agents`` (:attr:`sizes`). A policy trained on several sizes acts in teams of any
@@ -135,6 +141,7 @@ class Recipe:
     training: dict[str, Any] = field(default_factory=dict)
     residual: dict[str, Any] = field(default_factory=dict)
     imitation: dict[str, Any] = field(default_factory=dict)
+    safety: dict[str, Any] = field(default_factory=dict)
     team_sizes: list[int] | None = None
     source: Path | None = field(default=None, compare=False)
 
@@ -233,6 +240,14 @@ class Recipe:
                 self.teacher(self.config())
             except (TypeError, ValueError) as error:
                 raise ValueError(f"{where}: imitation: {error}") from error
+        if self.safety:
+            try:
+                self.safety_gains()
+            except ValueError as error:
+                raise ValueError(f"{where}: safety: {error}") from error
+            penalty = self.safety_penalty
+            if not (is_number(penalty) and penalty >= 0):
+                raise ValueError(f"{where}: safety: penalty must be a finite number >= 0, got {penalty!r}")
         self.stage_iterations()  # validates the budget against the curriculum
 
     # Reading and writing ----------------------------------------------------------------------------------------------
@@ -250,10 +265,10 @@ class Recipe:
         name = values.pop("name", name)
         if not isinstance(name, str) or not name:
             raise ValueError(f"a recipe's name must be a non-empty string, got {name!r}")
-        for section in ("training", "residual", "imitation"):
+        for section in ("training", "residual", "imitation", "safety"):
             if values.get(section, {}) is None:  # a derived recipe switches a block off with null
                 values[section] = {}
-        required = [key for key in keys if key not in ("training", "residual", "imitation", "team_sizes")]
+        required = [key for key in keys if key not in ("training", "residual", "imitation", "safety", "team_sizes")]
         unknown, missing = sorted(set(values) - set(keys)), [key for key in required if key not in values]
         if unknown or missing:
             raise ValueError(f"recipe {name!r}: unknown keys {unknown}, missing keys {missing}; a recipe has {keys}")
@@ -281,6 +296,7 @@ class Recipe:
                 "training": {name: self.training_option(name) for name in TRAINING_DEFAULTS},
                 "residual": self.residual,
                 "imitation": self.imitation,
+                "safety": self.safety,
             }
         )
 
@@ -390,6 +406,17 @@ class Recipe:
         """The time budget in seconds, or ``None``."""
         minutes = self.training_option("minutes")
         return None if minutes is None else 60.0 * minutes
+
+    def safety_gains(self) -> SafetyGains | None:
+        """The safety filter's gains of a shielded recipe (its ``safety`` section without ``penalty``), else ``None``."""
+        if not self.safety:
+            return None
+        return SafetyGains.from_dict({name: value for name, value in self.safety.items() if name != "penalty"})
+
+    @property
+    def safety_penalty(self) -> float:
+        """The reward penalty per unit of the filter's change of an action (``safety: penalty``, default 0)."""
+        return self.safety.get("penalty", 0.0)
 
     def imitation_settings(self) -> ImitationSettings | None:
         """How the actor is pretrained before PPO (``None`` without an ``imitation`` block)."""

@@ -21,6 +21,8 @@ from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecNormalize
 
 from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.experiment.recipes import residual_policy
+from sb3_formation.safety.filter import SafetyGains
+from sb3_formation.safety.policy import SafePolicy
 from sb3_formation.sb3.model_files import (
     load_model,
     read_model_data,
@@ -104,7 +106,8 @@ def latest_checkpoint(run_dir: Path) -> Path | None:
 def load_trained(path: str | os.PathLike[str], device: str = "auto", trusted: bool | None = None) -> TeamPolicy:
     """Load a run folder (its final model, else its latest checkpoint) or a model ``.zip`` with its normaliser beside,
     as a :class:`TrainedPolicy` (a :class:`~sb3_formation.controllers.residual.ResidualPolicy` around one when the
-    model is a correction of a controller).
+    model is a correction of a controller; behind the safety filter, :class:`~sb3_formation.safety.policy.SafePolicy`,
+    when it was trained behind it).
 
     :param path: a run folder, or a model file whose normaliser is ``normalizer.npz`` / ``final_normalizer.npz``
         in the same folder
@@ -141,4 +144,6 @@ def load_trained(path: str | os.PathLike[str], device: str = "auto", trusted: bo
     trained = TrainedPolicy(model, config, normalizer_state, source=model_path, team_sizes=team_sizes)
     residual = getattr(model, "residual", None)  # a correction of a controller (a recipe's residual)
     # ResidualPolicy's config is a read-only property where TeamPolicy (controllers/base.py) declares a settable attribute
-    return residual_policy(residual, trained) if residual else trained  # type: ignore[return-value]
+    policy: TeamPolicy = residual_policy(residual, trained) if residual else trained  # type: ignore[assignment]
+    safety = getattr(model, "safety", None)  # trained behind the safety filter (a recipe's safety): it acts behind it
+    return SafePolicy(policy, SafetyGains.from_dict({k: v for k, v in safety.items() if k != "penalty"})) if safety else policy

@@ -39,6 +39,7 @@ from sb3_formation.experiment.runs import (
     save_model,
 )
 from sb3_formation.experiment.settings import TrainSettings, load_settings
+from sb3_formation.safety.policy import SafePolicy
 from sb3_formation.sb3.callbacks import (
     CollectionThreadsCallback,
     CurriculumCallback,
@@ -52,6 +53,7 @@ from sb3_formation.sb3.imitation import FrozenActorCallback, pretrain_actor
 from sb3_formation.sb3.model_files import algorithm_for, is_trusted, load_model, restore_training_state
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 from sb3_formation.sb3.residual import ResidualVecEnv
+from sb3_formation.sb3.safety import SafetyVecEnv
 from sb3_formation.sb3.trained import TrainedPolicy
 from sb3_formation.sb3.vec_env import FormationVecEnv
 from sb3_formation.utils.checks import check_path
@@ -153,6 +155,7 @@ class PeriodicEvaluation(BaseCallback):
     ) -> None:
         super().__init__()
         self.run_dir, self.config, self.curriculum = run_dir, settings.recipe.config(), curriculum
+        self.safety = settings.recipe.safety_gains()  # a shielded run's policy acts behind its filter
         self.every, self.episodes = every, episodes
         best = run_dir / BEST_EVALUATION
         self.best: dict[str, Any] | None = json.loads(best.read_text()) if best.is_file() else None
@@ -179,6 +182,8 @@ class PeriodicEvaluation(BaseCallback):
             # attr-defined: see recipe_model; assignment: ResidualPolicy's config is a read-only property where TeamPolicy
             # (controllers/base.py) declares a settable attribute
             policy = residual_policy(self.model.residual, policy)  # type: ignore[attr-defined, assignment]
+        if self.safety is not None:
+            policy = SafePolicy(policy, self.safety)
         summary = evaluate(policy, self.episodes, stage=3, seed=PERIODIC_EVALUATION_SEED, n_envs=min(8, self.episodes)).summary
         self.logger.record("eval/success_rate", summary["success_rate"])
         for name, statistics in summary["all_episodes"].items():
@@ -234,7 +239,7 @@ def make_training_env(settings: TrainSettings, stage: int, normalizer_path: Path
     the rewards by a running std of the discounted return on top of it.
     """
     config = settings.recipe.config().replace(stage=stage)
-    venv: FormationVecEnv | ResidualVecEnv
+    venv: FormationVecEnv | SafetyVecEnv | ResidualVecEnv
     venv = FormationVecEnv(
         config,
         n_envs=settings.recipe.n_envs,
@@ -243,9 +248,11 @@ def make_training_env(settings: TrainSettings, stage: int, normalizer_path: Path
         team_sizes=settings.recipe.sizes,
     )
     dim, mask = venv.agent_observation_dim, venv.binary_observation_mask
+    if settings.recipe.safety:  # the filter acts on the raw observations and the final actions, below all else
+        venv = SafetyVecEnv(venv, settings.recipe.safety_gains(), settings.recipe.safety_penalty)
     residual = settings.recipe.residual
     if residual:  # the controller acts on the raw observations, below the normaliser
-        venv = ResidualVecEnv(venv, *residual_base(residual, config))
+        venv = ResidualVecEnv(cast(FormationVecEnv, venv), *residual_base(residual, config))  # a filter forwards the rest
     if normalizer_path is None:
         env: VecEnv = ScaleNormalizeVecEnv(venv, dim, mask, center=settings.recipe.training_option("center_observations"))
     else:
@@ -330,6 +337,7 @@ def recipe_model(settings: TrainSettings, env: VecEnv) -> PPO:
     # attributes of this package's own, saved with the model (SB3's classes do not declare them)
     model.formation_config = settings.recipe.config().to_dict()  # type: ignore[attr-defined]
     model.residual = settings.recipe.residual  # type: ignore[attr-defined]  # the model file says how its actions are meant (load_trained)
+    model.safety = settings.recipe.safety  # type: ignore[attr-defined]  # and whether they pass through the safety filter
     model.team_sizes = sorted(set(settings.recipe.sizes))  # type: ignore[attr-defined]  # and which team sizes it acts in
     return model
 

@@ -25,6 +25,7 @@ from sb3_formation.controllers import controller_from_spec
 from sb3_formation.controllers.residual import add_correction, check_residual_scale
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.observations import observation_fields, observation_layout
+from sb3_formation.safety.filter import SafetyFilter, SafetyGains
 
 #: Prefix of the metadata keys this package writes into an exported model.
 METADATA_PREFIX = "sb3_formation."
@@ -47,6 +48,8 @@ class PolicyMetadata:
     :param residual: ``controller``, ``gains`` and ``scale`` of a residual policy (the graph is its correction), or
         ``None``
     :param recurrent: ``cell`` (``gru`` / ``lstm``) and ``hidden`` (width of its state) of a recurrent actor, or ``None``
+    :param safety: the safety filter's gains of a policy trained behind it (its actions are filtered wherever it runs),
+        or ``None``; files written before the filter existed have no such key and read as ``None``
     :param opset: the ONNX opset of the graph
     :param package_version: the version of sb3-formation that exported it
     """
@@ -55,6 +58,7 @@ class PolicyMetadata:
     team_sizes: tuple[int, ...]
     residual: dict[str, Any] | None = None
     recurrent: dict[str, Any] | None = None
+    safety: dict[str, Any] | None = None
     opset: int = 0
     package_version: str = __version__
 
@@ -93,6 +97,7 @@ class PolicyMetadata:
             "team_sizes": list(self.team_sizes),
             "residual": self.residual,
             "recurrent": self.recurrent,
+            "safety": self.safety,
             "opset": self.opset,
             "package_version": self.package_version,
         }
@@ -126,6 +131,11 @@ class PolicyMetadata:
                 values[key] = json.loads(text)
             except json.JSONDecodeError as error:
                 raise ValueError(f"{where}: the metadata {METADATA_PREFIX + key} is not JSON ({error})") from None
+        safety = properties.get(METADATA_PREFIX + "safety")  # optional: absent from files of unfiltered policies
+        try:
+            values["safety"] = None if safety is None else json.loads(safety)
+        except json.JSONDecodeError as error:
+            raise ValueError(f"{where}: the metadata {METADATA_PREFIX}safety is not JSON ({error})") from None
         if values["format"] != FORMAT_VERSION:
             raise ValueError(f"{where} has export format {values['format']}; this runtime reads format {FORMAT_VERSION}")
         metadata = cls(
@@ -133,6 +143,7 @@ class PolicyMetadata:
             team_sizes=tuple(values["team_sizes"]),
             residual=values["residual"],
             recurrent=values["recurrent"],
+            safety=values["safety"],
             opset=int(values["opset"]),
             package_version=str(values["package_version"]),
         )
@@ -191,6 +202,12 @@ class OnnxPolicy:
         residual = self.metadata.residual
         self.controller = None if residual is None else controller_from_spec(residual, self.config)
         self.scale = None if residual is None else check_residual_scale(residual["scale"])
+        gains = self.metadata.safety
+        try:
+            #: the safety filter of a policy trained behind it (:meth:`agent_actions` applies it), else ``None``
+            self.safety = None if gains is None else SafetyFilter(self.config, SafetyGains.from_dict(gains))
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"{self.source}: the safety filter's gains in its metadata are invalid: {error}") from None
 
     @property
     def any_team_size(self) -> bool:
@@ -215,7 +232,14 @@ class OnnxPolicy:
         fitted = copy.copy(self)
         fitted.config = config
         fitted.controller = None if self.controller is None else self.controller.fit(config)
+        fitted.safety = None if self.safety is None else SafetyFilter(config, self.safety.gains)
         return fitted
+
+    def without_filter(self) -> OnnxPolicy:
+        """The same policy without its safety filter (for a caller that filters its actions itself)."""
+        unfiltered = copy.copy(self)
+        unfiltered.safety = None
+        return unfiltered
 
     def predict(
         self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
@@ -259,12 +283,16 @@ class OnnxPolicy:
         first, *new_state = self.session.run(self.metadata.output_names, feeds)
         graph_state = tuple(new_state) if new_state else graph_state
         if self.controller is None:
-            return first, graph_state
+            return self._filtered(rows, first), graph_state
         base, controller_state = self.controller.agent_step(
             rows, np.asarray(agents).reshape(-1), controller_state, episode_start
         )
         first = add_correction(base.astype(np.float64), first, cast(float, self.scale))  # set with the controller
-        return first, (graph_state, controller_state)
+        return self._filtered(rows, first), (graph_state, controller_state)
+
+    def _filtered(self, rows: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        """``actions`` through the safety filter, if the policy has one."""
+        return actions if self.safety is None else self.safety.filter(rows, actions)[0]
 
     def _rows(self, observation: np.ndarray) -> np.ndarray:
         """``observation`` as float32 rows of one agent's observation each."""

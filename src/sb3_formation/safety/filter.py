@@ -213,7 +213,11 @@ def _build_constraints(
             rhs[agent, count] = bounds[agent, bound, 2]
             count += 1
         for side in range(speed_normals.shape[0]):
-            rows[agent, count, 0], rows[agent, count, 1], rows[agent, count, 2] = speed_normals[side, 0], speed_normals[side, 1], 0.0
+            rows[agent, count, 0], rows[agent, count, 1], rows[agent, count, 2] = (
+                speed_normals[side, 0],
+                speed_normals[side, 1],
+                0.0,
+            )
             rhs[agent, count] = speed_limit
             count += 1
         rows[agent, count, 0], rows[agent, count, 1], rows[agent, count, 2] = 0.0, 0.0, -1.0  # s >= 0
@@ -305,7 +309,9 @@ class SafetyFilter:
         else:
             solutions = np.stack(
                 [
-                    solve_with_library(targets[k], self.gains.slack_weight, rows[k, : counts[k]], rhs[k, : counts[k]], self.gains.solver)
+                    solve_with_library(
+                        targets[k], self.gains.slack_weight, rows[k, : counts[k]], rhs[k, : counts[k]], self.gains.solver
+                    )
                     for k in range(count)
                 ]
             )
@@ -360,5 +366,7 @@ class SafetyFilter:
         else:
             along = np.einsum("kij,kj->ki", frames, commanded)  # (forward speed, l w)
             current = np.einsum("kj,kj->k", frames[:, 0], velocity)
-            actions = np.stack([(along[:, 0] - current) / self._push, along[:, 1] / (self.lookahead * self.config.max_turn_rate)], axis=1)
+            actions = np.stack(
+                [(along[:, 0] - current) / self._push, along[:, 1] / (self.lookahead * self.config.max_turn_rate)], axis=1
+            )
         return np.clip(actions, -1.0, 1.0).astype(np.float32)

@@ -37,13 +37,13 @@ class FilterTally:
         self.change[rows] = 0.0
         self.separation[rows] = np.inf
 
-    def add(self, report: FilterReport) -> None:
-        """Count one step of every row."""
-        self.steps += 1
-        self.changed += report.changed
-        self.change += report.change
-        self.infeasible += report.infeasible
-        np.minimum(self.separation, report.separation, out=self.separation)
+    def add(self, report: FilterReport, rows: np.ndarray | slice = slice(None)) -> None:
+        """Count one step of ``rows`` (default: every row), whose reports ``report`` holds in order."""
+        self.steps[rows] += 1
+        self.changed[rows] += report.changed
+        self.change[rows] += report.change
+        self.infeasible[rows] += report.infeasible
+        self.separation[rows] = np.minimum(self.separation[rows], report.separation)
 
     def metrics(self, rows: np.ndarray | slice) -> dict[str, float]:
         """The metrics of :data:`SAFETY_METRIC_KEYS` over ``rows``: the share of their agent-steps the filter changed,
@@ -60,28 +60,36 @@ class FilterTally:
 
 class SafePolicy:
     """A policy whose actions pass through the safety filter; every other attribute is the wrapped policy's (so a
-    privileged policy stays one, and ``seed`` reaches it).
+    privileged policy stays one, and ``seed`` reaches it). Wrapping a :class:`SafePolicy`, or a policy that filters its
+    own actions (an exported shielded policy, :class:`~sb3_formation.runtime.OnnxPolicy`), filters once, with its gains
+    unless others are given.
 
     :param policy: the policy that proposes actions
     :param gains: the filter's gains and margins (default :class:`SafetyGains`)
     """
 
+    policy: TeamPolicy
+    filter: SafetyFilter
+
     def __init__(self, policy: TeamPolicy, gains: SafetyGains | None = None) -> None:
-        self.policy = policy.policy if isinstance(policy, SafePolicy) else policy  # one filter is enough
-        self.filter = SafetyFilter(self.policy.config, gains)
+        if isinstance(policy, SafePolicy):  # one filter is enough
+            outer: SafePolicy = policy
+            policy, gains = outer.policy, gains or outer.filter.gains
+        own = getattr(policy, "safety", None)
+        if isinstance(own, SafetyFilter):  # a policy that filters its own actions (an exported shielded one): this does
+            policy, gains = policy.without_filter(), gains or own.gains  # type: ignore[attr-defined]
+        self.policy = policy
+        #: the task the wrapped policy acts in
+        self.config: FormationConfig = policy.config
+        self.filter = SafetyFilter(policy.config, gains)
         self.tally = FilterTally()
 
-    @property
-    def config(self) -> FormationConfig:
-        """The task the wrapped policy acts in."""
-        return self.policy.config
-
     def __getattr__(self, name: str) -> Any:
-        if name in ("policy", "filter", "tally"):  # not yet set (unpickling): no recursion
+        if name in ("policy", "config", "filter", "tally"):  # not yet set (unpickling): no recursion
             raise AttributeError(name)
         return getattr(self.policy, name)
 
-    def fit(self, config: FormationConfig) -> SafePolicy:
+    def fit(self, config: FormationConfig) -> TeamPolicy:
         """The wrapped policy fitted to ``config`` behind a filter of the same gains."""
         fitted = self.policy.fit(config)
         return self if fitted is self.policy else SafePolicy(fitted, self.filter.gains)

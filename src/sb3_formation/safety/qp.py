@@ -103,7 +103,9 @@ def _try_active_set(
 
 
 @numba.njit(cache=True)
-def solve_one(target: np.ndarray, slack_weight: float, rows: np.ndarray, rhs: np.ndarray, count: int) -> np.ndarray:  # pragma: no cover
+def solve_one(
+    target: np.ndarray, slack_weight: float, rows: np.ndarray, rhs: np.ndarray, count: int
+) -> np.ndarray:  # pragma: no cover
     """The optimum ``(u_x, u_y, s)`` of one agent's problem (see the module docstring).
 
     :param target: ``(2,)`` the proposed commanded velocity t

@@ -21,7 +21,7 @@ from stable_baselines3.common.logger import HParam, TensorBoardOutputFormat
 from stable_baselines3.common.utils import FloatSchedule
 
 from sb3_formation.env.config import REWARD_TERMS
-from sb3_formation.sb3.metrics import EPISODE_METRICS, SUCCESS_RATE_TAG
+from sb3_formation.sb3.metrics import EPISODE_METRICS, SAFETY_METRICS, SUCCESS_RATE_TAG
 
 #: Per team-episode metrics logged during training: TensorBoard tag -> key of the VecEnv's ``formation_episode`` summary.
 TENSORBOARD_METRICS: dict[str, str] = {
@@ -230,6 +230,9 @@ class FormationMetricsCallback(BaseCallback):
             return
         for key, field in TENSORBOARD_METRICS.items():
             self.logger.record(key, float(np.mean([episode[field] for episode in self.episodes])))
+        for name, metric in SAFETY_METRICS.items():  # shielded training (SafetyVecEnv)
+            if metric.tensorboard is not None and all(name in episode for episode in self.episodes):
+                self.logger.record(metric.tensorboard, float(np.mean([episode[name] for episode in self.episodes])))
         for term in REWARD_TERMS:
             self.logger.record(f"reward/{term}", float(np.mean([episode["reward_terms"][term] for episode in self.episodes])))
 

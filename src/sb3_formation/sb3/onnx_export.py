@@ -27,6 +27,7 @@ from sb3_formation.controllers import CONTROLLERS
 from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.controllers.residual import ResidualPolicy
 from sb3_formation.runtime.onnx_policy import PolicyMetadata
+from sb3_formation.safety.policy import SafePolicy
 from sb3_formation.sb3.normalization import observation_offset, observation_scale
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
@@ -103,9 +104,13 @@ class ActorGraph(nn.Module):
         return (action, final) if self.cell == "gru" else (action, *final)
 
 
-def _parts(policy: TeamPolicy) -> tuple[TrainedPolicy, dict[str, Any] | None]:
-    """The trained policy to export and, for a residual policy, its ``controller``, ``gains`` and ``scale``."""
-    residual = None
+def _parts(policy: TeamPolicy) -> tuple[TrainedPolicy, dict[str, Any] | None, dict[str, Any] | None]:
+    """The trained policy to export; for a residual policy its ``controller``, ``gains`` and ``scale``; for a policy
+    behind the safety filter the filter's gains."""
+    residual, safety = None, None
+    if isinstance(policy, SafePolicy):
+        filtered: SafePolicy = policy
+        policy, safety = filtered.policy, filtered.filter.gains.to_dict()
     if isinstance(policy, ResidualPolicy):
         names = [name for name, kind in CONTROLLERS.items() if type(policy.base) is kind]
         if not names:
@@ -118,14 +123,15 @@ def _parts(policy: TeamPolicy) -> tuple[TrainedPolicy, dict[str, Any] | None]:
         raise ValueError(
             f"only trained policies can be exported to ONNX, not {type(policy).__name__} (controllers are numpy code)"
         )
-    return policy, residual
+    return policy, residual, safety
 
 
 def export_onnx(policy: TeamPolicy, path: str | os.PathLike[str], opset: int = DEFAULT_OPSET) -> Path:
     """Write a trained policy's actor as an ONNX model that :class:`~sb3_formation.runtime.OnnxPolicy` runs.
 
     :param policy: a :class:`TrainedPolicy` or a residual policy around one (what ``load_policy`` returns for a run
-        folder, a model file or ``pretrained:<name>``)
+        folder, a model file or ``pretrained:<name>``), possibly behind the safety filter (a shielded run's, or
+        ``safe:<target>``): the file then carries the filter's gains and its runtime filters its actions
     :param path: the ``.onnx`` file to write (replaced only once complete)
     :param opset: the ONNX opset
     :return: ``path``
@@ -137,10 +143,10 @@ def export_onnx(policy: TeamPolicy, path: str | os.PathLike[str], opset: int = D
         import onnxscript  # noqa: F401  (torch.onnx's exporter imports it; say so before tracing)
     except ImportError:
         raise ImportError("exporting to ONNX needs onnx and onnxscript: pip install 'sb3-formation[export]'") from None
-    trained, residual = _parts(policy)
+    trained, residual, safety = _parts(policy)
     graph = ActorGraph(trained).cpu().eval()
     recurrent = {"cell": graph.cell, "hidden": graph.hidden} if graph.recurrent else None
-    metadata = PolicyMetadata(trained.config, tuple(trained.team_sizes), residual, recurrent)
+    metadata = PolicyMetadata(trained.config, tuple(trained.team_sizes), residual, recurrent, safety)
     batch = th.export.Dim("batch")
     observation = th.zeros(EXAMPLE_ROWS, metadata.observation_dim)
     state = tuple(th.zeros(1, EXAMPLE_ROWS, graph.hidden) for _ in metadata.state_parts)
@@ -166,7 +172,7 @@ def export_onnx(policy: TeamPolicy, path: str | os.PathLike[str], opset: int = D
     assert program is not None  # dynamo=True returns the program
     model = program.model_proto
     written = next(entry.version for entry in model.opset_import if entry.domain in ("", "ai.onnx"))
-    metadata = PolicyMetadata(trained.config, metadata.team_sizes, residual, recurrent, opset=written)
+    metadata = PolicyMetadata(trained.config, metadata.team_sizes, residual, recurrent, safety, opset=written)
     onnx.helper.set_model_props(model, metadata.to_properties())
     model.producer_name = "sb3-formation"
     path = Path(path)

@@ -98,6 +98,10 @@ class FormationVecEnv(VecEnv):
         """The slots of a team's agents, agent 0 first."""
         return slice(int(self._team_starts[team]), int(self._team_starts[team + 1]))
 
+    def slot_team(self, slot: int) -> int:
+        """The team whose agent fills ``slot``."""
+        return int(self._slot_teams[slot])
+
     def _teams_of(self, indices: VecEnvIndices) -> list[int]:
         """Teams of the given slots, in order of first appearance."""
         return list(dict.fromkeys(int(self._slot_teams[slot]) for slot in self._get_indices(indices)))

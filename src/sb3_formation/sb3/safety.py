@@ -1,0 +1,76 @@
+"""Shielded training: the VecEnv wrapper that passes every slot's action through the safety filter."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, cast
+
+import numpy as np
+from stable_baselines3.common.vec_env import VecEnvWrapper
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepReturn
+
+from sb3_formation.env.config import FormationConfig
+from sb3_formation.safety.filter import SafetyFilter, SafetyGains
+from sb3_formation.safety.policy import FilterTally
+
+if TYPE_CHECKING:
+    from sb3_formation.sb3.vec_env import FormationVecEnv
+
+
+class SafetyVecEnv(VecEnvWrapper):
+    """The env applies the filtered action, PPO keeps its own ("shielded" PPO): each slot's action passes through the
+    :class:`~sb3_formation.safety.filter.SafetyFilter` of its team's task, on the raw observation the slot last
+    returned (wrap the :class:`~sb3_formation.sb3.vec_env.FormationVecEnv` itself, below a residual wrapper and any
+    normaliser). With ``penalty`` > 0 each agent's reward loses ``penalty |a_safe - a|``. When a team's episode ends its
+    ``formation_episode`` info gains what the filter did in it (the keys of
+    :data:`~sb3_formation.safety.policy.SAFETY_METRIC_KEYS`), which the metrics callback logs to TensorBoard.
+
+    :param venv: the formation VecEnv (raw observations; with team observations the first ``agent_obs_dim`` columns)
+    :param gains: the filter's gains (default :class:`SafetyGains`)
+    :param penalty: reward lost per unit of the change of an action (>= 0)
+    """
+
+    venv: FormationVecEnv
+
+    def __init__(self, venv: FormationVecEnv, gains: SafetyGains | None = None, penalty: float = 0.0) -> None:
+        super().__init__(venv)
+        if not penalty >= 0:
+            raise ValueError(f"the safety penalty must be >= 0, got {penalty!r}")
+        self.penalty = float(penalty)
+        self.agent_obs_dim: int = venv.agent_observation_dim
+        slots: dict[FormationConfig, list[int]] = {}
+        for team, config in enumerate(venv.team_configs):
+            slots.setdefault(config, []).extend(range(venv.num_envs)[venv.team_slots(team)])
+        #: each team task's filter and the slots of its teams
+        self._filters = [(SafetyFilter(config, gains), np.array(team_slots)) for config, team_slots in slots.items()]
+        self.tally = FilterTally(venv.num_envs)
+        self._observations: np.ndarray | None = None
+        self._change = np.zeros(venv.num_envs)
+
+    def reset(self) -> VecEnvObs:
+        self._observations = cast(np.ndarray, self.venv.reset())  # a Box's observations
+        self.tally.resize(self.num_envs)
+        return self._observations
+
+    def step_async(self, actions: np.ndarray) -> None:
+        if self._observations is None:
+            raise RuntimeError("reset() the env before stepping it")
+        actions = self.venv.checked_actions(actions)
+        own = self._observations[:, : self.agent_obs_dim]
+        safe = np.empty((len(own), 2))
+        for safety, slots in self._filters:
+            safe[slots], report = safety.filter(own[slots], actions[slots])
+            self._change[slots] = report.change
+            self.tally.add(report, slots)
+        self.venv.step_async(safe)
+
+    def step_wait(self) -> VecEnvStepReturn:
+        observations, rewards, dones, infos = self.venv.step_wait()
+        self._observations = cast(np.ndarray, observations)  # a Box's observations
+        if self.penalty:
+            rewards = (rewards - self.penalty * self._change).astype(np.float32)
+        for slot, info in enumerate(infos):
+            if "formation_episode" in info:  # the team's first slot: its episode ended, the next starts now
+                team = self.venv.team_slots(self.venv.slot_team(slot))
+                info["formation_episode"] = {**info["formation_episode"], **self.tally.metrics(team)}
+                self.tally.restart(team)
+        return observations, rewards, dones, infos
