@@ -18,6 +18,8 @@ from sb3_formation.env.sensors import ray_directions
 from sb3_formation.safety import SafetyFilter, SafetyGains
 from sb3_formation.safety.policy import SafePolicy
 from sb3_formation.safety.qp import solve_one, solve_with_library
+from sb3_formation.sb3.safety import SafetyVecEnv
+from sb3_formation.sb3.vec_env import FormationVecEnv
 
 CONFIG = FormationConfig.task("ch5-bearing", stage=3)
 LAYOUT = observation_layout(observation_fields(CONFIG))
@@ -240,3 +242,32 @@ def test_a_safe_policy_keeps_what_its_policy_is_and_reports_per_episode() -> Non
     assert safe.tally.steps.tolist() == [3] * len(rows)
     assert set(metrics) == {"filter_changed_fraction", "filter_change_mean", "filter_infeasible_steps", "min_separation"}
     assert 0 <= metrics["filter_changed_fraction"] <= 1
+
+
+def test_shielded_vec_env_applies_the_filtered_action_penalises_the_change_and_reports_episodes() -> None:
+    """The env steps with the filter's actions (an unwrapped twin stepped with the same safe actions returns the same
+    observations), each reward loses ``penalty |a_safe - a|``, and an ended episode's info carries what the filter did
+    (counted here independently from the filter's reports)."""
+    config = CONFIG.replace(max_steps=12, formation_scale=0.36)  # neighbours 3 cm apart
+    shielded = SafetyVecEnv(FormationVecEnv(config, n_envs=2), penalty=2.0)
+    twin = FormationVecEnv(config, n_envs=2)
+    shielded.seed(4)
+    twin.seed(4)
+    rows, twin_rows = shielded.reset(), twin.reset()
+    safety, rng = SafetyFilter(config), np.random.default_rng(0)
+    changed, steps = np.zeros(len(rows)), 0
+    for _ in range(12):
+        actions = adversarial_actions(rows, config, rng, "nearest")
+        safe, report = safety.filter(rows, actions)
+        changed += report.changed
+        steps += 1
+        rows, rewards, _, infos = shielded.step(actions)
+        twin_rows, twin_rewards, _, _ = twin.step(safe)
+        np.testing.assert_array_equal(rows, twin_rows)
+        np.testing.assert_allclose(rewards, twin_rewards - 2.0 * report.change, rtol=0, atol=1e-5)
+    assert changed.sum() > 0
+    for team in range(2):  # max_steps 12: both teams' episodes ended at the last step
+        episode = infos[team * config.n_agents]["formation_episode"]
+        team_rows = slice(team * config.n_agents, (team + 1) * config.n_agents)
+        assert episode["filter_changed_fraction"] == pytest.approx(changed[team_rows].sum() / (steps * config.n_agents))
+        assert episode["filter_infeasible_steps"] == 0 and episode["min_separation"] > 0

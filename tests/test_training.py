@@ -31,6 +31,10 @@ from sb3_formation.experiment.runs import FINAL_MODEL, STATE_FILE, latest_checkp
 from sb3_formation.experiment.settings import TrainSettings, layered_settings
 from sb3_formation.experiment.targets import load_policy
 from sb3_formation.experiment.training import make_training_env
+from sb3_formation.runtime import OnnxPolicy
+from sb3_formation.safety import SafetyGains
+from sb3_formation.safety.policy import SafePolicy
+from sb3_formation.sb3.onnx_export import export_onnx
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
 from sb3_formation.utils.files import folder_lock
@@ -404,6 +408,55 @@ def test_the_scene_recipe_trains_through_a_kill_and_resumes(tmp_path: Path) -> N
         np.testing.assert_array_equal(alone[0], actions[0])
         np.testing.assert_array_equal(alone_state[1][0], next_state[1][0])
         rows, state = env.step_array(actions)[0], next_state
+
+
+@pytest.mark.slow
+def test_the_shielded_recipe_trains_through_a_kill_resumes_and_exports_its_filter(tmp_path: Path) -> None:
+    """fast-ch5-bearing-shielded (shrunk) trains behind the safety filter through a SIGKILL and a resume; TensorBoard
+    has the filter's metrics; the run loads behind its filter, and its exported ONNX runtime filters like it (1e-6)."""
+    setup = tmp_path / "shielded.yaml"
+    setup.write_text(
+        yaml.safe_dump(
+            {
+                "base": "fast-ch5-bearing-shielded",
+                "policy": {"net_arch": {"pi": [16], "vf": [16]}},
+                "ppo": {"n_steps": 32, "batch_size": 96, "n_epochs": 1},
+                "n_envs": 1,
+                "training": {"steps": 8 * 32 * 6, "eval_every": None},
+            }
+        )
+    )
+    arguments = ["train", "--recipe", str(setup), "--env", "max_steps=40", "--checkpoint-every", "1", "--no-progress"]
+    process = run_cli(*arguments, "--no-evaluate", "--run-dir", "run", cwd=tmp_path)
+    run_dir = tmp_path / "run"
+    wait_for(lambda: latest_checkpoint(run_dir) is not None and latest_checkpoint(run_dir).name >= "iteration_000003")
+    process.send_signal(signal.SIGKILL)
+    process.wait(timeout=30)
+    assert not (run_dir / FINAL_MODEL).exists()
+    resumed = run_cli("train", "--resume", str(run_dir), cwd=tmp_path)
+    _, stderr = resumed.communicate(timeout=300)
+    assert resumed.returncode == 0, stderr
+    final = json.loads((latest_checkpoint(run_dir) / STATE_FILE).read_text())
+    assert final["curriculum"]["iteration"] == 8 and final["num_timesteps"] == 8 * 32 * 6
+    events = EventAccumulator(str(run_dir / "tensorboard"))
+    events.Reload()
+    tags = set(events.Tags()["scalars"])
+    assert {"safety/changed_fraction", "safety/change_mean", "safety/infeasible_steps", "safety/min_separation"} <= tags
+    policy = load_policy(run_dir)
+    assert isinstance(policy, SafePolicy) and policy.filter.gains == SafetyGains()
+    runtime = OnnxPolicy(export_onnx(policy, tmp_path / "shielded.onnx"), threads=1)
+    assert runtime.safety is not None and runtime.safety.gains == SafetyGains()
+    env = FormationEnv(policy.config.replace(scenes="clutter"))
+    rows = np.stack(list(env.reset(seed=2)[0].values()))
+    layout = env.observation_layout
+    rows[:, layout["lidar_obstacles"]] = np.minimum(rows[:, layout["lidar_obstacles"]], 0.005)  # walls 7.5 mm away all round
+    filtered, _ = policy.predict(rows)
+    exported, _ = runtime.predict(rows)
+    unfiltered, _ = policy.policy.predict(rows)
+    np.testing.assert_allclose(exported, filtered, rtol=0, atol=1e-6)
+    assert np.abs(filtered - unfiltered).max() > 0.01  # the filter acted
+    # behind safe: it is filtered once, with its own gains
+    assert SafePolicy(runtime).filter.gains == SafetyGains() and SafePolicy(runtime).policy.safety is None
 
 
 @pytest.mark.slow
