@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import os
 import math
+import os
 from collections.abc import Sequence
 from contextlib import AbstractContextManager
 from pathlib import Path
