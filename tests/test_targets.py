@@ -11,11 +11,14 @@ import pytest
 
 from sb3_formation import FormationEnv, load_policy
 from sb3_formation.cli import main
-from sb3_formation.controllers import RandomController, TeamPolicy
+from sb3_formation.cli.common import target_label
+from sb3_formation.controllers import ClassicalController, RandomController, TeamPolicy
+from sb3_formation.controllers.residual import ResidualPolicy
 from sb3_formation.env.rendering import render_frame
 from sb3_formation.experiment.evaluation import evaluate
 from sb3_formation.experiment.targets import evaluation_folder, target_kind
 from sb3_formation.experiment.trajectories import Trajectories
+from sb3_formation.safety.policy import SafePolicy
 
 QUICK = ["--episodes", "2", "--n-envs", "2", "--no-progress"]
 
@@ -61,6 +64,36 @@ def test_controller_targets_work_with_every_command(name: str, tmp_path: Path, m
     assert f"| controller:{name} | 2 |" in (tmp_path / "table.md").read_text()
     assert main(["rollout", f"controller:{name}", *short, "--episodes", "1", "--max-steps", "5", "--out", "f.png"]) == 0
     assert (tmp_path / "f.png").is_file()
+
+
+def test_safe_targets_put_any_target_behind_the_filter_in_every_command(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``safe:<target>``: the same target behind the safety filter; its evaluations beside the unfiltered ones (folder
+    ``-safe``), compared with them, and rendered."""
+    monkeypatch.chdir(tmp_path)
+    policy = load_policy("safe:controller:classical", recipe="ch4-individual")
+    assert isinstance(policy, SafePolicy) and isinstance(policy.policy, ClassicalController)
+    assert policy.config.n_agents == 3 and target_kind("safe:controller:classical") == "controller"
+    assert isinstance(load_policy("safe:pretrained:ch5-bearing").policy, ResidualPolicy)
+    assert evaluation_folder("safe:controller:random") == Path("evaluations/controller-random_ch5-bearing-safe")
+    assert evaluation_folder("safe:runs/a/final_model.zip", scenes="trap") == Path("runs/a/eval-trap-safe")
+    (tmp_path / "runs" / "a").mkdir(parents=True)
+    assert target_label("safe:runs/a") == "safe-a" and target_label("safe:controller:random") == "safe:controller:random"
+    short = ["--recipe", "ch4-individual", *QUICK]
+    for target in ("controller:classical", "safe:controller:classical"):
+        assert main(["evaluate", target, *short]) == 0
+    plain, safe = (
+        json.loads((tmp_path / "evaluations" / f"controller-classical_ch4-individual{suffix}" / "summary.json").read_text())
+        for suffix in ("", "-safe")
+    )
+    assert "min_separation" not in plain and safe["min_separation"] > 0
+    assert safe["model"]["policy"] == plain["model"] and safe["model"]["safety"]["gamma"] == 0.5
+    assert main(["compare", "controller:classical", "safe:controller:classical", *short, "--table", "table.md"]) == 0
+    assert "| safe:controller:classical | 2 |" in (tmp_path / "table.md").read_text()
+    assert (
+        main(["render", "safe:controller:classical", "--recipe", "ch4-individual", "--max-steps", "5", "--out", "s.gif"]) == 0
+    )
 
 
 def test_a_recorded_episode_is_drawn_from_its_file_without_the_policy(tmp_path: Path) -> None:
