@@ -135,7 +135,6 @@ def _add_row(
 @numba.njit(cache=True)
 def _build_constraints(
     observations: np.ndarray,
-    targets: np.ndarray,
     projections: np.ndarray,
     bounds: np.ndarray,
     directions: np.ndarray,
@@ -156,7 +155,6 @@ def _build_constraints(
     """Every agent's constraint rows (see the module docstring), in units of v_max (u) and v_max dt (h).
 
     :param observations: ``(k, obs_dim)`` raw rows
-    :param targets: ``(k, 2)`` commanded velocities t (units of v_max), for the activation test only
     :param projections: ``(k, 2, 2)`` the map from the controlled point's velocity to the centre's: the identity for
         a holonomic agent, ``h h^T`` for a unicycle (its centre moves along its heading h with the forward speed h . u)
     :param bounds: ``(k, 4, 3)`` each agent's four action-bound rows (a_x, a_y, b) in units of v_max
@@ -260,14 +258,16 @@ class SafetyFilter:
         self._capacity = 2 * config.lidar_rays + _FIXED_CONSTRAINTS + sides
 
     def filter(self, observations: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, FilterReport]:
-        """Safe actions ``(k, 2)`` float32 for ``(k, obs_dim)`` raw rows and their proposed ``(k, 2)`` actions, and what
-        the filter did. Each row is filtered from itself alone; rows whose actions keep every constraint come back as
-        they were (after clipping to [-1, 1]).
+        """Safe actions ``(k, 2)`` for ``(k, obs_dim)`` raw rows and their proposed ``(k, 2)`` actions (float32 or
+        float64, kept; anything else becomes float64), and what the filter did. Each row is filtered from itself alone;
+        rows whose actions keep every constraint come back as they were (after clipping to [-1, 1]).
 
         :raises ValueError: rows or actions of the wrong shape, or actions that are not finite
         """
         observations = np.asarray(observations, dtype=np.float64)
-        proposed = np.asarray(actions, dtype=np.float32)
+        proposed = np.asarray(actions)
+        if proposed.dtype not in (np.float32, np.float64):
+            proposed = proposed.astype(np.float64)
         width = self.observation_dim
         if observations.ndim != 2 or observations.shape[1] != width:
             raise ValueError(f"the safety filter takes (k, {width}) observation rows, got shape {observations.shape}")
@@ -286,7 +286,6 @@ class SafetyFilter:
         separation = np.zeros(count)
         _build_constraints(
             observations,
-            targets,
             projections,
             bounds,
             self._directions,
@@ -318,7 +317,7 @@ class SafetyFilter:
         changed = (solutions[:, 0] != targets[:, 0]) | (solutions[:, 1] != targets[:, 1])
         safe = proposed.copy()
         if changed.any():
-            safe[changed] = self._actions(solutions[changed, :2], velocity[changed], frames[changed])
+            safe[changed] = self._actions(solutions[changed, :2], velocity[changed], frames[changed]).astype(safe.dtype)
         change = np.where(changed, np.linalg.norm(safe - proposed, axis=1), 0.0)
         infeasible = solutions[:, 2] > self.gains.infeasible_slack
         return safe, FilterReport(changed, change, infeasible, separation)
@@ -369,4 +368,5 @@ class SafetyFilter:
             actions = np.stack(
                 [(along[:, 0] - current) / self._push, along[:, 1] / (self.lookahead * self.config.max_turn_rate)], axis=1
             )
-        return np.clip(actions, -1.0, 1.0).astype(np.float32)
+        clipped: np.ndarray = np.clip(actions, -1.0, 1.0)
+        return clipped
