@@ -31,6 +31,7 @@ def test_the_four_thesis_recipes_are_shipped_with_their_citations() -> None:
     assert recipe_names() == [
         *thesis,
         *(f"fast-{name}" for name in thesis),
+        "fast-ch5-bearing-shielded",
         "imitate-ch5-bearing",
         "mixed-ch5-bearing",
         *(f"residual-{name}" for name in thesis),
