@@ -362,16 +362,15 @@ def test_killed_recurrent_run_resumes_evaluates_and_renders(tmp_path: Path) -> N
     assert Image.open(tmp_path / "episode.gif").n_frames == 5
 
 
-@pytest.mark.slow
-def test_the_scene_recipe_trains_through_a_kill_and_resumes(tmp_path: Path) -> None:
-    """residual-scenes-ch5-bearing (shrunk: small nets, short rollouts, one team, episodes of 60 steps) trains its one
-    stage, PPO on the correction of controller:shrinking in the scene families with the geodesic goal term, through a
-    SIGKILL after a checkpoint, and a resume finishes it with the budget's timesteps; it loads as that residual policy."""
-    setup = tmp_path / "scenes.yaml"
+def train_shrunk_through_a_kill(tmp_path: Path, recipe: str, max_steps: int) -> Path:
+    """Train ``recipe`` shrunk (small nets, short rollouts, one team, episodes of ``max_steps``) for 8 iterations into
+    ``tmp_path/run``, SIGKILL it after its third checkpoint, resume it, and check that it finished with the budget's
+    timesteps; return the run folder."""
+    setup = tmp_path / "shrunk.yaml"
     setup.write_text(
         yaml.safe_dump(
             {
-                "base": "residual-scenes-ch5-bearing",
+                "base": recipe,
                 "policy": {"net_arch": {"pi": [16], "vf": [16]}},
                 "ppo": {"n_steps": 32, "batch_size": 96, "n_epochs": 1},
                 "n_envs": 1,
@@ -379,8 +378,8 @@ def test_the_scene_recipe_trains_through_a_kill_and_resumes(tmp_path: Path) -> N
             }
         )
     )
-    arguments = ["train", "--recipe", str(setup), "--env", "max_steps=60", "--checkpoint-every", "1", "--no-progress"]
-    process = run_cli(*arguments, "--run-dir", "run", cwd=tmp_path)
+    arguments = ["train", "--recipe", str(setup), "--env", f"max_steps={max_steps}", "--checkpoint-every", "1"]
+    process = run_cli(*arguments, "--no-progress", "--no-evaluate", "--run-dir", "run", cwd=tmp_path)
     run_dir = tmp_path / "run"
     wait_for(lambda: latest_checkpoint(run_dir) is not None and latest_checkpoint(run_dir).name >= "iteration_000003")
     process.send_signal(signal.SIGKILL)
@@ -392,6 +391,15 @@ def test_the_scene_recipe_trains_through_a_kill_and_resumes(tmp_path: Path) -> N
     assert resumed.returncode == 0, stderr
     final = json.loads((latest_checkpoint(run_dir) / STATE_FILE).read_text())
     assert final["curriculum"]["iteration"] == 8 and final["num_timesteps"] == 8 * 32 * 6
+    return run_dir
+
+
+@pytest.mark.slow
+def test_the_scene_recipe_trains_through_a_kill_and_resumes(tmp_path: Path) -> None:
+    """residual-scenes-ch5-bearing (shrunk: small nets, short rollouts, one team, episodes of 60 steps) trains its one
+    stage, PPO on the correction of controller:shrinking in the scene families with the geodesic goal term, through a
+    SIGKILL after a checkpoint, and a resume finishes it with the budget's timesteps; it loads as that residual policy."""
+    run_dir = train_shrunk_through_a_kill(tmp_path, "residual-scenes-ch5-bearing", max_steps=60)
     policy = load_policy(run_dir)
     assert isinstance(policy, ResidualPolicy) and isinstance(policy.base, ShrinkingController)
     assert policy.config.scenes == "mixed" and policy.config.goal_progress == "geodesic"
@@ -414,30 +422,7 @@ def test_the_scene_recipe_trains_through_a_kill_and_resumes(tmp_path: Path) -> N
 def test_the_shielded_recipe_trains_through_a_kill_resumes_and_exports_its_filter(tmp_path: Path) -> None:
     """fast-ch5-bearing-shielded (shrunk) trains behind the safety filter through a SIGKILL and a resume; TensorBoard
     has the filter's metrics; the run loads behind its filter, and its exported ONNX runtime filters like it (1e-6)."""
-    setup = tmp_path / "shielded.yaml"
-    setup.write_text(
-        yaml.safe_dump(
-            {
-                "base": "fast-ch5-bearing-shielded",
-                "policy": {"net_arch": {"pi": [16], "vf": [16]}},
-                "ppo": {"n_steps": 32, "batch_size": 96, "n_epochs": 1},
-                "n_envs": 1,
-                "training": {"steps": 8 * 32 * 6, "eval_every": None},
-            }
-        )
-    )
-    arguments = ["train", "--recipe", str(setup), "--env", "max_steps=40", "--checkpoint-every", "1", "--no-progress"]
-    process = run_cli(*arguments, "--no-evaluate", "--run-dir", "run", cwd=tmp_path)
-    run_dir = tmp_path / "run"
-    wait_for(lambda: latest_checkpoint(run_dir) is not None and latest_checkpoint(run_dir).name >= "iteration_000003")
-    process.send_signal(signal.SIGKILL)
-    process.wait(timeout=30)
-    assert not (run_dir / FINAL_MODEL).exists()
-    resumed = run_cli("train", "--resume", str(run_dir), cwd=tmp_path)
-    _, stderr = resumed.communicate(timeout=300)
-    assert resumed.returncode == 0, stderr
-    final = json.loads((latest_checkpoint(run_dir) / STATE_FILE).read_text())
-    assert final["curriculum"]["iteration"] == 8 and final["num_timesteps"] == 8 * 32 * 6
+    run_dir = train_shrunk_through_a_kill(tmp_path, "fast-ch5-bearing-shielded", max_steps=40)
     events = EventAccumulator(str(run_dir / "tensorboard"))
     events.Reload()
     tags = set(events.Tags()["scalars"])

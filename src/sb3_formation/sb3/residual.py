@@ -10,7 +10,6 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepR
 
 from sb3_formation.controllers.base import Controller
 from sb3_formation.controllers.residual import add_correction, check_residual_scale
-from sb3_formation.env.config import FormationConfig
 
 if TYPE_CHECKING:
     from sb3_formation.sb3.vec_env import FormationVecEnv
@@ -34,10 +33,7 @@ class ResidualVecEnv(VecEnvWrapper):
         self.base, self.scale = base, check_residual_scale(scale)
         self.agent_obs_dim: int = venv.agent_observation_dim
         #: each team task's controller and the slots of its teams (whole teams, agent 0 first, as ``predict`` expects)
-        slots: dict[FormationConfig, list[int]] = {}
-        for team, config in enumerate(venv.team_configs):
-            slots.setdefault(config, []).extend(range(venv.num_envs)[venv.team_slots(team)])
-        self._controllers = [(base.fit(config), np.array(team_slots)) for config, team_slots in slots.items()]
+        self._controllers = [(base.fit(config), slots) for config, slots in venv.slots_by_task().items()]
         #: each controller's state (its memory of its slots, ``None`` for a memoryless one), carried across steps
         self._states: list[Any] = [None] * len(self._controllers)
         self._observations: np.ndarray | None = None

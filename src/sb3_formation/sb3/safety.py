@@ -8,7 +8,6 @@ import numpy as np
 from stable_baselines3.common.vec_env import VecEnvWrapper
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepReturn
 
-from sb3_formation.env.config import FormationConfig
 from sb3_formation.safety.filter import SafetyFilter, SafetyGains
 from sb3_formation.safety.policy import FilterTally
 
@@ -37,11 +36,8 @@ class SafetyVecEnv(VecEnvWrapper):
             raise ValueError(f"the safety penalty must be >= 0, got {penalty!r}")
         self.penalty = float(penalty)
         self.agent_obs_dim: int = venv.agent_observation_dim
-        slots: dict[FormationConfig, list[int]] = {}
-        for team, config in enumerate(venv.team_configs):
-            slots.setdefault(config, []).extend(range(venv.num_envs)[venv.team_slots(team)])
         #: each team task's filter and the slots of its teams
-        self._filters = [(SafetyFilter(config, gains), np.array(team_slots)) for config, team_slots in slots.items()]
+        self._filters = [(SafetyFilter(config, gains), slots) for config, slots in venv.slots_by_task().items()]
         self.tally = FilterTally(venv.num_envs)
         self._observations: np.ndarray | None = None
         self._change = np.zeros(venv.num_envs)

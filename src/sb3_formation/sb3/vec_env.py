@@ -102,6 +102,13 @@ class FormationVecEnv(VecEnv):
         """The team whose agent fills ``slot``."""
         return int(self._slot_teams[slot])
 
+    def slots_by_task(self) -> dict[FormationConfig, np.ndarray]:
+        """The slots of each team task's teams (whole teams, agent 0 first), by task (they differ in ``n_agents``)."""
+        slots: dict[FormationConfig, list[int]] = {}
+        for team, config in enumerate(self.team_configs):
+            slots.setdefault(config, []).extend(range(self.num_envs)[self.team_slots(team)])
+        return {config: np.array(team_slots) for config, team_slots in slots.items()}
+
     def _teams_of(self, indices: VecEnvIndices) -> list[int]:
         """Teams of the given slots, in order of first appearance."""
         return list(dict.fromkeys(int(self._slot_teams[slot]) for slot in self._get_indices(indices)))
