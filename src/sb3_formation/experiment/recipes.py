@@ -408,10 +408,8 @@ class Recipe:
         return None if minutes is None else 60.0 * minutes
 
     def safety_gains(self) -> SafetyGains | None:
-        """The safety filter's gains of a shielded recipe (its ``safety`` section without ``penalty``), else ``None``."""
-        if not self.safety:
-            return None
-        return SafetyGains.from_dict({name: value for name, value in self.safety.items() if name != "penalty"})
+        """The safety filter's gains of a shielded recipe (:func:`safety_gains`), else ``None``."""
+        return safety_gains(self.safety)
 
     @property
     def safety_penalty(self) -> float:
@@ -477,6 +475,17 @@ def _with_current_keys(values: dict[str, Any], name: str) -> dict[str, Any]:
         warn_renamed(f"the key env: preset: of recipe {name!r}", "env: task:", stacklevel=4)
         values["env"] = {("task" if key == "preset" else key): value for key, value in env.items()}
     return values
+
+
+def safety_gains(section: dict[str, Any] | None) -> SafetyGains | None:
+    """The safety filter's gains that a recipe's ``safety`` section gives (the section without ``penalty``), or ``None``
+    for an empty section (no filter).
+
+    :raises ValueError: an unknown or invalid gain
+    """
+    if not section:
+        return None
+    return SafetyGains.from_dict({name: value for name, value in section.items() if name != "penalty"})
 
 
 def residual_base(spec: dict[str, Any], config: FormationConfig) -> tuple[Controller, float]:
