@@ -20,6 +20,7 @@ from sb3_formation.experiment.pretrained import numerics_fingerprint
 from sb3_formation.experiment.recipes import RECIPES_FOLDER, Recipe, load_recipe, recipe_names
 from sb3_formation.experiment.runs import FINAL_MODEL
 from sb3_formation.experiment.settings import TrainSettings, layered_settings, load_settings
+from sb3_formation.safety import SafetyGains
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
 
@@ -281,3 +282,18 @@ def test_the_unicycle_recipe_changes_only_the_dynamics_of_its_base() -> None:
     assert unicycle.config() == base.config().replace(dynamics="unicycle")
     holonomic = unicycle.with_changes({"env": {"dynamics": "holonomic"}}).to_dict()
     assert holonomic == {**base.to_dict(), "name": unicycle.name, "description": unicycle.description}
+
+
+def test_a_recipes_safety_section_is_checked_and_turns_the_filter_on() -> None:
+    shielded = load_recipe("fast-ch5-bearing-shielded")
+    assert shielded.safety_gains() == SafetyGains() and shielded.safety_penalty == 0.5
+    assert load_recipe("fast-ch5-bearing").safety_gains() is None
+    assert shielded.with_changes({"safety": {"gamma": 0.2}}).safety_gains() == SafetyGains(gamma=0.2)
+    assert Recipe.from_dict("x", shielded.to_dict()).safety == shielded.safety  # written and read back
+    for section, message in (
+        ({"gama": 0.2}, r"safety: unknown safety filter setting\(s\) \['gama'\]"),
+        ({"penalty": -1}, "safety: penalty must be a finite number >= 0"),
+        ({"solver": "gurobi"}, r"SafetyGains\.solver='gurobi' is invalid"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            load_recipe("fast-ch5-bearing").with_changes({"safety": section})
