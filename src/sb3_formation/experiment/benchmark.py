@@ -11,7 +11,8 @@ target's own size unless ``n_agents`` is given. A row reports:
   that passes in single file or loses its shape shows it;
 - agent and obstacle contacts per episode (over all episodes; a touching pair of agents counts once per step, an
   agent touching a shape or the border once per step);
-- contact episodes: the episodes with any contact (agents or obstacles), so that "none in every episode" can be read;
+- contact episodes: the episodes with agent contacts plus the episodes with obstacle contacts (an episode with both
+  counts twice), so that 0 reads "no contact of any kind in any episode";
 - steps per episode over the successful episodes;
 - seconds: the evaluation's wall time;
 - for a policy behind the safety filter (``safe:<target>``): the share of agent-steps whose action the filter changed
