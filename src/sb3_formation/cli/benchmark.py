@@ -22,6 +22,8 @@ from sb3_formation.experiment.benchmark import (
     run_benchmark,
 )
 from sb3_formation.experiment.targets import load_policy, target_kind
+from sb3_formation.utils.checks import check_name
+from sb3_formation.utils.files import folder_lock, holds_files
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -53,38 +55,51 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """``sb3-formation benchmark TARGET...``: the table, the evaluations and the figures."""
-    if args.out.exists() and (not args.out.is_dir() or any(args.out.iterdir())):
-        raise ValueError(f"{args.out} already holds files: give a new or empty --out (nothing was written)")
+    """``sb3-formation benchmark TARGET...``: the table, the evaluations and the figures, with ``--out`` locked from
+    the check that it is new or empty to the last figure (a second benchmark into it is refused)."""
     labels = target_labels(args.labels, args.targets)
     folders = [re.sub(r"[^A-Za-z0-9_.-]+", "-", label) for label in labels]
+    for folder in folders:
+        check_name(folder, "label")
     if len(set(folders)) != len(folders):
         raise ValueError(f"labels must differ, got {labels}")
+    check_new_folder(args.out)
     with model_trust(args):
         for target in args.targets:  # every target loads before any is evaluated
             load_policy(target, args.recipe if target_kind(target) else None, args.device)
-        rows = run_benchmark(
-            args.targets,
-            folders,
-            args.out,
-            episodes=args.episodes,
-            seed=args.seed,
-            n_agents=args.agents,
-            n_envs=args.n_envs,
-            workers=args.workers,
-            recipe=args.recipe,
-            device=args.device,
-            progress_bar=not args.no_progress,
-            command=args.command_line,
-        )
-    from sb3_formation.viz.plots import plot_trajectory, save_figures  # matplotlib: only where a figure is drawn
+        with folder_lock(args.out, "benchmark folder", remove=True):
+            check_new_folder(args.out)  # again, now that no other benchmark can start writing here
+            rows = run_benchmark(
+                args.targets,
+                folders,
+                args.out,
+                episodes=args.episodes,
+                seed=args.seed,
+                n_agents=args.agents,
+                n_envs=args.n_envs,
+                workers=args.workers,
+                recipe=args.recipe,
+                device=args.device,
+                progress_bar=not args.no_progress,
+                command=args.command_line,
+            )
+            from sb3_formation.viz.plots import plot_trajectory, save_figures  # matplotlib: only where one is drawn
 
-    figures = {
-        args.out / "figures" / f"{row.label}_{row.scenes}.png": plot_trajectory(row.result.trajectories, 0)
-        for row in rows
-        if row.result.trajectories is not None
-    }
-    save_figures(figures)
+            figures = {
+                args.out / "figures" / f"{row.label}_{row.scenes}.png": plot_trajectory(row.result.trajectories, 0)
+                for row in rows
+                if row.result.trajectories is not None
+            }
+            save_figures(figures)
     print((args.out / TABLE_FILE).read_text().rstrip())
     print(f"table written to {args.out / TABLE_FILE}, figures to {args.out / 'figures'}")
     return 0
+
+
+def check_new_folder(out: Path) -> None:
+    """Refuse an ``--out`` that holds files (:func:`~sb3_formation.utils.files.holds_files`).
+
+    :raises ValueError: ``out`` is a file or holds files
+    """
+    if holds_files(out):
+        raise ValueError(f"{out} already holds files: give a new or empty --out (nothing was written)")

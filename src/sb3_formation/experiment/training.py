@@ -57,7 +57,7 @@ from sb3_formation.sb3.safety import SafetyVecEnv
 from sb3_formation.sb3.trained import TrainedPolicy
 from sb3_formation.sb3.vec_env import FormationVecEnv
 from sb3_formation.utils.checks import check_path
-from sb3_formation.utils.files import LOCK_FILE, atomic_directory, atomic_write, folder_lock
+from sb3_formation.utils.files import atomic_directory, atomic_write, folder_lock, holds_files
 
 # Models and checkpoints ----------------------------------------------------------------------------------------
 
@@ -305,7 +305,7 @@ def train(settings: TrainSettings, command: str | None = None, run_dir: str | os
 
 def _check_unused(run_dir: Path) -> None:
     """Refuse a run folder that is a file or holds anything but its lock."""
-    if run_dir.exists() and (not run_dir.is_dir() or any(path.name != LOCK_FILE for path in run_dir.iterdir())):
+    if holds_files(run_dir):
         raise ValueError(
             f"{run_dir} is not empty (a run is there already): continue it with --resume {run_dir}, or give an empty "
             "or new folder"

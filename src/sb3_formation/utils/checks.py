@@ -54,3 +54,16 @@ def check_path(path: str | os.PathLike[str], what: str) -> None:
     for part in Path(text).parts:
         if len(part.encode("utf-8")) > MAX_NAME_BYTES:
             raise ValueError(f"{what}: the name {part[:40]!r}... is longer than {MAX_NAME_BYTES} bytes")
+
+
+def check_name(name: str, what: str) -> None:
+    """Refuse a name that is not one file or folder name inside its parent: empty, ``.``, ``..``, or holding a path
+    separator or a NUL (a label that becomes a folder under ``--out`` must stay under it).
+
+    :param name: the name
+    :param what: what it is (an option, a setting), for the message
+    :raises ValueError: naming the problem
+    """
+    if name in ("", ".", "..") or any(character in name for character in ("/", "\\", "\0")):
+        raise ValueError(f"{what} {name!r} is not a single file name: give letters, digits, '.', '-' or '_'")
+    check_path(name, what)

@@ -12,6 +12,7 @@ import hashlib
 import os
 import secrets
 import shutil
+import stat
 import tempfile
 import time
 import zipfile
@@ -217,6 +218,12 @@ def fsync_directory(folder: Path, files: bool = True) -> None:
         os.close(handle)
 
 
+def holds_files(folder: Path) -> bool:
+    """Whether ``folder`` is a file, or a folder holding anything but a lock file (one a killed process left counts
+    as nothing)."""
+    return folder.exists() and (not folder.is_dir() or any(path.name != LOCK_FILE for path in folder.iterdir()))
+
+
 @contextlib.contextmanager
 def folder_lock(folder: Path, what: str = "folder", wait: float = 0.0, remove: bool = False) -> Iterator[None]:
     """Hold an exclusive lock on ``folder`` (created if needed) while the block runs, through ``folder/.lock``.
@@ -236,7 +243,7 @@ def folder_lock(folder: Path, what: str = "folder", wait: float = 0.0, remove: b
         return
     path = folder / LOCK_FILE
     deadline = time.monotonic() + wait
-    while (stream := _try_lock(path)) is None:
+    while (stream := _try_lock(path, f"{what} {folder}")) is None:
         if time.monotonic() >= deadline:
             holder = _lock_holder(path)
             raise RuntimeError(f"{what} {folder} is in use by another process (pid {holder}); wait for it to end")
@@ -254,11 +261,28 @@ def folder_lock(folder: Path, what: str = "folder", wait: float = 0.0, remove: b
             fcntl.flock(stream.fileno(), fcntl.LOCK_UN)
 
 
-def _try_lock(path: Path) -> IO[str] | None:
+def _try_lock(path: Path, where: str) -> IO[str] | None:
     """The open lock file ``path``, locked, or ``None`` if another holds it. A lock taken on a file that a holder
-    deleted (see ``remove`` of :func:`folder_lock`) before letting go is let go and taken again on the new file."""
+    deleted (see ``remove`` of :func:`folder_lock`) before letting go is let go and taken again on the new file.
+
+    The lock file is opened without following a symbolic link, and only a regular file is taken: a planted
+    ``.lock`` link (in a folder someone sent) must never truncate the file it points to.
+
+    :raises RuntimeError: ``path`` is a symbolic link or not a regular file (``where`` names the folder)
+    """
     while True:
-        stream = open(path, "a+")
+        try:
+            handle = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK, FILE_MODE)
+        except OSError as error:
+            if error.errno == errno.ELOOP:
+                raise RuntimeError(f"{where}: its {LOCK_FILE} is a symbolic link; remove it") from None
+            if error.errno == errno.EISDIR:
+                raise RuntimeError(f"{where}: its {LOCK_FILE} is not a regular file; remove it") from None
+            raise
+        if not stat.S_ISREG(os.fstat(handle).st_mode):
+            os.close(handle)
+            raise RuntimeError(f"{where}: its {LOCK_FILE} is not a regular file; remove it")
+        stream = os.fdopen(handle, "r+")
         try:
             fcntl.flock(stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as error:
