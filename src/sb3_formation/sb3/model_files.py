@@ -45,6 +45,7 @@ from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.observations import observation_fields
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
+from sb3_formation.utils.files import oversized_entry
 
 #: The policy classes a model file may name when it is not trusted, by module and qualified name.
 POLICY_CLASSES: dict[str, type[BasePolicy]] = {
@@ -101,6 +102,8 @@ def read_model_data(path: Path) -> dict[str, Any]:
         raise FileNotFoundError(f"no model file {path}")
     try:
         with zipfile.ZipFile(path) as archive:
+            if problem := oversized_entry(archive):
+                raise ValueError(problem)
             data = json.loads(archive.read("data").decode())
     except (zipfile.BadZipFile, KeyError, ValueError, OSError) as error:
         raise ValueError(f"{path} is not a model saved by Stable-Baselines3: {error}") from None
@@ -286,6 +289,8 @@ def read_tensors(path: Path, device: str | th.device = "auto") -> dict[str, Any]
     tensors = {}
     try:
         with zipfile.ZipFile(path) as archive:
+            if problem := oversized_entry(archive):
+                raise ValueError(f"{path} is not a model saved by Stable-Baselines3: {problem}")
             for name in (member for member in archive.namelist() if member.endswith(".pth")):
                 stream = io.BytesIO(archive.read(name))
                 tensors[name.removesuffix(".pth")] = th.load(stream, map_location=get_device(device), weights_only=True)

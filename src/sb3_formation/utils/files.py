@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import hashlib
+import math
 import os
 import secrets
 import shutil
@@ -181,6 +182,44 @@ def restore_directory(target: Path) -> bool:
     return False
 
 
+#: The most bytes a file the package reads (a model file, a normaliser's arrays, an ONNX graph) may hold or inflate to,
+#: and the most any one array or tensor it declares may take: far above any policy the package trains (a shipped model
+#: file inflates to about 2 MB), far below what would exhaust a machine's memory.
+MAX_FILE_BYTES = 1 << 30
+
+
+def oversized_entry(archive: zipfile.ZipFile) -> str | None:
+    """What is wrong with a zip file whose entries declare more than :data:`MAX_FILE_BYTES` inflated (a zip bomb), or
+    ``None``. ``zipfile`` reads no more than an entry declares, so checking the declared sizes before reading any entry
+    bounds what reading takes.
+
+    :param archive: the open file
+    """
+    total = 0
+    for entry in archive.infolist():
+        total += entry.file_size
+        if total > MAX_FILE_BYTES:
+            return (
+                f"its entry {entry.filename!r} inflates to {entry.file_size} bytes, beyond the limit of "
+                f"{MAX_FILE_BYTES} bytes for a whole file"
+            )
+    return None
+
+
+def _overdeclared_array(archive: zipfile.ZipFile) -> str | None:
+    """What is wrong with a ``.npz`` file one of whose arrays declares more bytes than its entry holds (an ``.npy``
+    header can declare 10^10 floats in a few bytes, and numpy allocates what it declares before reading), or ``None``.
+    """
+    for entry in archive.infolist():
+        with archive.open(entry) as stream:
+            version = np.lib.format.read_magic(stream)
+            header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, _, dtype = header(stream)
+        if (declared := math.prod(shape) * dtype.itemsize) > entry.file_size:
+            return f"its array {entry.filename!r} declares {declared} bytes in an entry of {entry.file_size}"
+    return None
+
+
 def read_arrays(path: Path, what: str, keys: Collection[str] = ()) -> dict[str, np.ndarray]:
     """Every array of the ``.npz`` file at ``path``.
 
@@ -193,6 +232,9 @@ def read_arrays(path: Path, what: str, keys: Collection[str] = ()) -> dict[str, 
     if not path.is_file():
         raise FileNotFoundError(f"no file {path} ({what})")
     try:
+        with zipfile.ZipFile(path) as archive:
+            if problem := oversized_entry(archive) or _overdeclared_array(archive):
+                raise ValueError(f"{path} is not {what}: {problem}")
         with np.load(path, allow_pickle=False) as data:
             arrays = {key: data[key] for key in data.files}
     except (zipfile.BadZipFile, EOFError, ValueError, OSError) as error:

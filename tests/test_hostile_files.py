@@ -1,0 +1,107 @@
+"""Files someone hands a user that declare more than they hold: a model file that inflates to gigabytes, a normaliser
+that declares 10^10 floats, an ONNX graph that builds a 40000 x 40000 tensor or declares a 2^31-wide state. Each is
+refused with one line before anything large is allocated (measured with tracemalloc, which sees Python's and numpy's
+allocations)."""
+
+from __future__ import annotations
+
+import shutil
+import tracemalloc
+import zipfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sb3_formation.cli import main
+from sb3_formation.experiment.pretrained import PRETRAINED_DIR
+from sb3_formation.utils.files import MAX_FILE_BYTES
+
+#: Most bytes (Python's and numpy's) that refusing a bomb may allocate.
+REFUSAL_BYTES = 64 << 20
+
+
+def refused_with_one_line(capsys: pytest.CaptureFixture[str], arguments: list[str]) -> str:
+    """Run the CLI under tracemalloc: it must fail with exit code 2 and one line, having allocated little.
+
+    :return: the line
+    """
+    tracemalloc.start()
+    try:
+        code = main(arguments)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    error = capsys.readouterr().err
+    assert code == 2 and error.count("\n") == 1 and "Traceback" not in error, error
+    assert peak < REFUSAL_BYTES, f"{peak} bytes allocated to refuse it"
+    return error
+
+
+def shipped_copy(tmp_path: Path, name: str = "ch5-bearing") -> Path:
+    """A copy of a shipped policy's folder, to spoil."""
+    return Path(shutil.copytree(PRETRAINED_DIR / name, tmp_path / name))
+
+
+def inflating_entry(archive: zipfile.ZipFile, name: str, size: int) -> None:
+    """Write an entry of ``size`` zero bytes (a few MB once deflated)."""
+    chunk = bytes(1 << 24)
+    with archive.open(name, "w", force_zip64=True) as stream:
+        for _ in range(-(-size // len(chunk))):
+            stream.write(chunk)
+
+
+def evaluate(target: Path) -> list[str]:
+    return ["evaluate", str(target), "--episodes", "1", "--out", str(target.parent / "eval"), "--no-progress"]
+
+
+@pytest.mark.parametrize("entry", ["data", "policy.pth"])
+def test_a_model_file_that_inflates_beyond_the_limit_is_refused(
+    tmp_path: Path, entry: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    source, bomb = PRETRAINED_DIR / "ch5-bearing" / "final_model.zip", shipped_copy(tmp_path) / "final_model.zip"
+    bomb.unlink()
+    with zipfile.ZipFile(source) as original, zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as out:
+        for info in original.infolist():
+            if info.filename != entry:
+                out.writestr(info, original.read(info))
+        inflating_entry(out, entry, MAX_FILE_BYTES + 1)
+    assert bomb.stat().st_size < 10 << 20
+    error = refused_with_one_line(capsys, evaluate(bomb.parent))
+    assert f"its entry '{entry}' inflates to" in error and f"limit of {MAX_FILE_BYTES} bytes" in error
+
+
+def npy_header(shape: tuple[int, ...]) -> bytes:
+    """An ``.npy`` file's header declaring float64s of ``shape``, and 8 bytes of data."""
+    import io
+
+    stream = io.BytesIO()
+    np.lib.format.write_array_header_1_0(stream, {"descr": "<f8", "fortran_order": False, "shape": shape})
+    return stream.getvalue() + bytes(8)
+
+
+@pytest.mark.parametrize(
+    "spoil",
+    [
+        lambda archive: archive.writestr("mean.npy", npy_header((10**10,))),
+        lambda archive: inflating_entry(archive, "mean.npy", MAX_FILE_BYTES + 1),
+    ],
+    ids=["declares 10^10 floats", "inflates beyond the limit"],
+)
+def test_a_normaliser_that_declares_more_than_it_holds_is_refused(
+    tmp_path: Path, spoil: Callable[[zipfile.ZipFile], None], capsys: pytest.CaptureFixture[str]
+) -> None:
+    folder = shipped_copy(tmp_path)
+    normaliser = folder / "final_normalizer.npz"
+    with np.load(normaliser) as arrays:
+        kept = {key: arrays[key] for key in arrays.files if key != "mean"}
+    normaliser.unlink()
+    with zipfile.ZipFile(normaliser, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as archive:
+        for key, value in kept.items():
+            with archive.open(f"{key}.npy", "w") as stream:
+                np.lib.format.write_array(stream, value)
+        spoil(archive)
+    assert normaliser.stat().st_size < 10 << 20
+    error = refused_with_one_line(capsys, evaluate(folder))
+    assert str(normaliser) in error and ("declares 80000000000 bytes in an entry of" in error or "inflates to" in error)
