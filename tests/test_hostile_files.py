@@ -5,17 +5,22 @@ allocations)."""
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import shutil
 import tracemalloc
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
 from sb3_formation.cli import main
+from sb3_formation.experiment.export import ONNX_FILE
 from sb3_formation.experiment.pretrained import PRETRAINED_DIR
+from sb3_formation.runtime.onnx_policy import MAX_TENSOR_ELEMENTS, METADATA_PREFIX, OnnxPolicy, PolicyMetadata
 from sb3_formation.utils.files import MAX_FILE_BYTES
 
 #: Most bytes (Python's and numpy's) that refusing a bomb may allocate.
@@ -105,3 +110,96 @@ def test_a_normaliser_that_declares_more_than_it_holds_is_refused(
     assert normaliser.stat().st_size < 10 << 20
     error = refused_with_one_line(capsys, evaluate(folder))
     assert str(normaliser) in error and ("declares 80000000000 bytes in an entry of" in error or "inflates to" in error)
+
+
+def spoiled_graph(tmp_path: Path, spoil: Callable[[Any], None]) -> Path:
+    """The shipped ``ch5-bearing`` graph (residual: its output is ``correction``), spoilt by ``spoil(model)``."""
+    onnx = pytest.importorskip("onnx")
+    model = onnx.load(str(PRETRAINED_DIR / "ch5-bearing" / ONNX_FILE))
+    spoil(model)
+    path = tmp_path / "spoilt.onnx"
+    onnx.save(model, str(path))
+    return path
+
+
+def builds_a_huge_constant(model: Any) -> None:
+    """correction = (the graph's correction) + sum(ConstantOfShape([40000, 40000])): 6.4 GB once folded."""
+    from onnx import helper, numpy_helper
+
+    graph = model.graph
+    for node in graph.node:
+        node.output[:] = ["unspoilt" if name == "correction" else name for name in node.output]
+    graph.node.extend(
+        [
+            helper.make_node("Constant", [], ["shape"], value=numpy_helper.from_array(np.array([40000, 40000]))),
+            helper.make_node("ConstantOfShape", ["shape"], ["huge"], value=numpy_helper.from_array(np.zeros(1, np.float32))),
+            helper.make_node("ReduceSum", ["huge"], ["total"], keepdims=0),
+            helper.make_node("Add", ["unspoilt", "total"], ["correction"]),
+        ]
+    )
+
+
+def declares_a_huge_state(model: Any) -> None:
+    """A GRU's state of width 2^31 in the metadata and the graph (the state passes through)."""
+    from onnx import TensorProto, helper
+
+    model.graph.input.append(helper.make_tensor_value_info("hidden_in", TensorProto.FLOAT, [1, "batch", 2**31]))
+    model.graph.output.append(helper.make_tensor_value_info("hidden_out", TensorProto.FLOAT, [1, "batch", 2**31]))
+    model.graph.node.append(helper.make_node("Identity", ["hidden_in"], ["hidden_out"]))
+    set_metadata(model, "recurrent", json.dumps({"cell": "gru", "hidden": 2**31}))
+
+
+def set_metadata(model: Any, key: str, value: str) -> None:
+    for entry in model.metadata_props:
+        if entry.key == METADATA_PREFIX + key:
+            entry.value = value
+
+
+def narrows_the_task(model: Any) -> None:
+    """The metadata name a task with one lidar ray fewer (two features fewer: 209) than the graph reads (211)."""
+    metadata = PolicyMetadata.from_properties({entry.key: entry.value for entry in model.metadata_props}, "the graph")
+    config = dataclasses.replace(metadata.config, lidar_rays=metadata.config.lidar_rays - 1)
+    for key, value in dataclasses.replace(metadata, config=config).to_properties().items():
+        set_metadata(model, key.removeprefix(METADATA_PREFIX), value)
+
+
+@pytest.mark.parametrize(
+    ("spoil", "message"),
+    [
+        (builds_a_huge_constant, f"its tensor 'huge' of shape [40000, 40000] has more than {MAX_TENSOR_ELEMENTS} elements"),
+        (declares_a_huge_state, f"its tensor 'hidden_in' of shape [1, 2147483648] has more than {MAX_TENSOR_ELEMENTS}"),
+        (narrows_the_task, "its graph's input 'observation' is 211 wide, its metadata say 209"),
+    ],
+    ids=["ConstantOfShape 40000 x 40000", "state of 2^31", "input wider than its metadata say"],
+)
+def test_an_onnx_graph_that_declares_more_than_a_policy_needs_is_refused(
+    tmp_path: Path, spoil: Callable[[Any], None], message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    error = refused_with_one_line(
+        capsys, ["evaluate", str(spoiled_graph(tmp_path, spoil)), "--episodes", "1", "--no-progress"]
+    )
+    assert message in error
+
+
+def test_onnxruntime_errors_at_run_time_are_one_line(tmp_path: Path) -> None:
+    """A graph that fails only when it runs (a Reshape to a size its input does not have)."""
+
+    def reshapes_wrongly(model: Any) -> None:
+        from onnx import helper, numpy_helper
+
+        graph = model.graph
+        for node in graph.node:
+            node.output[:] = ["unspoilt" if name == "correction" else name for name in node.output]
+        graph.node.extend(
+            [
+                helper.make_node("Constant", [], ["shape"], value=numpy_helper.from_array(np.array([-1, 3]))),
+                helper.make_node("Reshape", ["unspoilt", "shape"], ["reshaped"]),
+                helper.make_node("Reshape", ["reshaped", "shape_back"], ["correction"]),
+                helper.make_node("Constant", [], ["shape_back"], value=numpy_helper.from_array(np.array([-1, 2]))),
+            ]
+        )
+
+    policy = OnnxPolicy(spoiled_graph(tmp_path, reshapes_wrongly))
+    with pytest.raises(RuntimeError, match=r"spoilt\.onnx: onnxruntime could not run the graph: ") as error:
+        policy.agent_actions(np.zeros((1, policy.observation_dim), np.float32), np.zeros(1, int))
+    assert "\n" not in str(error.value)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +27,7 @@ from sb3_formation.controllers.residual import add_correction, check_residual_sc
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.observations import observation_fields, observation_layout
 from sb3_formation.safety.filter import SafetyFilter, SafetyGains
+from sb3_formation.utils.files import MAX_FILE_BYTES
 
 #: Prefix of the metadata keys this package writes into an exported model.
 METADATA_PREFIX = "sb3_formation."
@@ -37,6 +39,9 @@ OBSERVATION_INPUT = "observation"
 ACTION_OUTPUT, CORRECTION_OUTPUT = "action", "correction"
 #: The actor state's parts of each recurrent cell, as the graph names them (``<part>_in`` / ``<part>_out``).
 STATE_PARTS = {"gru": ("hidden",), "lstm": ("hidden", "cell")}
+#: The most elements any tensor of an exported graph may have (:func:`check_graph_sizes`): a quarter of
+#: :data:`~sb3_formation.utils.files.MAX_FILE_BYTES`, i.e. that many bytes of float32.
+MAX_TENSOR_ELEMENTS = MAX_FILE_BYTES // 4
 
 
 @dataclass(frozen=True)
@@ -163,6 +168,45 @@ def _onnxruntime() -> Any:
     return onnxruntime
 
 
+def _first_line(error: Exception) -> str:
+    """The first line of an error's message (onnx and onnxruntime write several), or its type's name."""
+    return str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+
+
+def check_graph_sizes(path: Path) -> None:
+    """Refuse an ONNX file that would take more memory than a policy can need, before onnxruntime builds it (which
+    folds constants, so a 40000 x 40000 ``ConstantOfShape`` is allocated then): a file beyond
+    :data:`~sb3_formation.utils.files.MAX_FILE_BYTES`, weights kept in external files, or any tensor (weight, input,
+    output, or value whose size shape inference knows before the graph runs) of more than
+    :data:`MAX_TENSOR_ELEMENTS` elements. A size computed from the observation's values at run time is not known
+    here; onnxruntime's errors at run time are one-line errors (:meth:`OnnxPolicy.agent_actions`).
+
+    :raises ValueError: naming the file and the tensor
+    """
+    if (size := path.stat().st_size) > MAX_FILE_BYTES:
+        raise ValueError(f"{path} holds {size} bytes, beyond the limit of {MAX_FILE_BYTES} bytes for an exported policy")
+    try:
+        import onnx
+    except ImportError:
+        raise ImportError("running an exported policy needs onnx: pip install 'sb3-formation[runtime]'") from None
+    try:
+        model = onnx.shape_inference.infer_shapes(onnx.load(str(path), load_external_data=False), data_prop=True)
+    except Exception as error:  # onnx raises protobuf's and its own exception types for damaged files
+        raise ValueError(f"{path} is not a readable ONNX model: {_first_line(error)}") from None
+    graph = model.graph
+    if any(tensor.data_location == onnx.TensorProto.EXTERNAL for tensor in graph.initializer):
+        raise ValueError(f"{path} keeps weights in other files: an exported policy holds all of them itself")
+    shapes = {tensor.name: list(tensor.dims) for tensor in graph.initializer}
+    for value in (*graph.input, *graph.output, *graph.value_info):
+        shapes[value.name] = [dim.dim_value for dim in value.type.tensor_type.shape.dim if dim.HasField("dim_value")]
+    for name, dims in shapes.items():
+        if math.prod(dims) > MAX_TENSOR_ELEMENTS:
+            raise ValueError(
+                f"{path}: its tensor {name!r} of shape {dims} has more than {MAX_TENSOR_ELEMENTS} elements, the limit for "
+                "an exported policy"
+            )
+
+
 class OnnxPolicy:
     """An exported policy on the policy seam (:class:`~sb3_formation.controllers.base.TeamPolicy`): evaluation,
     rendering and comparison run it as any target (``onnx:path/to/file.onnx`` or the path itself).
@@ -182,14 +226,14 @@ class OnnxPolicy:
                 f"no exported policy at {self.source}: write one with `sb3-formation export TARGET --onnx FILE`"
             )
         onnxruntime = _onnxruntime()
+        check_graph_sizes(self.source)
         options = onnxruntime.SessionOptions()
         if threads is not None:
             options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
         try:
             self.session = onnxruntime.InferenceSession(str(self.source), options, providers=["CPUExecutionProvider"])
         except Exception as error:  # onnxruntime raises its own exception types for damaged files
-            reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-            raise ValueError(f"{self.source} is not a readable ONNX model: {reason}") from None
+            raise ValueError(f"{self.source} is not a readable ONNX model: {_first_line(error)}") from None
         self.metadata = PolicyMetadata.from_properties(self.session.get_modelmeta().custom_metadata_map, str(self.source))
         inputs, outputs = [node.name for node in self.session.get_inputs()], [node.name for node in self.session.get_outputs()]
         if inputs != self.metadata.input_names or outputs != self.metadata.output_names:
@@ -199,6 +243,7 @@ class OnnxPolicy:
             )
         self.config = self.metadata.config
         self.observation_dim = self.metadata.observation_dim
+        self._check_declared_widths()
         residual = self.metadata.residual
         self.controller = None if residual is None else controller_from_spec(residual, self.config)
         self.scale = None if residual is None else check_residual_scale(residual["scale"])
@@ -208,6 +253,21 @@ class OnnxPolicy:
             self.safety = None if gains is None else SafetyFilter(self.config, SafetyGains.from_dict(gains))
         except (TypeError, ValueError) as error:
             raise ValueError(f"{self.source}: the safety filter's gains in its metadata are invalid: {error}") from None
+
+    def _check_declared_widths(self) -> None:
+        """Refuse a graph whose inputs are not as wide as its metadata say (observation features, state width).
+
+        :raises ValueError: naming the input and both widths
+        """
+        widths = {OBSERVATION_INPUT: self.observation_dim}
+        if self.metadata.recurrent is not None:
+            widths |= {f"{part}_in": self.metadata.recurrent.get("hidden") for part in self.metadata.state_parts}
+        for node in self.session.get_inputs():
+            if node.shape[-1] != widths[node.name]:
+                raise ValueError(
+                    f"{self.source}: its graph's input {node.name!r} is {node.shape[-1]} wide, its metadata say "
+                    f"{widths[node.name]}"
+                )
 
     @property
     def any_team_size(self) -> bool:
@@ -280,7 +340,10 @@ class OnnxPolicy:
         rows = self._rows(observations)
         graph_state, controller_state = (state, None) if self.controller is None or state is None else state
         feeds = {OBSERVATION_INPUT: rows, **self._state_feeds(graph_state, episode_start, len(rows))}
-        first, *new_state = self.session.run(self.metadata.output_names, feeds)
+        try:
+            first, *new_state = self.session.run(self.metadata.output_names, feeds)
+        except Exception as error:  # onnxruntime raises its own exception types (InvalidArgument, Fail, ...)
+            raise RuntimeError(f"{self.source}: onnxruntime could not run the graph: {_first_line(error)}") from None
         graph_state = tuple(new_state) if new_state else graph_state
         if self.controller is None:
             return self._filtered(rows, first), graph_state
