@@ -1,4 +1,4 @@
-"""Running an exported policy without torch or Stable-Baselines3: numpy and onnxruntime only (``docs/export.md``).
+"""Running an exported policy without torch or Stable-Baselines3: numpy, onnx and onnxruntime only (``docs/export.md``).
 
 ``pip install 'sb3-formation[runtime]'`` installs onnx and onnxruntime. :class:`OnnxPolicy` is a
 :class:`~sb3_formation.controllers.base.TeamPolicy`: ``evaluate``, ``render`` and ``compare`` run an exported file as
