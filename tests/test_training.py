@@ -168,8 +168,8 @@ def test_train_cli_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureF
     assert "config.yaml" in capsys.readouterr().err
     assert main(["train", "--resume", str(tmp_path), "--seed", "3"]) == 2
     assert "--seed" in capsys.readouterr().err
-    assert main(["train", "--resume", str(tmp_path), "--no-progress"]) == 2  # the flag as the user wrote it
-    assert "drop --no-progress" in capsys.readouterr().err
+    assert main(["train", "--resume", str(tmp_path), "--no-evaluate"]) == 2  # the flag as the user wrote it
+    assert "drop --no-evaluate" in capsys.readouterr().err
     assert main(["train", "--trust-pickle", "--logdir", str(tmp_path / "runs")]) == 2
     assert "--trust-pickle applies to --resume" in capsys.readouterr().err
     undecodable = os.fsdecode(b"run-\xff")  # a name the shell passed as bytes: refused before anything is written
@@ -561,3 +561,29 @@ def test_resume_recovers_a_checkpoint_caught_in_a_folder_swap_and_leaves_it_alon
     assert main(["train", "--resume", str(run_dir)]) == 0
     second = load_from_zip_file(run_dir / FINAL_MODEL)[1]["policy"]
     assert sorted(first) == sorted(second) and all(first[name].equal(second[name]) for name in first)
+
+
+def test_resume_refuses_a_config_whose_recipe_was_edited_since_the_checkpoint(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Edits of ``env:`` (as of ``ppo:`` and ``policy:``) in a run's ``config.yaml`` are named and nothing is touched."""
+    run_dir = tmp_path / "run"
+    arguments = ["train", "--recipe", "ch4-individual", "--iterations", "1,1,0", "--n-envs", "2", "--no-progress"]
+    assert main([*arguments, "--env", "max_steps=20", "--run-dir", str(run_dir)]) == 0
+    (run_dir / FINAL_MODEL).unlink()  # a run killed while its final model was written: there is work to resume
+    original = (run_dir / "config.yaml").read_text()
+    edited = yaml.safe_load(original)
+    v_max = edited["env"]["v_max"]
+    edited["env"] |= {"max_steps": 30, "v_max": v_max / 2}
+    (run_dir / "config.yaml").write_text(yaml.safe_dump(edited))
+    files = {path: path.read_bytes() for path in run_dir.rglob("*") if path.is_file()}
+    capsys.readouterr()
+    assert main(["train", "--resume", str(run_dir), "--no-progress"]) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and "no longer holds the recipe iteration_000002 was trained with" in error
+    assert "env.max_steps: 20 in the checkpoint, 30 in config.yaml" in error
+    assert f"env.v_max: {v_max!r} in the checkpoint, {v_max / 2!r} in config.yaml" in error
+    assert {path: path.read_bytes() for path in run_dir.rglob("*") if path.is_file()} == files
+    (run_dir / "config.yaml").write_text(original)
+    assert main(["train", "--resume", str(run_dir), "--no-progress"]) == 0
+    assert (run_dir / FINAL_MODEL).is_file()

@@ -85,6 +85,12 @@ def flag_of(name: str) -> str:
     return {**RECIPE_FLAGS, **RUN_FLAGS}.get(name, {}).get("flag", "--" + name.replace("_", "-"))
 
 
+def written_flag(name: str, value: object) -> str:
+    """The flag of an option of ``train`` as the user wrote it (``--no-evaluate`` for ``evaluate`` set to False)."""
+    negated = value is False and {**RECIPE_FLAGS, **RUN_FLAGS}.get(name, {}).get("action") is argparse.BooleanOptionalAction
+    return "--no-" + flag_of(name).removeprefix("--") if negated else flag_of(name)
+
+
 def settings_of(args: argparse.Namespace) -> TrainSettings:
     """The settings of ``sb3-formation train``: the recipe (or settings file), then the options given."""
     recipe = args.recipe
@@ -118,12 +124,15 @@ def describe(settings: TrainSettings) -> str:
 def run(args: argparse.Namespace) -> int:
     """``sb3-formation train``: a new run, or ``--resume`` of an existing one."""
     if args.resume is not None:
-        given = [name for name in (*RECIPE_CHOICE, "run_dir", *RECIPE_FLAGS, *RUN_FLAGS) if getattr(args, name) is not None]
+        settings_given = (*RECIPE_CHOICE, "run_dir", *RECIPE_FLAGS, *(name for name in RUN_FLAGS if name != "progress_bar"))
+        given = [name for name in settings_given if getattr(args, name) is not None]
         if given:
-            flags = ", ".join(flag_of(name) for name in given)
+            flags = ", ".join(written_flag(name, getattr(args, name)) for name in given)
             raise ValueError(f"--resume continues a run with its own settings; drop {flags}")
-        run_dir = resume(args.resume, trusted=args.trust_pickle)
+        run_dir = resume(args.resume, trusted=args.trust_pickle, progress_bar=args.progress_bar)
         settings = load_settings(run_dir)
+        if args.progress_bar is not None:
+            settings = settings.replace_run(progress_bar=args.progress_bar)
     else:
         if args.trust_pickle:
             raise ValueError("--trust-pickle applies to --resume (a new run loads no model file)")

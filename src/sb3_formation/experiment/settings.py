@@ -149,6 +149,10 @@ class TrainSettings:
             return _from_settings_format(values, where)
         return cls(Recipe.from_dict(values.get("name", "recipe"), values), RunOptions.from_dict(values.get(RUN_KEY)))
 
+    def replace_run(self, **options: Any) -> TrainSettings:
+        """The same recipe with other run options (fields of :class:`RunOptions`)."""
+        return TrainSettings(self.recipe, self.run.replace(**options))
+
     def to_dict(self) -> dict[str, Any]:
         """The complete recipe (:meth:`Recipe.to_dict`) with the run options under ``run:``: a run's ``config.yaml``."""
         return {**self.recipe.to_dict(), RUN_KEY: self.run.to_dict()}

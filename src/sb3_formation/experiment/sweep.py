@@ -153,7 +153,7 @@ def sweep(
     folder = Path(logdir or settings.run.logdir) / Path(experiment).stem
     folder.mkdir(parents=True, exist_ok=True)
     trials = {
-        seed: (TrainSettings(settings.recipe, settings.run.replace(seed=seed, progress_bar=False)), folder / f"seed_{seed}")
+        seed: (settings.replace_run(seed=seed, progress_bar=False), folder / f"seed_{seed}")
         for seed in seeds
     }
     started_here = not ray.is_initialized()

@@ -75,13 +75,24 @@ class RunCheckpointCallback(BaseCallback):
     :param curriculum: the run's curriculum callback (its state goes into each checkpoint)
     :param clock: the run's training clock
     :param every: iterations between checkpoints
+    :param recipe: the run's whole recipe (:meth:`~sb3_formation.experiment.recipes.Recipe.to_dict`), kept in
+        ``state.json`` so that a resume can refuse a ``config.yaml`` edited since
     :param keep: checkpoints kept on disk
     """
 
     model: PPO  # the run's model (BaseCallback declares any algorithm)
 
-    def __init__(self, run_dir: Path, curriculum: CurriculumCallback, clock: TrainingClock, every: int, keep: int = 3) -> None:
+    def __init__(
+        self,
+        run_dir: Path,
+        curriculum: CurriculumCallback,
+        clock: TrainingClock,
+        every: int,
+        recipe: dict[str, Any],
+        keep: int = 3,
+    ) -> None:
         super().__init__()
+        self.recipe = recipe
         self.run_dir = run_dir
         self.curriculum = curriculum
         self.clock = clock
@@ -116,6 +127,7 @@ class RunCheckpointCallback(BaseCallback):
                 "num_timesteps": self.model.num_timesteps,
                 "curriculum": self.curriculum.state_dict(),
                 "training_seconds": self.clock.seconds,
+                "recipe": self.recipe,
             }
             (folder / STATE_FILE).write_text(json.dumps(state, indent=2))
         for old in sorted((self.run_dir / "checkpoints").glob("iteration_*"))[: -self.keep]:
@@ -370,7 +382,7 @@ def _print_imitation_round(record: dict[str, float]) -> None:
     )
 
 
-def resume(run_dir: str | os.PathLike[str], trusted: bool | None = None) -> Path:
+def resume(run_dir: str | os.PathLike[str], trusted: bool | None = None, progress_bar: bool | None = None) -> Path:
     """Continue a run from its latest checkpoint: same curriculum stage, timestep count, normaliser and optimiser.
 
     The model is built from the run's recipe and takes the checkpoint's tensors (read with ``weights_only``) and
@@ -380,14 +392,52 @@ def resume(run_dir: str | os.PathLike[str], trusted: bool | None = None) -> Path
 
     :param trusted: load the checkpoint with SB3's ``load`` instead, unpickling what it holds (``None``: unless
         inside :func:`~sb3_formation.sb3.model_files.trust_pickle`)
-    :raises ValueError: a checkpoint that needs unpickling (untrusted) or was trained with other settings
+    :param progress_bar: show the progress bar (``None``: as the run's options say); the one option a resume may
+        change, as it changes nothing that is trained
+    :raises ValueError: a checkpoint that needs unpickling (untrusted) or was trained with other settings, or a
+        ``config.yaml`` whose recipe was edited since the checkpoint
     :raises RuntimeError: another process trains in ``run_dir``
     """
     run_dir = Path(run_dir)
     settings = load_settings(run_dir)
+    if progress_bar is not None:
+        settings = settings.replace_run(progress_bar=progress_bar)
     with folder_lock(run_dir, "run folder"):
         _resume(settings, run_dir, is_trusted(trusted))
     return run_dir
+
+
+def plain_recipe(settings: TrainSettings) -> dict[str, Any]:
+    """A run's whole recipe as JSON reads it back (lists, not tuples): what a checkpoint records."""
+    return cast("dict[str, Any]", json.loads(json.dumps(settings.recipe.to_dict())))
+
+
+def _check_recipe_unchanged(recorded: dict[str, Any] | None, recipe: dict[str, Any], run_dir: Path, checkpoint: Path) -> None:
+    """Refuse to resume when ``config.yaml`` no longer holds the recipe the checkpoint was trained with (checkpoints
+    of earlier versions record none and are not checked).
+
+    :raises ValueError: naming every setting that differs, with both values
+    """
+    if recorded is None or recorded == recipe:
+        return
+    differences = [
+        f"{key}: {old!r} in the checkpoint, {new!r} in config.yaml" for key, old, new in _differences(recorded, recipe)
+    ]
+    raise ValueError(
+        f"{run_dir / 'config.yaml'} no longer holds the recipe {checkpoint.name} was trained with "
+        f"({'; '.join(differences)}): put those settings back, or train a new run with them"
+    )
+
+
+def _differences(old: Any, new: Any, prefix: str = "") -> list[tuple[str, Any, Any]]:
+    """The dotted keys at which two nested mappings differ, with both values (``None`` for a missing key)."""
+    if not (isinstance(old, dict) and isinstance(new, dict)):
+        return [] if old == new else [(prefix or "recipe", old, new)]
+    return [
+        difference
+        for key in sorted(set(old) | set(new), key=str)
+        for difference in _differences(old.get(key), new.get(key), f"{prefix}.{key}" if prefix else str(key))
+    ]
 
 
 def checkpoint_model(settings: TrainSettings, env: VecEnv, path: Path, trusted: bool = False) -> PPO:
@@ -415,6 +465,7 @@ def _resume(settings: TrainSettings, run_dir: Path, trusted: bool = False) -> No
     for leftover in (run_dir / "checkpoints").glob(".iteration_*"):  # folders of a write that was killed
         shutil.rmtree(leftover, ignore_errors=True)
     state = json.loads((checkpoint / STATE_FILE).read_text())
+    _check_recipe_unchanged(state.get("recipe"), plain_recipe(settings), run_dir, checkpoint)
     clock = TrainingClock(settings.recipe.budget_seconds(), spent=state.get("training_seconds", 0.0))
     curriculum = make_curriculum(settings, clock)
     curriculum.load_state_dict(state["curriculum"])
@@ -463,7 +514,7 @@ def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: Curri
     csv_name = "progress.csv" if curriculum.iteration == 0 else f"progress_from_iteration_{curriculum.iteration}.csv"
     model.set_logger(Logger(str(folder), [TensorBoardOutputFormat(str(folder)), CSVOutputFormat(str(folder / csv_name))]))
     budget = TimeBudgetCallback(clock)
-    checkpoint = RunCheckpointCallback(run_dir, curriculum, clock, settings.run.checkpoint_every)
+    checkpoint = RunCheckpointCallback(run_dir, curriculum, clock, settings.run.checkpoint_every, plain_recipe(settings))
     callbacks: list[BaseCallback] = [curriculum, *rollout_callbacks(settings), budget, checkpoint]
     imitation = settings.recipe.imitation_settings()
     if imitation is not None and imitation.critic_warmup > 0:
