@@ -40,7 +40,7 @@ pretrained: setup
 	for task in $(PRETRAINED); do \
 	  rm -rf runs/pretrained-$$task && \
 	  $(BIN)/sb3-formation train --config experiments/pretrained-$$task.yaml --run-dir runs/pretrained-$$task && \
-	  $(BIN)/sb3-formation pretrained --export runs/pretrained-$$task --name $$task || exit 1; \
+	  $(BIN)/sb3-formation pretrained --export runs/pretrained-$$task --name $$task --replace || exit 1; \
 	done
 
 # mypy reads its settings from pyproject.toml ([tool.mypy]: strict for sb3_formation.utils and sb3_formation.env,

@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from sb3_formation.cli import main
-from sb3_formation.utils.files import folder_lock
+from sb3_formation.experiment.pretrained import PRETRAINED_DIR
+from sb3_formation.utils.files import PACKAGE_FOLDER, folder_lock
 
 
 def one_line_error(capsys: pytest.CaptureFixture[str], arguments: list[str]) -> str:
@@ -80,3 +81,25 @@ def test_a_second_benchmark_into_one_folder_is_refused_and_the_first_keeps_it(
     table = (out / "benchmark.md").read_text()
     assert "already holds files" in one_line_error(capsys, [*arguments, "--labels", "other", "--no-progress"])
     assert (out / "benchmark.md").read_text() == table and not (out / "other").exists()
+
+
+def test_no_command_overwrites_the_shipped_policies(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """An ``--out`` inside the installed package, or a default folder there (evaluating a shipped policy's folder as a
+    run), is refused before anything is evaluated; the stored evaluation stays byte for byte."""
+    shipped = PRETRAINED_DIR / "ch5-bearing"
+    stored = {
+        path: path.read_bytes() for path in PACKAGE_FOLDER.rglob("*") if path.is_file() and "__pycache__" not in path.parts
+    }
+    for arguments in (
+        ["evaluate", "pretrained:ch5-bearing", "--out", str(shipped / "eval")],
+        ["evaluate", str(shipped)],
+        ["render", "pretrained:ch5-bearing", "--out", str(shipped / "episodes.gif")],
+        ["benchmark", "controller:classical", "--out", str(PACKAGE_FOLDER / "benchmark")],
+        ["train", "--recipe", "fast-ch5-bearing", "--run-dir", str(PACKAGE_FOLDER / "runs" / "x")],
+    ):
+        error = one_line_error(capsys, [*arguments, "--episodes" if arguments[0] != "train" else "--seed", "1"])
+        assert "is inside the installed package sb3_formation" in error, arguments
+    after = {
+        path: path.read_bytes() for path in PACKAGE_FOLDER.rglob("*") if path.is_file() and "__pycache__" not in path.parts
+    }
+    assert after == stored

@@ -94,6 +94,13 @@ def test_export_refuses_bad_input_and_keeps_what_is_shipped(tiny_run: Path, tmp_
     with pytest.raises(ValueError, match=r"is not a finished run: it lacks final_model\.zip, final_normalizer\.npz"):
         export_pretrained(unfinished, "kept", root=tmp_path)
     assert (tmp_path / "kept" / FINAL_MODEL).read_bytes() == before
+    # a shipped name is replaced only when told, and the temporary folder of a killed export is cleared then
+    with pytest.raises(ValueError, match=f"pretrained:kept exists in {tmp_path}: give another name, or --replace"):
+        export_pretrained(tiny_run, "kept", root=tmp_path)
+    assert (tmp_path / "kept" / FINAL_MODEL).read_bytes() == before
+    (tmp_path / ".kept.killed0").mkdir()
+    export_pretrained(tiny_run, "kept", root=tmp_path, replace=True)
+    assert sorted(path.name for path in tmp_path.iterdir() if path.name.startswith(".")) == []
     with pytest.raises(ValueError, match="no shipped policy 'gone'; shipped: kept"):
         load_pretrained("gone", root=tmp_path)
     assert main(["pretrained", "--name", "x"]) == 2  # --export and --name go together
@@ -220,3 +227,14 @@ def test_every_file_of_the_shipped_policies_is_package_data() -> None:
     files = [PurePosixPath(path.relative_to(package).as_posix()) for path in PRETRAINED_DIR.rglob("*") if path.is_file()]
     assert files and all(packaged(file) for file in files)
     assert not packaged(PurePosixPath("pretrained/x/eval/figures/a.png"))  # deeper files would be left out
+
+
+def test_a_thesis_recipe_run_with_a_fixed_sigma_is_exported(tmp_path: Path) -> None:
+    """The thesis's recipes keep sigma fixed: the log-std is not trained, and the export's fresh optimiser must not
+    take it either."""
+    run = tmp_path / "run"
+    arguments = ["train", "--recipe", "ch4-individual", "--iterations", "1,0,0", "--n-envs", "2", "--no-progress"]
+    assert main([*arguments, "--no-evaluate", "--env", "max_steps=20", "--run-dir", str(run)]) == 0
+    assert not load_policy(run).policy.log_std.requires_grad
+    folder = export_pretrained(run, "fixed", root=tmp_path / "shipped")
+    assert pretrained_card("fixed", folder.parent)["recipe"] == "ch4-individual"

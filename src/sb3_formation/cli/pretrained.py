@@ -22,16 +22,19 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--export", type=Path, metavar="RUN_DIR", help="a finished run folder to ship")
     parser.add_argument("--name", help="name of the exported policy (pretrained:<name>)")
     parser.add_argument("--into", type=Path, help="folder of shipped policies (default: the package's)")
+    parser.add_argument("--replace", action="store_true", help="with --export: replace a policy of that name")
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """``sb3-formation pretrained``: the shipped policies with their stored figures, or ``--export`` of a run."""
-    if args.export is not None or args.name is not None or args.into is not None:
+    if args.export is not None or args.name is not None or args.into is not None or args.replace:
         if args.export is None or args.name is None:
             raise ValueError("--export RUN_DIR and --name NAME go together")
         options = {} if args.into is None else {"root": args.into}
-        folder = export_pretrained(args.export, args.name, command=args.command_line, progress_bar=True, **options)
+        folder = export_pretrained(
+            args.export, args.name, command=args.command_line, progress_bar=True, replace=args.replace, **options
+        )
         print(f"pretrained:{args.name} written to {folder}")
         card = pretrained_card(args.name, folder.parent)
         print_summary(card["summary"])

@@ -29,7 +29,7 @@ from sb3_formation.experiment.trajectories import Trajectories, stack_recordings
 from sb3_formation.safety.policy import SafePolicy
 from sb3_formation.sb3.callbacks import threads_beside_workers, torch_threads
 from sb3_formation.sb3.metrics import EPISODE_METRICS, SAFETY_METRICS
-from sb3_formation.utils.files import atomic_files, file_digest
+from sb3_formation.utils.files import atomic_files, check_writable, file_digest
 
 #: Columns of ``episodes.csv``, in order (``reward_<term>``: the term's mean per step and agent).
 EPISODE_COLUMNS = (
@@ -227,8 +227,10 @@ def evaluate_target(
     :param device: torch device
     :param progress_bar: show a progress bar
     :param out: folder for the files (default: :func:`~sb3_formation.experiment.targets.evaluation_folder`)
+    :raises ValueError: the folder is inside the installed package (:func:`~sb3_formation.utils.files.check_writable`)
     """
     protocol = {key: value for key, value in (protocol or {}).items() if value is not None}
+    check_writable(out or evaluation_folder(target, recipe))  # before the work (the scene suffix does not move it)
     policy = load_policy(target, recipe=recipe, device=device)
     protocol = {**default_protocol(target, recipe), **protocol}
     if "episodes" not in protocol:

@@ -28,7 +28,7 @@ from sb3_formation.experiment.runs import (
 from sb3_formation.experiment.settings import load_settings
 from sb3_formation.sb3.model_files import load_model
 from sb3_formation.sb3.onnx_export import export_onnx
-from sb3_formation.utils.files import atomic_directory
+from sb3_formation.utils.files import atomic_directory, folder_lock, package_writes
 
 #: Attributes of a saved model that acting does not need (the last rollout's observations, episode buffers).
 UNSHIPPED_ATTRIBUTES = ("_last_obs", "_last_original_obs", "_last_episode_starts", "ep_info_buffer", "ep_success_buffer")
@@ -40,15 +40,18 @@ def export_pretrained(
     root: Path = PRETRAINED_DIR,
     command: str | None = None,
     progress_bar: bool = False,
+    replace: bool = False,
 ) -> Path:
     """Make a shipped policy of a finished run: trim its final model, export it to ONNX, evaluate the model file on the
-    run's protocol, and write the folder (replacing one of the same name only once all of it is written).
+    run's protocol, and write the folder (replacing one of the same name, when told to, only once all of it is
+    written).
 
     :param run_dir: a run folder with ``final_model.zip``, ``final_normalizer.npz`` and its last checkpoint
     :param name: the policy's name (``pretrained:<name>``): letters, digits, ``-`` and ``_``
     :param root: the folder of shipped policies (default: the package's)
     :param command: the command that exported it, recorded in the card
     :param progress_bar: show the evaluation's progress bar
+    :param replace: replace a policy of that name in ``root`` (else it is an error)
     :return: the policy's folder
     """
     if not name or not all(character.isalnum() or character in "-_" for character in name):
@@ -61,38 +64,46 @@ def export_pretrained(
         raise ValueError(f"{run_dir} is not a finished run: it lacks {', '.join(missing) or 'a checkpoint'}")
     state = json.loads((checkpoint / STATE_FILE).read_text())
     protocol = dict(settings.recipe.evaluation)
-    with atomic_directory(root / name) as folder:
-        model = load_model(run_dir / FINAL_MODEL, device="cpu")  # nothing in the run's files is unpickled
-        policy = model.policy
-        policy.optimizer = policy.optimizer_class(policy.parameters(), **policy.optimizer.defaults)  # an empty state
-        model.save(folder / FINAL_MODEL, exclude=list(UNSHIPPED_ATTRIBUTES))
-        shutil.copyfile(run_dir / FINAL_NORMALIZER, folder / FINAL_NORMALIZER)
-        shutil.copyfile(run_dir / "config.yaml", folder / "config.yaml")
-        shipped = load_trained(folder, device="cpu")
-        export_onnx(shipped, folder / ONNX_FILE)
-        result = evaluate(shipped, **{**protocol, "record": 0}, progress_bar=progress_bar)
-        # the summary names the shipped model (its SHA-256), not the temporary folder it was evaluated in
-        result = dataclasses.replace(result, model={**cast("dict[str, str]", result.model), "file": f"pretrained:{name}"})
-        result.save((folder / SUMMARY_PATH).parent)
-        card = {
-            "name": name,
-            "recipe": settings.recipe.name,
-            "n_agents": settings.recipe.config().n_agents,
-            "team_sizes": sorted(set(settings.recipe.sizes)),
-            "seed": settings.run.seed,
-            "training_command": (run_dir / "command.txt").read_text().strip(),
-            "export_command": command,
-            "training_seconds": round(float(state["training_seconds"]), 1),
-            "training_agent_steps": int(state["num_timesteps"]),
-            "package_version": __version__,
-            "versions": {
-                "stable_baselines3": stable_baselines3.__version__,
-                "torch": torch.__version__,
-                "python": platform.python_version(),
-            },
-            "exported": datetime.date.today().isoformat(),
-            "evaluation_teams": protocol.get("n_envs", EVALUATION_TEAMS),  # teams played at once: a replay plays as many
-            "numerics": numerics_fingerprint(),  # where a machine's is the same, the stored episodes replay exactly
-        }
-        (folder / CARD_FILE).write_text(json.dumps(card, indent=2) + "\n")
+    if (root / name).exists() and not replace:
+        raise ValueError(f"pretrained:{name} exists in {root}: give another name, or --replace to replace it")
+    with package_writes(), folder_lock(root, "folder of shipped policies", remove=True):
+        for leftover in root.glob(f".{name}.*"):  # the temporary folder of an export that was killed
+            if not leftover.name.startswith(f".{name}.old."):  # (a folder renamed aside: atomic_directory restores it)
+                shutil.rmtree(leftover, ignore_errors=True)
+        with atomic_directory(root / name) as folder:
+            model = load_model(run_dir / FINAL_MODEL, device="cpu")  # nothing in the run's files is unpickled
+            policy = model.policy
+            trained = [parameter for group in policy.optimizer.param_groups for parameter in group["params"]]
+            # an empty state over the parameters it trained (a fixed sigma's log-std is not one)
+            policy.optimizer = policy.optimizer_class(trained, **policy.optimizer.defaults)
+            model.save(folder / FINAL_MODEL, exclude=list(UNSHIPPED_ATTRIBUTES))
+            shutil.copyfile(run_dir / FINAL_NORMALIZER, folder / FINAL_NORMALIZER)
+            shutil.copyfile(run_dir / "config.yaml", folder / "config.yaml")
+            shipped = load_trained(folder, device="cpu")
+            export_onnx(shipped, folder / ONNX_FILE)
+            result = evaluate(shipped, **{**protocol, "record": 0}, progress_bar=progress_bar)
+            # the summary names the shipped model (its SHA-256), not the temporary folder it was evaluated in
+            result = dataclasses.replace(result, model={**cast("dict[str, str]", result.model), "file": f"pretrained:{name}"})
+            result.save((folder / SUMMARY_PATH).parent)
+            card = {
+                "name": name,
+                "recipe": settings.recipe.name,
+                "n_agents": settings.recipe.config().n_agents,
+                "team_sizes": sorted(set(settings.recipe.sizes)),
+                "seed": settings.run.seed,
+                "training_command": (run_dir / "command.txt").read_text().strip(),
+                "export_command": command,
+                "training_seconds": round(float(state["training_seconds"]), 1),
+                "training_agent_steps": int(state["num_timesteps"]),
+                "package_version": __version__,
+                "versions": {
+                    "stable_baselines3": stable_baselines3.__version__,
+                    "torch": torch.__version__,
+                    "python": platform.python_version(),
+                },
+                "exported": datetime.date.today().isoformat(),
+                "evaluation_teams": protocol.get("n_envs", EVALUATION_TEAMS),  # teams played at once: a replay plays as many
+                "numerics": numerics_fingerprint(),  # where a machine's is the same, the stored episodes replay exactly
+            }
+            (folder / CARD_FILE).write_text(json.dumps(card, indent=2) + "\n")
     return root / name

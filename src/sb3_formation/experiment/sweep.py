@@ -152,10 +152,7 @@ def sweep(
         raise ValueError(f"max_concurrent must be >= 1, got {max_concurrent}")
     folder = Path(logdir or settings.run.logdir) / Path(experiment).stem
     folder.mkdir(parents=True, exist_ok=True)
-    trials = {
-        seed: (settings.replace_run(seed=seed, progress_bar=False), folder / f"seed_{seed}")
-        for seed in seeds
-    }
+    trials = {seed: (settings.replace_run(seed=seed, progress_bar=False), folder / f"seed_{seed}") for seed in seeds}
     started_here = not ray.is_initialized()
     if started_here:
         ray.init(address=address, include_dashboard=False, log_to_driver=False)

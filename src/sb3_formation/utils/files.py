@@ -7,6 +7,7 @@ crash or a kill leaves either the old file or the new one, never half of one; se
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import errno
 import hashlib
 import math
@@ -39,11 +40,44 @@ DIRECTORY_MODE = 0o755
 SET_LOCK_WAIT = 60.0
 
 
+#: The installed package's own folder (its code, recipes and shipped policies): no command writes there, except
+#: ``pretrained --export`` into the shipped policies (:func:`package_writes`).
+PACKAGE_FOLDER = Path(__file__).resolve().parent.parent
+_package_writes: contextvars.ContextVar[bool] = contextvars.ContextVar("package_writes", default=False)
+
+
+@contextlib.contextmanager
+def package_writes() -> Iterator[None]:
+    """Let the writers of this module write into :data:`PACKAGE_FOLDER` while the block runs (the export of a shipped
+    policy)."""
+    token = _package_writes.set(True)
+    try:
+        yield
+    finally:
+        _package_writes.reset(token)
+
+
+def check_writable(path: str | os.PathLike[str]) -> None:
+    """Refuse to write at ``path`` inside the installed package's folder (a shipped policy's stored evaluation, say),
+    unless inside :func:`package_writes`. Every writer of this module calls it; commands call it before they work.
+
+    :raises ValueError: naming the path
+    """
+    if not _package_writes.get() and Path(path).resolve().is_relative_to(PACKAGE_FOLDER):
+        raise ValueError(
+            f"{path} is inside the installed package sb3_formation ({PACKAGE_FOLDER}), whose shipped policies and "
+            "recipes no command overwrites: write elsewhere"
+        )
+
+
 def temporary_beside(path: Path) -> Path:
     """Create a new, empty hidden file in ``path``'s folder (created if needed) with :data:`FILE_MODE`.
 
     The temporary name keeps ``path``'s suffix (some writers, e.g. SB3's ``save``, choose the format from it).
+
+    :raises ValueError: ``path`` is inside the package's folder (:func:`check_writable`)
     """
+    check_writable(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
     for _ in range(100):
@@ -143,6 +177,7 @@ def atomic_directory(target: Path) -> Iterator[Path]:
     either the old or the new folder under a hidden name or under ``target``, never a half-written ``target``; a kill
     between the two renames is undone by :func:`restore_directory` (called here first, and by readers).
     """
+    check_writable(target)
     restore_directory(target)
     temporary = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
     try:
@@ -279,6 +314,7 @@ def folder_lock(folder: Path, what: str = "folder", wait: float = 0.0, remove: b
     :param remove: delete the lock file when letting go (for folders that should hold only what is written in them)
     :raises RuntimeError: another process holds the lock (still, after ``wait`` seconds)
     """
+    check_writable(folder)
     folder.mkdir(parents=True, exist_ok=True)
     if fcntl is None:  # pragma: no cover
         yield
