@@ -10,9 +10,11 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
+import torch
 import yaml
 from logged_names import EPISODE_SCALARS
 from PIL import Image
@@ -34,6 +36,7 @@ from sb3_formation.experiment.training import make_training_env
 from sb3_formation.runtime import OnnxPolicy
 from sb3_formation.safety import SafetyGains
 from sb3_formation.safety.policy import SafePolicy
+from sb3_formation.sb3.model_files import read_model_data
 from sb3_formation.sb3.onnx_export import export_onnx
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
@@ -454,9 +457,9 @@ def test_sigterm_checkpoints_and_stops(tmp_path: Path) -> None:
     wait_for(
         lambda: (
             (run_dir / "tensorboard" / "progress.csv").exists()
-            and len((run_dir / "tensorboard" / "progress.csv").read_text().splitlines()) >= 3
+            and len((run_dir / "tensorboard" / "progress.csv").read_text().splitlines()) >= 4
         )
-    )
+    )  # three rollouts logged: two iterations complete (a stop during the third's update drops it)
     process.send_signal(signal.SIGTERM)
     _, stderr = process.communicate(timeout=120)
     assert process.returncode == 128 + signal.SIGTERM == 143  # the conventional code of a SIGTERM-ended command
@@ -484,7 +487,7 @@ def test_ctrl_c_with_workers_checkpoints_and_stops(tmp_path: Path) -> None:
     wait_for(lambda: (tmp_path / "runs").exists() and any((tmp_path / "runs").iterdir()))
     run_dir = only_run_dir(tmp_path / "runs")
     progress = run_dir / "tensorboard" / "progress.csv"
-    wait_for(lambda: progress.exists() and len(progress.read_text().splitlines()) >= 3)
+    wait_for(lambda: progress.exists() and len(progress.read_text().splitlines()) >= 4)  # two iterations complete
     os.killpg(process.pid, signal.SIGINT)
     _, stderr = process.communicate(timeout=120)
     assert process.returncode == 128 + signal.SIGINT == 130, stderr
@@ -587,3 +590,61 @@ def test_resume_refuses_a_config_whose_recipe_was_edited_since_the_checkpoint(
     (run_dir / "config.yaml").write_text(original)
     assert main(["train", "--resume", str(run_dir), "--no-progress"]) == 0
     assert (run_dir / FINAL_MODEL).is_file()
+
+
+@pytest.mark.slow
+def test_sigterm_during_a_long_ppo_update_stops_before_the_next_mini_batch(tmp_path: Path) -> None:
+    """The first iteration's update of 10^6 epochs would run for many minutes: SIGTERM inside it drops that iteration
+    and checkpoints the state before it, as a stop during a rollout does, within the hang guard."""
+    long_update = {"base": "ch4-individual", "ppo": {"n_steps": 16, "batch_size": 16, "n_epochs": 1_000_000}}
+    (tmp_path / "long.yaml").write_text(yaml.safe_dump(long_update))
+    process = run_cli("train", "--recipe", "long.yaml", "--iterations", "0,0,2", "--run-dir", "run", *QUICK, cwd=tmp_path)
+    wait_for(lambda: (tmp_path / "run" / "tensorboard").exists())
+    time.sleep(10.0)  # the 16-step rollout is over: the update is under way
+    process.send_signal(signal.SIGTERM)
+    _, stderr = process.communicate(timeout=120)  # a hang guard: the update itself would take far longer
+    assert process.returncode == 143, stderr
+    message = "sb3-formation: stopped by SIGTERM; checkpoint run/checkpoints/iteration_000000; continue with --resume run"
+    assert stderr.strip().splitlines()[-1] == message, stderr
+    state = json.loads((tmp_path / "run" / "checkpoints" / "iteration_000000" / STATE_FILE).read_text())
+    assert state["num_timesteps"] == 0 and state["curriculum"]["iteration"] == 0
+    assert read_model_data(tmp_path / "run" / "checkpoints" / "iteration_000000" / "model.zip")["_n_updates"] == 0
+
+
+RUNS = ("whole", "stopped")
+
+
+def test_a_stop_inside_an_update_checkpoints_the_state_before_it_bit_for_bit(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """SIGTERM at the second mini-batch of the second iteration's update: the checkpoint written is the state after
+    the first iteration (model, optimiser, normalisers, curriculum, counters), byte for byte as an unstopped run's."""
+    recipe = {
+        "base": "ch4-individual",
+        "ppo": {"n_steps": 16, "batch_size": 16, "n_epochs": 3},
+        "training": {"normalize_reward": True},
+    }
+    (tmp_path / "short.yaml").write_text(yaml.safe_dump(recipe))
+    arguments = ["train", "--recipe", str(tmp_path / "short.yaml"), "--iterations", "0,0,3", "--checkpoint-every", "1"]
+    assert main([*arguments, "--no-evaluate", "--run-dir", str(tmp_path / "whole"), *QUICK]) == 0
+    steps, adam_step = [], torch.optim.Adam.step
+
+    def sigterm_at_the_eleventh_step(self: torch.optim.Adam, *args: Any, **kwargs: Any) -> Any:
+        steps.append(1)
+        if len(steps) == 11:  # 48 samples (16 steps of 3 agents): 3 mini-batches x 3 epochs an update; the second's 2nd
+            os.kill(os.getpid(), signal.SIGTERM)
+        return adam_step(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", sigterm_at_the_eleventh_step)
+    assert main([*arguments, "--no-evaluate", "--run-dir", str(tmp_path / "stopped"), *QUICK]) == 143
+    assert len(steps) == 11  # the twelfth step was never taken
+    assert latest_checkpoint(tmp_path / "stopped").name == "iteration_000001"
+    whole, stopped = (tmp_path / run / "checkpoints" / "iteration_000001" for run in RUNS)
+    for name in ("normalizer.npz", "reward_normalizer.npz"):
+        assert (whole / name).read_bytes() == (stopped / name).read_bytes(), name
+    states = [json.loads((folder / STATE_FILE).read_text()) | {"training_seconds": 0} for folder in (whole, stopped)]
+    assert states[0] == states[1]  # all but the wall time
+    models = [load_from_zip_file(folder / "model.zip") for folder in (whole, stopped)]
+    assert models[0][0]["_n_updates"] == models[1][0]["_n_updates"] == 3
+    for part in ("policy", "policy.optimizer"):
+        assert str(models[0][1][part]) == str(models[1][1][part]), part

@@ -4,6 +4,7 @@ in :mod:`~sb3_formation.experiment.runs`)."""
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import shutil
@@ -16,6 +17,7 @@ from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
+import torch
 import yaml
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
@@ -35,6 +37,7 @@ from sb3_formation.experiment.runs import (
     STATE_FILE,
     latest_checkpoint,
     normalize_rewards,
+    reward_normalizer,
     reward_normalizer_file,
     save_model,
 )
@@ -99,6 +102,7 @@ class RunCheckpointCallback(BaseCallback):
         self.every = every
         self.keep = keep
         self.stop_signal: int | None = None  # the signal that asked training to stop
+        self._start: dict[str, Any] = {}  # the state at the start of the iteration under way (:meth:`drop_iteration`)
 
     def _on_step(self) -> bool:
         return self.stop_signal is None
@@ -108,6 +112,31 @@ class RunCheckpointCallback(BaseCallback):
         iteration = self.curriculum.iteration
         if iteration > 0 and iteration % self.every == 0:
             self.save()
+        rewards = reward_normalizer(cast(VecEnv, self.model.get_env()))
+        self._start = copy.deepcopy(
+            {
+                "policy": self.model.policy.state_dict(),
+                "optimizer": self.model.policy.optimizer.state_dict(),
+                "curriculum": self.curriculum.state_dict(),
+                "returns": None if rewards is None else rewards.ret_rms,
+                "windows": {name: getattr(self.model, name) for name in ("ep_info_buffer", "ep_success_buffer")},
+                "counters": {name: getattr(self.model, name) for name in ("_n_updates", "_episode_num")},
+            }
+        )
+
+    def drop_iteration(self) -> None:
+        """Put the model, its optimiser, the curriculum, the reward statistics and the episode windows back as they
+        were when the iteration under way started (its update was stopped half way): :meth:`save` then writes the
+        state after the last completed iteration, as after a stop during a rollout."""
+        start = self._start
+        self.model.policy.load_state_dict(start["policy"])
+        self.model.policy.optimizer.load_state_dict(start["optimizer"])
+        self.curriculum.load_state_dict(start["curriculum"])
+        rewards = reward_normalizer(cast(VecEnv, self.model.get_env()))
+        if rewards is not None:
+            rewards.ret_rms = start["returns"]
+        for name, value in {**start["windows"], **start["counters"]}.items():
+            setattr(self.model, name, value)
 
     def save(self) -> Path:
         """Write a checkpoint of the state after the last completed iteration and return its folder.
@@ -226,17 +255,37 @@ class TrainingStopped(Exception):
         super().__init__(f"stopped by {name}; checkpoint {checkpoint}; continue with --resume {run_dir}")
 
 
+class UpdateStopped(Exception):
+    """Raised in place of an optimiser step of PPO's update once a stop was asked (:func:`stop_on_signals`)."""
+
+
 @contextmanager
-def stop_on_signals(checkpoint: RunCheckpointCallback) -> Iterator[None]:
-    """While active, SIGINT (Ctrl-C) and SIGTERM ask training to stop after the current step (then it checkpoints)."""
+def stop_on_signals(checkpoint: RunCheckpointCallback, optimizer: torch.optim.Optimizer) -> Iterator[None]:
+    """While active, SIGINT (Ctrl-C) and SIGTERM ask training to stop: during a rollout after the current step,
+    during PPO's update before its next mini-batch, by :class:`UpdateStopped` from ``optimizer``'s ``step`` (no
+    callback runs inside SB3's ``train``, and an update of many teams and epochs takes minutes). Either way the
+    iteration under way is dropped and a checkpoint of the last completed one is written.
+
+    :param checkpoint: the run's checkpoint callback (it keeps the signal)
+    :param optimizer: the policy's optimiser
+    """
 
     def request_stop(signum: int, frame: Any) -> None:
         checkpoint.stop_signal = signum
 
+    step = optimizer.step
+
+    def step_unless_stopped(*args: Any, **kwargs: Any) -> Any:
+        if checkpoint.stop_signal is not None:
+            raise UpdateStopped
+        return step(*args, **kwargs)
+
     previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    optimizer.step = step_unless_stopped  # type: ignore[method-assign]
     try:
         yield
     finally:
+        del optimizer.step  # the class's own again
         for sig, handler in previous.items():
             signal.signal(sig, handler)
 
@@ -531,14 +580,17 @@ def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: Curri
     steps_per_iteration = model.n_steps * cast(VecEnv, model.get_env()).num_envs  # the model was made with its env
     # an open-ended curriculum (total None) trains until the time budget ends it
     remaining = sys.maxsize // 2 if total is None else (total - curriculum.iteration) * steps_per_iteration
-    with stop_on_signals(checkpoint):
+    with stop_on_signals(checkpoint, model.policy.optimizer):
         if remaining > 0 and not clock.exhausted:
-            model.learn(
-                total_timesteps=remaining,
-                callback=CallbackList(callbacks),
-                reset_num_timesteps=False,
-                progress_bar=False,
-            )
+            try:
+                model.learn(
+                    total_timesteps=remaining,
+                    callback=CallbackList(callbacks),
+                    reset_num_timesteps=False,
+                    progress_bar=False,
+                )
+            except UpdateStopped:  # the model is half updated: back to the start of its iteration
+                checkpoint.drop_iteration()
         checkpoint.init_callback(model)  # (again) for when nothing was left to learn
         checkpoint.save()
         if periodic is not None and checkpoint.stop_signal is None:  # the last iteration's policy is a candidate too
