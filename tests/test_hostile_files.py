@@ -22,6 +22,7 @@ from sb3_formation.experiment.export import ONNX_FILE
 from sb3_formation.experiment.pretrained import PRETRAINED_DIR
 from sb3_formation.runtime.onnx_policy import MAX_TENSOR_ELEMENTS, METADATA_PREFIX, OnnxPolicy, PolicyMetadata
 from sb3_formation.utils.files import MAX_FILE_BYTES
+from sb3_formation.utils.yaml_files import MAX_YAML_NODES
 
 #: Most bytes (Python's and numpy's) that refusing a bomb may allocate.
 REFUSAL_BYTES = 64 << 20
@@ -203,3 +204,23 @@ def test_onnxruntime_errors_at_run_time_are_one_line(tmp_path: Path) -> None:
     with pytest.raises(RuntimeError, match=r"spoilt\.onnx: onnxruntime could not run the graph: ") as error:
         policy.agent_actions(np.zeros((1, policy.observation_dim), np.float32), np.zeros(1, int))
     assert "\n" not in str(error.value)
+
+
+def laughs(levels: int = 10) -> str:
+    """A YAML flow list of anchors nested ``levels`` deep, each alias ten times the one before: 10^levels items once
+    expanded, in a few hundred bytes."""
+    items = ["&l0 [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]"]
+    items += [f"&l{level} [{', '.join([f'*l{level - 1}'] * 10)}]" for level in range(1, levels)]
+    return f"[{', '.join(items)}]"
+
+
+@pytest.mark.parametrize("field", ["policy:\n  net_arch:\n    pi", "env:\n  v_max"], ids=["a section", "a numeric field"])
+def test_a_recipe_of_nested_yaml_anchors_is_refused_before_it_expands(
+    tmp_path: Path, field: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bomb = tmp_path / "laughs.yaml"
+    bomb.write_text(f"base: ch5-bearing\n{field}: {laughs()}\n")
+    assert bomb.stat().st_size < 1024
+    error = refused_with_one_line(capsys, ["train", "--recipe", str(bomb), "--logdir", str(tmp_path / "runs")])
+    assert f"{bomb} is not valid YAML: its aliases expand it to more than {MAX_YAML_NODES} nodes" in error
+    assert not (tmp_path / "runs").exists()

@@ -11,8 +11,33 @@ from typing import Any
 import yaml
 
 
+#: The most nodes a YAML text may hold once its aliases are expanded: far above any recipe (a shipped recipe has
+#: about 100), far below a "billion laughs" text whose few lines of nested anchors expand to 10^9 items.
+MAX_YAML_NODES = 100_000
+
+
 class NumberLoader(yaml.SafeLoader):
-    """PyYAML's safe loader that also reads exponent numbers without a dot (``3e-4``) as floats."""
+    """PyYAML's safe loader that also reads exponent numbers without a dot (``3e-4``) as floats, and refuses a text
+    whose aliases expand it beyond :data:`MAX_YAML_NODES` nodes, counted as it is composed, before anything is built
+    (PyYAML shares an aliased node, but any code that walks or copies the data expands it)."""
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self._sizes: dict[int, int] = {}  # expanded size of each composed node, by id
+
+    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node | None:
+        node = super().compose_node(parent, index)
+        if node is not None and id(node) not in self._sizes:
+            children = node.value if isinstance(node, yaml.SequenceNode) else []
+            if isinstance(node, yaml.MappingNode):
+                children = [child for pair in node.value for child in pair]
+            size = 1 + sum(self._sizes.get(id(child), 1) for child in children)
+            if size > MAX_YAML_NODES:
+                raise yaml.YAMLError(
+                    f"its aliases expand it to more than {MAX_YAML_NODES} nodes (nested anchors): write the values out"
+                )
+            self._sizes[id(node)] = size
+        return node
 
 
 NumberLoader.add_implicit_resolver(
