@@ -307,12 +307,13 @@ def test_export_refuses_what_it_cannot_export(tmp_path: Path, capsys: pytest.Cap
     assert not (tmp_path / "c.onnx").exists()
 
 
-def test_a_missing_onnxruntime_is_named_with_the_extra_that_installs_it(
-    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+@pytest.mark.parametrize("module", ["onnxruntime", "onnx"])
+def test_a_missing_runtime_package_is_named_with_the_extra_that_installs_it(
+    module: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    monkeypatch.setitem(sys.modules, "onnxruntime", None)  # import onnxruntime then raises ImportError
+    monkeypatch.setitem(sys.modules, module, None)  # import <module> then raises ImportError
     target = str(PRETRAINED_DIR / "ch5-bearing" / ONNX_FILE)
-    assert main(["evaluate", target, "--episodes", "1", "--no-progress"]) == 2
+    assert main(["evaluate", target, "--episodes", "1", "--out", str(tmp_path / "eval"), "--no-progress"]) == 2
     assert capsys.readouterr().err.strip() == (
-        "sb3-formation: error: running an exported policy needs onnxruntime: pip install 'sb3-formation[runtime]'"
+        f"sb3-formation: error: running an exported policy needs {module}: pip install 'sb3-formation[runtime]'"
     )

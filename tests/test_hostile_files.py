@@ -224,3 +224,31 @@ def test_a_recipe_of_nested_yaml_anchors_is_refused_before_it_expands(
     error = refused_with_one_line(capsys, ["train", "--recipe", str(bomb), "--logdir", str(tmp_path / "runs")])
     assert f"{bomb} is not valid YAML: its aliases expand it to more than {MAX_YAML_NODES} nodes" in error
     assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize(
+    ("options", "recipe", "message"),
+    [
+        (
+            ["--env", "lidar_rays=100000000"],
+            None,
+            "FormationConfig.lidar_rays=100000000 is invalid: it must be an integer >= 1 and <= 3600",
+        ),
+        (["--n-envs", "100000000"], None, "n_envs must be at most 1024 (teams played at once), got 100000000"),
+        (
+            [],
+            {"ppo": {"n_steps": 100_000_000}},
+            "would hold 6853.0 GiB of rollout, beyond the limit of 4 GiB",
+        ),  # 1e8 x 84 x (211 + 8) x 4 B
+        (["--agents", "1000"], None, "FormationConfig.n_agents=1000 is invalid: it must be an integer >= 3 and <= 64"),
+    ],
+    ids=["lidar rays", "teams", "rollout", "agents"],
+)
+def test_sizes_that_would_exhaust_memory_are_refused_before_anything_is_allocated(
+    tmp_path: Path, options: list[str], recipe: dict[str, Any] | None, message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    if recipe is not None:
+        (tmp_path / "big.yaml").write_text(json.dumps({"base": "ch5-bearing", **recipe}))
+        options = ["--recipe", str(tmp_path / "big.yaml")]
+    assert message in refused_with_one_line(capsys, ["train", *options, "--logdir", str(tmp_path / "runs")])
+    assert not (tmp_path / "runs").exists()

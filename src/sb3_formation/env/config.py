@@ -33,6 +33,13 @@ THESIS_SUBSTEPS = 2
 MAX_SUBSTEPS = 1000
 #: The largest world side (m): 1000 times the thesis's 10 m, far inside what float64 geometry keeps exact.
 MAX_WORLD_SIZE = 10_000.0
+#: The most lidar rays: a ray every 0.1 deg, 40 times the thesis's 90 (Table 4.1); each ray is two observation
+#: features and a ray cast per agent and step, so 10^8 rays would take gigabytes per step.
+MAX_LIDAR_RAYS = 3600
+#: The most agents in a team: 8 times the largest team of the thesis's experiments (n = 8, chapter 5).
+MAX_AGENTS = 64
+#: The most steps of an episode, and the most placement draws: 40 times the scene families' 2,500 steps.
+MAX_EPISODE_STEPS = 100_000
 
 #: Names of the reward terms, in the order of eq. (42); chapter 4's ``ref`` term (eq. 22) is ``dist``.
 REWARD_TERMS: tuple[str, ...] = ("time", "angle", "bearing", "dist", "centroid", "goal", "move", "velocity", "coll")
@@ -197,9 +204,10 @@ class FormationConfig:
         _check("placement_clearance", clearance, "a number >= 0", lambda v: is_number(v) and v >= 0)
         force = self.max_force
         _check("max_force", force, "None or a number > 0", lambda v: v is None or (is_number(v) and v > 0))
-        _check("n_agents", self.n_agents, "an integer >= 3", lambda v: is_integer(v) and v >= 3)
-        for name in ("lidar_rays", "max_steps", "max_placement_tries"):
-            _check(name, getattr(self, name), "an integer >= 1", lambda v: is_integer(v) and v >= 1)
+        limits = {"n_agents": (3, MAX_AGENTS), "lidar_rays": (1, MAX_LIDAR_RAYS), "max_steps": (1, MAX_EPISODE_STEPS)}
+        for name, (least, most) in {**limits, "max_placement_tries": (1, MAX_EPISODE_STEPS)}.items():
+            in_range = f"an integer >= {least} and <= {most}"
+            _check(name, getattr(self, name), in_range, lambda v: is_integer(v) and least <= v <= most)  # noqa: B023
         substeps = self.physics_substeps
         _check("physics_substeps", substeps, "None or an integer >= 1", lambda v: v is None or (is_integer(v) and v >= 1))
         _check("stage", self.stage, "1, 2 or 3", lambda v: is_integer(v) and v in (1, 2, 3))

@@ -32,6 +32,7 @@ from sb3_formation.controllers import controller_from_spec
 from sb3_formation.controllers.base import Controller, TeamPolicy
 from sb3_formation.controllers.residual import ResidualPolicy, check_residual_scale
 from sb3_formation.env.config import TASKS, FormationConfig
+from sb3_formation.env.observations import observation_fields
 from sb3_formation.safety.filter import SafetyGains
 from sb3_formation.sb3.imitation import ImitationSettings
 from sb3_formation.sb3.policies import FormationPolicy
@@ -65,6 +66,14 @@ PPO_KEYS = frozenset(inspect.signature(PPO.__init__).parameters) - {
     "tensorboard_log",
     "_init_setup_model",
 }
+#: The most teams a recipe may play at once (``n_envs``): 70 times the thesis's 14 (thesis 5.3).
+MAX_TEAMS = 1024
+#: The most bytes a PPO iteration's rollout may hold (SB3's buffer of float32 observations and the values below, for
+#: every agent-step): a quarter of a 16 GiB machine.
+MAX_ROLLOUT_BYTES = 4 << 30
+#: Values SB3's rollout buffer keeps per agent-step beside the observation: the action (2), reward, return, episode
+#: start, value, log-probability and advantage.
+ROLLOUT_VALUES = 8
 #: SB3's ``n_steps`` when a recipe gives none.
 PPO_DEFAULT_N_STEPS: int = inspect.signature(PPO.__init__).parameters["n_steps"].default
 #: Training features a recipe may switch on, and their defaults (the thesis's: none of them).
@@ -249,6 +258,16 @@ class Recipe:
             if not (is_number(penalty) and penalty >= 0):
                 raise ValueError(f"{where}: safety: penalty must be a finite number >= 0, got {penalty!r}")
         self.stage_iterations()  # validates the budget against the curriculum
+        if self.n_envs > MAX_TEAMS:
+            raise ValueError(f"{where}: n_envs must be at most {MAX_TEAMS} (teams played at once), got {self.n_envs}")
+        features = max(sum(field.size for field in observation_fields(self.config(n_agents=n))) for n in self.sizes)
+        rollout = self.steps_per_iteration() * (features + ROLLOUT_VALUES) * 4  # float32
+        if rollout > MAX_ROLLOUT_BYTES:
+            raise ValueError(
+                f"{where}: a PPO iteration of n_steps={self.ppo_kwargs().get('n_steps', PPO_DEFAULT_N_STEPS)} in "
+                f"{self.n_envs} teams would hold {rollout / 2**30:.1f} GiB of rollout, beyond the limit of "
+                f"{MAX_ROLLOUT_BYTES / 2**30:g} GiB: lower ppo: n_steps or n_envs"
+            )
 
     # Reading and writing ----------------------------------------------------------------------------------------------
 

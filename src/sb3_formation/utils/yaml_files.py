@@ -10,7 +10,6 @@ from typing import Any
 
 import yaml
 
-
 #: The most nodes a YAML text may hold once its aliases are expanded: far above any recipe (a shipped recipe has
 #: about 100), far below a "billion laughs" text whose few lines of nested anchors expand to 10^9 items.
 MAX_YAML_NODES = 100_000
