@@ -238,3 +238,11 @@ def test_a_thesis_recipe_run_with_a_fixed_sigma_is_exported(tmp_path: Path) -> N
     assert not load_policy(run).policy.log_std.requires_grad
     folder = export_pretrained(run, "fixed", root=tmp_path / "shipped")
     assert pretrained_card("fixed", folder.parent)["recipe"] == "ch4-individual"
+
+
+def test_the_listing_shows_a_policy_that_never_succeeded(tiny_run: Path, tmp_path: Path, capsys) -> None:
+    export_pretrained(tiny_run, "tiny", root=tmp_path)
+    summary = pretrained_card("tiny", tmp_path)["summary"]
+    assert summary["success_rate"] == 0 and summary["successful_episodes"]["length"]["mean"] is None
+    assert main(["pretrained", "--into", str(tmp_path)]) == 0
+    assert "| pretrained:tiny | tiny | 6 | stage 3 | 0.0% (0.0%-56.1%) | - | - | " in capsys.readouterr().out

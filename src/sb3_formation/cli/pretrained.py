@@ -21,17 +21,17 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--export", type=Path, metavar="RUN_DIR", help="a finished run folder to ship")
     parser.add_argument("--name", help="name of the exported policy (pretrained:<name>)")
-    parser.add_argument("--into", type=Path, help="folder of shipped policies (default: the package's)")
+    parser.add_argument("--into", type=Path, help="folder of shipped policies to list or export into (default: the package's)")
     parser.add_argument("--replace", action="store_true", help="with --export: replace a policy of that name")
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """``sb3-formation pretrained``: the shipped policies with their stored figures, or ``--export`` of a run."""
-    if args.export is not None or args.name is not None or args.into is not None or args.replace:
+    options = {} if args.into is None else {"root": args.into}
+    if args.export is not None or args.name is not None or args.replace:
         if args.export is None or args.name is None:
             raise ValueError("--export RUN_DIR and --name NAME go together")
-        options = {} if args.into is None else {"root": args.into}
         folder = export_pretrained(
             args.export, args.name, command=args.command_line, progress_bar=True, replace=args.replace, **options
         )
@@ -41,11 +41,11 @@ def run(args: argparse.Namespace) -> int:
         return 0
     columns = "target | recipe | n | episodes | success (95 % CI) | angle error (deg) | bearing error | agent contacts | steps"
     print(f"| {columns} | training |\n|---|---|---:|---|---:|---:|---:|---:|---:|---:|")
-    for name in pretrained_names():
-        card = pretrained_card(name)
+    for name in pretrained_names(**options):
+        card = pretrained_card(name, **options)
         summary = card["summary"]
         low, high = summary["success_rate_ci95"]
-        means = {key: value["mean"] for key, value in summary["successful_episodes"].items()}
+        means = {key: value["mean"] for key, value in summary["successful_episodes"].items()}  # None: no success
         contacts = summary["all_episodes"]["collisions_agent"]["mean"]
         sizes = card.get("team_sizes", [card["n_agents"]])
         n = f"{card['n_agents']} (trained on {', '.join(map(str, sizes))})" if len(sizes) > 1 else card["n_agents"]
@@ -53,7 +53,12 @@ def run(args: argparse.Namespace) -> int:
         episodes = f"stage {summary['stage']}" if scenes == "curriculum" else f"{scenes} families"
         print(
             f"| pretrained:{name} | {card['recipe']} | {n} | {episodes} | {summary['success_rate']:.1%} "
-            f"({low:.1%}-{high:.1%}) | {means['angle_error_deg']:.2f} | {means['bearing_error']:.4f} | {contacts:.3g} | "
-            f"{means['length']:.0f} | {card['training_seconds'] / 60:.1f} min |"
+            f"({low:.1%}-{high:.1%}) | {figure(means['angle_error_deg'], '.2f')} | {figure(means['bearing_error'], '.4f')} | "
+            f"{contacts:.3g} | {figure(means['length'], '.0f')} | {card['training_seconds'] / 60:.1f} min |"
         )
     return 0
+
+
+def figure(value: float | None, spec: str) -> str:
+    """``value`` formatted, or ``-`` where there is none (a mean over no successful episode)."""
+    return "-" if value is None else format(value, spec)
