@@ -236,6 +236,15 @@ def test_export_and_evaluate_from_the_command_line(
 ) -> None:
     monkeypatch.chdir(tmp_path)  # compare writes the shipped policy's evaluation under ./evaluations
     out = tmp_path / "policy.onnx"
+    for opset in ("1", "17", "26", "99"):  # one line, nothing written (torch would fall back, or write 18 silently)
+        assert main(["export", "pretrained:ch4-individual", "--onnx", str(out), "--opset", opset]) == 2
+        assert (
+            capsys.readouterr().err
+            == f"sb3-formation: error: opset must be 18-25 (what torch's exporter writes), got {opset}\n"
+        )
+        assert not out.exists()
+    assert main(["export", "pretrained:ch4-individual", "--onnx", str(out), "--opset", "21"]) == 0
+    assert "opset 21" in capsys.readouterr().out
     assert main(["export", "pretrained:ch4-individual", "--onnx", str(out)]) == 0
     assert "opset 18" in capsys.readouterr().out
     assert isinstance(load_policy(f"onnx:{out}"), OnnxPolicy) and isinstance(load_policy(out), OnnxPolicy)

@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sb3_formation.cli.common import TARGET_HELP, add_trust_pickle_option, model_trust, positive_int
+from sb3_formation.cli.common import TARGET_HELP, add_trust_pickle_option, model_trust
 from sb3_formation.experiment.targets import load_policy
 from sb3_formation.runtime import OnnxPolicy
-from sb3_formation.sb3.onnx_export import DEFAULT_OPSET, export_onnx
+from sb3_formation.sb3.onnx_export import DEFAULT_OPSET, SUPPORTED_OPSETS, export_onnx
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -24,7 +24,12 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("target", help=TARGET_HELP)
     parser.add_argument("--onnx", type=Path, required=True, metavar="FILE", help="the .onnx file to write")
-    parser.add_argument("--opset", type=positive_int, default=DEFAULT_OPSET, help=f"ONNX opset (default {DEFAULT_OPSET})")
+    parser.add_argument(
+        "--opset",
+        type=int,
+        default=DEFAULT_OPSET,
+        help=f"ONNX opset, {SUPPORTED_OPSETS[0]}-{SUPPORTED_OPSETS[-1]} (default {DEFAULT_OPSET})",
+    )
     add_trust_pickle_option(parser)
     parser.set_defaults(run=run)
 

@@ -36,6 +36,10 @@ from sb3_formation.utils.files import atomic_path
 
 #: The ONNX opset the graph is written in (onnxruntime 1.14 and later run it).
 DEFAULT_OPSET = 18
+#: The opsets an export may ask for: torch's exporter writes 18 and converts to 19-25 without a fallback (measured with
+#: torch 2.13 and onnxscript); below 18 it falls back to onnx's converter with warnings, and silently writes 18 for
+#: opsets it does not know.
+SUPPORTED_OPSETS = range(18, 26)
 #: Rows of the example batch the graph is traced with (its batch dimension stays free).
 EXAMPLE_ROWS = 2
 
@@ -135,9 +139,14 @@ def export_onnx(policy: TeamPolicy, path: str | os.PathLike[str], opset: int = D
     :param path: the ``.onnx`` file to write (replaced only once complete)
     :param opset: the ONNX opset
     :return: ``path``
-    :raises ValueError: a policy that is not a trained one, or of a kind the graph cannot hold
+    :raises ValueError: an opset outside :data:`SUPPORTED_OPSETS`, a policy that is not a trained one, or of a kind
+        the graph cannot hold
     :raises ImportError: onnx or onnxscript (which torch's exporter needs) is not installed
     """
+    if opset not in SUPPORTED_OPSETS:
+        raise ValueError(
+            f"opset must be {SUPPORTED_OPSETS[0]}-{SUPPORTED_OPSETS[-1]} (what torch's exporter writes), got {opset!r}"
+        )
     try:
         import onnx
         import onnxscript  # noqa: F401  (torch.onnx's exporter imports it; say so before tracing)
@@ -172,6 +181,8 @@ def export_onnx(policy: TeamPolicy, path: str | os.PathLike[str], opset: int = D
     assert program is not None  # dynamo=True returns the program
     model = program.model_proto
     written = next(entry.version for entry in model.opset_import if entry.domain in ("", "ai.onnx"))
+    if written != opset:
+        raise RuntimeError(f"torch's exporter wrote opset {written} where {opset} was asked: nothing was written")
     metadata = PolicyMetadata(trained.config, metadata.team_sizes, residual, recurrent, safety, opset=written)
     onnx.helper.set_model_props(model, metadata.to_properties())
     model.producer_name = "sb3-formation"
