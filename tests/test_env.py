@@ -376,3 +376,16 @@ def test_reference_bearings_are_observed_last_only_when_asked() -> None:
         actions = {agent: np.array([0.3, -0.2]) for agent in env.agents}
         observations, *_ = env.step(actions)
         plain_observations, *_ = plain.step(actions)
+
+
+def test_actions_that_are_not_real_numbers_or_not_a_dict_are_one_line_errors() -> None:
+    env = FormationEnv()
+    env.reset(seed=0)
+    complex_action = {agent: np.array([0.5 + 1j, 0.0]) for agent in env.agents}  # numpy would keep 0.5 with a warning
+    with pytest.raises(ValueError, match=r"action of agent_0 is not real numbers: array\(\[0\.5\+1\.j, 0\. \+0\.j\]\)"):
+        env.step(complex_action)
+    with pytest.raises(ValueError, match="actions must be real numbers, got complex128 values"):
+        env.step_array(np.full((6, 2), 0.5 + 1j))
+    with pytest.raises(TypeError, match=r"step\(\) takes a dict of one action per agent .* got list; step_array\(\)"):
+        env.step([[0.1, 0.1]] * 6)
+    assert env.team_state().step == 0  # nothing stepped

@@ -297,3 +297,12 @@ def test_a_recipes_safety_section_is_checked_and_turns_the_filter_on() -> None:
     ):
         with pytest.raises(ValueError, match=message):
             load_recipe("fast-ch5-bearing").with_changes({"safety": section})
+
+
+def test_a_base_chain_of_a_thousand_recipes_is_refused_at_once(tmp_path: Path) -> None:
+    (tmp_path / "r0.yaml").write_text("base: ch5-bearing\n")
+    for index in range(1, 1000):
+        (tmp_path / f"r{index}.yaml").write_text(f"base: r{index - 1}.yaml\n")
+    with pytest.raises(ValueError, match=r"r999\.yaml: its base: chain is longer than 32 recipes; merge some of them"):
+        load_recipe(tmp_path / "r999.yaml")
+    assert load_recipe(tmp_path / "r30.yaml").config() == load_recipe("ch5-bearing").config()  # 31 files and a shipped one

@@ -438,3 +438,20 @@ def test_an_obstacle_outside_the_world_is_refused() -> None:
     with pytest.raises(ValueError, match=r"obstacle 1 at \(100\.000, 100\.000\) m is outside the world"):
         Scenario(agents, [12.0, 5.0], [[12.0, 2.0, 0.5], [100.0, 100.0, 0.5]]).validate(CH4)
     Scenario(agents, [12.0, 5.0], [[14.9, 9.9, 2.0]]).validate(CH4)
+
+
+def test_walls_and_goals_that_cannot_be_read_or_reached_are_named() -> None:
+    positions = [[1.0, 1.0], [2.0, 1.0], [3.0, 1.0]]
+    with pytest.raises(ValueError, match=r"Scenario\.walls must be a rectangular array: its rows differ in length"):
+        Scenario(positions, [5.0, 5.0], walls=[[1.0, 2.0, 3.0, 4.0, 0.1], [1.0, 2.0]])
+    with pytest.raises(ValueError, match=r"Scenario\.walls must hold real numbers, got complex128 values"):
+        Scenario(positions, [5.0, 5.0], walls=[[1.0, 2.0, 3.0, 4.0, 0.1j]])
+    config = FormationConfig(n_agents=3)
+    # the goal 0.2 m from an obstacle's centre of radius 0.5 m, and on a wall's segment (thickness 0.1 m)
+    inside = Scenario(positions, [5.0, 5.0], obstacles=[[5.2, 5.0, 0.5]])
+    with pytest.raises(ValueError, match=r"goal \(5\.000, 5\.000\) m lies inside obstacle 0, where no centroid"):
+        inside.validate(config)
+    on_wall = Scenario(positions, [5.0, 5.0], walls=[[4.0, 5.0, 6.0, 5.0, 0.1]])
+    with pytest.raises(ValueError, match=r"lies inside wall 0"):
+        on_wall.validate(config)
+    Scenario(positions, [5.0, 5.0], obstacles=[[5.6, 5.0, 0.5]]).validate(config)  # 0.1 m clear of it

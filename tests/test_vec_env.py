@@ -241,3 +241,15 @@ def test_teams_of_several_sizes_refuse_a_team_critic_and_bad_sizes() -> None:
         FormationVecEnv(config, n_envs=2, team_sizes=[3, 2])
     with pytest.raises(ValueError, match="at least one team size"):
         FormationVecEnv(config, n_envs=2, team_sizes=[])
+
+
+def test_step_wait_without_step_async_is_named() -> None:
+    venv = FormationVecEnv(FormationConfig(n_agents=3), 1)
+    venv.reset()
+    with pytest.raises(RuntimeError, match=r"step_wait\(\) without step_async\(\)"):
+        venv.step_wait()
+    venv.step_async(np.zeros((3, 2)))
+    venv.step_wait()
+    with pytest.raises(RuntimeError, match=r"step_wait\(\) without step_async\(\)"):  # its actions were used once
+        venv.step_wait()
+    venv.close()

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any, ClassVar, NoReturn, cast
 
 import gymnasium
@@ -276,6 +277,11 @@ class FormationEnv(ParallelEnv):  # type: ignore[misc]  # pettingzoo ships no ty
     ]:
         if not self.agents:
             raise RuntimeError("step() called on a finished episode (or before reset()); call reset() first")
+        if not isinstance(actions, Mapping):
+            raise TypeError(
+                f"step() takes a dict of one action per agent (PettingZoo's parallel API), got {type(actions).__name__}; "
+                "step_array() takes an (n, 2) array"
+            )
         agents = self.agents
         observations, rewards, terminated, truncated, infos = self._advance(self._action_array(actions))
         return (
@@ -294,7 +300,7 @@ class FormationEnv(ParallelEnv):  # type: ignore[misc]  # pettingzoo ships no ty
         """
         if not self.agents:
             raise RuntimeError("step_array() called on a finished episode (or before reset()); call reset() first")
-        actions = np.asarray(actions, dtype=np.float64)
+        actions = real_actions(actions, "actions")
         if actions.shape != (len(self.possible_agents), 2):
             raise ValueError(f"actions must have shape ({len(self.possible_agents)}, 2), got {actions.shape}")
         finite = np.isfinite(actions).all(axis=1)
@@ -326,7 +332,7 @@ class FormationEnv(ParallelEnv):  # type: ignore[misc]  # pettingzoo ships no ty
     def _action_array(self, actions: dict[AgentID, np.ndarray]) -> np.ndarray:
         """Validate the action of every agent and return them clipped to [-1, 1] as an ``(n, 2)`` array."""
         try:
-            array = np.array([actions[agent] for agent in self.agents], dtype=np.float64)
+            array = real_actions([actions[agent] for agent in self.agents], "actions")
         except (KeyError, ValueError, TypeError):
             array = None
         if array is None or array.shape != (len(self.agents), 2) or len(actions) != len(self.agents):
@@ -345,9 +351,9 @@ class FormationEnv(ParallelEnv):  # type: ignore[misc]  # pettingzoo ships no ty
             raise ValueError(f"actions given for agents that are not live: {unknown}; live agents are {self.agents}")
         for agent in self.agents:
             try:
-                action = np.asarray(actions[agent], dtype=np.float64)
+                action = real_actions(actions[agent], f"action of {agent}")
             except (ValueError, TypeError) as error:
-                raise ValueError(f"action of {agent} is not numeric: {actions[agent]!r}") from error
+                raise ValueError(f"action of {agent} is not real numbers: {actions[agent]!r}") from error
             if action.shape != (2,):
                 raise ValueError(f"action of {agent} must have shape (2,), got {action.shape}")
         raise ValueError(f"actions could not be read as one (2,) array per agent: {actions!r}")
@@ -399,3 +405,16 @@ class FormationEnv(ParallelEnv):  # type: ignore[misc]  # pettingzoo ships no ty
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+
+
+def real_actions(values: Any, what: str) -> np.ndarray:
+    """``values`` as a float64 array.
+
+    :param what: what they are, for the message
+    :raises ValueError: rows of different lengths, or values that are not real numbers (complex ones too: numpy would
+        drop their imaginary parts with a mere warning)
+    """
+    array = np.asarray(values)  # numpy refuses ragged rows with a ValueError
+    if array.dtype.kind not in "iuf":
+        raise ValueError(f"{what} must be real numbers, got {array.dtype} values")
+    return array.astype(np.float64)

@@ -41,13 +41,13 @@ class Scenario:
     headings: np.ndarray | tuple[Any, ...] = ()
 
     def __post_init__(self) -> None:
-        obstacles = np.array(self.obstacles, dtype=np.float64)
+        obstacles = _real_array("obstacles", self.obstacles)
         arrays = {
-            "agent_positions": np.array(self.agent_positions, dtype=np.float64),
-            "goal": np.array(self.goal, dtype=np.float64),
+            "agent_positions": _real_array("agent_positions", self.agent_positions),
+            "goal": _real_array("goal", self.goal),
             "obstacles": obstacles.reshape(0, 3) if obstacles.size == 0 else obstacles,
-            "walls": as_walls(self.walls),
-            "headings": np.array(self.headings, dtype=np.float64),
+            "walls": as_walls(_real_array("walls", self.walls)),
+            "headings": _real_array("headings", self.headings),
         }
         shapes = {"agent_positions": "(n, 2)", "goal": "(2,)", "obstacles": "(m, 3)", "walls": "(w, 5)", "headings": "(n,)"}
         columns = {"agent_positions": 2, "obstacles": 3, "walls": 5}
@@ -125,6 +125,25 @@ class Scenario:
         gx, gy = self.goal
         if not (0 <= gx <= config.world_width and 0 <= gy <= config.world_height):
             raise ValueError(f"Scenario: goal ({gx:.3f}, {gy:.3f}) m is outside the world")
+        shapes = [(f"obstacle {index}", circle_gap(gx, gy, circle)) for index, circle in enumerate(self.obstacles)]
+        shapes += [(f"wall {index}", wall_gap(gx, gy, wall)) for index, wall in enumerate(self.walls)]
+        for name, gap in shapes:
+            if gap < 0:
+                raise ValueError(f"Scenario: goal ({gx:.3f}, {gy:.3f}) m lies inside {name}, where no centroid can reach it")
+
+
+def _real_array(name: str, values: Any) -> np.ndarray:
+    """A field of :class:`Scenario` as a float64 array.
+
+    :raises ValueError: ragged rows, or values that are not real numbers (naming the field)
+    """
+    try:
+        array = np.asarray(values)
+    except ValueError:  # numpy refuses rows of different lengths
+        raise ValueError(f"Scenario.{name} must be a rectangular array: its rows differ in length") from None
+    if array.size and array.dtype.kind not in "iuf":
+        raise ValueError(f"Scenario.{name} must hold real numbers, got {array.dtype} values")
+    return array.astype(np.float64)
 
 
 @dataclass(frozen=True)

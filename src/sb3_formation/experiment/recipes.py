@@ -577,13 +577,18 @@ def recipe_path(name: str | os.PathLike[str], relative_to: Path | None = None) -
     return path
 
 
+#: The longest ``base:`` chain a recipe file may have (the shipped recipes are at most 3 deep).
+MAX_BASE_CHAIN = 32
+
+
 def read_recipe_file(path: Path, chain: tuple[Path, ...] = ()) -> dict[str, Any]:
     """A recipe file's mapping with its ``base:`` chain merged in (:func:`merge_recipe`), ``name`` and ``run``
     included.
 
     :param path: the file
     :param chain: the files that named this one as their base (to refuse a cycle)
-    :raises ValueError: not YAML, not a mapping, or a ``base:`` that is unknown or names a file of its own chain
+    :raises ValueError: not YAML, not a mapping, or a ``base:`` that is unknown, names a file of its own chain, or
+        makes a chain longer than :data:`MAX_BASE_CHAIN`
     """
     values = read_yaml_file(path)
     if not isinstance(values, dict):
@@ -592,6 +597,8 @@ def read_recipe_file(path: Path, chain: tuple[Path, ...] = ()) -> dict[str, Any]
     base = values.pop("base", None)
     if base is None:
         return values
+    if len(chain) + 1 >= MAX_BASE_CHAIN:
+        raise ValueError(f"{chain[0]}: its base: chain is longer than {MAX_BASE_CHAIN} recipes; merge some of them")
     base_path = recipe_path(base, relative_to=path.parent)
     if base_path.resolve() in {p.resolve() for p in (*chain, path)}:
         raise ValueError(f"{path}: base {base!r} makes a cycle of recipes ({' -> '.join(p.name for p in (*chain, path))})")

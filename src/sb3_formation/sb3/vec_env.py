@@ -9,7 +9,7 @@ stepped by :class:`~sb3_formation.env.blocks.EngineBlocks` (the engine, in one o
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, cast
+from typing import Any
 
 import gymnasium
 import numpy as np
@@ -138,7 +138,10 @@ class FormationVecEnv(VecEnv):
         self._actions = self.checked_actions(actions)
 
     def step_wait(self) -> VecEnvStepReturn:
-        step = self.blocks.step(cast(np.ndarray, self._actions))  # set by step_async
+        if self._actions is None:
+            raise RuntimeError("step_wait() without step_async(): give the actions with step_async(actions) first")
+        actions, self._actions = self._actions, None
+        step = self.blocks.step(actions)
         infos = agent_infos(step.info_values, step.contacts, step.success)
         for ended in step.episodes:
             slot = ended.first_slot
