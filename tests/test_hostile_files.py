@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from sb3_formation.cli import main
+from sb3_formation.experiment.evaluation import MAX_RECORDED_EPISODES
 from sb3_formation.experiment.export import ONNX_FILE
 from sb3_formation.experiment.pretrained import PRETRAINED_DIR
 from sb3_formation.runtime.onnx_policy import MAX_TENSOR_ELEMENTS, METADATA_PREFIX, OnnxPolicy, PolicyMetadata
@@ -252,3 +253,13 @@ def test_sizes_that_would_exhaust_memory_are_refused_before_anything_is_allocate
         options = ["--recipe", str(tmp_path / "big.yaml")]
     assert message in refused_with_one_line(capsys, ["train", *options, "--logdir", str(tmp_path / "runs")])
     assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize("count", ["2000", "-1"])
+def test_recording_more_episodes_than_memory_allows_is_refused(
+    tmp_path: Path, count: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    arguments = ["evaluate", "controller:classical", "--episodes", "2000", "--trajectories", count]
+    error = refused_with_one_line(capsys, [*arguments, "--out", str(tmp_path / "eval"), "--no-progress"])
+    assert f"record (--trajectories) must be in [0, {MAX_RECORDED_EPISODES}], got {count}" in error
+    assert not (tmp_path / "eval").exists()

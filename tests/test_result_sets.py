@@ -18,7 +18,7 @@ import imageio_ffmpeg
 import numpy as np
 import pytest
 from matplotlib.figure import Figure
-from PIL import Image
+from PIL import GifImagePlugin, Image
 
 from sb3_formation import load_policy
 from sb3_formation.cli import main
@@ -326,11 +326,10 @@ def test_full_disk_while_writing_a_gif_keeps_the_earlier_one(
     monkeypatch.chdir(tmp_path)
     Path("vid.gif").write_bytes(b"a good older gif")
 
-    def full_disk_save(image: Image.Image, path: Path, **options: object) -> None:
-        Path(path).write_bytes(b"GIF89a")  # part of the file, then the disk is full
-        raise OSError(errno.ENOSPC, "No space left on device")
+    def full_disk_frame(image: Image.Image, *args: object, **options: object) -> list[bytes]:
+        raise OSError(errno.ENOSPC, "No space left on device")  # the header is written, then the disk is full
 
-    monkeypatch.setattr(Image.Image, "save", full_disk_save)
+    monkeypatch.setattr(GifImagePlugin, "getdata", full_disk_frame)
     with pytest.raises(OSError, match="No space left"), VideoWriter("vid.gif") as writer:
         for frame in frames(3):
             writer.append(frame)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
@@ -340,3 +341,17 @@ def test_render_can_draw_the_lidar(tmp_path: Path, normalised: SimpleNamespace) 
         assert render_episodes(still_model(normalised), path, env_overrides={"max_steps": 1}, draw_lidar=draw_lidar) == 2
         first[draw_lidar] = read_gif(path)[1][0]
     assert (first[True] != first[False]).any(axis=2).sum() > 100  # the rays that hit something
+
+
+def test_a_gif_is_written_as_its_frames_come(tmp_path: Path) -> None:
+    """Frame k reaches the file when frame k + 1 comes (one frame is held back to merge repeats), so a 2500-step episode
+    is never held in memory."""
+    sizes = []
+    with VideoWriter(tmp_path / "long.gif", fps=20) as writer:
+        for frame in gradient_frames(12, 60, 20):
+            writer.append(frame)
+            (temporary,) = tmp_path.glob(".long.*.tmp.gif")
+            sizes.append(temporary.stat().st_size)
+    assert sizes[0] == 0 and all(later > earlier for earlier, later in itertools.pairwise(sizes[1:]))
+    with Image.open(tmp_path / "long.gif") as image:
+        assert image.n_frames == 12

@@ -29,8 +29,6 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """``sb3-formation evaluate``: success rate with a Wilson interval, errors, episode table and trajectories."""
-    if args.trajectories < 0:
-        raise ValueError(f"--trajectories must be >= 0, got {args.trajectories}")
     with model_trust(args):
         print_summary(evaluate_with_protocol(args, args.target, args.episodes, args.out))
     return 0

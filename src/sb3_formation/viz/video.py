@@ -1,10 +1,10 @@
 """Videos of evaluation episodes: rendered team states with a caption, streamed to an MP4 or a GIF.
 
-MP4 files are H.264 (``yuv420p``) written through the ffmpeg binary of ``imageio-ffmpeg``, frame by frame (a
-2500-step episode is never held in memory); GIFs are written with Pillow, which needs every frame at once (as palette
-images, 0.5 MB per frame): use MP4 for long episodes. Either way the video goes to a temporary file beside the
-target, which replaces the target only once the encoder has finished it without error (ffmpeg's exit status is
-checked): a failure, a full disk included, leaves the earlier video as it was and no temporary file.
+MP4 files are H.264 (``yuv420p``) written through the ffmpeg binary of ``imageio-ffmpeg``, frame by frame; GIFs are
+written frame by frame with Pillow's GIF helpers (a 2500-step episode is never held in memory). Either way the video
+goes to a temporary file beside the target, which replaces the target only once the encoder has finished it without
+error (ffmpeg's exit status is checked): a failure, a full disk included, leaves the earlier video as it was and no
+temporary file.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from typing import IO, Any, cast
 
 import numpy as np
 import torch
-from PIL import Image, ImageDraw, ImageFont
+from PIL import GifImagePlugin, Image, ImageDraw, ImageFont
 from tqdm.auto import tqdm
 
 from sb3_formation.controllers.base import TeamPolicy
@@ -172,26 +172,50 @@ class _Mp4Stream:
 
 class _GifStream:
     """Frames quantised to a palette each (median cut: exact for the env's renderings, which have fewer than 256
-    colours), kept as palette images (0.5 MB per 900 x 600 frame) and written by Pillow to ``path`` on :meth:`close`.
+    colours) and written to ``path`` as they come, each with its own colour table, through Pillow's frame-by-frame GIF
+    helpers (``GifImagePlugin.getheader`` and ``getdata``). One frame is held back: a frame equal to it becomes more time
+    on it, as Pillow's own writer merges them.
 
     Frame k is shown for round(100 (k + 1) / fps) - round(100 k / fps) cs, so the total length is exact.
     """
 
     def __init__(self, path: Path, fps: int) -> None:
-        self.path, self.fps = path, fps
-        self.images: list[Image.Image] = []
+        self.fps = fps
+        self.frames = 0
+        self.file: IO[bytes] = open(path, "wb")  # closed by close or kill
+        self.held: tuple[np.ndarray, Image.Image, int] | None = None  # a frame not written yet, its image and delay
 
     def write(self, frame: np.ndarray) -> None:
-        self.images.append(Image.fromarray(frame).quantize(256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE))
+        k = self.frames
+        delay = round(100 * (k + 1) / self.fps) - round(100 * k / self.fps)  # centiseconds
+        self.frames += 1
+        if self.held is not None and np.array_equal(self.held[0], frame):
+            self.held = (self.held[0], self.held[1], self.held[2] + delay)
+            return
+        self._write_held()
+        image = Image.fromarray(frame).quantize(256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
+        self.held = (frame.copy(), image, delay)
+
+    def _write_held(self) -> None:
+        if self.held is None:
+            return
+        _, image, delay = self.held
+        if self.file.tell() == 0:
+            header, _ = GifImagePlugin.getheader(image, info={"loop": 0})
+            self.file.write(b"".join(header))
+        for chunk in GifImagePlugin.getdata(image, duration=10 * delay, include_color_table=True):
+            self.file.write(chunk)
+        self.file.flush()  # to the file now, not at the end
+        self.held = None
 
     def close(self) -> None:
-        delays = [round(100 * (k + 1) / self.fps) - round(100 * k / self.fps) for k in range(len(self.images))]
-        first, *others = self.images
-        first.save(self.path, format="GIF", save_all=True, append_images=others, duration=[10 * d for d in delays], loop=0)
+        with self.file:
+            self._write_held()
+            self.file.write(b";")  # the GIF trailer
 
     def kill(self) -> None:
-        """Drop the frames."""
-        self.images.clear()
+        """Stop writing (the caller deletes the file)."""
+        self.file.close()
 
 
 class VideoWriter:
