@@ -21,7 +21,7 @@ from sb3_formation.cli import main
 from sb3_formation.experiment.evaluation import MAX_RECORDED_EPISODES
 from sb3_formation.experiment.export import ONNX_FILE
 from sb3_formation.experiment.pretrained import PRETRAINED_DIR
-from sb3_formation.runtime.onnx_policy import MAX_TENSOR_ELEMENTS, METADATA_PREFIX, OnnxPolicy, PolicyMetadata
+from sb3_formation.runtime.onnx_policy import MAX_TENSOR_ELEMENTS, METADATA_PREFIX, OnnxPolicy, PolicyMetadata, graph_digest
 from sb3_formation.utils.files import MAX_FILE_BYTES
 from sb3_formation.utils.yaml_files import MAX_YAML_NODES
 
@@ -119,6 +119,7 @@ def spoiled_graph(tmp_path: Path, spoil: Callable[[Any], None]) -> Path:
     onnx = pytest.importorskip("onnx")
     model = onnx.load(str(PRETRAINED_DIR / "ch5-bearing" / ONNX_FILE))
     spoil(model)
+    set_metadata(model, "graph_sha256", json.dumps(graph_digest(model)))  # as a spoiler who knows the format would
     path = tmp_path / "spoilt.onnx"
     onnx.save(model, str(path))
     return path
@@ -263,3 +264,17 @@ def test_recording_more_episodes_than_memory_allows_is_refused(
     error = refused_with_one_line(capsys, [*arguments, "--out", str(tmp_path / "eval"), "--no-progress"])
     assert f"record (--trajectories) must be in [0, {MAX_RECORDED_EPISODES}], got {count}" in error
     assert not (tmp_path / "eval").exists()
+
+
+def test_an_onnx_file_with_flipped_weight_bytes_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """200 bytes of the weights flipped in the file itself: the graph's SHA-256 is not the recorded one."""
+    onnx = pytest.importorskip("onnx")
+    source = PRETRAINED_DIR / "ch5-bearing" / ONNX_FILE
+    data = bytearray(source.read_bytes())
+    weights = max(onnx.load(str(source)).graph.initializer, key=lambda tensor: len(tensor.raw_data)).raw_data
+    start = bytes(data).index(weights[:64]) + 1000  # inside the largest weight matrix
+    data[start : start + 200] = bytes(byte ^ 0x55 for byte in data[start : start + 200])
+    flipped = tmp_path / "flipped.onnx"
+    flipped.write_bytes(bytes(data))
+    error = refused_with_one_line(capsys, ["evaluate", str(flipped), "--episodes", "1", "--no-progress"])
+    assert f"{flipped} was changed since its export: its graph's SHA-256 is not the one its metadata record" in error

@@ -12,6 +12,7 @@ observation layout, the team sizes, the residual and recurrent settings, the pac
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
 import math
 import os
@@ -32,14 +33,16 @@ from sb3_formation.utils.files import MAX_FILE_BYTES
 #: Prefix of the metadata keys this package writes into an exported model.
 METADATA_PREFIX = "sb3_formation."
 #: Version of the graph's contract (inputs, outputs, metadata keys); a runtime refuses other versions.
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: Metadata key of the SHA-256 of the serialised graph (nodes and weights): a file changed since its export is refused.
+GRAPH_DIGEST_KEY = METADATA_PREFIX + "graph_sha256"
 #: Name of the graph's observation input.
 OBSERVATION_INPUT = "observation"
 #: Name of the graph's first output: the action, or a residual policy's correction.
 ACTION_OUTPUT, CORRECTION_OUTPUT = "action", "correction"
 #: The actor state's parts of each recurrent cell, as the graph names them (``<part>_in`` / ``<part>_out``).
 STATE_PARTS = {"gru": ("hidden",), "lstm": ("hidden", "cell")}
-#: The most elements any tensor of an exported graph may have (:func:`check_graph_sizes`): a quarter of
+#: The most elements any tensor of an exported graph may have (:func:`check_graph`): a quarter of
 #: :data:`~sb3_formation.utils.files.MAX_FILE_BYTES`, i.e. that many bytes of float32.
 MAX_TENSOR_ELEMENTS = MAX_FILE_BYTES // 4
 
@@ -173,15 +176,24 @@ def _first_line(error: Exception) -> str:
     return str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
 
 
-def check_graph_sizes(path: Path) -> None:
-    """Refuse an ONNX file that would take more memory than a policy can need, before onnxruntime builds it (which
-    folds constants, so a 40000 x 40000 ``ConstantOfShape`` is allocated then): a file beyond
-    :data:`~sb3_formation.utils.files.MAX_FILE_BYTES`, weights kept in external files, or any tensor (weight, input,
-    output, or value whose size shape inference knows before the graph runs) of more than
+def graph_digest(model: Any) -> str:
+    """The SHA-256 of an ONNX model's serialised graph (its nodes and weights, not its metadata), as hex.
+
+    :param model: an ``onnx.ModelProto``
+    """
+    return hashlib.sha256(model.graph.SerializeToString(deterministic=True)).hexdigest()
+
+
+def check_graph(path: Path) -> None:
+    """Refuse an ONNX file that was changed since its export, or that would take more memory than a policy can need,
+    before onnxruntime builds it (which folds constants, so a 40000 x 40000 ``ConstantOfShape`` is allocated then): a
+    graph whose SHA-256 is not the one its metadata record (:data:`GRAPH_DIGEST_KEY`: flipped weight bytes), a file
+    beyond :data:`~sb3_formation.utils.files.MAX_FILE_BYTES`, weights kept in external files, or any tensor (weight,
+    input, output, or value whose size shape inference knows before the graph runs) of more than
     :data:`MAX_TENSOR_ELEMENTS` elements. A size computed from the observation's values at run time is not known
     here; onnxruntime's errors at run time are one-line errors (:meth:`OnnxPolicy.agent_actions`).
 
-    :raises ValueError: naming the file and the tensor
+    :raises ValueError: naming the file and what is wrong
     """
     if (size := path.stat().st_size) > MAX_FILE_BYTES:
         raise ValueError(f"{path} holds {size} bytes, beyond the limit of {MAX_FILE_BYTES} bytes for an exported policy")
@@ -190,10 +202,21 @@ def check_graph_sizes(path: Path) -> None:
     except ImportError:
         raise ImportError("running an exported policy needs onnx: pip install 'sb3-formation[runtime]'") from None
     try:
-        model = onnx.shape_inference.infer_shapes(onnx.load(str(path), load_external_data=False), data_prop=True)
+        model = onnx.load(str(path), load_external_data=False)
+        inferred = onnx.shape_inference.infer_shapes(model, data_prop=True)
     except Exception as error:  # onnx raises protobuf's and its own exception types for damaged files
         raise ValueError(f"{path} is not a readable ONNX model: {_first_line(error)}") from None
-    graph = model.graph
+    properties = {entry.key: entry.value for entry in model.metadata_props}
+    recorded = properties.get(GRAPH_DIGEST_KEY)
+    if recorded is None:
+        PolicyMetadata.from_properties(properties, str(path))  # names a missing key, or an earlier format
+        raise ValueError(
+            f"{path} is not a policy exported by sb3-formation (format {FORMAT_VERSION}): its metadata lack "
+            f"{GRAPH_DIGEST_KEY}; export it again"
+        )
+    if json.loads(recorded) != graph_digest(model):
+        raise ValueError(f"{path} was changed since its export: its graph's SHA-256 is not the one its metadata record")
+    graph = inferred.graph
     if any(tensor.data_location == onnx.TensorProto.EXTERNAL for tensor in graph.initializer):
         raise ValueError(f"{path} keeps weights in other files: an exported policy holds all of them itself")
     shapes = {tensor.name: list(tensor.dims) for tensor in graph.initializer}
@@ -226,7 +249,7 @@ class OnnxPolicy:
                 f"no exported policy at {self.source}: write one with `sb3-formation export TARGET --onnx FILE`"
             )
         onnxruntime = _onnxruntime()
-        check_graph_sizes(self.source)
+        check_graph(self.source)
         options = onnxruntime.SessionOptions()
         if threads is not None:
             options.intra_op_num_threads, options.inter_op_num_threads = threads, 1

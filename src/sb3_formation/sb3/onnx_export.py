@@ -10,6 +10,7 @@ name the controller, its gains and the scale, which the runtime composes (``docs
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import os
@@ -26,7 +27,7 @@ from torch import nn
 from sb3_formation.controllers import CONTROLLERS
 from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.controllers.residual import ResidualPolicy
-from sb3_formation.runtime.onnx_policy import PolicyMetadata
+from sb3_formation.runtime.onnx_policy import GRAPH_DIGEST_KEY, PolicyMetadata, graph_digest
 from sb3_formation.safety.policy import SafePolicy
 from sb3_formation.sb3.normalization import observation_offset, observation_scale
 from sb3_formation.sb3.policies import FormationPolicy
@@ -184,7 +185,7 @@ def export_onnx(policy: TeamPolicy, path: str | os.PathLike[str], opset: int = D
     if written != opset:
         raise RuntimeError(f"torch's exporter wrote opset {written} where {opset} was asked: nothing was written")
     metadata = PolicyMetadata(trained.config, metadata.team_sizes, residual, recurrent, safety, opset=written)
-    onnx.helper.set_model_props(model, metadata.to_properties())
+    onnx.helper.set_model_props(model, {**metadata.to_properties(), GRAPH_DIGEST_KEY: json.dumps(graph_digest(model))})
     model.producer_name = "sb3-formation"
     path = Path(path)
     with atomic_path(path) as temporary:
