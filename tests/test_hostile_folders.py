@@ -103,3 +103,11 @@ def test_no_command_overwrites_the_shipped_policies(tmp_path: Path, capsys: pyte
         path: path.read_bytes() for path in PACKAGE_FOLDER.rglob("*") if path.is_file() and "__pycache__" not in path.parts
     }
     assert after == stored
+
+
+def test_a_recipe_name_that_leaves_the_logdir_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A run's folder is ``<logdir>/<recipe name>_...``: a ``name:`` with a separator would put it elsewhere."""
+    (tmp_path / "escape.yaml").write_text("base: ch5-bearing\nname: ../../escaped\n")
+    error = one_line_error(capsys, ["train", "--recipe", str(tmp_path / "escape.yaml"), "--logdir", str(tmp_path / "a" / "b")])
+    assert "recipe name '../../escaped' is not a single file name" in error
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["escape.yaml"]

@@ -37,7 +37,7 @@ from sb3_formation.safety.filter import SafetyGains
 from sb3_formation.sb3.imitation import ImitationSettings
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import CELLS, RecurrentFormationPolicy
-from sb3_formation.utils.checks import is_count, is_number
+from sb3_formation.utils.checks import check_name, is_count, is_number
 from sb3_formation.utils.deprecation import warn_renamed
 from sb3_formation.utils.yaml_files import read_yaml_file
 
@@ -156,6 +156,9 @@ class Recipe:
 
     def __post_init__(self) -> None:
         where = f"recipe {self.name!r}"
+        if not isinstance(self.name, str):
+            raise ValueError(f"{where}: its name must be text")
+        check_name(self.name, "recipe name")  # it begins the name of a run's folder under --logdir
         for section in SECTIONS:
             if not isinstance(getattr(self, section), dict):
                 raise ValueError(f"{where}: {section} must be a mapping, got {getattr(self, section)!r}")
