@@ -351,7 +351,7 @@ def test_non_numeric_action_names_the_agent() -> None:
     env.reset(seed=0)
     actions = {agent: np.zeros(2) for agent in env.agents}
     actions["agent_3"] = ["a", 1]
-    with pytest.raises(ValueError, match="agent_3 is not numeric"):
+    with pytest.raises(ValueError, match="action of agent_3 is not real numbers"):
         env.step(actions)
 
 

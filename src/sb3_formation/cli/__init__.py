@@ -16,6 +16,7 @@ from collections.abc import Sequence
 
 from sb3_formation.cli import benchmark, compare, evaluate, export, plot, pretrained, recipes, render, rollout, sweep, train
 from sb3_formation.experiment.training import TrainingStopped
+from sb3_formation.utils.interrupts import remember_ctrl_c
 
 #: The subcommands' modules, in the order ``--help`` lists them: each adds its parser, which names its ``run``.
 COMMANDS = (train, recipes, pretrained, evaluate, plot, render, compare, benchmark, sweep, rollout, export)
@@ -54,7 +55,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(_attach_negative_values(argv))
     args.command_line = shlex.join(["sb3-formation", *argv])
     try:
-        return args.run(args)
+        with remember_ctrl_c():
+            return args.run(args)
     except TrainingStopped as stop:
         print(f"sb3-formation: {stop}", file=sys.stderr)
         return 128 + stop.signal_number

@@ -21,6 +21,7 @@ from sb3_formation.env.blocks import EngineBlocks
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.state import TeamState
 from sb3_formation.experiment.trajectories import EpisodeRecorder
+from sb3_formation.utils.interrupts import raise_if_interrupted
 
 
 @dataclass
@@ -106,6 +107,7 @@ def play_episodes(
         start(list(range(n_teams)))
         states = None
         while any(episode is not None for episode in current):
+            raise_if_interrupted()  # a Ctrl-C that landed in a finaliser was dropped there
             playing = [team for team, episode in enumerate(current) if episode is not None]
             actions, states = job.policy.predict(
                 observations, state=states, episode_start=episode_starts, deterministic=job.deterministic
