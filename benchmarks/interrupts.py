@@ -37,18 +37,10 @@ COMMANDS = {
     "evaluate": ["evaluate", "controller:classical", "--episodes", "2000", "--n-envs", "4"],
     "render": ["render", "controller:classical", "--episodes", "50", "--out", "v.gif"],
     "compare --workers 2": ["compare", "controller:classical", "controller:random", "--episodes", "2000", "--workers", "2"],
-    "train (in a PPO update)": [
-        "train",
-        "--recipe",
-        "long.yaml",
-        "--iterations",
-        "0,0,2",
-        "--n-envs",
-        "1",
-        "--run-dir",
-        "run",
-    ],
+    "train (in a PPO update)": ["train", "--recipe", "long.yaml", "--iterations", "0,0,2", "--n-envs", "1", "--run-dir", "r"],
 }
+#: The commands that take ``--no-progress`` (render draws no progress bar).
+QUIET = ("evaluate", "compare", "train")
 #: A PPO update that runs for far longer than any stop may take.
 LONG_UPDATE = {"base": "ch4-individual", "ppo": {"n_steps": 16, "batch_size": 16, "n_epochs": 1_000_000}}
 
@@ -79,23 +71,24 @@ def stop_seconds(name: str, settle: float) -> tuple[float, int]:
     with tempfile.TemporaryDirectory() as folder:
         (Path(folder) / "long.yaml").write_text(yaml.safe_dump(LONG_UPDATE))
         process = subprocess.Popen(
-            [sys.executable, "-m", "sb3_formation.cli", *arguments, "--no-progress"],
+            [sys.executable, "-m", "sb3_formation.cli", *arguments, *(["--no-progress"] if arguments[0] in QUIET else [])],
             cwd=folder,
             stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
             start_new_session=True,
             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as under a terminal
         )
         time.sleep(10.0 if training else settle)
         if process.poll() is not None:
-            raise RuntimeError(f"{name} ended before it was stopped (exit code {process.returncode})")
+            message = process.communicate()[1].decode().strip().splitlines()[-1:]
+            raise RuntimeError(f"{name} ended before it was stopped (exit code {process.returncode}): {message}")
         if training:
             process.send_signal(signal.SIGTERM)
         else:
             os.killpg(process.pid, signal.SIGINT)
         started = time.perf_counter()
-        code = process.wait(timeout=300)
-        return time.perf_counter() - started, code
+        process.communicate(timeout=300)  # reads its progress output to the end, as a terminal would
+        return time.perf_counter() - started, process.returncode
 
 
 def main() -> None:

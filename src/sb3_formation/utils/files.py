@@ -268,13 +268,15 @@ def read_arrays(path: Path, what: str, keys: Collection[str] = ()) -> dict[str, 
         raise FileNotFoundError(f"no file {path} ({what})")
     try:
         with zipfile.ZipFile(path) as archive:
-            if problem := oversized_entry(archive) or _overdeclared_array(archive):
-                raise ValueError(f"{path} is not {what}: {problem}")
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {key: data[key] for key in data.files}
+            problem = oversized_entry(archive) or _overdeclared_array(archive)
+        if problem is None:  # what it declares fits: numpy may allocate it
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {key: data[key] for key in data.files}
     except (zipfile.BadZipFile, EOFError, ValueError, OSError) as error:
         reason = str(error) or type(error).__name__
         raise ValueError(f"{path} is not {what} (empty or damaged: {reason})") from None
+    if problem is not None:
+        raise ValueError(f"{path} is not {what}: {problem}")
     missing = [key for key in keys if key not in arrays]
     if missing:
         raise ValueError(f"{path} is not {what}: it lacks {missing}")
