@@ -340,7 +340,8 @@ class FormationEnv(ParallelEnv):  # type: ignore[misc]  # pettingzoo ships no ty
         if not np.isfinite(array).all():
             bad = self.agents[int(np.flatnonzero(~np.isfinite(array).all(axis=1))[0])]
             raise ValueError(f"action of {bad} is not finite: {np.asarray(actions[bad]).tolist()}")
-        return np.minimum(np.maximum(array, -1.0), 1.0)
+        clipped: np.ndarray = np.minimum(np.maximum(array, -1.0), 1.0)
+        return clipped
 
     def _raise_for_actions(self, actions: dict[AgentID, np.ndarray]) -> NoReturn:
         missing = [agent for agent in self.agents if agent not in actions]

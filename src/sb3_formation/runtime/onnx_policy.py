@@ -282,7 +282,7 @@ class OnnxPolicy:
 
         :raises ValueError: naming the input and both widths
         """
-        widths = {OBSERVATION_INPUT: self.observation_dim}
+        widths: dict[str, Any] = {OBSERVATION_INPUT: self.observation_dim}
         if self.metadata.recurrent is not None:
             widths |= {f"{part}_in": self.metadata.recurrent.get("hidden") for part in self.metadata.state_parts}
         for node in self.session.get_inputs():
