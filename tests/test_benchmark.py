@@ -11,7 +11,7 @@ import pytest
 
 from sb3_formation import __version__
 from sb3_formation.cli import main
-from sb3_formation.experiment.benchmark import BENCHMARK_SCENES
+from sb3_formation.env.scenes import BENCHMARK_SCENES
 from sb3_formation.experiment.evaluation import load_summary
 
 

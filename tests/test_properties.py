@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from sb3_formation import FormationConfig, FormationEnv
 from sb3_formation.env.config import OVERLAP_TOLERANCE
-from sb3_formation.env.scenarios import check_world_fits
+from sb3_formation.env.scenes import SCENES
 
 TASKS = ["ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing"]
 
@@ -72,7 +72,7 @@ def configs(draw: st.DrawFn) -> FormationConfig:
             world_height=world[1],
             stage=draw(st.integers(1, 3)),
         )
-        check_world_fits(config)
+        SCENES["curriculum"].check_fits(config)
     except ValueError:
         reject()
     return config

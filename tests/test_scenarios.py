@@ -10,16 +10,18 @@ import pytest
 
 from sb3_formation.env import scenarios
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.curriculum import CHAPTER_PLACEMENTS
 from sb3_formation.env.formation_env import FormationEnv
-from sb3_formation.env.scenarios import CURRICULUM_LAYOUTS, PlacementError, Scenario, sample_scenario
+from sb3_formation.env.scenarios import PlacementError, Scenario
+from sb3_formation.env.scenes import SCENES
 
 SEEDS = range(200)
 TOL = 1e-9  # m; placements are computed, so allow float round-off only
 
 # The thesis rules, converted by hand from cm to m (1 px = 1 cm) --------------------------------------------------------
 
-PRESET_OF_LAYOUT = {"ch4": "ch4-individual", "ch5": "ch5-bearing"}
-N_OF_LAYOUT = {"ch4": 3, "ch5": 6}
+TASK_OF_CHAPTER = {"ch4": "ch4-individual", "ch5": "ch5-bearing"}
+N_OF_CHAPTER = {"ch4": 3, "ch5": 6}
 ETA_G = {"ch4": 0.5, "ch5": 0.4}  # Table 4.1 / 5.1
 D_REF = {"ch4": 2.4, "ch5": 1.5}  # Table 4.1 / 5.1
 ETA_C = 1.2  # Table 5.1 (chapter 4 borrows it, docs/design.md "Rewards")
@@ -28,17 +30,18 @@ GOAL_X = {"ch4": (4.0, 10.0), "ch5": (4.0, 11.0)}  # {400, 1000} cm / {400, 1100
 GOAL_Y = (2.0, 8.0)  # [200, 800] cm
 START_Y = (2.0, 8.0)  # 200 or 800 cm
 OBSTACLE_Y = (1.0, 9.0)  # [100, 900] cm
+CURRICULUM = SCENES["curriculum"]
 #: stages 1-2: large obstacles in [400, 700] or [700, 1000] cm (ch4), [400, 750] or [750, 1100] cm (ch5)
 STAGE1_RANGES = {"ch4": ((4.0, 7.0), (7.0, 10.0)), "ch5": ((4.0, 7.5), (7.5, 11.0))}
 #: stage 3: centroid x is 400 or 1000 cm, differing from the goal's; for the ch5 goal at 1100 both differ and the
-#: one further from the goal (400) is used (scenarios.py docstring)
+#: one further from the goal (400) is used (curriculum.py docstring)
 STAGE3_START_X = {"ch4": {4.0: 10.0, 10.0: 4.0}, "ch5": {4.0: 10.0, 11.0: 4.0}}
 STAGE3_X = {"ch4": (4.0, 10.0), "ch5": (4.0, 11.0)}  # [400, 1000] cm / [400, 1100] cm
 STAGE3_RADII = {"ch4": [0.5, 0.5, 0.8], "ch5": [0.8, 0.8]}  # 80, 50, 50 cm / 80, 80 cm
 
 
-def _config(layout: str) -> FormationConfig:
-    return FormationConfig.task(PRESET_OF_LAYOUT[layout])
+def _config(chapter: str) -> FormationConfig:
+    return FormationConfig.task(TASK_OF_CHAPTER[chapter])
 
 
 def _in(value: float, bounds: tuple[float, float]) -> bool:
@@ -72,9 +75,9 @@ def _in_index_order(positions: np.ndarray) -> bool:
     return True
 
 
-def check_formation(positions: np.ndarray, layout: str) -> None:
+def check_formation(positions: np.ndarray, chapter: str) -> None:
     """The agents sit on a regular n-gon around their centroid: sides < d_ref, every agent within eta_c."""
-    n = N_OF_LAYOUT[layout]
+    n = N_OF_CHAPTER[chapter]
     assert positions.shape == (n, 2)
     centroid = positions.mean(axis=0)
     radii = np.hypot(*(positions - centroid).T)
@@ -86,31 +89,31 @@ def check_formation(positions: np.ndarray, layout: str) -> None:
     # sides between angular neighbours: below d_ref, above an agent diameter (no overlap)
     ordered = positions[np.argsort(np.arctan2(*(positions - centroid).T[::-1]))]
     sides = np.hypot(*(np.roll(ordered, -1, axis=0) - ordered).T)
-    assert np.all(sides < D_REF[layout]), sides
+    assert np.all(sides < D_REF[chapter]), sides
     assert np.all(sides > 2 * R_A), sides
     # each agent takes exactly one vertex of the reference n-gon (vertex k at -90 + k * 360/n deg)
     assert sorted(_vertex_of_agents(positions, centroid)) == list(range(n))
 
 
-def check_scenario(scenario: Scenario, layout: str, stage: int) -> None:
+def check_scenario(scenario: Scenario, chapter: str, stage: int) -> None:
     """Every placement rule of thesis 4.3 / 5.3 (docs/design.md "Curriculum placements"), checked independently of the
     sampler."""
     positions, goal, obstacles = scenario.agent_positions, scenario.goal, scenario.obstacles
     assert goal.shape == (2,)
     gx, gy = goal
-    assert any(abs(gx - x) < TOL for x in GOAL_X[layout]), gx
+    assert any(abs(gx - x) < TOL for x in GOAL_X[chapter]), gx
     assert _in(gy, GOAL_Y), gy
     centroid = positions.mean(axis=0)
     further_y = START_Y[0] if abs(START_Y[0] - gy) > abs(START_Y[1] - gy) else START_Y[1]
     assert centroid[1] == pytest.approx(further_y, abs=TOL)
-    check_formation(positions, layout)
+    check_formation(positions, chapter)
 
     assert obstacles.ndim == 2 and obstacles.shape[1] == 3
     radii = obstacles[:, 2]
     if stage in (1, 2):
         assert centroid[0] == pytest.approx(gx, abs=TOL)
         assert sorted(radii.tolist()) == pytest.approx([0.7, 2.0, 2.0, 2.0], abs=1e-12)  # 70 cm, 3 x 200 cm
-        low, high = STAGE1_RANGES[layout]
+        low, high = STAGE1_RANGES[chapter]
         # the centroid is at one end of the x span, so the far range is the one not touching it
         far = high if centroid[0] < low[1] else low
         for x, y, _ in obstacles[radii > 1.0]:
@@ -119,61 +122,61 @@ def check_scenario(scenario: Scenario, layout: str, stage: int) -> None:
         small = obstacles[radii < 1.0][0]
         assert small[:2] == pytest.approx(0.5 * (centroid + goal), abs=TOL)  # centroid-goal mid-point
     else:
-        assert centroid[0] == pytest.approx(STAGE3_START_X[layout][round(gx)], abs=TOL)
+        assert centroid[0] == pytest.approx(STAGE3_START_X[chapter][round(gx)], abs=TOL)
         assert abs(centroid[0] - gx) > 1.0
-        assert sorted(radii.tolist()) == pytest.approx(STAGE3_RADII[layout], abs=1e-12)
+        assert sorted(radii.tolist()) == pytest.approx(STAGE3_RADII[chapter], abs=1e-12)
         for x, y, _ in obstacles:
-            assert _in(x, STAGE3_X[layout]), x
+            assert _in(x, STAGE3_X[chapter]), x
             assert _in(y, OBSTACLE_Y), y
 
     # nothing overlaps the start formation or the goal area
     for x, y, r in obstacles:
         to_agents = np.hypot(positions[:, 0] - x, positions[:, 1] - y)
         assert np.all(to_agents >= r + R_A - 1e-12), (x, y, r, to_agents)
-        assert math.hypot(gx - x, gy - y) >= r + ETA_G[layout] - 1e-12, (x, y, r)
+        assert math.hypot(gx - x, gy - y) >= r + ETA_G[chapter] - 1e-12, (x, y, r)
 
 
 # Curriculum stages --------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("layout", ["ch4", "ch5"])
+@pytest.mark.parametrize("chapter", ["ch4", "ch5"])
 @pytest.mark.parametrize("stage", [1, 2, 3])
-def test_stage_follows_thesis_rules(layout: str, stage: int) -> None:
+def test_stage_follows_thesis_rules(chapter: str, stage: int) -> None:
     """Over 200 seeds every draw satisfies the thesis's placement rules and covers both goal x and start y."""
-    config = _config(layout)
-    assert (config.layout, config.n_agents) == (layout, N_OF_LAYOUT[layout])
+    config = _config(chapter)
+    assert (config.chapter, config.n_agents) == (chapter, N_OF_CHAPTER[chapter])
     goal_xs, start_ys = set(), set()
     for seed in SEEDS:
-        scenario = sample_scenario(config, stage, np.random.default_rng(seed))
-        check_scenario(scenario, layout, stage)
+        scenario = CURRICULUM.draw(config, stage, np.random.default_rng(seed))
+        check_scenario(scenario, chapter, stage)
         scenario.validate(config)  # a drawn scenario is a valid one
         goal_xs.add(round(float(scenario.goal[0])))
         start_ys.add(round(float(scenario.centroid[1])))
-    assert goal_xs == {round(x) for x in GOAL_X[layout]}
+    assert goal_xs == {round(x) for x in GOAL_X[chapter]}
     assert start_ys == {2, 8}
 
 
-@pytest.mark.parametrize("layout", ["ch4", "ch5"])
-def test_stage1_agents_in_random_order(layout: str) -> None:
+@pytest.mark.parametrize("chapter", ["ch4", "ch5"])
+def test_stage1_agents_in_random_order(chapter: str) -> None:
     """Stage 1 puts the agents on the vertices in random order: some draws are not in index order."""
-    config = _config(layout)
+    config = _config(chapter)
     orders = set()
     for seed in SEEDS:
-        scenario = sample_scenario(config, 1, np.random.default_rng(seed))
+        scenario = CURRICULUM.draw(config, 1, np.random.default_rng(seed))
         centroid = scenario.agent_positions.mean(axis=0)
         orders.add(tuple(_vertex_of_agents(scenario.agent_positions, centroid)))
-    identity = tuple(range(N_OF_LAYOUT[layout]))
+    identity = tuple(range(N_OF_CHAPTER[chapter]))
     assert orders - {identity}, "every stage-1 draw is in index order"
     assert len(orders) >= 3  # n = 3 has 6 orders, n = 6 has 720: 200 draws see several
 
 
-@pytest.mark.parametrize("layout", ["ch4", "ch5"])
+@pytest.mark.parametrize("chapter", ["ch4", "ch5"])
 @pytest.mark.parametrize("stage", [2, 3])
-def test_later_stages_in_index_order(layout: str, stage: int) -> None:
+def test_later_stages_in_index_order(chapter: str, stage: int) -> None:
     """Stages 2 and 3: agent i sits where the bearing to agent i + 1 has angle 180/n + i * 360/n deg."""
-    config = _config(layout)
+    config = _config(chapter)
     for seed in SEEDS:
-        scenario = sample_scenario(config, stage, np.random.default_rng(seed))
+        scenario = CURRICULUM.draw(config, stage, np.random.default_rng(seed))
         assert _in_index_order(scenario.agent_positions), scenario.agent_positions
 
 
@@ -188,45 +191,45 @@ def test_index_order_checker_on_hand_hexagon() -> None:
 
 
 @pytest.mark.parametrize("n_agents", [3, 4, 5, 8])
-@pytest.mark.parametrize("layout", ["ch4", "ch5"])
-def test_other_team_sizes(layout: str, n_agents: int) -> None:
+@pytest.mark.parametrize("chapter", ["ch4", "ch5"])
+def test_other_team_sizes(chapter: str, n_agents: int) -> None:
     """Any n >= 3 is placed on a fitting regular n-gon in index order (stage 3), clear of the obstacles."""
-    config = _config(layout).replace(n_agents=n_agents)
+    config = _config(chapter).replace(n_agents=n_agents)
     for seed in range(20):
-        scenario = sample_scenario(config, 3, np.random.default_rng(seed))
+        scenario = CURRICULUM.draw(config, 3, np.random.default_rng(seed))
         positions = scenario.agent_positions
         assert positions.shape == (n_agents, 2)
         assert _in_index_order(positions)
         centroid = positions.mean(axis=0)
         assert np.all(np.hypot(*(positions - centroid).T) <= ETA_C + TOL)
         sides = np.hypot(*(np.roll(positions, -1, axis=0) - positions).T)
-        assert np.all(sides < D_REF[layout]) and np.all(sides > 2 * R_A)
+        assert np.all(sides < D_REF[chapter]) and np.all(sides > 2 * R_A)
         scenario.validate(config)
 
 
 # Determinism --------------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("layout", ["ch4", "ch5"])
+@pytest.mark.parametrize("chapter", ["ch4", "ch5"])
 @pytest.mark.parametrize("stage", [1, 2, 3])
-def test_same_seed_same_scenario(layout: str, stage: int) -> None:
+def test_same_seed_same_scenario(chapter: str, stage: int) -> None:
     """The same seed gives the same scenario, bit for bit."""
-    config = _config(layout)
+    config = _config(chapter)
     for seed in (0, 7, 12345):
-        first = sample_scenario(config, stage, np.random.default_rng(seed))
-        second = sample_scenario(config, stage, np.random.default_rng(seed))
+        first = CURRICULUM.draw(config, stage, np.random.default_rng(seed))
+        second = CURRICULUM.draw(config, stage, np.random.default_rng(seed))
         for name in ("agent_positions", "goal", "obstacles"):
             a, b = getattr(first, name), getattr(second, name)
             assert a.dtype == b.dtype and a.shape == b.shape
             assert a.tobytes() == b.tobytes()
 
 
-@pytest.mark.parametrize("layout", ["ch4", "ch5"])
+@pytest.mark.parametrize("chapter", ["ch4", "ch5"])
 @pytest.mark.parametrize("stage", [1, 2, 3])
-def test_different_seeds_different_scenarios(layout: str, stage: int) -> None:
+def test_different_seeds_different_scenarios(chapter: str, stage: int) -> None:
     """Different seeds give different scenarios."""
-    config = _config(layout)
-    draws = [sample_scenario(config, stage, np.random.default_rng(seed)) for seed in range(20)]
+    config = _config(chapter)
+    draws = [CURRICULUM.draw(config, stage, np.random.default_rng(seed)) for seed in range(20)]
     keys = {(d.agent_positions.tobytes(), d.goal.tobytes(), d.obstacles.tobytes()) for d in draws}
     assert len(keys) == 20
     assert len({d.goal.tobytes() for d in draws}) == 20  # goal y is continuous: no two equal
@@ -236,20 +239,20 @@ def test_generator_advances() -> None:
     """Two draws from one generator differ (the generator is used, not re-seeded)."""
     config = _config("ch5")
     rng = np.random.default_rng(3)
-    first, second = sample_scenario(config, 3, rng), sample_scenario(config, 3, rng)
+    first, second = CURRICULUM.draw(config, 3, rng), CURRICULUM.draw(config, 3, rng)
     assert not np.array_equal(first.goal, second.goal)
 
 
 # Bounded re-draws ---------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("layout", ["ch4", "ch5"])
+@pytest.mark.parametrize("chapter", ["ch4", "ch5"])
 @pytest.mark.parametrize("stage", [1, 2, 3])
-def test_impossible_placement_raises(layout: str, stage: int) -> None:
+def test_impossible_placement_raises(chapter: str, stage: int) -> None:
     """With a 5 m clearance nothing fits: PlacementError after 5 tries, naming the stage and the number of tries."""
-    config = _config(layout).replace(placement_clearance=5.0, max_placement_tries=5)
+    config = _config(chapter).replace(placement_clearance=5.0, max_placement_tries=5)
     with pytest.raises(PlacementError) as info:
-        sample_scenario(config, stage, np.random.default_rng(0))
+        CURRICULUM.draw(config, stage, np.random.default_rng(0))
     message = str(info.value)
     assert re.search(rf"stage\W{{0,2}}{stage}\b", message), message
     assert re.search(r"\b5 tries\b", message), message
@@ -271,11 +274,11 @@ def test_overlapping_first_draws_are_redrawn() -> None:
     failures = 0
     for seed in SEEDS:
         try:
-            first = sample_scenario(one_try, 1, np.random.default_rng(seed))
+            first = CURRICULUM.draw(one_try, 1, np.random.default_rng(seed))
         except PlacementError:
             failures += 1
             continue
-        again = sample_scenario(config, 1, np.random.default_rng(seed))
+        again = CURRICULUM.draw(config, 1, np.random.default_rng(seed))
         assert np.array_equal(first.agent_positions, again.agent_positions)
         assert np.array_equal(first.obstacles, again.obstacles)
     # centroid-goal distance 3..6 m puts the mid-point 1.5..3 m from the centroid, while an agent (1.08 m from it)
@@ -401,12 +404,12 @@ def test_unknown_stage_is_rejected() -> None:
     config = FormationConfig.task("ch5-bearing")
     for stage in (0, 4):
         with pytest.raises(ValueError, match="stage must be 1, 2 or 3"):
-            sample_scenario(config, stage, np.random.default_rng(0))
+            CURRICULUM.draw(config, stage, np.random.default_rng(0))
 
 
 def test_the_curriculum_scales_to_the_world_and_refuses_one_too_small() -> None:
     """Issue 15, point 8: placements follow world_width / world_height; a world the team cannot start in is refused."""
-    thesis = CURRICULUM_LAYOUTS["ch5"]
+    thesis = CHAPTER_PLACEMENTS["ch5"]
     assert thesis.fitted(15.0, 10.0) is thesis  # the thesis's world: the thesis's numbers, untouched
     large = thesis.fitted(30.0, 20.0)  # twice as wide and high: every position doubles, radii stay
     assert large.goal_x == pytest.approx((8.0, 22.0)) and large.start_y == pytest.approx((4.0, 16.0))

@@ -1,13 +1,17 @@
-"""Scene families: determinism, the solvability check, the documented parameter ranges for n = 3 to 8, the API."""
+"""The scenes registry and the scene families: one registry, determinism, the solvability check, the documented
+parameter ranges for n = 3 to 8, the API."""
 
 from __future__ import annotations
 
+import ast
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test
 
+import sb3_formation
 from sb3_formation import FormationConfig, FormationEnv
 from sb3_formation.env.clearance import (
     ClearanceMap,
@@ -18,8 +22,9 @@ from sb3_formation.env.clearance import (
     shrunk_footprint,
     start_footprint,
 )
+from sb3_formation.env.families import SCENE_FAMILIES, WALL_THICKNESS, is_solvable
 from sb3_formation.env.scenarios import PlacementError, Scenario, start_formation
-from sb3_formation.env.scenes import SCENE_FAMILIES, WALL_THICKNESS, check_scenes_fit, draw_scene, is_solvable
+from sb3_formation.env.scenes import BENCHMARK_SCENES, SCENES, check_scenes_fit, draw_scenario, scene_slots
 from sb3_formation.env.shapes import shape_gaps, wall_lengths
 
 FAMILIES = [*SCENE_FAMILIES, "mixed"]
@@ -43,10 +48,10 @@ def test_sizes_by_hand() -> None:
 def test_the_same_seed_draws_the_same_scene(scenes: str) -> None:
     config = config_of(scenes)
     for seed in range(3):
-        first, second = (draw_scene(config, np.random.default_rng(seed)) for _ in range(2))
+        first, second = (draw_scenario(config, 3, np.random.default_rng(seed)) for _ in range(2))
         for name in ("agent_positions", "goal", "obstacles", "walls"):
             np.testing.assert_array_equal(getattr(first, name), getattr(second, name))
-    others = [draw_scene(config, np.random.default_rng(seed)).goal for seed in range(3)]
+    others = [draw_scenario(config, 3, np.random.default_rng(seed)).goal for seed in range(3)]
     assert len({tuple(goal) for goal in others}) == 3
 
 
@@ -66,7 +71,7 @@ def test_every_draw_keeps_the_documented_ranges_and_is_solvable(n_agents: int) -
         config = config_of(scenes, n_agents)
         rng = np.random.default_rng(100 + n_agents)
         for _ in range(15):
-            scene = draw_scene(config, rng)
+            scene = draw_scenario(config, 3, rng)
             walls, circles = scene.walls, scene.obstacles
             scene.validate(config)
             gaps = shape_gaps(scene.agent_positions, circles, walls, config.world_width, config.world_height)
@@ -104,7 +109,7 @@ def test_mixed_draws_every_family() -> None:
     """Over 40 episodes "mixed" meets scenes with walls of 2, 3 and 4 (passage, trap, corridor) and with circles."""
     config = config_of("mixed")
     rng = np.random.default_rng(0)
-    kinds = {(len(scene.walls), len(scene.obstacles) > 0) for scene in (draw_scene(config, rng) for _ in range(40))}
+    kinds = {(len(scene.walls), len(scene.obstacles) > 0) for scene in (draw_scenario(config, 3, rng) for _ in range(40))}
     assert {(2, False), (3, False), (4, False), (0, True)} <= kinds
 
 
@@ -127,7 +132,7 @@ def test_a_family_that_cannot_fit_the_world_is_refused_with_a_message() -> None:
     with pytest.raises(ValueError, match=r"could not draw a solvable 'corridor' scene in the 8 m x 5 m world"):
         check_scenes_fit(config_of("corridor", world_width=8.0, world_height=5.0))
     with pytest.raises(PlacementError):
-        draw_scene(config_of("corridor", world_width=8.0, world_height=5.0), np.random.default_rng(0))
+        draw_scenario(config_of("corridor", world_width=8.0, world_height=5.0), 3, np.random.default_rng(0))
 
 
 def test_paths_through_a_small_maze() -> None:
@@ -224,3 +229,52 @@ def test_the_geodesic_goal_term_rewards_going_round_the_wall() -> None:
     assert terms["euclidean"] < FormationConfig.task("ch5-bearing").k1 < terms["geodesic"]
     # only the training reward reads the map: the observed previous reward (Table 3.1) is the thesis's in both
     np.testing.assert_array_equal(observations["euclidean"], observations["geodesic"])
+
+
+def test_one_registry_places_every_episode() -> None:
+    """Every way of placing an episode is an entry of ``SCENES``: the curriculum beside the families and their
+    mixture; the benchmark plays every entry but the mixture; an unknown name is refused in one line."""
+    assert list(SCENES) == ["curriculum", "passage", "corridor", "trap", "clutter", "mixed"]
+    assert BENCHMARK_SCENES == ("curriculum", "passage", "corridor", "trap", "clutter")
+    assert [name for name, scenes in SCENES.items() if scenes.staged] == ["curriculum"]
+    assert scene_slots(config_of("mixed")) == (12, 4)  # clutter's 12 circles, the corridor's 4 walls
+    assert scene_slots(config_of("curriculum")) == (4, 0)  # stages 1-2: three large obstacles and a small one
+    with pytest.raises(ValueError, match=r"^FormationConfig.scenes='maze' is invalid: it must be one of \('curriculum'"):
+        check_scenes_fit(config_of("maze"))
+    with pytest.raises(ValueError, match="scenes='maze'"):
+        FormationEnv(config_of("maze"))
+
+
+def scene_name_tests(path: Path) -> list[str]:
+    """The comparisons in a source file that test a value against a name of ``SCENES`` (``x == "passage"``,
+    ``x in ("curriculum", ...)``, ``match``/``case "trap"``), read from its syntax tree."""
+    names, found = set(SCENES), []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Compare):
+            operands = [node.left, *node.comparators]
+            constants = [
+                item
+                for operand in operands
+                for item in (operand.elts if isinstance(operand, ast.Tuple | ast.List | ast.Set) else [operand])
+            ]
+            if any(isinstance(item, ast.Constant) and item.value in names for item in constants):
+                found.append(f"{path.name}:{node.lineno}")
+        elif isinstance(node, ast.MatchValue) and isinstance(node.value, ast.Constant) and node.value.value in names:
+            found.append(f"{path.name}:{node.lineno}")
+    return found
+
+
+def test_no_scene_name_is_tested_outside_the_registry() -> None:
+    """No module of the package branches on a scene's name: what differs between scenes is an attribute or a method
+    of their entry in ``SCENES``. (Checked by an independent route: the syntax tree of every source file.)"""
+    package = Path(sb3_formation.__file__).parent
+    registry = {package / "env" / name for name in ("scenes.py", "families.py", "curriculum.py")}
+    found = [test for path in sorted(package.rglob("*.py")) if path not in registry for test in scene_name_tests(path)]
+    assert found == []
+    assert scene_name_tests(Path(__file__)) != []  # the check finds the comparisons of this very file
+
+
+def test_the_check_finds_a_branch_on_a_scene_name(tmp_path: Path) -> None:
+    source = tmp_path / "branchy.py"
+    source.write_text('def suffix(scenes):\n    return "" if scenes == "curriculum" else scenes\n')
+    assert scene_name_tests(source) == ["branchy.py:2"]

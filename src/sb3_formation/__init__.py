@@ -44,16 +44,9 @@ _EXPORTS: dict[str, str] = {
 }
 
 __all__ = sorted(_EXPORTS)
-#: Old names, kept for one release: old name -> new name (``CHANGELOG.md``).
-_RENAMED: dict[str, str] = {"PRESETS": "TASKS", "load_setup": "load_recipe"}
 
 
 def __getattr__(name: str) -> Any:
-    if name in _RENAMED:
-        from sb3_formation.utils.deprecation import warn_renamed
-
-        warn_renamed(f"sb3_formation.{name}", f"sb3_formation.{_RENAMED[name]}")
-        return __getattr__(_RENAMED[name])
     if name not in _EXPORTS:
         raise AttributeError(f"module 'sb3_formation' has no attribute {name!r}")
     value = getattr(importlib.import_module(_EXPORTS[name]), name)

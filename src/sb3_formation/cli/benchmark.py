@@ -14,13 +14,8 @@ from sb3_formation.cli.common import (
     seed_value,
     target_labels,
 )
-from sb3_formation.experiment.benchmark import (
-    BENCHMARK_EPISODES,
-    BENCHMARK_SCENES,
-    BENCHMARK_SEED,
-    TABLE_FILE,
-    run_benchmark,
-)
+from sb3_formation.env.scenes import BENCHMARK_SCENES
+from sb3_formation.experiment.benchmark import BENCHMARK_EPISODES, BENCHMARK_SEED, TABLE_FILE, run_benchmark
 from sb3_formation.experiment.targets import load_policy, target_kind
 from sb3_formation.utils.checks import check_name
 from sb3_formation.utils.files import folder_lock, holds_files
@@ -30,9 +25,9 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     """Add the ``benchmark`` subcommand to ``commands``."""
     parser = commands.add_parser(
         "benchmark",
-        help="every target on stage 3 and on every scene family: success (95%% CI), shape error, contacts, steps",
-        description="Evaluate each target on the thesis's stage 3 and on the scene families "
-        f"({', '.join(BENCHMARK_SCENES[1:])}) with fixed seeds; print one table, write it with every evaluation and "
+        help="every target on every scene set of the benchmark: success (95%% CI), shape error, contacts, steps",
+        description="Evaluate each target at stage 3 on the benchmark's scene sets "
+        f"({', '.join(BENCHMARK_SCENES)}) with fixed seeds; print one table, write it with every evaluation and "
         "a trajectory figure per target and family into --out.",
     )
     parser.add_argument("targets", nargs="+", help="run folders, model .zip files or <kind>:<name> targets")

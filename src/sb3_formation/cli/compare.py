@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from sb3_formation.cli.common import add_protocol_arguments, evaluate_with_protocol, model_trust, target_labels
+from sb3_formation.env.scenes import DEFAULT_SCENES
 from sb3_formation.experiment.evaluation import SUMMARY_FILE, stored_summary
 from sb3_formation.experiment.reports import comparison_table
 from sb3_formation.experiment.targets import default_protocol, evaluation_file, load_policy, target_kind
@@ -58,7 +59,7 @@ def _compare(args: argparse.Namespace) -> int:
     for label, target, recipe in zip(labels, args.targets, recipes):
         own = argparse.Namespace(**{**vars(args), "recipe": recipe})
         wanted = {**protocol, "seed": args.seed, "deterministic": not args.stochastic}
-        scenes = args.scenes or "curriculum"
+        scenes = args.scenes or DEFAULT_SCENES
         if args.scenes is not None:
             wanted["scenes"] = args.scenes
         summary = None if args.force else stored_summary(target, wanted, own.recipe, scenes)

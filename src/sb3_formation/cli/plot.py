@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from sb3_formation.cli.common import add_recipe_option, add_scenes_option, indices, positive_int, target_labels
+from sb3_formation.env.scenes import DEFAULT_SCENES
 from sb3_formation.experiment.evaluation import TRAJECTORIES_FILE, load_summary, load_trajectories
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE
 from sb3_formation.experiment.settings import load_settings
@@ -55,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     if args.figure in ("trajectories", "errors"):
         if len(args.targets) != 1:
             raise ValueError(f"{args.figure} draws one evaluation; got {len(args.targets)} targets")
-        path = evaluation_file(args.targets[0], TRAJECTORIES_FILE, args.recipe, args.scenes or "curriculum")
+        path = evaluation_file(args.targets[0], TRAJECTORIES_FILE, args.recipe, args.scenes or DEFAULT_SCENES)
         trajectories = load_trajectories(path)
         indices = _recordedindices(trajectories, args.episodes)
         default = path.parent / "figures" / ("trajectory.png" if args.figure == "trajectories" else "errors.png")

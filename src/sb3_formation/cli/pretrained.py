@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from sb3_formation.cli.common import print_summary
+from sb3_formation.env.scenes import SCENES
 from sb3_formation.experiment.export import export_pretrained
 from sb3_formation.experiment.pretrained import pretrained_card, pretrained_names
 
@@ -49,8 +50,8 @@ def run(args: argparse.Namespace) -> int:
         contacts = summary["all_episodes"]["collisions_agent"]["mean"]
         sizes = card.get("team_sizes", [card["n_agents"]])
         n = f"{card['n_agents']} (trained on {', '.join(map(str, sizes))})" if len(sizes) > 1 else card["n_agents"]
-        scenes = summary.get("scenes", "curriculum")  # summaries from before the scene families have none
-        episodes = f"stage {summary['stage']}" if scenes == "curriculum" else f"{scenes} families"
+        scenes = summary["scenes"]
+        episodes = f"stage {summary['stage']}" if SCENES[scenes].staged else f"{scenes} scenes"
         print(
             f"| pretrained:{name} | {card['recipe']} | {n} | {episodes} | {summary['success_rate']:.1%} "
             f"({low:.1%}-{high:.1%}) | {figure(means['angle_error_deg'], '.2f')} | {figure(means['bearing_error'], '.4f')} | "

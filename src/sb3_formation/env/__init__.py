@@ -9,9 +9,3 @@ from sb3_formation.env.formation_env import FormationEnv
 from sb3_formation.env.scenarios import PlacementError, Scenario
 
 __all__ = ["REWARD_TERMS", "TASKS", "FormationConfig", "FormationEnv", "PlacementError", "Scenario"]
-
-
-def __getattr__(name: str) -> object:
-    from sb3_formation.env import config
-
-    return config.__getattr__(name)  # old names (PRESETS) warn there

@@ -14,7 +14,6 @@ from typing import Any, Literal
 
 from sb3_formation.env.geometry import interior_angle_deg
 from sb3_formation.utils.checks import is_integer, is_number, is_real
-from sb3_formation.utils.deprecation import warn_renamed
 
 #: Deepest overlap allowed between two agents, or an agent and an obstacle or a wall, as a fraction of the agent
 #: radius (2 cm for the thesis's 20 cm agents). :attr:`FormationConfig.substeps_needed` keeps it.
@@ -59,8 +58,8 @@ INFO_KEYS: tuple[str, ...] = (
     *REWARD_INFO_KEYS,
 )
 
-#: Names of the curriculum placement layouts (see :mod:`sb3_formation.env.scenarios`).
-LAYOUTS: tuple[str, ...] = ("ch4", "ch5")
+#: The thesis chapters whose curriculum placements the ``"curriculum"`` scenes draw (:attr:`FormationConfig.chapter`).
+CHAPTERS: tuple[str, ...] = ("ch4", "ch5")
 #: Agent dynamics (:attr:`FormationConfig.dynamics`): the thesis's holonomic point (eq. 19), or a unicycle.
 DYNAMICS: tuple[str, ...] = ("holonomic", "unicycle")
 #: What the goal term measures progress along (:attr:`FormationConfig.goal_progress`).
@@ -123,10 +122,12 @@ class FormationConfig:
     :param r_j: agent-collision reward r_j
     :param d_safe: safe gap d_safe (m) between an agent's surface and an obstacle's (walls included)
     :param reward_clip: per-agent rewards are clipped to [-reward_clip, reward_clip] after summing
-    :param layout: curriculum placement layout, ``"ch4"`` (thesis 4.3) or ``"ch5"`` (thesis 5.3)
-    :param scenes: where episodes are placed: ``"curriculum"`` (the thesis's stages, by ``layout``) or a scene family
-        of :mod:`sb3_formation.env.scenes` (``"passage"``, ``"corridor"``, ``"trap"``, ``"clutter"``, or ``"mixed"``,
-        one of them drawn per episode); the stage still chooses the reward terms
+    :param chapter: the thesis chapter whose curriculum placements the ``"curriculum"`` scenes draw: ``"ch4"``
+        (thesis 4.3) or ``"ch5"`` (thesis 5.3)
+    :param scenes: where episodes are placed: a name of the registry :data:`sb3_formation.env.scenes.SCENES`, checked
+        when an engine is built: ``"curriculum"`` (the thesis's stages, by ``chapter``), a scene family
+        (``"passage"``, ``"corridor"``, ``"trap"``, ``"clutter"``) or ``"mixed"`` (one family drawn per episode); the
+        stage still chooses the reward terms
     :param stage: curriculum stage 1, 2 or 3
     :param stage_disabled_terms: for stages 1, 2, 3, the reward terms switched off in that stage
     :param max_placement_tries: scenario draws before the sampler gives up with an error
@@ -176,7 +177,7 @@ class FormationConfig:
     r_j: float = -1.0
     d_safe: float = 0.05
     reward_clip: float = 10.0
-    layout: Literal["ch4", "ch5"] = "ch5"
+    chapter: Literal["ch4", "ch5"] = "ch5"
     scenes: str = "curriculum"
     stage: int = 1
     stage_disabled_terms: tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]] = (
@@ -222,12 +223,10 @@ class FormationConfig:
         _check("physics_substeps", substeps, f"at most {MAX_SUBSTEPS}", lambda v: v is None or v <= MAX_SUBSTEPS)
         object.__setattr__(self, "physics_substeps", self.substeps_needed if substeps is None else int(substeps))
         _check("formation_scale", self.formation_scale, "in (0, 1)", lambda v: is_real(v) and 0 < v < 1)
-        _check("layout", self.layout, f"one of {LAYOUTS}", lambda v: v in LAYOUTS)
+        _check("chapter", self.chapter, f"one of {CHAPTERS}", lambda v: v in CHAPTERS)
         _check("dynamics", self.dynamics, f"one of {DYNAMICS}", lambda v: v in DYNAMICS)
         _check("goal_progress", self.goal_progress, f"one of {GOAL_PROGRESS}", lambda v: v in GOAL_PROGRESS)
-        from sb3_formation.env.scenes import SCENES  # the families import this module
-
-        _check("scenes", self.scenes, f"one of {SCENES}", lambda v: isinstance(v, str) and v in SCENES)
+        _check("scenes", self.scenes, "a name of sb3_formation.env.scenes.SCENES", lambda v: isinstance(v, str) and v != "")
         for name in ("team_reward", "observe_reference_bearings"):
             _check(name, getattr(self, name), "True or False", lambda v: isinstance(v, bool))
         if self.d_comm <= self.d_ref:
@@ -338,12 +337,6 @@ class FormationConfig:
         return cls(**{**TASKS[name], **overrides})
 
     @classmethod
-    def preset(cls, name: str, **overrides: Any) -> FormationConfig:
-        """Deprecated spelling of :meth:`task`."""
-        warn_renamed("FormationConfig.preset", "FormationConfig.task")
-        return cls.task(name, **overrides)
-
-    @classmethod
     def from_dict(cls, values: dict[str, Any]) -> FormationConfig:
         """A configuration from the mapping :meth:`to_dict` writes (lists where fields hold tuples).
 
@@ -420,7 +413,7 @@ _CH4: dict[str, Any] = {
     "eta_c": 1.2,  # Table 5.1 (starting formation)
     "r_c": 0.01,  # Table 5.1 (inactive)
     "r_late": -10.0,  # Table 5.1 (inactive)
-    "layout": "ch4",  # thesis 4.3
+    "chapter": "ch4",  # thesis 4.3
     "stage_disabled_terms": (("angle",), (), ()),  # phase 1: no angle requirement (thesis 4.3)
 }
 
@@ -447,7 +440,7 @@ _CH5: dict[str, Any] = {
     "r_o": -5.0,  # Table 5.1
     "r_j": -1.0,  # Table 5.1
     "d_safe": 0.05,  # Table 5.1
-    "layout": "ch5",  # thesis 5.3
+    "chapter": "ch5",  # thesis 5.3
     # stage 1: centroid term only; stage 2: + neighbour distance; stage 3: + shape (docs/design.md "Curriculum placements")
     "stage_disabled_terms": (("dist", "angle", "bearing"), ("angle", "bearing"), ()),
 }
@@ -459,10 +452,3 @@ TASKS: dict[str, dict[str, Any]] = {
     "ch5-angle": {**_CH5, "k_angle": 0.3, "k_bearing": 0.0},  # thesis 5.3, Policy 1
     "ch5-bearing": {**_CH5, "k_angle": 0.0, "k_bearing": 0.3},  # thesis 5.3, Policy 2
 }
-
-
-def __getattr__(name: str) -> Any:
-    if name == "PRESETS":  # the old name of TASKS
-        warn_renamed("sb3_formation.env.config.PRESETS", "TASKS")
-        return TASKS
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,7 +1,8 @@
 """The benchmark: every target on the thesis's stage 3 and on every scene family, with fixed seeds, in one table.
 
 Protocol (``sb3-formation benchmark``): each target plays ``episodes`` episodes (100 by default) of each scene set of
-:data:`BENCHMARK_SCENES` at stage 3, episode k from ``reset(seed=seed + k)`` (seed 10,000 by default: seeds that no
+:data:`~sb3_formation.env.scenes.BENCHMARK_SCENES` (the scenes registry's entries but mixtures: the thesis's stage 3,
+then every family) at stage 3, episode k from ``reset(seed=seed + k)`` (seed 10,000 by default: seeds that no
 training run of the package draws, which start at 0 for the first team), with deterministic actions, in teams of the
 target's own size unless ``n_agents`` is given. A row reports:
 
@@ -34,13 +35,12 @@ from pathlib import Path
 from typing import Any
 
 from sb3_formation import __version__
+from sb3_formation.env.scenes import BENCHMARK_SCENES
 from sb3_formation.experiment.evaluation import EvaluationResult, evaluate_target
 from sb3_formation.experiment.targets import target_kind
 from sb3_formation.utils.files import atomic_write
 from sb3_formation.utils.machine import machine_line
 
-#: The scene sets of the benchmark: the thesis's stage 3 ("curriculum"), then every family.
-BENCHMARK_SCENES: tuple[str, ...] = ("curriculum", "passage", "corridor", "trap", "clutter")
 #: The first seed of the benchmark's episodes.
 BENCHMARK_SEED = 10_000
 #: Episodes per target and scene set.
@@ -118,7 +118,7 @@ def run_benchmark(
     :param recipe: the recipe of ``controller:`` targets
     :param device: torch device of learned targets
     :param progress_bar: show each evaluation's progress bar
-    :param scenes: the scene sets (default :data:`BENCHMARK_SCENES`)
+    :param scenes: the scene sets (default :data:`~sb3_formation.env.scenes.BENCHMARK_SCENES`)
     :param command: the command line that ran the benchmark, recorded with the table
     """
     if len(labels) != len(targets) or len(set(labels)) != len(labels):

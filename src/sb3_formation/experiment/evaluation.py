@@ -22,6 +22,7 @@ from tqdm.auto import tqdm
 
 from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.env.config import REWARD_TERMS
+from sb3_formation.env.scenes import DEFAULT_SCENES
 from sb3_formation.experiment.rollouts import PlayJob, play_episodes, seed_policy
 from sb3_formation.experiment.statistics import mean_and_std, wilson_interval
 from sb3_formation.experiment.targets import default_protocol, evaluation_file, evaluation_folder, load_policy
@@ -71,7 +72,7 @@ class EvaluationResult:
     deterministic: bool
     n_agents: int
     model: dict[str, str] | None = None
-    scenes: str = "curriculum"
+    scenes: str = DEFAULT_SCENES
     summary: dict[str, Any] = field(init=False)
 
     def __post_init__(self) -> None:
@@ -251,7 +252,7 @@ def evaluate_target(
     return result
 
 
-def load_summary(target: str | os.PathLike[str], recipe: str | None = None, scenes: str = "curriculum") -> dict[str, Any]:
+def load_summary(target: str | os.PathLike[str], recipe: str | None = None, scenes: str = DEFAULT_SCENES) -> dict[str, Any]:
     """The stored evaluation summary of a target (see :func:`~sb3_formation.experiment.targets.evaluation_file`), checked
     against the other files of its evaluation (see :func:`check_evaluation_set`).
 
@@ -314,7 +315,7 @@ def load_trajectories(path: str | os.PathLike[str]) -> Trajectories:
 
 
 def stored_summary(
-    target: str | os.PathLike[str], protocol: dict[str, Any], recipe: str | None = None, scenes: str = "curriculum"
+    target: str | os.PathLike[str], protocol: dict[str, Any], recipe: str | None = None, scenes: str = DEFAULT_SCENES
 ) -> dict | None:
     """The target's stored evaluation summary (on ``scenes``) if it is of the same policy (the model file's SHA-256, or
     the controller and its gains) under ``protocol`` (summary keys such as ``episodes``, ``stage``, ``seed``), else

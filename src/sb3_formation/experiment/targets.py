@@ -23,6 +23,7 @@ from pathlib import Path
 
 from sb3_formation.controllers import CONTROLLERS
 from sb3_formation.controllers.base import TeamPolicy
+from sb3_formation.env.scenes import DEFAULT_SCENES
 from sb3_formation.experiment.pretrained import load_pretrained, pretrained_folder
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE, Recipe, load_recipe
 from sb3_formation.experiment.runs import load_trained
@@ -30,7 +31,6 @@ from sb3_formation.experiment.settings import load_settings
 from sb3_formation.runtime import OnnxPolicy
 from sb3_formation.safety.policy import SafePolicy
 from sb3_formation.sb3.model_files import trust_pickle
-from sb3_formation.utils.deprecation import warn_renamed
 
 
 @dataclass(frozen=True)
@@ -101,7 +101,6 @@ def load_policy(
     target: str | os.PathLike[str],
     recipe: str | None = None,
     device: str = "auto",
-    preset: str | None = None,
     trusted: bool | None = None,
 ) -> TeamPolicy:
     """The policy a target names.
@@ -111,13 +110,9 @@ def load_policy(
     :param recipe: for ``controller:`` targets, the recipe whose task the controller acts in (default ``ch5-bearing``);
         a trained model acts in the task it was trained in, so a run takes none and ``pretrained:`` refuses another
     :param device: torch device of a trained model
-    :param preset: the old name of ``recipe`` (warns)
     :param trusted: unpickle what a model file needs (see :func:`~sb3_formation.experiment.runs.load_trained`;
         ``None``: unless inside :func:`~sb3_formation.sb3.model_files.trust_pickle`)
     """
-    if preset is not None:
-        warn_renamed("load_policy(preset=...)", "load_policy(recipe=...)")
-        recipe = preset
     target, safe = unfiltered_target(target)
     if safe:
         return SafePolicy(load_policy(target, recipe, device, trusted=trusted))
@@ -156,12 +151,12 @@ def default_protocol(target: str | os.PathLike[str], recipe: str | None = None) 
     return dict(load_settings(folder).recipe.evaluation)
 
 
-def evaluation_folder(target: str | os.PathLike[str], recipe: str | None = None, scenes: str = "curriculum") -> Path:
+def evaluation_folder(target: str | os.PathLike[str], recipe: str | None = None, scenes: str = DEFAULT_SCENES) -> Path:
     """Where the evaluation files of a target go by default: ``eval/`` in its run folder (or beside a model file),
     ``eval_<stem>/`` beside an exported ``<stem>.onnx`` (not over its model's), and
-    ``evaluations/<kind>-<name>_<recipe>/`` in the working folder for a ``<kind>:<name>`` target; an evaluation on a
-    scene family (``scenes``) adds ``-<scenes>`` to the folder's name."""
-    suffix = ("" if scenes == "curriculum" else f"-{scenes}") + ("-safe" if unfiltered_target(target)[1] else "")
+    ``evaluations/<kind>-<name>_<recipe>/`` in the working folder for a ``<kind>:<name>`` target; an evaluation on
+    other scenes than the default (``scenes``) adds ``-<scenes>`` to the folder's name."""
+    suffix = ("" if scenes == DEFAULT_SCENES else f"-{scenes}") + ("-safe" if unfiltered_target(target)[1] else "")
     kind = target_kind(target)
     if kind is not None:
         name = target_name(target)
@@ -172,7 +167,9 @@ def evaluation_folder(target: str | os.PathLike[str], recipe: str | None = None,
     return (path if path.is_dir() else path.parent) / f"eval{suffix}"
 
 
-def evaluation_file(target: str | os.PathLike[str], name: str, recipe: str | None = None, scenes: str = "curriculum") -> Path:
+def evaluation_file(
+    target: str | os.PathLike[str], name: str, recipe: str | None = None, scenes: str = DEFAULT_SCENES
+) -> Path:
     """The evaluation file ``name`` (e.g. ``summary.json``) of a target: the file itself, in an eval folder, in a run
     folder's ``eval/``, or in a ``<kind>:<name>`` target's :func:`evaluation_folder`.
 
@@ -182,5 +179,5 @@ def evaluation_file(target: str | os.PathLike[str], name: str, recipe: str | Non
     for candidate in (folder, folder / name, evaluation_folder(target, recipe, scenes) / name):
         if candidate.is_file() and candidate.name == name:
             return candidate
-    option = "" if scenes == "curriculum" else f" --scenes {scenes}"
+    option = "" if scenes == DEFAULT_SCENES else f" --scenes {scenes}"
     raise FileNotFoundError(f"no {name} in {target}: run `sb3-formation evaluate {target}{option}` first")
