@@ -8,11 +8,11 @@ ch5-bearing at stage 3, random actions, 90-ray lidar. Prints medians over repeat
   teams in this process, half in a worker process, through shared memory);
 - one ``FormationEnv`` alone, and the bare Pymunk ``space.step`` of one team (sub-steps included);
 - the batched VecEnv with every agent holding one action (pressed on walls, obstacles and each other), with contacts
-  read from Pymunk's arbiters, and with a Python collision callback per contact added (the former way).
+  read from Pymunk's arbiters, and with a Python collision callback per contact added (the alternative).
 
-Targets (issue 17): with 14 teams of 6, at least 150,000 agent-steps/s on 2 cores (with 2 processes), and the batched
-VecEnv at least 2.5x team-by-team stepping on one core. Issue 28 (one engine): against the commit before it, one
-``FormationEnv`` at least 0.9x its agent-steps/s and the VecEnv at least 1.0x.
+Targets: with 14 teams of 6, at least 150,000 agent-steps/s on 2 cores (with 2 processes), and the batched VecEnv at
+least 2.5x team-by-team stepping on one core. Against a reference commit (``--reference``), one ``FormationEnv`` at
+least 0.9x its agent-steps/s and the VecEnv at least 1.0x.
 
 Usage: ``python benchmarks/env_throughput.py [--steps 1000] [--repeats 5] [--teams 14] [--reference REV]``
 """
@@ -67,8 +67,8 @@ def vec_env_seconds(teams: int, steps: int, seed: int, workers: int, pressed: bo
     """Seconds per team-step of ``FormationVecEnv`` (after a warm-up step that compiles and starts the workers).
 
     :param pressed: every agent holds one random action, so the agents press on the walls, obstacles and each other
-    :param callbacks: also count contacts the way ``World`` did before issue 17: a Python ``pre_solve`` callback per
-        touching pair and sub-step (teams in this process only)
+    :param callbacks: also count contacts through a Python ``pre_solve`` callback per touching pair and sub-step (teams
+        in this process only), as against reading them from Pymunk's arbiters
     """
     venv = FormationVecEnv(CONFIG, n_envs=teams, n_workers=workers)
     venv.seed(seed)
@@ -168,7 +168,7 @@ def main() -> None:
     print(f"  contacts from Pymunk's arbiters         : {median['pressed'] * 1e6:7.1f} us/team-step")
     print(
         f"  plus a Python callback per contact      : {median['callbacks'] * 1e6:7.1f} us/team-step  "
-        f"({ratio('callbacks', 'pressed'):.2f}x; how contacts were counted before issue 17)"
+        f"({ratio('callbacks', 'pressed'):.2f}x; a callback per contact instead of the arbiters)"
     )
     if args.reference:
         compare_with_reference(args, {label: median[name] for name, label in labels.items()})

@@ -7,7 +7,7 @@ checked out into a temporary worktree and run with this virtual environment (its
 Both must play the same episodes: the benchmark compares their ``episodes.csv`` without the ``team`` column (which
 team played an episode depends on how many are played at once) and says whether they are identical.
 
-Target (issue 28): this checkout's default command at least 2.5x faster than the reference's default command.
+Target: this checkout's default command at least 2.5x faster than the reference's default command.
 
 Usage: ``python benchmarks/evaluation_throughput.py [--reference REV] [--episodes 200] [--repeats 3]``
 """

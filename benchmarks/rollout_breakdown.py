@@ -1,4 +1,4 @@
-"""Where a rollout step's time goes, and two choices of issue 17 against their alternative, measured in one run.
+"""Where a rollout step's time goes, and two of the package's choices for a rollout against their alternative, in one run.
 
 A recipe's model on its training env (``train_throughput.py``'s recipes; 14 teams of 6, stage 3) collects whole
 rollouts with the callbacks training runs at every step. Prints, per step, medians over the rollouts:

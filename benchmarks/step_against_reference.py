@@ -6,7 +6,7 @@ Each round runs one process per checkout and kind; a process builds the env, war
 of 14 teams of 6 in one process) and ``env`` (one ``FormationEnv`` through ``step_array``). Prints the median
 microseconds per team-step over the rounds and the ratio of this checkout's agent-steps/s to the reference's.
 
-Target (issue 28): one ``FormationEnv`` at least 0.9x the reference's agent-steps/s, the VecEnv at least 1.0x.
+Target: one ``FormationEnv`` at least 0.9x the reference's agent-steps/s, the VecEnv at least 1.0x.
 
 Usage: ``python benchmarks/step_against_reference.py --reference REV [--rounds 8] [--steps 2500]``
 """

@@ -12,7 +12,7 @@ The reference (the forward, backward and Adam step of the same networks on as ma
 buffers or bookkeeping) gives this machine's ceiling for an iteration; the ratio of the whole loop's throughput to that
 ceiling is the figure to compare across machines. Prints medians over the timed iterations (after one warm-up).
 
-Targets (issue 17): fast recipe: rollout at most 20 % of an iteration, at least 12,000 agent-steps/s and at least 80 %
+Targets: fast recipe: rollout at most 20 % of an iteration, at least 12,000 agent-steps/s and at least 80 %
 of the ceiling; thesis recipe with the MLP: at least 85 % of the ceiling.
 
 Usage: ``python benchmarks/train_throughput.py [--iterations 5] [--workers 1,2] [--recipes fast,thesis-mlp]``

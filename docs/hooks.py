@@ -4,10 +4,11 @@ Figures on the site come from the files that commands and benchmarks wrote, not 
 
 - ``<!-- output: sb3-formation <command> -->`` on a line of its own is replaced by what the command prints (only the
   commands of :data:`COMMANDS`, which read the package's files, print and write nothing);
-- ``<!-- tables: docs/results/<file> -->`` is replaced by the Markdown tables of that benchmark output file (its
-  lines that start with ``|``), in order, each block as one table (blocks without rows are left out).
+- ``<!-- tables: docs/<folder>/<file> -->`` is replaced by the Markdown tables of that output file (its lines that
+  start with ``|``), in order, each block as one table (blocks without rows are left out); the file lies under one of
+  :data:`OUTPUT_FOLDERS`.
 
-Whole output files are included with ``pymdownx.snippets`` (``--8<-- "docs/results/<file>"`` inside a fence).
+Whole output files are included with ``pymdownx.snippets`` (``--8<-- "docs/measurements/<file>"`` inside a fence).
 """
 
 from __future__ import annotations
@@ -25,6 +26,9 @@ MARKER = re.compile(r"^<!-- output: (?P<command>[^>]*?) -->$", flags=re.MULTILIN
 TABLES = re.compile(r"^<!-- tables: (?P<path>[^>]*?) -->$", flags=re.MULTILINE)
 #: The repository's root: paths of ``tables`` markers are relative to it.
 ROOT = Path(__file__).resolve().parents[1]
+#: Folders of output files whose tables a page may include: the figures the user's pages quote, and the raw outputs
+#: of the research notes.
+OUTPUT_FOLDERS = (ROOT / "docs" / "measurements", ROOT / "docs" / "research" / "results")
 
 
 def command_output(command: str) -> str:
@@ -42,10 +46,11 @@ def command_output(command: str) -> str:
 
 
 def file_tables(path: str) -> str:
-    """The Markdown tables of a file under ``docs/results``, blocks separated by a blank line."""
+    """The Markdown tables of an output file under one of :data:`OUTPUT_FOLDERS`, blocks separated by a blank line."""
     file = (ROOT / path).resolve()
-    if file.parent != ROOT / "docs" / "results" or not file.is_file():
-        raise FileNotFoundError(f"tables are read from files under docs/results, not {path!r}")
+    if not any(file.is_relative_to(folder) for folder in OUTPUT_FOLDERS) or not file.is_file():
+        folders = ", ".join(str(folder.relative_to(ROOT)) for folder in OUTPUT_FOLDERS)
+        raise FileNotFoundError(f"tables are read from files under {folders}, not {path!r}")
     blocks: list[list[str]] = [[]]
     for line in file.read_text(encoding="utf-8").splitlines():
         if line.startswith("|"):

@@ -1,5 +1,6 @@
 """The README and the documentation site: the README's shape, code blocks that run as written, command lines the CLI
-accepts, the shipped policies' table as the command prints it, an API page for every module, and a strict build."""
+accepts, the shipped policies' table as the command prints it, an API page for every module, a user's manual without
+dates of work, no issue numbers anywhere, and a strict build."""
 
 from __future__ import annotations
 
@@ -25,8 +26,15 @@ README = ROOT / "README.md"
 DOCS = ROOT / "docs"
 #: Pages whose ```python blocks run here, as written (the libraries page's run in tests/test_integrations.py).
 RUN_PAGES = [README, DOCS / "getting-started.md", DOCS / "environment.md", DOCS / "scenes.md", DOCS / "evaluation.md"]
-#: Modules without an API section: the deprecated alias of experiment.recipes and the ``python -m`` entry point.
-NOT_IN_API = {"sb3_formation.experiment.setups", "sb3_formation.cli.__main__"}
+#: Modules without an API section: the ``python -m`` entry point.
+NOT_IN_API = {"sb3_formation.cli.__main__"}
+#: The pages of the user's manual: every page of the site outside the research notes (docs/research/).
+MANUAL_PAGES = [*sorted(DOCS.glob("*.md")), *sorted(DOCS.glob("api/*.md"))]
+#: An ISO date (2026-11-25): a date of work, which the manual's pages do not carry.
+ISO_DATE = re.compile(r"\b20\d\d-[01]\d-[0-3]\d\b")
+#: A citation of an issue tracker's entry by number ("issue 17", "issues #3", "#28"); a link to another project's
+#: issue page (``.../issues/251``) is not one.
+ISSUE_NUMBER = re.compile(r"\bissues? *#? *\d+|(?<![\w&/#])#\d+\b", flags=re.IGNORECASE)
 
 
 def code_blocks(path: Path, language: str) -> list[str]:
@@ -45,11 +53,22 @@ def command_lines(path: Path) -> list[str]:
     return lines
 
 
-def test_the_readme_introduces_in_at_most_200_lines_and_opens_with_the_two_commands() -> None:
-    lines = README.read_text().splitlines()
+def test_the_readme_says_what_the_package_is_and_shows_it_before_the_two_commands() -> None:
+    """At most 200 lines: the title, what the package is, a picture of it, then the first code block, which holds the
+    two make commands (both targets of the Makefile), before any other command."""
+    text = README.read_text()
+    lines = text.splitlines()
     assert len(lines) <= 200
-    assert lines[3].startswith("make run ") and lines[4].startswith("make test ")
-    assert "docs/getting-started.md" in README.read_text()
+    first_block = next(index for index, line in enumerate(lines) if line.startswith("```"))
+    assert lines[first_block] == "```bash"
+    assert lines[first_block + 1].startswith("make run ") and lines[first_block + 2].startswith("make test ")
+    introduction = lines[1:first_block]
+    assert any("Stable-Baselines3" in line for line in introduction)
+    pictures = [match for line in introduction for match in re.findall(r"!\[[^\]]*\]\(([^)]+)\)", line)]
+    assert pictures and all((ROOT / picture).is_file() for picture in pictures), pictures
+    makefile = (ROOT / "Makefile").read_text()
+    assert re.search(r"^run:", makefile, flags=re.MULTILINE) and re.search(r"^test:", makefile, flags=re.MULTILINE)
+    assert "docs/getting-started.md" in text
     # no development diary: no first person, no issue numbers, no dates
     text = README.read_text()
     assert not re.search(r"\b(I|my|we|our)\b", text), re.findall(r".*\b(?:I|my|we|our)\b.*", text)
@@ -57,7 +76,7 @@ def test_the_readme_introduces_in_at_most_200_lines_and_opens_with_the_two_comma
 
 
 #: The README and every page of the site.
-PAGES = [README, *sorted(DOCS.glob("*.md")), *sorted(DOCS.glob("notes/*.md"))]
+PAGES = [README, *sorted(DOCS.glob("*.md")), *sorted(DOCS.glob("research/*.md"))]
 
 
 @pytest.mark.parametrize("page", PAGES, ids=lambda page: str(page.relative_to(ROOT)))
@@ -70,6 +89,40 @@ def test_every_command_line_shown_is_accepted_by_the_cli(page: Path) -> None:
             parser.parse_args(_attach_negative_values(shlex.split(line, comments=True)[1:]))
         except SystemExit as error:
             raise AssertionError(f"{page.name}: the CLI rejects {line!r}") from error
+
+
+@pytest.mark.parametrize("page", MANUAL_PAGES, ids=lambda page: str(page.relative_to(ROOT)))
+def test_the_users_manual_carries_no_dates_of_work(page: Path) -> None:
+    """A page of the manual says what holds, not when it was done: a measured figure's date and CPU are the first line
+    of the output file the page includes (under docs/measurements/), or one "measured on" line beside its table."""
+    dated = [line for line in page.read_text().splitlines() if ISO_DATE.search(line)]
+    assert not dated, f"{page.relative_to(ROOT)}: {dated}"
+
+
+def issue_citing_files() -> list[Path]:
+    """Every text file of the docs, the benchmarks, the notebooks and the project's top-level documents."""
+    files = [ROOT / name for name in ("README.md", "CHANGELOG.md", "mkdocs.yml", "pyproject.toml")]
+    files += [path for path in sorted(DOCS.rglob("*")) if path.suffix in {".md", ".txt", ".py", ".yaml", ".yml", ".json"}]
+    files += sorted((ROOT / "benchmarks").glob("*.py")) + sorted((ROOT / "notebooks").glob("*.*"))
+    return [path for path in files if path.is_file()]
+
+
+def test_no_doc_benchmark_or_readme_cites_an_issue_number() -> None:
+    """An issue tracker a reader cannot reach explains nothing: a line says what holds and why."""
+    cited = [
+        f"{path.relative_to(ROOT)}:{number}: {line.strip()[:100]}"
+        for path in issue_citing_files()
+        for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1)
+        if ISSUE_NUMBER.search(line)
+    ]
+    assert not cited, "\n".join(cited)
+
+
+def test_the_date_and_issue_checks_catch_what_they_are_for() -> None:
+    assert ISO_DATE.search("measured 2026-11-25 on an AMD EPYC") and not ISO_DATE.search("measured in November 2026")
+    assert ISSUE_NUMBER.search("Targets (issue 17): at least") and ISSUE_NUMBER.search("fixed in #28")
+    assert not ISSUE_NUMBER.search("[a report](https://github.com/facebookresearch/BenchMARL/issues/251)")
+    assert not ISSUE_NUMBER.search("[the cost](safety.md#cost), &#39;, # 3 agents")
 
 
 def test_at_least_the_getting_started_commands_are_checked() -> None:
@@ -135,4 +188,5 @@ def test_the_site_builds_in_strict_mode(tmp_path: Path) -> None:
     built = subprocess.run(command, cwd=ROOT, env=environment, capture_output=True, text=True, timeout=600)
     assert built.returncode == 0, built.stderr[-3000:]
     assert (tmp_path / "site" / "api" / "env" / "index.html").is_file()
+    assert (tmp_path / "site" / "research" / "index.html").is_file()
     assert "pretrained:mixed-ch5-bearing" in (tmp_path / "site" / "pretrained" / "index.html").read_text()

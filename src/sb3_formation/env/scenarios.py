@@ -165,10 +165,9 @@ class Scenes(ABC):
     """Where a task's episodes are placed (:attr:`FormationConfig.scenes` names one in the registry
     :data:`~sb3_formation.env.scenes.SCENES`): it draws a :class:`Scenario` for a config, a curriculum stage and a
     generator, and says whether a config's world can hold its scenes.
-
-    :param description: one line, for the docs and ``--help``
     """
 
+    #: One line, for the docs and ``--help``.
     description: str
     #: Whether the curriculum stage changes the placements (the thesis's curriculum), not only the reward terms.
     staged: bool = False
