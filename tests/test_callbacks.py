@@ -468,7 +468,7 @@ def test_metrics_are_rolling_means_of_the_observed_episodes(metrics_run: SimpleN
 
 
 def test_settings_go_to_the_hparams_tab_with_the_success_rate_and_errors_as_metrics(metrics_run: SimpleNamespace) -> None:
-    """Issue 16, point 5: SB3's ``HParam``; nested settings flattened, lists as JSON, ``None`` left out (TensorBoard)."""
+    """SB3's ``HParam``; nested settings flattened, lists as JSON, ``None`` left out (TensorBoard)."""
     assert metrics_run.hparams["metrics"] == list(HPARAM_METRICS)
     assert {"episode/success_rate", "formation/angle_error_deg", "formation/bearing_error"} <= set(HPARAM_METRICS)
     assert metrics_run.hparams["hparams"] == {

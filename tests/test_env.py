@@ -254,7 +254,7 @@ def test_render_mode_is_validated() -> None:
 
 
 def test_render_takes_the_mode_as_older_wrappers_pass_it() -> None:
-    """Issue 16: RLlib's ``ParallelPettingZooEnv.render()`` calls ``par_env.render(self.render_mode)``."""
+    """RLlib's ``ParallelPettingZooEnv.render()`` calls ``par_env.render(self.render_mode)``."""
     env = FormationEnv(FormationConfig.task("ch4-individual"), render_mode="rgb_array")
     env.reset(seed=3)
     assert np.array_equal(env.render("rgb_array"), env.render())

@@ -1,4 +1,4 @@
-"""Other libraries take the environment as it is (issue 16): TorchRL's PettingZoo wrapper (and so BenchMARL), and SB3's
+"""Other libraries take the environment as it is: TorchRL's PettingZoo wrapper (and so BenchMARL), and SB3's
 own tools on our VecEnv (EvalCallback with synchronised normaliser statistics, VecNormalize's API)."""
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ def test_torchrl_wraps_checks_and_rolls_out_every_preset(preset: str) -> None:
 
 
 def test_eval_callback_evaluates_with_the_training_statistics_frozen(tmp_path: Path) -> None:
-    """Issue 16, point 3: ``ScaleNormalizeVecEnv`` is a ``VecNormalize``, so ``EvalCallback`` synchronises a second
+    """``ScaleNormalizeVecEnv`` is a ``VecNormalize``, so ``EvalCallback`` synchronises a second
     env's statistics with the training env's (``sync_envs_normalization``) and the frozen copy does not move."""
     train_env = make_formation_vec_env("ch4-individual", n_envs=2, seed=0, max_steps=10)
     eval_env = make_formation_vec_env("ch4-individual", n_envs=1, seed=100, max_steps=10)
@@ -131,7 +131,7 @@ def test_the_snippets_for_other_libraries_run_and_say_what_they_measure() -> Non
 
 @pytest.mark.integrations
 def test_the_snippets_for_rllib_and_video_recording_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Issue 16, point 6, in ``make test-integrations``'s environment: RLlib trains one shared module for one
+    """In ``make test-integrations``'s environment: RLlib trains one shared module for one
     iteration on the PettingZoo env, its wrapper renders, and SB3's ``VecVideoRecorder`` writes the episode's frames."""
     pytest.importorskip("ray.rllib", reason="RLlib is in the integrations extra: make test-integrations runs this")
     pytest.importorskip("moviepy", reason="moviepy is in the integrations extra: make test-integrations runs this")
@@ -169,7 +169,7 @@ def test_the_snippets_for_rllib_and_video_recording_run(tmp_path: Path, monkeypa
 
 @pytest.mark.integrations
 def test_benchmarl_trains_mappo_on_the_formation_task_for_two_iterations(tmp_path: Path) -> None:
-    """Issue 33, point 4, in ``make test-integrations``'s environment: BenchMARL 1.5.2 (TorchRL 0.11, torch and
+    """In ``make test-integrations``'s environment: BenchMARL 1.5.2 (TorchRL 0.11, torch and
     torchvision 2.14.1 / 0.29.1) trains MAPPO with one shared policy on teams of six; episodes end and are counted, and
     the policy's weights change."""
     pytest.importorskip("benchmarl", reason="BenchMARL is in the integrations extra: make test-integrations runs this")

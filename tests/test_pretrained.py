@@ -222,7 +222,7 @@ def test_pretrained_targets_work_with_every_command(tmp_path: Path, monkeypatch:
 
 
 def test_every_file_of_the_shipped_policies_is_package_data() -> None:
-    """The wheel takes what pyproject.toml's package-data globs name (a wheel built on 2026-11-24 held every file)."""
+    """The wheel takes what pyproject.toml's package-data globs name (checked by building one: it held every file)."""
     globs = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
     package = PRETRAINED_DIR.parent
 

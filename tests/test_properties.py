@@ -88,7 +88,7 @@ def configs(draw: st.DrawFn) -> FormationConfig:
 def test_fuzzed_configs_and_extreme_actions_keep_every_promise(
     config: FormationConfig, seed: int, pattern: str, hold: int
 ) -> None:
-    """Issue 15: every step, speeds stay within v_max, agents inside the walls, overlaps within OVERLAP_TOLERANCE of
+    """Every step, speeds stay within v_max, agents inside the walls, overlaps within OVERLAP_TOLERANCE of
     the radius (agents, obstacles, walls), observations finite and in the space, rewards finite and within the clip."""
     env = FormationEnv(config.replace(max_steps=120))
     observations, _ = env.reset(seed=seed)

@@ -408,7 +408,7 @@ def test_unknown_stage_is_rejected() -> None:
 
 
 def test_the_curriculum_scales_to_the_world_and_refuses_one_too_small() -> None:
-    """Issue 15, point 8: placements follow world_width / world_height; a world the team cannot start in is refused."""
+    """Placements follow world_width / world_height; a world the team cannot start in is refused."""
     thesis = CHAPTER_PLACEMENTS["ch5"]
     assert thesis.fitted(15.0, 10.0) is thesis  # the thesis's world: the thesis's numbers, untouched
     large = thesis.fitted(30.0, 20.0)  # twice as wide and high: every position doubles, radii stay
@@ -435,7 +435,7 @@ def test_the_curriculum_scales_to_the_world_and_refuses_one_too_small() -> None:
 
 
 def test_an_obstacle_outside_the_world_is_refused() -> None:
-    """Issue 29: an obstacle whose centre lies outside the world is named, as the goal is; one crossing a wall is
+    """An obstacle whose centre lies outside the world is named, as the goal is; one crossing a wall is
     allowed (the curriculum's large obstacles may)."""
     agents = [[2.0, 2.0], [5.0, 5.0], [8.0, 8.0]]
     with pytest.raises(ValueError, match=r"obstacle 1 at \(100\.000, 100\.000\) m is outside the world"):

@@ -90,7 +90,7 @@ def test_atomic_directory_swaps_whole_folders(tmp_path: Path, strict_umask: None
 
 
 def test_a_kill_between_the_two_renames_of_a_folder_swap_is_undone(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Issue 15, point 2: the old folder renamed aside, the process killed before the new one took its place."""
+    """The old folder renamed aside, the process killed before the new one took its place."""
     target = tmp_path / "iteration_000004"
     with atomic_directory(target) as folder:
         (folder / "state.json").write_text("old")
@@ -376,7 +376,7 @@ def test_a_spinning_worker_polls_for_calls_then_sleeps() -> None:
         worker.close()
 
 
-# Issue 29: workers and shared memory after kills, the __main__ guard, file names and YAML text ------------------------
+# Workers and shared memory after kills, the __main__ guard, file names and YAML text ------------------------
 
 SCRIPT_WITH_WORKERS = """
 import sys

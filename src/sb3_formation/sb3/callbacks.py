@@ -369,7 +369,7 @@ class CollectionThreadsCallback(BaseCallback):
 
     The worker processes of a :class:`~sb3_formation.sb3.vec_env.FormationVecEnv` poll for the next step on their
     cores during a rollout; torch threads there would fight them (``benchmarks/rollout_breakdown.py`` on 2 cores with
-    one worker, 2026-11-25: a fast-recipe rollout took 0.89 s with torch's 2 threads, 0.38 s with 1).
+    one worker: a fast-recipe rollout took 0.89 s with torch's 2 threads, 0.38 s with 1).
 
     :param threads: torch threads during collection
     """

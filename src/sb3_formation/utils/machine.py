@@ -17,5 +17,5 @@ def cpu_name() -> str:
 
 
 def machine_line() -> str:
-    """Today's date, the CPU and its number of cores, as benchmark output files open: ``2026-11-26, <CPU>, 2 cores``."""
+    """Today's date, the CPU and its number of cores, as benchmark output files open: ``<YYYY-MM-DD>, <CPU>, <n> cores``."""
     return f"{datetime.date.today().isoformat()}, {cpu_name()}, {os.cpu_count()} cores"
