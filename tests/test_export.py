@@ -107,7 +107,7 @@ def test_a_feed_forward_policy_exports_with_its_normaliser_folded_in(center: boo
     config = FormationConfig.task("ch5-bearing")
     trained = untrained(config, None, seed=3, center=center)
     runtime = OnnxPolicy(export_onnx(trained, tmp_path / "mlp.onnx"), threads=1)
-    assert runtime.metadata.output_names == ["action"] and runtime.controller is None
+    assert runtime.metadata.output_names == ["action"] and runtime.residual is None
     observations = played_observations(trained, 2000, seed=5)
     expected, _ = trained.predict(observations)
     actions, state = runtime.predict(observations)
@@ -151,7 +151,7 @@ def test_a_residual_on_a_controller_with_memory_carries_the_memory_beside_the_gr
     config = FormationConfig.task("ch5-bearing", stage=3).replace(scenes="passage")
     residual = ResidualPolicy(ShrinkingController(config), untrained(config, None, seed=6), 0.3)
     runtime = OnnxPolicy(export_onnx(residual, tmp_path / "shrinking.onnx"), threads=1)
-    assert isinstance(runtime.controller, ShrinkingController) and runtime.scale == 0.3
+    assert isinstance(runtime.residual.controller, ShrinkingController) and runtime.residual.scale == 0.3
     engine = FormationEngine([config])
     observations = engine.reset(0, seed=2)
     starts = np.ones(config.n_agents, dtype=bool)
@@ -224,7 +224,7 @@ def test_a_robot_acts_for_its_own_agent_with_its_index() -> None:
 def test_a_policy_trained_on_several_team_sizes_fits_any_size_and_others_refuse() -> None:
     mixed, single = shipped_onnx("mixed-ch5-bearing"), shipped_onnx("ch5-bearing")
     fitted = mixed.fit(mixed.config.replace(n_agents=4))
-    assert fitted.config.n_agents == 4 and fitted.controller.config.n_agents == 4 and mixed.config.n_agents != 4
+    assert fitted.config.n_agents == 4 and fitted.residual.controller.config.n_agents == 4 and mixed.config.n_agents != 4
     with pytest.raises(ValueError, match="n_agents=6 in the model, 4 in the env"):
         single.fit(single.config.replace(n_agents=4))
     with pytest.raises(ValueError, match="lidar_rays"):

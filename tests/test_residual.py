@@ -12,7 +12,7 @@ from PIL import Image
 
 from sb3_formation.cli import main
 from sb3_formation.controllers import ClassicalController, ShrinkingController
-from sb3_formation.controllers.residual import ResidualPolicy, add_correction
+from sb3_formation.controllers.residual import ResidualAdapter, ResidualPolicy, add_correction
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.formation_env import FormationEnv
 from sb3_formation.experiment.evaluation import evaluate
@@ -65,6 +65,32 @@ def test_a_zero_correction_acts_exactly_as_the_controller(kind: type) -> None:
     # evaluated episodes are the controller's, bit for bit
     protocol = {"episodes": 3, "stage": 3, "seed": 5, "n_envs": 2, "env_overrides": {"max_steps": 150}, "record": 0}
     assert evaluate(zero, **protocol).episodes == evaluate(controller, **protocol).episodes
+
+
+def test_the_adapter_serves_a_team_or_one_agent_and_resets_the_memory_of_the_rows_that_start_an_episode() -> None:
+    """The same adapter acts for a whole team (rows in team order) and for each agent alone (its row and its index),
+    each caller carrying its own memory; a row flagged as starting an episode acts as with no memory at all."""
+    config = CH5.replace(scenes="passage")
+    adapter = ResidualAdapter(ShrinkingController(config), 0.3)
+    env = FormationEnv(config)
+    rows = np.stack(list(env.reset(seed=2)[0].values()))
+    correction = np.tile([0.2, 0.0], (6, 1))
+    starts = np.arange(6) < 3  # agents 0-2 start an episode, 3-5 go on
+    memory, own_memories, forgetful = None, [None] * 6, 0
+    for _ in range(80):
+        fresh = adapter.act(rows, correction)[0]  # no memory: every row starts an episode
+        restarted = adapter.act(rows, correction, memory, starts)[0]
+        actions, memory = adapter.act(rows, correction, memory)
+        np.testing.assert_array_equal(restarted[:3], fresh[:3])
+        np.testing.assert_array_equal(restarted[3:], actions[3:])
+        forgetful += not np.array_equal(actions, fresh)
+        for agent in range(6):
+            alone, own_memories[agent] = adapter.act(
+                rows[[agent]], correction[[agent]], own_memories[agent], agents=np.array([agent])
+            )
+            np.testing.assert_array_equal(alone[0], actions[agent])
+        rows, *_ = env.step_array(actions)
+    assert forgetful > 20  # 37 of the 80 steps: the memory changes the actions, so the reset is what made them agree
 
 
 def test_the_training_env_carries_a_controllers_memory_and_resets_it_when_an_episode_ends() -> None:

@@ -1,4 +1,5 @@
-"""The policy seam (anything that acts in the formation env) and hand-written controllers; numpy only, no torch.
+"""The policy seam (anything that acts in the formation env), hand-written controllers and residual policies on them
+(:class:`ResidualAdapter`: a controller's action plus a learned correction); numpy only, no torch.
 
 :data:`CONTROLLERS` names the controllers that ``controller:<name>`` targets of the CLI resolve to.
 """
@@ -9,6 +10,7 @@ from sb3_formation.controllers.base import Controller, TeamPolicy
 from sb3_formation.controllers.classical import ClassicalController, ClassicalGains
 from sb3_formation.controllers.planner import PlannerGains, PrivilegedPlanner
 from sb3_formation.controllers.random import RandomController
+from sb3_formation.controllers.residual import ResidualAdapter, ResidualPolicy
 from sb3_formation.controllers.shrinking import ShrinkingController, ShrinkingGains
 from sb3_formation.env.config import FormationConfig
 
@@ -45,6 +47,8 @@ __all__ = [
     "PlannerGains",
     "PrivilegedPlanner",
     "RandomController",
+    "ResidualAdapter",
+    "ResidualPolicy",
     "ShrinkingController",
     "ShrinkingGains",
     "TeamPolicy",

@@ -84,11 +84,19 @@ def check_gains(gains: Any) -> None:
 class Controller(ABC):
     """Base class of hand-written controllers: each agent acts from its own raw observation and its index.
 
-    Controllers are decentralised and memoryless: :meth:`act` sees one row per agent (the fields of
-    :attr:`layout`) and the agents' indices in their teams, never the world. Subclasses take their gains as keyword
-    arguments of ``__init__`` and store them in :attr:`gains` (evaluation summaries record them). The one exception
-    is labelled: a controller whose ``privileged`` is true also reads each team's map when its episode starts
-    (:class:`PrivilegedPolicy`).
+    Controllers are decentralised: :meth:`act` sees one row per agent (the fields of :attr:`layout`) and the agents'
+    indices in their teams, never the world. Subclasses take their gains as keyword arguments of ``__init__`` and store
+    them in :attr:`gains` (evaluation summaries record them). The one exception is labelled: a controller whose
+    ``privileged`` is true also reads each team's map when its episode starts (:class:`PrivilegedPolicy`).
+
+    A controller may keep a memory of each agent's past observations (e.g.
+    :class:`~sb3_formation.controllers.shrinking.ShrinkingController`, one row of memory per observation row). The
+    memory is not an attribute: it is SB3's ``state`` of :meth:`predict` and :meth:`agent_step`, which the caller
+    hands back with the next rows and which ``episode_start`` (or ``None`` as the state) resets; a memoryless
+    controller's state is ``None``. So one controller serves any number of teams and episodes at once, and whoever
+    drives it carries its memory: the episode loop of evaluation, and
+    :class:`~sb3_formation.controllers.residual.ResidualAdapter` for a residual policy (in evaluation, training and the
+    ONNX runtime).
 
     :param config: the task configuration the controller acts in
     """
@@ -146,9 +154,10 @@ class Controller(ABC):
         episode_start: np.ndarray | None = None,
         deterministic: bool = True,
     ) -> tuple[np.ndarray, Any]:
-        """Actions ``(k, 2)`` (as :meth:`agent_actions`) for rows of any agents, and the controller's next state: what
-        every caller that carries a controller's memory (evaluation, a residual policy, its training env) calls. A
-        memoryless controller returns ``None``; one with memory overrides this.
+        """Actions ``(k, 2)`` (as :meth:`agent_actions`) for rows of any agents, and the controller's next state (its
+        memory of these rows): what every caller that carries a controller's memory calls (:meth:`predict`, and
+        :class:`~sb3_formation.controllers.residual.ResidualAdapter`). A memoryless controller returns ``None``; one with
+        memory overrides this.
 
         :param observations: ``(k, obs_dim)`` raw observations
         :param agents: ``(k,)`` each row's agent index in its team

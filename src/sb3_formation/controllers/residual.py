@@ -2,8 +2,10 @@
 
 ``a = clip(a_base + scale * a_correction, -1, 1)``: the correction (a policy's action in [-1, 1]^2) moves the
 controller's action by at most ``scale`` (a fraction of F_max) per component. With a zero correction the residual
-policy is the controller. The same sum acts in training (:class:`~sb3_formation.sb3.residual.ResidualVecEnv`) and
-in evaluation (:class:`ResidualPolicy`).
+policy is the controller. :class:`ResidualAdapter` computes the sum and carries the controller's memory wherever a
+residual policy acts: in evaluation (:class:`ResidualPolicy`), in training
+(:class:`~sb3_formation.sb3.residual.ResidualVecEnv`) and in the torch-free runtime
+(:class:`~sb3_formation.runtime.OnnxPolicy`).
 """
 
 from __future__ import annotations
@@ -38,6 +40,61 @@ def add_correction(base: np.ndarray, correction: np.ndarray, scale: float) -> np
     return np.clip(base + scale * correction, -1.0, 1.0).astype(np.float32)
 
 
+class ResidualAdapter:
+    """The controller's side of a residual policy: the controller, its memory, the scale and the sum
+    (:func:`add_correction`), for rows of agents whose learned corrections the caller has.
+
+    The memory is carried as Stable-Baselines3 carries a policy's state: :meth:`act` returns it, the caller hands it
+    back with the next rows (the same rows, in the same order), and ``episode_start`` flags the rows whose episode
+    starts now, whose memory the controller resets (``None`` as the memory starts every row's episode; a memoryless
+    controller's memory is ``None``). The adapter holds no memory itself: a policy's ``predict`` must start afresh
+    when called with ``state=None``, and one adapter serves any number of teams and episodes at once. Each user keeps
+    the memory beside its other state:
+
+    - :class:`ResidualPolicy` (evaluation) and :class:`~sb3_formation.runtime.OnnxPolicy` return it as the second
+      part of their SB3 state (the learned part's state, the controller's memory) and pass SB3's ``episode_start``;
+    - :class:`~sb3_formation.sb3.residual.ResidualVecEnv` (training) has no SB3 state and is the caller itself: it
+      keeps one memory per team task and flags the slots whose observation starts an episode (all of them after
+      ``reset``, those that ``dones`` flag after a step).
+
+    :param controller: the controller (decentralised: it reads each agent's own observation)
+    :param scale: the correction's bound, a fraction of F_max
+    :raises ValueError: a scale outside (0, 2]
+    """
+
+    def __init__(self, controller: Controller, scale: float) -> None:
+        self.controller, self.scale = controller, check_residual_scale(scale)
+
+    def fit(self, config: FormationConfig) -> ResidualAdapter:
+        """The adapter acting in envs of ``config`` (its controller fitted; ``self`` if that changes nothing)."""
+        controller = self.controller.fit(config)
+        return self if controller is self.controller else ResidualAdapter(controller, self.scale)
+
+    def act(
+        self,
+        observations: np.ndarray,
+        correction: np.ndarray,
+        memory: Any = None,
+        episode_start: np.ndarray | None = None,
+        agents: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, Any]:
+        """The controller's actions plus the scaled corrections, float32 ``(k, 2)``, and the controller's next memory.
+
+        :param observations: ``(k, obs_dim)`` raw observations
+        :param correction: ``(k, 2)`` the learned corrections of these rows
+        :param memory: what the previous call returned for these rows (``None`` at the start)
+        :param episode_start: ``(k,)`` flags: these rows start an episode (their memory is reset)
+        :param agents: ``(k,)`` each row's agent index in its team; ``None``: the rows are whole teams, row k is agent
+            ``k % n`` (the policy seam's order)
+        :param deterministic: the controller acts without noise
+        """
+        rows = np.asarray(observations, dtype=np.float64).reshape(-1, np.shape(observations)[-1])
+        agents = np.arange(len(rows)) % self.controller.config.n_agents if agents is None else np.asarray(agents).reshape(-1)
+        base, memory = self.controller.agent_step(rows, agents, memory, episode_start, deterministic)
+        return add_correction(base.astype(np.float64), correction, self.scale), memory
+
+
 class ResidualPolicy:
     """A controller plus a policy's bounded correction, on the policy seam (raw team observations).
 
@@ -47,7 +104,17 @@ class ResidualPolicy:
     """
 
     def __init__(self, base: Controller, correction: TeamPolicy, scale: float) -> None:
-        self.base, self.correction, self.scale = base, correction, check_residual_scale(scale)
+        self.residual, self.correction = ResidualAdapter(base, scale), correction
+
+    @property
+    def base(self) -> Controller:
+        """The controller."""
+        return self.residual.controller
+
+    @property
+    def scale(self) -> float:
+        """The correction's bound, a fraction of F_max."""
+        return self.residual.scale
 
     @property
     def config(self) -> FormationConfig:
@@ -68,9 +135,9 @@ class ResidualPolicy:
     def predict(
         self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
     ) -> tuple[np.ndarray, Any]:
-        """The controller's actions plus the scaled corrections; the state is the pair (the correction's, the
-        controller's)."""
-        correction_state, base_state = (None, None) if state is None else state
+        """The controller's actions plus the scaled corrections; the state is the pair (the correction's state, the
+        controller's memory)."""
+        correction_state, memory = (None, None) if state is None else state
         correction, correction_state = self.correction.predict(observation, correction_state, episode_start, deterministic)
-        base, base_state = self.base.predict(observation, base_state, episode_start, deterministic)
-        return add_correction(base.astype(np.float64), correction, self.scale), (correction_state, base_state)
+        actions, memory = self.residual.act(observation, correction, memory, episode_start, deterministic=deterministic)
+        return actions.reshape(*np.shape(observation)[:-1], 2), (correction_state, memory)

@@ -5,8 +5,9 @@ float32, folds in the frozen scale-only normaliser, and returns the clipped acti
 recurrent policy also reads and returns its actor's state (``hidden_in`` -> ``hidden_out``, and for an LSTM
 ``cell_in`` -> ``cell_out``, each ``(1, batch, hidden)``). A residual policy's graph returns the network's
 ``correction``; :class:`OnnxPolicy` adds it to the numpy controller's action the metadata names (the residual
-composition of ``docs/export.md``). The model's metadata (:class:`PolicyMetadata`) holds the task configuration, the
-observation layout, the team sizes, the residual and recurrent settings, the package version and the opset.
+composition of ``docs/export.md``) with :class:`~sb3_formation.controllers.residual.ResidualAdapter`, as training and
+evaluation do. The model's metadata (:class:`PolicyMetadata`) holds the task configuration, the observation layout,
+the team sizes, the residual and recurrent settings, the package version and the opset.
 """
 
 from __future__ import annotations
@@ -23,8 +24,7 @@ from typing import Any, cast
 import numpy as np
 
 from sb3_formation import __version__
-from sb3_formation.controllers import controller_from_spec
-from sb3_formation.controllers.residual import add_correction, check_residual_scale
+from sb3_formation.controllers import ResidualAdapter, controller_from_spec
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.observations import observation_fields, observation_layout
 from sb3_formation.safety.filter import SafetyFilter, SafetyGains
@@ -267,9 +267,9 @@ class OnnxPolicy:
         self.config = self.metadata.config
         self.observation_dim = self.metadata.observation_dim
         self._check_declared_widths()
-        residual = self.metadata.residual
-        self.controller = None if residual is None else controller_from_spec(residual, self.config)
-        self.scale = None if residual is None else check_residual_scale(residual["scale"])
+        spec = self.metadata.residual
+        #: a residual policy's controller and scale, which :meth:`agent_actions` adds to the graph's correction, else None
+        self.residual = None if spec is None else ResidualAdapter(controller_from_spec(spec, self.config), spec["scale"])
         gains = self.metadata.safety
         try:
             #: the safety filter of a policy trained behind it (:meth:`agent_actions` applies it), else ``None``
@@ -314,7 +314,7 @@ class OnnxPolicy:
             raise ValueError(f"{self.source} does not fit this env's observations: " + "; ".join(differences))
         fitted = copy.copy(self)
         fitted.config = config
-        fitted.controller = None if self.controller is None else self.controller.fit(config)
+        fitted.residual = None if self.residual is None else self.residual.fit(config)
         fitted.safety = None if self.safety is None else SafetyFilter(config, self.safety.gains)
         return fitted
 
@@ -361,20 +361,17 @@ class OnnxPolicy:
         if not deterministic:
             raise ValueError(f"{self.source} acts deterministically only (its graph holds the mean action): drop --stochastic")
         rows = self._rows(observations)
-        graph_state, controller_state = (state, None) if self.controller is None or state is None else state
+        graph_state, memory = (state, None) if self.residual is None or state is None else state
         feeds = {OBSERVATION_INPUT: rows, **self._state_feeds(graph_state, episode_start, len(rows))}
         try:
             first, *new_state = self.session.run(self.metadata.output_names, feeds)
         except Exception as error:  # onnxruntime raises its own exception types (InvalidArgument, Fail, ...)
             raise RuntimeError(f"{self.source}: onnxruntime could not run the graph: {_first_line(error)}") from None
         graph_state = tuple(new_state) if new_state else graph_state
-        if self.controller is None:
+        if self.residual is None:
             return self._filtered(rows, first), graph_state
-        base, controller_state = self.controller.agent_step(
-            rows, np.asarray(agents).reshape(-1), controller_state, episode_start
-        )
-        first = add_correction(base.astype(np.float64), first, cast(float, self.scale))  # set with the controller
-        return self._filtered(rows, first), (graph_state, controller_state)
+        actions, memory = self.residual.act(rows, first, memory, episode_start, agents)
+        return self._filtered(rows, actions), (graph_state, memory)
 
     def _filtered(self, rows: np.ndarray, actions: np.ndarray) -> np.ndarray:
         """``actions`` through the safety filter, if the policy has one."""

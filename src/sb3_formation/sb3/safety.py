@@ -2,20 +2,20 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING
 
 import numpy as np
-from stable_baselines3.common.vec_env import VecEnvWrapper
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepReturn
 
 from sb3_formation.safety.filter import SafetyFilter, SafetyGains
 from sb3_formation.safety.policy import FilterTally
+from sb3_formation.sb3.action_wrapper import ActionVecEnvWrapper
 
 if TYPE_CHECKING:
     from sb3_formation.sb3.vec_env import FormationVecEnv
 
 
-class SafetyVecEnv(VecEnvWrapper):
+class SafetyVecEnv(ActionVecEnvWrapper):
     """The env applies the filtered action, PPO keeps its own ("shielded" PPO): each slot's action passes through the
     :class:`~sb3_formation.safety.filter.SafetyFilter` of its team's task, on the raw observation the slot last
     returned (wrap the :class:`~sb3_formation.sb3.vec_env.FormationVecEnv` itself, below a residual wrapper and any
@@ -28,40 +28,31 @@ class SafetyVecEnv(VecEnvWrapper):
     :param penalty: reward lost per unit of the change of an action (>= 0)
     """
 
-    venv: FormationVecEnv
-
     def __init__(self, venv: FormationVecEnv, gains: SafetyGains | None = None, penalty: float = 0.0) -> None:
         super().__init__(venv)
         if not penalty >= 0:
             raise ValueError(f"the safety penalty must be >= 0, got {penalty!r}")
         self.penalty = float(penalty)
-        self.agent_obs_dim: int = venv.agent_observation_dim
         #: each team task's filter and the slots of its teams
         self._filters = [(SafetyFilter(config, gains), slots) for config, slots in venv.slots_by_task().items()]
         self.tally = FilterTally(venv.num_envs)
-        self._observations: np.ndarray | None = None
         self._change = np.zeros(venv.num_envs)
 
     def reset(self) -> VecEnvObs:
-        self._observations = cast(np.ndarray, self.venv.reset())  # a Box's observations
+        observations = super().reset()
         self.tally.resize(self.num_envs)
-        return self._observations
+        return observations
 
-    def step_async(self, actions: np.ndarray) -> None:
-        if self._observations is None:
-            raise RuntimeError("reset() the env before stepping it")
-        actions = self.venv.checked_actions(actions)
-        own = self._observations[:, : self.agent_obs_dim]
-        safe = np.empty((len(own), 2))
+    def _env_actions(self, observations: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        safe = np.empty((len(observations), 2))
         for safety, slots in self._filters:
-            safe[slots], report = safety.filter(own[slots], actions[slots])
+            safe[slots], report = safety.filter(observations[slots], actions[slots])
             self._change[slots] = report.change
             self.tally.add(report, slots)
-        self.venv.step_async(safe)
+        return safe
 
     def step_wait(self) -> VecEnvStepReturn:
-        observations, rewards, dones, infos = self.venv.step_wait()
-        self._observations = cast(np.ndarray, observations)  # a Box's observations
+        observations, rewards, dones, infos = super().step_wait()
         if self.penalty:
             rewards = (rewards - self.penalty * self._change).astype(np.float32)
         for slot, info in enumerate(infos):
