@@ -19,27 +19,30 @@ $(STAMP): pyproject.toml
 
 # The main job: first the shipped policy pretrained:ch5-bearing flies 20 fixed-seed stage-3 episodes (a summary, a
 # trajectory figure and a GIF in runs/make-run-pretrained/, under a minute); then about four minutes of training of the
-# fast bearing set-up (1.3 M agent-steps, stage 3 only) and an evaluation of that policy on 20 episodes.
+# residual recipe residual-ch5-bearing (the shipped policy's own recipe: 3 M agent-steps, stage 3 only), and the
+# trained policy and the shipped one on the same 20 episodes, side by side in one table.
 RUN_LOGDIR := runs/make-run
 DEMO := runs/make-run-pretrained
+RECIPE := residual-ch5-bearing
 
 run: setup
 	$(BIN)/sb3-formation evaluate pretrained:ch5-bearing --episodes 20 --n-envs 10 --trajectories 1 --out $(DEMO) --no-progress
 	$(BIN)/sb3-formation plot trajectories $(DEMO) --out $(DEMO)/trajectory.png
 	$(BIN)/sb3-formation render pretrained:ch5-bearing --frame-every 6 --fps 25 --out $(DEMO)/episode.gif
 	@echo "Shipped policy: summary $(DEMO)/summary.json, figure $(DEMO)/trajectory_000.png, video $(DEMO)/episode.gif"
-	$(BIN)/sb3-formation train --recipe fast-ch5-bearing --steps 1300000 --eval-every 1000 --seed 0 --logdir $(RUN_LOGDIR)
-	$(BIN)/sb3-formation evaluate "$$(ls -td $(RUN_LOGDIR)/*/ | head -n 1)" --episodes 20 --n-envs 10 --seed 0
+	$(BIN)/sb3-formation train --recipe $(RECIPE) --eval-every 1000 --seed 0 --logdir $(RUN_LOGDIR)
+	run="$$(ls -td $(RUN_LOGDIR)/*/ | head -n 1)" && $(BIN)/sb3-formation compare pretrained:ch5-bearing "$$run" \
+	  --labels shipped,trained --episodes 20 --n-envs 10 --seed 0 --no-progress --out "$$run/compare.png"
 	@echo "Training curves: tensorboard --logdir runs   (tensorboard is in $(BIN)/)"
 
-# Rebuild the shipped policies (docs/pretrained.md): train experiments/pretrained-<task>.yaml (seed 0) into
+# Rebuild the shipped policies (docs/pretrained.md): train recipes/pretrained-<task>.yaml (seed 0) into
 # runs/pretrained-<task>/ (replacing an earlier one) and export it into src/sb3_formation/pretrained/<task>/.
 PRETRAINED := ch5-bearing ch5-angle ch4-individual ch4-team mixed-ch5-bearing ch5-bearing-unicycle scenes-ch5-bearing
 
 pretrained: setup
 	for task in $(PRETRAINED); do \
 	  rm -rf runs/pretrained-$$task && \
-	  $(BIN)/sb3-formation train --config experiments/pretrained-$$task.yaml --run-dir runs/pretrained-$$task && \
+	  $(BIN)/sb3-formation train --recipe recipes/pretrained-$$task.yaml --run-dir runs/pretrained-$$task && \
 	  $(BIN)/sb3-formation pretrained --export runs/pretrained-$$task --name $$task --replace || exit 1; \
 	done
 

@@ -25,8 +25,8 @@ import torch
 
 from sb3_formation.cli.common import assignment
 from sb3_formation.experiment.evaluation import evaluate
+from sb3_formation.experiment.recipes import layered_settings
 from sb3_formation.experiment.runs import load_trained
-from sb3_formation.experiment.settings import layered_settings
 from sb3_formation.experiment.training import train
 from sb3_formation.utils.machine import machine_line
 

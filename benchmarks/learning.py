@@ -33,8 +33,8 @@ from matplotlib.figure import Figure
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_formation.experiment.evaluation import evaluate_target
+from sb3_formation.experiment.recipes import layered_settings
 from sb3_formation.experiment.reports import table_number
-from sb3_formation.experiment.settings import layered_settings
 from sb3_formation.experiment.training import train
 from sb3_formation.utils.machine import machine_line
 from sb3_formation.viz.plots import save_figure

@@ -23,8 +23,7 @@ import time
 from train_throughput import PhaseTimer
 
 from sb3_formation.experiment.evaluation import evaluate
-from sb3_formation.experiment.recipes import with_schedules
-from sb3_formation.experiment.settings import layered_settings
+from sb3_formation.experiment.recipes import layered_settings, with_schedules
 from sb3_formation.experiment.targets import load_policy
 from sb3_formation.experiment.training import make_training_env, rollout_callbacks
 from sb3_formation.sb3.model_files import algorithm_for

@@ -28,8 +28,7 @@ import torch as th
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 
-from sb3_formation.experiment.recipes import with_schedules
-from sb3_formation.experiment.settings import TrainSettings, layered_settings
+from sb3_formation.experiment.recipes import TrainSettings, layered_settings, with_schedules
 from sb3_formation.experiment.training import make_training_env, rollout_callbacks
 from sb3_formation.sb3.model_files import algorithm_for
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy

@@ -73,7 +73,7 @@ def vec_env_case(task: str, workers: int, fast: bool, team_critic: bool = False)
     overrides = {"stage": 1, "max_steps": 40 if fast else 45}
     if fast:
         overrides["v_max"] = 1.0
-    config = FormationConfig.preset(task, **overrides)
+    config = FormationConfig.task(task, **overrides)
     sizes = [3] if team_critic else list(SIZES)
     n_teams = 6 if team_critic else len(SIZES)
     venv = FormationVecEnv(config, n_envs=n_teams, team_observations=team_critic, n_workers=workers, team_sizes=sizes)
@@ -100,7 +100,7 @@ def single_env_case(task: str, n_agents: int) -> list[str]:
     from sb3_formation import FormationConfig, FormationEnv
     from sb3_formation.env.scenarios import Scenario
 
-    env = FormationEnv(FormationConfig.preset(task, n_agents=n_agents, stage=1, max_steps=40, v_max=1.0))
+    env = FormationEnv(FormationConfig.task(task, n_agents=n_agents, stage=1, max_steps=40, v_max=1.0))
     observations, infos = env.reset(seed=3)
     digests = [digest(observations, infos, env.state())]
     rng = np.random.default_rng(5)
@@ -139,7 +139,7 @@ def evaluation_case(target: str, episodes: int, n_envs: int, workers: int, recor
     from sb3_formation.experiment.targets import load_policy
 
     if target == "controller:classical":
-        policy = ClassicalController(FormationConfig.preset("ch5-bearing"))
+        policy = ClassicalController(FormationConfig.task("ch5-bearing"))
     else:
         policy = load_policy(target, device="cpu")
     result = evaluate(policy, episodes=episodes, stage=3, seed=0, n_envs=n_envs, n_workers=workers, record=record)

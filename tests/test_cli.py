@@ -94,7 +94,7 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
     config = folder / "tiny.yaml"
     config.write_text(yaml.safe_dump(TINY_RUN))
     for seed in (0, 1):
-        arguments = ["train", "--config", str(config), "--iterations", "1,0,2", "--n-envs", "1", "--seed", str(seed)]
+        arguments = ["train", "--recipe", str(config), "--iterations", "1,0,2", "--n-envs", "1", "--seed", str(seed)]
         assert main([*arguments, "--env", "max_steps=20", "--logdir", str(folder / "logs"), "--no-progress"]) == 0
     return sorted((folder / "logs").iterdir())
 

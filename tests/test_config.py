@@ -32,7 +32,7 @@ TABLE_4_1: dict[str, Any] = {
     "r_j": -1.0,
     "d_safe": 0.02,
     "n_agents": 3,
-    "layout": "ch4",
+    "chapter": "ch4",
 }
 
 #: Table 5.1; n = 6 (thesis 5.2).
@@ -56,7 +56,7 @@ TABLE_5_1: dict[str, Any] = {
     "r_j": -1.0,
     "d_safe": 0.05,
     "n_agents": 6,
-    "layout": "ch5",
+    "chapter": "ch5",
 }
 
 EXPECTED_PRESETS: dict[str, dict[str, Any]] = {
@@ -190,7 +190,7 @@ def test_two_agents_rejected_without_preset() -> None:
         ({"lidar_rays": 0}, "lidar_rays", r">= ?1|> ?0|positive"),
         ({"formation_scale": 1.5}, "formation_scale", r"\(0, 1\)|0 < .*< 1"),
         ({"formation_scale": 0.0}, "formation_scale", r"\(0, 1\)|0 < .*< 1"),
-        ({"layout": "ch9"}, "layout", r"ch4.*ch5"),
+        ({"chapter": "ch9"}, "chapter", r"ch4.*ch5"),
         ({"n_agents": True}, "n_agents", r">= ?3"),
         ({"n_agents": 3.0}, "n_agents", r">= ?3"),
         ({"d_safe": -0.01}, "d_safe", r">= ?0"),

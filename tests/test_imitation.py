@@ -13,9 +13,8 @@ from stable_baselines3 import PPO
 
 from sb3_formation.controllers import ClassicalController
 from sb3_formation.env.config import FormationConfig
-from sb3_formation.experiment.recipes import RECIPES_FOLDER, Recipe, load_recipe
+from sb3_formation.experiment.recipes import layered_settings, load_recipe
 from sb3_formation.experiment.runs import load_trained
-from sb3_formation.experiment.settings import layered_settings
 from sb3_formation.experiment.training import IMITATION_FILE, resume, train
 from sb3_formation.sb3.imitation import ImitationSettings, actor_parameters, pretrain_actor
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
@@ -26,12 +25,16 @@ CONFIG = FormationConfig.task("ch5-bearing", stage=3, max_steps=60)
 
 
 def tiny_imitation_recipe(tmp_path: Path, **imitation: object) -> Path:
-    values = yaml.safe_load((RECIPES_FOLDER / "imitate-ch5-bearing.yaml").read_text())
-    values["policy"]["net_arch"] = {"pi": [16], "vf": [16]}
-    values["ppo"] |= {"n_steps": 16, "batch_size": 64, "n_epochs": 2}
-    values["imitation"] |= {"rounds": 2, "steps": 20, "epochs": 2, "batch_size": 64, "critic_warmup": 2, **imitation}
-    values["n_envs"] = 2
-    values["training"] |= {"steps": 4 * 16 * 12, "eval_every": None}
+    """fast-ch5-bearing shrunk to seconds, its actor first pretrained on controller:classical, as a recipe file."""
+    values = {
+        "base": "fast-ch5-bearing",
+        "imitation": {"controller": "classical", "rounds": 2, "steps": 20, "epochs": 2, "batch_size": 64, "critic_warmup": 2},
+        "policy": {"net_arch": {"pi": [16], "vf": [16]}},
+        "ppo": {"n_steps": 16, "batch_size": 64, "n_epochs": 2},
+        "n_envs": 2,
+        "training": {"steps": 4 * 16 * 12, "eval_every": None},
+    }
+    values["imitation"] |= imitation
     path = tmp_path / "imitate.yaml"
     path.write_text(yaml.safe_dump(values))
     return path
@@ -72,19 +75,22 @@ def test_a_run_killed_before_its_first_checkpoint_is_trained_again_on_resume(tmp
         resume(killed)
 
 
-def test_imitation_recipes_are_checked() -> None:
-    recipe = load_recipe("imitate-ch5-bearing")
+def test_imitation_recipes_are_checked(tmp_path: Path) -> None:
+    recipe = load_recipe(tiny_imitation_recipe(tmp_path, learning_rate=3e-3))
     controller, settings = recipe.teacher(recipe.config()), recipe.imitation_settings()
-    assert isinstance(controller, ClassicalController) and settings.rounds == 4 and settings.critic_warmup == 10
-    values = {
-        key: getattr(recipe, key) for key in ("description", "env", "policy", "ppo", "curriculum", "n_envs", "evaluation")
-    }
-    with pytest.raises(ValueError, match="unknown: \\['round'\\]"):
-        Recipe("bad", **values, imitation={"controller": "classical", "round": 3})
+    assert isinstance(controller, ClassicalController) and settings == ImitationSettings(2, 20, 2, 64, 3e-3, 2)
+    assert recipe.to_dict()["imitation"] == {"controller": "classical", "gains": {}, **vars(settings)}  # read back as given
+    with pytest.raises(
+        ValueError, match=r"imitation needs controller and may give gains, rounds, .*: unknown keys \['round'\]"
+    ):
+        recipe.with_changes({"imitation": {"round": 3}})
     with pytest.raises(ValueError, match="imitation: rounds must be an integer >= 1, got 0"):
-        Recipe("bad", **values, imitation={"controller": "classical", "rounds": 0})
-    with pytest.raises(ValueError, match="not recurrent, not residual"):
-        Recipe("bad", **{**values, "policy": {**recipe.policy, "recurrent": True}}, imitation={"controller": "classical"})
+        recipe.with_changes({"imitation": {"rounds": 0}})
+    with pytest.raises(ValueError, match="unknown controller 'pid'"):
+        recipe.with_changes({"imitation": {"controller": "pid"}})
+    for change in ({"policy": {"recurrent": True}}, {"residual": {"controller": "classical", "scale": 0.3}}):
+        with pytest.raises(ValueError, match="not recurrent, not residual"):
+            recipe.with_changes(change)
 
 
 def test_the_actor_parameters_are_the_actor_layers_its_head_and_a_learned_log_std() -> None:

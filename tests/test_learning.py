@@ -15,8 +15,8 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_formation import FormationPolicy
 from sb3_formation.experiment.evaluation import evaluate
+from sb3_formation.experiment.recipes import layered_settings
 from sb3_formation.experiment.runs import load_trained
-from sb3_formation.experiment.settings import layered_settings
 from sb3_formation.experiment.training import train
 from sb3_formation.sb3.recurrent import RecurrentFormationPPO
 

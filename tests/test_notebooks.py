@@ -10,7 +10,7 @@ import pytest
 from nbclient import NotebookClient
 
 NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
-EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
+RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 
 
 def run_notebook(name: str, parameters: str, folder: Path) -> nbformat.NotebookNode:
@@ -45,8 +45,8 @@ def test_quickstart_notebook_trains_evaluates_plots_and_animates(tmp_path: Path)
 @pytest.mark.slow
 def test_thesis_results_notebook_runs_sweeps_and_shows_the_thesis_numbers(tmp_path: Path) -> None:
     parameters = (
-        "EXPERIMENTS = ['quick-ch4-team', 'quick-ch5-angle']\nSEEDS = [0]\n"
-        f"EXPERIMENTS_DIR = {str(EXPERIMENTS)!r}\nLOGDIR = 'sweeps'\nRUN_MISSING = True"
+        "RECIPE_FILES = ['quick-ch4-team', 'quick-ch5-angle']\nSEEDS = [0]\n"
+        f"RECIPES_DIR = {str(RECIPES)!r}\nLOGDIR = 'sweeps'\nRUN_MISSING = True"
     )
     notebook = run_notebook("02_thesis_results.ipynb", parameters, tmp_path)
     for name in ("quick-ch4-team", "quick-ch5-angle"):

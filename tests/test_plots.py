@@ -17,7 +17,7 @@ from PIL import Image
 
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.experiment.evaluation import EvaluationResult
-from sb3_formation.experiment.settings import layered_settings
+from sb3_formation.experiment.recipes import layered_settings
 from sb3_formation.experiment.trajectories import Trajectories
 from sb3_formation.viz.plots import (
     formation_steps,

@@ -112,7 +112,7 @@ def test_the_four_thesis_tasks_ship_a_policy_trained_for_their_task() -> None:
     for task in THESIS_TASKS:
         card = pretrained_card(task)
         assert load_recipe(card["recipe"]).config() == load_recipe(task).config()
-        assert card["summary"]["episodes"] == load_recipe(task).evaluation["episodes"]
+        assert card["summary"]["episodes"] == load_recipe(task).evaluation.episodes
         assert card["summary"]["stage"] == 3 and card["summary"]["seed"] == 0 and card["summary"]["deterministic"]
         # the stored evaluation is of the shipped file, and its rate is that of its stored episodes
         folder = pretrained_folder(task)

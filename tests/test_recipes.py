@@ -3,7 +3,9 @@ parameters."""
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
+import inspect
 import io
 import json
 import zipfile
@@ -13,16 +15,26 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from stable_baselines3 import PPO
 
-from sb3_formation.cli import main
+from sb3_formation.cli import build_parser, main
+from sb3_formation.cli.train import settings_of as train_settings
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.experiment.pretrained import numerics_fingerprint
-from sb3_formation.experiment.recipes import RECIPES_FOLDER, Recipe, load_recipe, recipe_names
+from sb3_formation.experiment.recipes import (
+    RECIPES_FOLDER,
+    Recipe,
+    TrainSettings,
+    layered_settings,
+    load_recipe,
+    recipe_names,
+    recipe_options,
+)
 from sb3_formation.experiment.runs import FINAL_MODEL
-from sb3_formation.experiment.settings import TrainSettings, layered_settings, load_settings
+from sb3_formation.experiment.sections import SECTIONS, PPOSection, RunOptions, field_docs
 from sb3_formation.safety import SafetyGains
 from sb3_formation.sb3.policies import FormationPolicy
-from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
+from sb3_formation.sb3.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
 
 REFERENCE = Path(__file__).with_name("data") / "thesis_training_reference.json"
 
@@ -33,7 +45,6 @@ def test_the_four_thesis_recipes_are_shipped_with_their_citations() -> None:
         *thesis,
         *(f"fast-{name}" for name in thesis),
         "fast-ch5-bearing-shielded",
-        "imitate-ch5-bearing",
         "mixed-ch5-bearing",
         *(f"residual-{name}" for name in thesis),
         "residual-ch5-bearing-unicycle",
@@ -49,10 +60,10 @@ def test_the_four_thesis_recipes_are_shipped_with_their_citations() -> None:
     }
     for name, (iterations, teams, episodes, recurrent, scale) in expected.items():
         recipe = load_recipe(name)
-        assert recipe.env["task"] == name and recipe.config() == FormationConfig.task(name)
-        assert (recipe.iterations, recipe.n_envs, recipe.evaluation["episodes"]) == (iterations, teams, episodes)
+        assert recipe.env.task == name and recipe.config() == FormationConfig.task(name)
+        assert (recipe.iterations, recipe.n_envs, recipe.evaluation.episodes) == (iterations, teams, episodes)
         assert recipe.recurrent is recurrent
-        assert recipe.ppo == thesis_ppo and recipe.policy["sigma"] == 0.7 and recipe.policy["action_scale"] == scale
+        assert recipe.ppo.to_dict() == thesis_ppo and recipe.policy.sigma == 0.7 and recipe.policy.action_scale == scale
         kwargs = recipe.ppo_kwargs()
         assert kwargs["policy"] is (RecurrentFormationPolicy if recurrent else FormationPolicy)
         assert ("team_size" in kwargs["policy_kwargs"]) == (name == "ch4-team")  # the team critic, fig. 4.3
@@ -123,9 +134,9 @@ def test_a_recipe_names_its_base_and_overrides_keys_of_its_sections(tmp_path: Pa
     (tmp_path / "smaller.yaml").write_text(yaml.safe_dump({"base": "small.yaml", "training": {"steps": 999}}))
     recipe, fast = load_recipe(tmp_path / "smaller.yaml"), load_recipe("fast-ch5-bearing")
     assert recipe.name == "smaller" and recipe.description == fast.description
-    assert (recipe.n_envs, recipe.ppo["n_steps"], recipe.config().max_steps, recipe.training["steps"]) == (2, 16, 30, 999)
-    assert {k: v for k, v in recipe.ppo.items() if k != "n_steps"} == {k: v for k, v in fast.ppo.items() if k != "n_steps"}
-    assert recipe.training["normalize_reward"] is True and recipe.policy == fast.policy  # inherited
+    assert (recipe.n_envs, recipe.ppo.n_steps, recipe.config().max_steps, recipe.training.steps) == (2, 16, 30, 999)
+    assert recipe.ppo == fast.ppo.replace(n_steps=16)
+    assert recipe.training.normalize_reward is True and recipe.policy == fast.policy  # inherited
     # the shipped residual recipe, written as its own file, means what it says with a base too
     residual = yaml.safe_load((RECIPES_FOLDER / "residual-ch5-bearing.yaml").read_text())
     changes = {key: residual[key] for key in ("description", "residual", "policy", "ppo", "training")}
@@ -152,42 +163,17 @@ def test_settings_put_options_over_the_file_over_its_recipe(tmp_path: Path) -> N
 
 
 def test_a_runs_config_trains_again_into_the_same_parameters(tmp_path: Path) -> None:
-    """A run's ``config.yaml`` is a complete recipe with its run options: ``train --config runs/X/config.yaml`` (same
+    """A run's ``config.yaml`` is a complete recipe with its run options: ``train --recipe runs/X/config.yaml`` (same
     seed, a short budget) trains the same model, bit for bit, and writes the same ``config.yaml``."""
     first, again = tmp_path / "first", tmp_path / "again"
     options = ["--iterations", "0,0,1", "--n-envs", "2", "--env", "max_steps=30", "--seed", "3", "--no-progress"]
     assert main(["train", "--recipe", "fast-ch5-bearing", "--steps", "1", *options, "--run-dir", str(first)]) == 0
-    assert main(["train", "--config", str(first / "config.yaml"), "--run-dir", str(again)]) == 0
+    assert main(["train", "--recipe", str(first / "config.yaml"), "--run-dir", str(again)]) == 0
     assert (first / "config.yaml").read_text() == (again / "config.yaml").read_text()
     assert parameter_fingerprint(first / FINAL_MODEL) == parameter_fingerprint(again / FINAL_MODEL)
-    assert main(["train", "--config", str(first / "config.yaml"), "--seed", "4", "--run-dir", str(tmp_path / "s4")]) == 0
+    assert main(["train", "--recipe", str(first / "config.yaml"), "--seed", "4", "--run-dir", str(tmp_path / "s4")]) == 0
     assert parameter_fingerprint(tmp_path / "s4" / FINAL_MODEL) != parameter_fingerprint(first / FINAL_MODEL)
     assert yaml.safe_load((tmp_path / "s4" / "config.yaml").read_text())["run"]["seed"] == 4
-
-
-def test_a_run_folder_of_an_earlier_release_still_loads(tmp_path: Path) -> None:
-    """A ``config.yaml`` in the settings format of earlier releases (``recipe:`` and resolved options) is read, with a
-    warning, as the same recipe with its changes and the same run options."""
-    shipped = load_recipe("residual-ch5-bearing")
-    old = {
-        "recipe": "residual-ch5-bearing", "iterations": [0, 0, 140], "n_envs": 14, "workers": 1, "seed": 5,
-        "device": "cpu", "logdir": "runs", "checkpoint_every": 50, "success_threshold": None, "progress_bar": False,
-        "seeds": None, "evaluation": None, "recurrent": False, "cell": None, "steps": 3000000, "minutes": None,
-        "normalize_reward": True, "eval_every": 25, "team_sizes": [6],
-        "env": {**FormationConfig.task("ch5-bearing").to_dict(), "max_steps": 400},
-        "ppo": {**shipped.ppo, "policy_kwargs": {**shipped.policy, "sigma": 0.5}},
-    }  # fmt: skip
-    del old["ppo"]["policy_kwargs"]["recurrent"]
-    (tmp_path / "config.yaml").write_text(yaml.safe_dump(old))
-    with pytest.warns(FutureWarning, match="settings format of earlier releases"):
-        settings = load_settings(tmp_path)
-    expected = shipped.with_changes({"env": {"max_steps": 400}, "policy": {"sigma": 0.5}})
-    assert settings.recipe.to_dict() == {
-        **expected.to_dict(),
-        "curriculum": {"iterations": [0, 0, 140], "success_threshold": None},
-    }
-    assert settings.recipe.stage_iterations() == expected.stage_iterations()
-    assert (settings.run.seed, settings.run.device, settings.run.progress_bar) == (5, "cpu", False)
 
 
 def parameter_fingerprint(model_zip: Path) -> tuple[str, dict[str, list[float]]]:
@@ -231,7 +217,7 @@ def test_thesis_recipes_train_into_the_recorded_parameters(case: str, tmp_path: 
 
 def test_team_sizes_are_checked() -> None:
     recipe = load_recipe("mixed-ch5-bearing")
-    assert recipe.team_sizes == [3, 4, 5, 6, 7, 8] and recipe.config().observe_reference_bearings
+    assert recipe.team_sizes == (3, 4, 5, 6, 7, 8) and recipe.config().observe_reference_bearings
     values = {
         key: getattr(recipe, key) for key in ("description", "env", "policy", "ppo", "curriculum", "n_envs", "evaluation")
     }
@@ -240,7 +226,7 @@ def test_team_sizes_are_checked() -> None:
     with pytest.raises(ValueError, match=r"team_sizes: FormationConfig\.n_agents=2 is invalid"):
         Recipe("bad", **values, team_sizes=[3, 2])
     with pytest.raises(ValueError, match=r"a team critic reads teams of n_agents=6; team_sizes lists \[3, 4\]"):
-        Recipe("bad", **{**values, "policy": {**values["policy"], "team_critic": True}}, team_sizes=[3, 4])
+        Recipe("bad", **{**values, "policy": values["policy"].replace(team_critic=True)}, team_sizes=[3, 4])
 
 
 def test_a_runs_team_sizes_are_recorded_resolved_and_agents_replace_the_recipes() -> None:
@@ -249,7 +235,7 @@ def test_a_runs_team_sizes_are_recorded_resolved_and_agents_replace_the_recipes(
     assert recipe.steps_per_iteration() == 256 * 2 * (3 + 4 + 5 + 6 + 7 + 8)  # 12 teams: each size twice
     saved = recipe.to_dict()
     assert saved["team_sizes"] == [3, 4, 5, 6, 7, 8] and saved["env"]["n_agents"] == 6
-    assert Recipe.from_dict("saved", saved).sizes == [3, 4, 5, 6, 7, 8]  # a resumed run keeps its mix
+    assert Recipe.from_dict(saved).sizes == [3, 4, 5, 6, 7, 8]  # a resumed run keeps its mix
     assert layered_settings(recipe="mixed-ch5-bearing", agents=4).recipe.sizes == [4]  # --agents 4: every team
     assert load_recipe("ch5-bearing").sizes == [6]
     assert layered_settings(recipe="ch5-bearing", team_sizes=[3, 5]).recipe.steps_per_iteration() == 128 * 7 * (3 + 5)
@@ -260,7 +246,7 @@ def test_a_runs_team_sizes_are_recorded_resolved_and_agents_replace_the_recipes(
 
 
 def test_ppo_settings_that_sb3_would_reject_late_are_one_line_errors() -> None:
-    """Issue 29: SB3 asserts ``batch_size > 1`` and accepts ``gamma: 2``; a recipe refuses both before anything runs."""
+    """SB3 asserts ``batch_size > 1`` and accepts ``gamma: 2``; a recipe refuses both before anything runs."""
     recipe = load_recipe("fast-ch5-bearing")
     for change, message in (
         ({"batch_size": 1}, r"batch_size must be an integer >= 2 \(advantages are normalised over a mini-batch\)"),
@@ -274,7 +260,7 @@ def test_ppo_settings_that_sb3_would_reject_late_are_one_line_errors() -> None:
     ):
         with pytest.raises(ValueError, match=message):
             recipe.with_changes({"ppo": change})
-    assert recipe.with_changes({"ppo": {"gamma": 1, "batch_size": 2}}).ppo["gamma"] == 1
+    assert recipe.with_changes({"ppo": {"gamma": 1, "batch_size": 2}}).ppo.gamma == 1
 
 
 def test_the_unicycle_recipe_changes_only_the_dynamics_of_its_base() -> None:
@@ -289,7 +275,7 @@ def test_a_recipes_safety_section_is_checked_and_turns_the_filter_on() -> None:
     assert shielded.safety_gains() == SafetyGains() and shielded.safety_penalty == 0.5
     assert load_recipe("fast-ch5-bearing").safety_gains() is None
     assert shielded.with_changes({"safety": {"gamma": 0.2}}).safety_gains() == SafetyGains(gamma=0.2)
-    assert Recipe.from_dict("x", shielded.to_dict()).safety == shielded.safety  # written and read back
+    assert Recipe.from_dict(shielded.to_dict()).safety == shielded.safety  # written and read back
     for section, message in (
         ({"gama": 0.2}, r"safety: unknown safety filter setting\(s\) \['gama'\]"),
         ({"penalty": -1}, "safety: penalty must be a finite number >= 0"),
@@ -306,3 +292,83 @@ def test_a_base_chain_of_a_thousand_recipes_is_refused_at_once(tmp_path: Path) -
     with pytest.raises(ValueError, match=r"r999\.yaml: its base: chain is longer than 32 recipes; merge some of them"):
         load_recipe(tmp_path / "r999.yaml")
     assert load_recipe(tmp_path / "r30.yaml").config() == load_recipe("ch5-bearing").config()  # 31 files and a shipped one
+
+
+def test_every_shipped_recipe_reads_back_as_it_writes() -> None:
+    """A recipe's complete mapping (a run's ``config.yaml``) is read into a recipe that means the same and writes it
+    again."""
+    for name in recipe_names():
+        recipe = load_recipe(name)
+        written = yaml.safe_load(yaml.safe_dump(recipe.to_dict()))
+        again = Recipe.from_dict(written)
+        assert again.to_dict() == written and again.ppo_kwargs() == recipe.ppo_kwargs(), name
+        assert (again.config(), again.sizes, again.evaluation, again.training) == (
+            recipe.config(),
+            recipe.sizes,
+            recipe.evaluation,
+            recipe.training,
+        )
+
+
+def test_every_field_is_documented_and_each_option_is_declared_once_on_its_field(capsys: pytest.CaptureFixture[str]) -> None:
+    for owner in (Recipe, RunOptions, *SECTIONS.values()):
+        names = [item.name for item in dataclasses.fields(owner)]
+        assert sorted(field_docs(owner)) == sorted(names), owner.__name__
+    options = recipe_options()
+    assert len({option.name for option in options}) == len({option.flag for option in options}) == len(options)
+    assert {option.name: option.section for option in options} == {
+        "n_envs": None, "team_sizes": None, "env": "env", "recurrent": "policy", "cell": "policy",
+        "iterations": "curriculum", "success_threshold": "curriculum", "normalize_reward": "training", "steps": "training",
+        "minutes": "training", "eval_every": "training", "seed": "run", "device": "run", "workers": "run", "logdir": "run",
+        "checkpoint_every": "run", "progress_bar": "run", "evaluate": "run",
+    }  # fmt: skip
+    steps = next(option for option in options if option.name == "steps")
+    assert steps.help == field_docs(SECTIONS["training"])["steps"]
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert "--steps STEPS budget in agent-steps: the curriculum's iterations become proportions of it" in help_text
+    assert "--progress, --no-progress show a progress bar" in help_text
+
+
+def test_the_ppo_section_takes_sb3_ppos_own_keyword_arguments() -> None:
+    ppo = set(inspect.signature(PPO.__init__).parameters)
+    recurrent = set(inspect.signature(RecurrentFormationPPO.__init__).parameters)
+    names = {item.name for item in dataclasses.fields(PPOSection)}
+    assert names - ppo == {"max_sequence_length"} and "max_sequence_length" in recurrent  # RecurrentFormationPPO's own
+    with pytest.raises(ValueError, match="ppo: max_sequence_length applies to recurrent policies only"):
+        load_recipe("fast-ch5-bearing").with_changes({"ppo": {"max_sequence_length": 8}})
+    assert (
+        load_recipe("ch5-bearing").with_changes({"ppo": {"max_sequence_length": 8}}).ppo_kwargs()["max_sequence_length"] == 8
+    )
+
+
+def test_unknown_and_missing_keys_of_a_section_name_the_keys_it_takes() -> None:
+    with pytest.raises(ValueError, match=r"^ppo may give learning_rate, n_steps, .*: unknown keys \['learning_rat'\]$"):
+        PPOSection.from_dict({"learning_rat": 1e-3})
+    with pytest.raises(ValueError, match=r"^evaluation needs episodes and may give stage, .*: missing keys \['episodes'\]$"):
+        SECTIONS["evaluation"].from_dict({"stage": 3})
+    with pytest.raises(ValueError, match=r"^recipe 'ch5-bearing': residual needs controller and scale and may give gains: "):
+        load_recipe("ch5-bearing").with_changes({"residual": {"scale": 0.3}})
+    assert SECTIONS["evaluation"].from_dict({"episodes": 5}).to_dict() == {"episodes": 5}  # evaluate's defaults for the rest
+
+
+def test_a_recipes_scenes_are_a_name_of_the_scenes_registry(capsys: pytest.CaptureFixture[str]) -> None:
+    assert load_recipe("fast-ch5-bearing").with_changes({"env": {"scenes": "passage"}}).config().scenes == "passage"
+    with pytest.raises(ValueError, match=r"env: scenes must be a name of sb3_formation\.env\.scenes\.SCENES \(curriculum, "):
+        load_recipe("fast-ch5-bearing").with_changes({"env": {"scenes": "moon"}})
+    assert main(["train", "--env", "scenes=moon", "--iterations", "0,0,1"]) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and "scenes must be a name of" in error and "got 'moon'" in error
+
+
+def test_flags_made_from_the_fields_change_their_sections() -> None:
+    parser = build_parser()
+    flags = ["--iterations", "1,2,3", "--team-sizes", "3,5", "--no-normalize-reward", "--success-threshold", "0.5"]
+    settings = train_settings(parser.parse_args(["train", "--recipe", "ch5-bearing", *flags, "--no-progress"]))
+    recipe = settings.recipe
+    assert recipe.iterations == (1, 2, 3) and recipe.success_threshold == 0.5 and recipe.training.normalize_reward is False
+    assert recipe.sizes == [3, 5] and recipe.steps_per_iteration() == 128 * (7 * 3 + 7 * 5)  # 14 teams taken in turn
+    assert settings.run.progress_bar is False and settings.run.seed == 0
+    with pytest.raises(SystemExit):
+        parser.parse_args(["train", "--iterations", "1,2"])  # three stages

@@ -226,18 +226,16 @@ def test_a_policy_trained_on_several_team_sizes_acts_in_teams_of_any_size(tmp_pa
 
 def test_residual_setups_are_checked() -> None:
     setup = load_recipe("residual-ch5-bearing")
-    values = {
-        key: getattr(setup, key) for key in ("description", "env", "policy", "ppo", "curriculum", "n_envs", "evaluation")
-    }
+    values = setup.to_dict()
     with pytest.raises(ValueError, match="residual needs controller and scale"):
-        Recipe("bad", **values, residual={"controller": "classical"})
+        Recipe.from_dict({**values, "residual": {"controller": "classical"}})
     with pytest.raises(ValueError, match="unknown controller 'pid'"):
-        Recipe("bad", **values, residual={"controller": "pid", "scale": 0.3})
+        Recipe.from_dict({**values, "residual": {"controller": "pid", "scale": 0.3}})
     with pytest.raises(ValueError, match="unknown gains \\['k_gaol'\\]"):
-        Recipe("bad", **values, residual={"controller": "classical", "scale": 0.3, "gains": {"k_gaol": 1}})
+        Recipe.from_dict({**values, "residual": {"controller": "classical", "scale": 0.3, "gains": {"k_gaol": 1}}})
     with pytest.raises(
         ValueError, match="residual: the residual scale must be a number in \\(0, 2\\] \\(a fraction of F_max\\), got 3"
     ):
-        Recipe("bad", **values, residual={"controller": "classical", "scale": 3})
+        Recipe.from_dict({**values, "residual": {"controller": "classical", "scale": 3}})
     with pytest.raises(ValueError, match="controller 'privileged-planner' reads the map \\(privileged\\)"):
-        Recipe("bad", **values, residual={"controller": "privileged-planner", "scale": 0.3})
+        Recipe.from_dict({**values, "residual": {"controller": "privileged-planner", "scale": 0.3}})

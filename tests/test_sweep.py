@@ -1,4 +1,4 @@
-"""Experiments and sweeps: every experiment YAML validates, quick experiments train end to end, and a real local Ray
+"""Recipe files and sweeps: every recipe file of recipes/ validates, the quick ones train end to end, and a real local Ray
 sweep trains, skips finished trials when restarted after a kill, reports a broken trial and aggregates over seeds."""
 
 from __future__ import annotations
@@ -18,14 +18,14 @@ import yaml
 from terminal import default_ctrl_c
 
 from sb3_formation.cli import main
-from sb3_formation.experiment.recipes import load_recipe
+from sb3_formation.experiment.recipes import load_recipe, load_settings
 from sb3_formation.experiment.runs import FINAL_MODEL
 from sb3_formation.experiment.statistics import wilson_interval
-from sb3_formation.experiment.sweep import aggregate, load_experiment, sweep
+from sb3_formation.experiment.sweep import aggregate, sweep
 from sb3_formation.sb3.metrics import EPISODE_METRICS
 from sb3_formation.viz.plots import save_sweep_curves
 
-EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
+RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 THESIS = {  # thesis 4.3-4.4 and 5.3-5.4: iterations per stage, parallel teams, seeds, evaluation episodes
     "thesis-ch4-individual": ((10000, 10000, 20000), 12, 4, 500),
     "thesis-ch4-team": ((10000, 10000, 20000), 12, 4, 500),
@@ -34,13 +34,13 @@ THESIS = {  # thesis 4.3-4.4 and 5.3-5.4: iterations per stage, parallel teams, 
 }
 
 
-def test_every_thesis_experiment_has_a_quick_twin_and_the_thesis_budget() -> None:
-    names = sorted(path.stem for path in EXPERIMENTS.glob("*.yaml"))
+def test_every_thesis_recipe_file_has_a_quick_twin_and_the_thesis_budget() -> None:
+    names = sorted(path.stem for path in RECIPES.glob("*.yaml"))
     shipped = ["pretrained-mixed-ch5-bearing", "pretrained-ch5-bearing-unicycle", "pretrained-scenes-ch5-bearing"]
     pretrained = [name.replace("thesis-", "pretrained-") for name in THESIS] + shipped
     assert names == sorted([*THESIS, *(name.replace("thesis-", "quick-") for name in THESIS), *pretrained])
     for name, (iterations, teams, seeds, episodes) in THESIS.items():
-        settings = load_experiment(EXPERIMENTS / f"{name}.yaml")
+        settings = load_settings(RECIPES / f"{name}.yaml")
         recipe = settings.recipe
         base = load_recipe(name.removeprefix("thesis-"))
         assert {
@@ -49,26 +49,26 @@ def test_every_thesis_experiment_has_a_quick_twin_and_the_thesis_budget() -> Non
             key: value for key, value in base.to_dict().items() if key not in ("name", "curriculum", "n_envs", "evaluation")
         }  # the thesis recipe, with the thesis's budget
         assert recipe.stage_iterations() == iterations and recipe.n_envs == teams
-        assert len(settings.run.seeds) == seeds and recipe.evaluation["episodes"] == episodes and settings.run.evaluate
-        assert recipe.evaluation["stage"] == 3
+        assert len(settings.run.seeds) == seeds and recipe.evaluation.episodes == episodes and settings.run.evaluate
+        assert recipe.evaluation.stage == 3
         assert recipe.recurrent == name.startswith("thesis-ch5")  # thesis 5.1.2: recurrent networks
         kwargs = recipe.ppo_kwargs()
-        thesis_ppo = base.ppo  # the thesis's PPO settings (thesis 4.3, 5.3)
+        thesis_ppo = base.ppo.to_dict()  # the thesis's PPO settings (thesis 4.3, 5.3)
         assert {key: kwargs[key] for key in thesis_ppo} == thesis_ppo and thesis_ppo["learning_rate"] == 5e-5
-        quick = load_experiment(EXPERIMENTS / f"{name.replace('thesis-', 'quick-')}.yaml")
+        quick = load_settings(RECIPES / f"{name.replace('thesis-', 'quick-')}.yaml")
         assert quick.recipe.ppo == recipe.ppo and sum(quick.recipe.stage_iterations()) <= 3
 
 
-def test_experiment_errors_name_the_file_and_the_setting(tmp_path: Path) -> None:
-    with pytest.raises(FileNotFoundError, match=r"missing\.yaml"):
-        load_experiment(tmp_path / "missing.yaml")
+def test_recipe_file_errors_name_the_file_and_the_setting(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=r"no recipe file .*missing\.yaml"):
+        load_settings(tmp_path / "missing.yaml")
     bad = tmp_path / "bad.yaml"
     bad.write_text("base: ch5-bearing\nevaluation: {episodes: 5, colour: red}\n")
-    with pytest.raises(ValueError, match=r"bad\.yaml: recipe 'bad': evaluation needs episodes"):
-        load_experiment(bad)
+    with pytest.raises(ValueError, match=r"recipe 'bad': evaluation needs episodes .*: unknown keys \['colour'\]"):
+        load_settings(bad)
     bad.write_text("base: ch5-bearing\nrun: {seeds: []}\n")
     with pytest.raises(ValueError, match="seeds must be a non-empty list"):
-        load_experiment(bad)
+        load_settings(bad)
 
 
 def test_aggregate_is_the_mean_and_std_over_seeds() -> None:
@@ -89,9 +89,9 @@ def test_aggregate_is_the_mean_and_std_over_seeds() -> None:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", [name.replace("thesis-", "quick-") for name in THESIS])
-def test_quick_experiments_train_and_evaluate(name: str, tmp_path: Path) -> None:
+def test_quick_recipes_train_and_evaluate(name: str, tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
-    assert main(["train", "--config", str(EXPERIMENTS / f"{name}.yaml"), "--run-dir", str(run_dir)]) == 0
+    assert main(["train", "--recipe", str(RECIPES / f"{name}.yaml"), "--run-dir", str(run_dir)]) == 0
     summary = json.loads((run_dir / "eval" / "summary.json").read_text())
     assert summary["episodes"] == 4 and summary["stage"] == 3
     assert (run_dir / FINAL_MODEL).is_file() and (run_dir / "eval" / "trajectories.npz").is_file()
@@ -119,10 +119,10 @@ def wait_for(predicate, timeout: float = 300.0) -> None:
 
 @pytest.mark.slow
 def test_ray_sweep_skips_finished_trials_after_a_kill_and_aggregates(tmp_path: Path) -> None:
-    experiment = tmp_path / "tiny.yaml"
-    experiment.write_text(yaml.safe_dump(TINY))
+    recipe_file = tmp_path / "tiny.yaml"
+    recipe_file.write_text(yaml.safe_dump(TINY))
     logdir = tmp_path / "logs"
-    command = [sys.executable, "-m", "sb3_formation.cli", "sweep", str(experiment), "--logdir", str(logdir)]
+    command = [sys.executable, "-m", "sb3_formation.cli", "sweep", str(recipe_file), "--logdir", str(logdir)]
     pipes = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True, "preexec_fn": default_ctrl_c}
     process = subprocess.Popen([*command, "--max-concurrent", "1"], **pipes)
     first = logdir / "tiny" / "seed_0"
@@ -133,7 +133,7 @@ def test_ray_sweep_skips_finished_trials_after_a_kill_and_aggregates(tmp_path: P
     finished_at = os.stat(first / FINAL_MODEL).st_mtime_ns
     assert (first / "eval" / "summary.json").exists() and not (logdir / "tiny" / "aggregate.json").exists()
 
-    result = sweep(experiment, logdir=logdir)
+    result = sweep(recipe_file, logdir=logdir)
     save_sweep_curves(result)
     assert result.trials[0]["status"] == "skipped"  # finished before the kill: not trained again
     assert os.stat(first / FINAL_MODEL).st_mtime_ns == finished_at
@@ -161,14 +161,14 @@ def test_ray_sweep_skips_finished_trials_after_a_kill_and_aggregates(tmp_path: P
 
 @pytest.mark.slow
 def test_ray_sweep_reports_a_broken_trial_and_finishes_the_others(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    experiment = tmp_path / "tiny.yaml"
-    experiment.write_text(yaml.safe_dump(TINY))
+    recipe_file = tmp_path / "tiny.yaml"
+    recipe_file.write_text(yaml.safe_dump(TINY))
     broken = tmp_path / "logs" / "tiny" / "seed_1" / "checkpoints" / "iteration_000001"
     broken.mkdir(parents=True)  # a checkpoint whose model file is not a model: resuming it must fail
     (broken / "state.json").write_text(json.dumps({"num_timesteps": 384, "curriculum": {}}))
     (broken / "model.zip").write_text("not a zip file")
     (broken.parents[1] / "config.yaml").write_text(yaml.safe_dump({**TINY, "seed": 1}))
-    code = main(["sweep", str(experiment), "--logdir", str(tmp_path / "logs")])
+    code = main(["sweep", str(recipe_file), "--logdir", str(tmp_path / "logs")])
     assert code == 1
     error = capsys.readouterr().err
     assert "trial seed 1 failed" in error

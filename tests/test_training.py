@@ -28,9 +28,8 @@ from sb3_formation.controllers import ShrinkingController
 from sb3_formation.controllers.residual import ResidualPolicy
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.formation_env import FormationEnv
-from sb3_formation.experiment.recipes import load_recipe, recipe_changes, thesis_recipe_for
+from sb3_formation.experiment.recipes import TrainSettings, layered_settings, load_recipe, thesis_recipe_for
 from sb3_formation.experiment.runs import FINAL_MODEL, STATE_FILE, latest_checkpoint, load_trained
-from sb3_formation.experiment.settings import TrainSettings, layered_settings
 from sb3_formation.experiment.targets import load_policy
 from sb3_formation.experiment.training import make_training_env
 from sb3_formation.runtime import OnnxPolicy
@@ -64,7 +63,7 @@ def only_run_dir(logdir: Path) -> Path:
 
 
 def test_thesis_recipes_give_the_thesis_ppo_settings() -> None:
-    kwargs = load_recipe("ch5-bearing").with_changes(recipe_changes(recurrent=False)).ppo_kwargs()
+    kwargs = layered_settings(recipe="ch5-bearing", recurrent=False).recipe.ppo_kwargs()
     assert kwargs["policy"] is FormationPolicy
     expected = {"n_steps": 128, "batch_size": 512, "n_epochs": 10, "learning_rate": 5e-5, "gamma": 0.995}
     expected.update({"gae_lambda": 0.95, "clip_range": 0.2, "clip_range_vf": 20.0, "target_kl": 0.03})
@@ -72,7 +71,7 @@ def test_thesis_recipes_give_the_thesis_ppo_settings() -> None:
     assert kwargs["policy_kwargs"] == {"sigma": 0.7, "action_scale": 1.0}
     assert load_recipe("ch4-individual").ppo_kwargs()["policy_kwargs"]["action_scale"] == 0.01  # thesis 4.1.2
     assert load_recipe("ch4-team").ppo_kwargs()["policy_kwargs"]["team_size"] == 3
-    five = load_recipe("ch4-team").with_changes(recipe_changes(agents=5))
+    five = layered_settings(recipe="ch4-team", agents=5).recipe
     assert five.ppo_kwargs()["policy_kwargs"]["team_size"] == 5
 
 
@@ -96,27 +95,27 @@ def test_the_scenes_flag_sets_the_tasks_scenes() -> None:
     )
 
 
-def test_a_settings_file_is_changed_by_options_and_unknown_keys_fail(tmp_path: Path) -> None:
+def test_a_recipe_file_is_changed_by_options_and_unknown_keys_fail(tmp_path: Path) -> None:
     config_file = tmp_path / "run.yaml"
     values = {"base": "ch4-team", "curriculum": {"iterations": [3, 2, 1]}, "env": {"max_steps": 99}, "run": {"seed": 4}}
     config_file.write_text(yaml.safe_dump(values))
-    arguments = ["train", "--config", str(config_file), "--seed", "7", "--env", "eta_g=0.7"]
+    arguments = ["train", "--recipe", str(config_file), "--seed", "7", "--env", "eta_g=0.7"]
     settings = train_settings(build_parser().parse_args(arguments))
     assert (settings.recipe.name, settings.run.seed, settings.recipe.stage_iterations()) == ("run", 7, (3, 2, 1))
     assert settings.recipe.config().max_steps == 99 and settings.recipe.config().eta_g == 0.7
     assert settings.recipe.config().team_reward is True  # the base's task, ch4-team
     config_file.write_text(yaml.safe_dump({"base": "ch4-team", "learning_rate": 1e-3}))
     with pytest.raises(ValueError, match=r"unknown keys \['learning_rate'\]"):
-        train_settings(build_parser().parse_args(["train", "--config", str(config_file)]))
+        train_settings(build_parser().parse_args(["train", "--recipe", str(config_file)]))
     config_file.write_text(yaml.safe_dump({"base": "ch4-team", "run": {"sed": 3}}))
-    with pytest.raises(ValueError, match=r"unknown run option\(s\) \['sed'\]"):
-        train_settings(build_parser().parse_args(["train", "--config", str(config_file)]))
-    with pytest.raises(ValueError, match="unknown ppo settings"):
+    with pytest.raises(ValueError, match=r"run may give seed, seeds, .*: unknown keys \['sed'\]"):
+        train_settings(build_parser().parse_args(["train", "--recipe", str(config_file)]))
+    with pytest.raises(ValueError, match=r"ppo may give .*: unknown keys \['learning_rat'\]"):
         layered_settings(ppo={"learning_rat": 1e-3})
     with pytest.raises(ValueError, match="unknown FormationConfig field"):
         layered_settings(env={"n_agent": 3})
-    with pytest.raises(ValueError, match="not both"):
-        train_settings(build_parser().parse_args(["train", "--config", str(config_file), "--recipe", "ch4-team"]))
+    with pytest.raises(ValueError, match=r"unknown recipe option\(s\) \['colour'\]"):
+        layered_settings(colour="red")
 
 
 def test_a_runs_config_is_a_complete_recipe_that_other_options_change() -> None:
@@ -165,7 +164,7 @@ def test_training_env_is_placed_for_the_curriculum_stage() -> None:
 
 
 def test_train_cli_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["train", "--config", str(tmp_path / "missing.yaml")]) == 2
+    assert main(["train", "--recipe", str(tmp_path / "missing.yaml")]) == 2
     assert "missing.yaml" in capsys.readouterr().err
     assert main(["train", "--resume", str(tmp_path)]) == 2
     assert "config.yaml" in capsys.readouterr().err
@@ -180,25 +179,28 @@ def test_train_cli_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureF
     assert "is not valid UTF-8" in capsys.readouterr().err and not (tmp_path / undecodable).exists()
     broken = tmp_path / "broken.yaml"
     broken.write_text("base: [unclosed")
-    assert main(["train", "--config", str(broken)]) == 2
+    assert main(["train", "--recipe", str(broken)]) == 2
     assert "broken.yaml is not valid YAML" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["train", "--iterations", "1,2"])
-    for minutes in ("0", "inf", "soon"):
-        with pytest.raises(SystemExit):
-            main(["train", "--minutes", minutes, "--logdir", str(tmp_path / "runs")])
-        assert "--minutes" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["train", "--minutes", "soon", "--logdir", str(tmp_path / "runs")])
+    assert "argument --minutes: invalid float value: 'soon'" in capsys.readouterr().err
+    for minutes in ("0", "inf"):  # numbers, refused by the field they set
+        assert main(["train", "--minutes", minutes, "--logdir", str(tmp_path / "runs")]) == 2
+        assert f"training: minutes must be a finite number > 0 or null, got {float(minutes)}" in capsys.readouterr().err
     assert not (tmp_path / "runs").exists()  # nothing written
 
 
-#: Issue 15, points 4 and 6: bad settings of ``train`` (flags, or a settings file's text), each with the words its
+#: Bad settings of ``train`` (flags, or a recipe file's text), each with the words its
 #: one-line error must hold. None of them may leave a folder behind.
 BAD_TRAIN_INPUT = [
     (["--workers", "5", "--n-envs", "2"], None, "workers=5 exceeds n_envs=2"),
-    (["--seed", "99999999999"], None, "argument --seed: must be an integer in [0, 2**32 - 1], got 99999999999"),
+    (["--seed", "99999999999"], None, "run: seed must be an integer in [0, 2**32 - 1], got 99999999999"),
     (["--device", "tpu9"], None, "device must be auto, cpu, cuda or cuda:<index>, got 'tpu9'"),
     (["--success-threshold", "-3"], None, "success_threshold must be a number in [0, 1]"),
-    (["--iterations", "-1,2,3"], None, "argument --iterations: expected three iteration counts A,B,C (stages 1, 2, 3)"),
+    (["--iterations", "-1,2,3"], None, "curriculum: iterations must be three integers >= 0, not all 0, got (-1, 2, 3)"),
+    (["--iterations", "1,2"], None, "argument --iterations: expected 3 comma-separated integers, got '1,2'"),
     (["--env", "v_max=[1,"], None, "argument --env: the value of v_max is not valid YAML"),
     (["--env", "v_max=true"], None, "FormationConfig.v_max=True is invalid: it must be a finite number > 0"),
     ([], "base: ch5-bearing\nrun: {seed: -5}", "seed must be an integer in [0, 2**32 - 1], got -5"),
@@ -231,7 +233,7 @@ def test_bad_train_settings_are_one_line_errors_before_anything_is_written(
     arguments = ["train", "--logdir", str(tmp_path / "runs"), *flags]
     if yaml_text is not None:
         (tmp_path / "bad.yaml").write_text(yaml_text + "\n")
-        arguments += ["--config", str(tmp_path / "bad.yaml")]
+        arguments += ["--recipe", str(tmp_path / "bad.yaml")]
     try:
         code = main(arguments)
     except SystemExit as error:  # argparse's own errors
@@ -243,14 +245,14 @@ def test_bad_train_settings_are_one_line_errors_before_anything_is_written(
 
 
 def test_numbers_are_read_as_users_write_them() -> None:
-    """Issue 15, point 6: PyYAML reads ``3e-4`` as a string; settings files and ``--env`` read it as a number."""
+    """PyYAML reads ``3e-4`` as a string; recipe files and ``--env`` read it as a number."""
     settings = train_settings(build_parser().parse_args(["train", "--env", "v_max=5e-2", "--env", "dt=1E-1"]))
     assert settings.recipe.config().v_max == 0.05 and settings.recipe.config().dt == 0.1
     assert layered_settings(None, ppo={"learning_rate": 3e-4}).recipe.ppo_kwargs()["learning_rate"] == 3e-4
 
 
 def test_damaged_files_of_a_run_are_one_line_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """Issue 15, point 6: an empty normaliser (for ``evaluate``, and a checkpoint's for ``--resume``) and a damaged
+    """An empty normaliser (for ``evaluate``, and a checkpoint's for ``--resume``) and a damaged
     ``config.yaml`` are named in one line; nothing saved is touched."""
     run_dir = tmp_path / "run"
     arguments = ["train", "--recipe", "ch4-individual", "--iterations", "1,1,0", "--n-envs", "2", "--no-progress"]
@@ -500,7 +502,7 @@ def test_ctrl_c_with_workers_checkpoints_and_stops(tmp_path: Path) -> None:
 def test_resuming_a_finished_run_says_so_and_rewrites_a_lost_final_model(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """Issue 15, point 1: with no iterations left the run is finished; a final model lost in a kill while it was
+    """With no iterations left the run is finished; a final model lost in a kill while it was
     written comes back from the last checkpoint."""
     run_dir = tmp_path / "run"
     arguments = ["train", "--recipe", "ch4-individual", "--iterations", "1,1,0", "--n-envs", "2", "--no-progress"]
@@ -510,7 +512,7 @@ def test_resuming_a_finished_run_says_so_and_rewrites_a_lost_final_model(
     assert main(["train", "--resume", str(run_dir)]) == 0
     assert f"{run_dir} is finished (2 iterations, final_model.zip written): nothing to resume" in capsys.readouterr().out
     assert (run_dir / FINAL_MODEL).read_bytes() == model
-    # issue 15, point 3: a new run into the same folder is refused before anything is written
+    # a new run into the same folder is refused before anything is written
     files = {path: path.read_bytes() for path in run_dir.rglob("*") if path.is_file()}
     again = ["train", "--recipe", "ch5-bearing", "--iterations", "0,0,1", "--n-envs", "1", "--run-dir", str(run_dir)]
     assert main(again) == 2
@@ -537,7 +539,7 @@ def test_resuming_a_finished_run_says_so_and_rewrites_a_lost_final_model(
 
 
 def test_resume_recovers_a_checkpoint_caught_in_a_folder_swap_and_leaves_it_alone(tmp_path: Path) -> None:
-    """Issue 15, point 2: a kill between the two renames of a checkpoint's swap leaves it only in a hidden folder;
+    """A kill between the two renames of a checkpoint's swap leaves it only in a hidden folder;
     resuming puts it back, and does not rewrite the checkpoint it starts from (which reopened that window)."""
     run_dir = tmp_path / "run"
     arguments = ["train", "--recipe", "ch4-individual", "--iterations", "1,1,1", "--n-envs", "2", "--no-progress"]

@@ -18,7 +18,14 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from sb3_formation import FormationPolicy, make_formation_vec_env
 from sb3_formation.cli import main
-from sb3_formation.experiment.recipes import RECIPES_FOLDER, load_recipe, recipe_names, schedule
+from sb3_formation.experiment.recipes import (
+    RECIPES_FOLDER,
+    TrainSettings,
+    layered_settings,
+    load_recipe,
+    load_settings,
+    recipe_names,
+)
 from sb3_formation.experiment.runs import (
     BEST_MODEL,
     FINAL_MODEL,
@@ -29,7 +36,7 @@ from sb3_formation.experiment.runs import (
     reward_normalizer_file,
     save_model,
 )
-from sb3_formation.experiment.settings import TrainSettings, layered_settings, load_settings
+from sb3_formation.experiment.sections import schedule
 from sb3_formation.experiment.training import make_training_env, train
 from sb3_formation.sb3.callbacks import ClockedSchedule, TrainingClock
 from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
@@ -119,7 +126,8 @@ def test_reward_normalisation_divides_by_the_running_return_std(tmp_path: Path) 
 
 
 def test_centred_observations_train_save_and_act_as_the_training_normaliser(tmp_path: Path) -> None:
-    training = {**load_recipe("fast-ch5-bearing").training, "center_observations": True, "steps": 16 * 12, "eval_every": None}
+    training = {**load_recipe("fast-ch5-bearing").training.to_dict(), "center_observations": True, "steps": 16 * 12}
+    training["eval_every"] = None
     settings = layered_settings(recipe=str(tiny_yaml(tmp_path, training=training)), progress_bar=False)
     env = make_training_env(settings, stage=3)
     assert unwrap_vec_wrapper(env, ScaleNormalizeVecEnv).center
@@ -191,9 +199,9 @@ def test_a_clocked_schedule_follows_whichever_budget_is_further_along(monkeypatc
 def test_a_minutes_budget_replaces_the_setup_budget_and_ends_training(tmp_path: Path) -> None:
     setup = str(tiny_yaml(tmp_path))
     settings = layered_settings(recipe=setup, minutes=0.5)
-    assert settings.recipe.stage_iterations() == (0, 0, None) and settings.recipe.training_option("steps") is None
+    assert settings.recipe.stage_iterations() == (0, 0, None) and settings.recipe.training.steps is None
     capped = layered_settings(recipe=setup, minutes=0.5, steps=16 * 12)  # both: whichever runs out first
-    assert capped.recipe.stage_iterations() == (0, 0, 1) and capped.recipe.training_option("steps") == 16 * 12
+    assert capped.recipe.stage_iterations() == (0, 0, 1) and capped.recipe.training.steps == 16 * 12
     for bad in (0, -1.0, True, "5", float("inf"), float("nan")):
         with pytest.raises(ValueError, match="minutes must be a finite number > 0"):
             layered_settings(recipe=setup, minutes=bad)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import math
 import os
 from collections.abc import Sequence
 from contextlib import AbstractContextManager
@@ -13,10 +12,9 @@ from typing import Any
 from sb3_formation.env.scenes import SCENES
 from sb3_formation.experiment.evaluation import EVALUATION_TEAMS, evaluate_target
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE
-from sb3_formation.experiment.settings import MAX_SEED
+from sb3_formation.experiment.sections import MAX_SEED
 from sb3_formation.experiment.targets import evaluation_folder, run_folder, target_kind, target_path, unfiltered_target
 from sb3_formation.sb3.model_files import trust_pickle
-from sb3_formation.utils.deprecation import warn_renamed
 from sb3_formation.utils.yaml_files import read_yaml
 
 # Command-line value types ---------------------------------------------------------------------------------------------
@@ -36,25 +34,6 @@ def seed_value(text: str) -> int:
     if not 0 <= value <= MAX_SEED:
         raise argparse.ArgumentTypeError(f"must be an integer in [0, 2**32 - 1], got {value}")
     return value
-
-
-def positive_float(text: str) -> float:
-    """A number > 0."""
-    value = float(text)
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
-    return value
-
-
-def stage_iterations(text: str) -> list[int]:
-    """Three iteration counts ``A,B,C`` (curriculum stages 1, 2, 3)."""
-    try:
-        values = [int(part) for part in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) != 3 or min(values) < 0:
-        raise argparse.ArgumentTypeError(f"expected three iteration counts A,B,C (stages 1, 2, 3), got {text!r}")
-    return values
 
 
 def assignment(text: str) -> tuple[str, object]:
@@ -89,18 +68,6 @@ RECIPE_HELP = (
 )
 
 
-class RenamedFlag(argparse.Action):
-    """An old flag kept for one release: it warns, naming the new flag, and sets the new flag's value."""
-
-    def __init__(self, option_strings: Sequence[str], dest: str, new: str, **kwargs: Any) -> None:
-        super().__init__(option_strings, dest, **kwargs)
-        self.new = new
-
-    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any, option: Any = None):
-        warn_renamed(str(option), self.new, stacklevel=2)
-        setattr(namespace, self.dest, values)
-
-
 def add_scenes_option(parser: argparse.ArgumentParser) -> None:
     """``--scenes NAME``: where episodes are placed (``FormationConfig.scenes``; default: the policy's or recipe's)."""
     parser.add_argument(
@@ -111,9 +78,8 @@ def add_scenes_option(parser: argparse.ArgumentParser) -> None:
 
 
 def add_recipe_option(parser: argparse.ArgumentParser, help: str = RECIPE_HELP, **options: Any) -> None:
-    """``--recipe NAME``, and the old spelling ``--preset`` (warns)."""
+    """``--recipe NAME``: a shipped recipe's name or a recipe file."""
     parser.add_argument("--recipe", help=help, **options)
-    parser.add_argument("--preset", dest="recipe", action=RenamedFlag, new="--recipe", help=argparse.SUPPRESS)
 
 
 TRUST_PICKLE_HELP = (

@@ -8,8 +8,7 @@ from pathlib import Path
 from sb3_formation.cli.common import add_recipe_option, add_scenes_option, indices, positive_int, target_labels
 from sb3_formation.env.scenes import DEFAULT_SCENES
 from sb3_formation.experiment.evaluation import TRAJECTORIES_FILE, load_summary, load_trajectories
-from sb3_formation.experiment.recipes import DEFAULT_RECIPE
-from sb3_formation.experiment.settings import load_settings
+from sb3_formation.experiment.recipes import DEFAULT_RECIPE, load_settings
 from sb3_formation.experiment.targets import evaluation_file
 from sb3_formation.experiment.trajectories import Trajectories
 

@@ -1,11 +1,10 @@
-"""``sb3-formation recipes``: list the shipped recipes (``sb3-formation presets``, the old name, warns)."""
+"""``sb3-formation recipes``: list the shipped recipes."""
 
 from __future__ import annotations
 
 import argparse
 
 from sb3_formation.experiment.recipes import load_recipe, recipe_names
-from sb3_formation.utils.deprecation import warn_renamed
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -16,14 +15,10 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         description="List the recipes shipped with the package (a recipe YAML file's path works as --recipe too).",
     )
     parser.set_defaults(run=run)
-    old = commands.add_parser("presets", help="old name of recipes (warns)")
-    old.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """``sb3-formation recipes``: the shipped recipes, one line each."""
-    if args.command == "presets":
-        warn_renamed("sb3-formation presets", "sb3-formation recipes", stacklevel=2)
     names = recipe_names()
     width = max(len(name) for name in names)
     for name in names:

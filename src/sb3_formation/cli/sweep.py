@@ -1,4 +1,4 @@
-"""``sb3-formation sweep``: seeds of an experiment on Ray."""
+"""``sb3-formation sweep``: the seeds of a recipe on Ray."""
 
 from __future__ import annotations
 
@@ -13,16 +13,16 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     """Add the ``sweep`` subcommand to ``commands``."""
     parser = commands.add_parser(
         "sweep",
-        help="train and evaluate every seed of an experiment on Ray, then aggregate over the seeds",
-        description="Run every seed of an experiment YAML as a Ray task (this machine, or a cluster with --address); "
-        "each writes <logdir>/<experiment>/seed_<s>/, a normal run folder. Finished trials are skipped and "
+        help="train and evaluate every seed of a recipe on Ray, then aggregate over the seeds",
+        description="Run every seed of a recipe file (its run: seeds) as a Ray task (this machine, or a cluster with "
+        "--address); each writes <logdir>/<file>/seed_<s>/, a normal run folder. Finished trials are skipped and "
         "interrupted ones resumed when the sweep is started again. Needs pip install 'sb3-formation[ray]'.",
     )
-    parser.add_argument("experiment", type=Path, help="experiment YAML, e.g. experiments/quick-ch5-bearing.yaml")
-    parser.add_argument("--seeds", type=indices, help="comma-separated seeds (default: the experiment's)")
+    parser.add_argument("recipe", type=Path, help="recipe YAML with a run: section, e.g. recipes/quick-ch5-bearing.yaml")
+    parser.add_argument("--seeds", type=indices, help="comma-separated seeds (default: the recipe file's)")
     parser.add_argument("--address", help="address of a running Ray cluster (default: start Ray on this machine)")
     parser.add_argument("--max-concurrent", type=positive_int, help="trials at once (default: one per CPU)")
-    parser.add_argument("--logdir", help="folder for the experiment's folder (default: the experiment's logdir)")
+    parser.add_argument("--logdir", help="folder for the sweep's folder (default: the recipe file's logdir)")
     parser.set_defaults(run=run)
 
 
@@ -36,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"sweep needs Ray: pip install 'sb3-formation[ray]' ({error})") from error
     options = {"seeds": args.seeds, "address": args.address, "max_concurrent": args.max_concurrent, "logdir": args.logdir}
     try:
-        result = sweep(args.experiment, **options)
+        result = sweep(args.recipe, **options)
     except KeyboardInterrupt:
         print("sb3-formation: sweep interrupted; run the same command again to finish it", file=sys.stderr)
         return 130

@@ -1,1 +1,1 @@
-"""The experiment layer: recipes, settings, run folders, training, evaluation, policy targets and sweeps."""
+"""The experiment layer: recipes and their typed sections, run folders, training, evaluation, policy targets and sweeps."""

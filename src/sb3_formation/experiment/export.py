@@ -18,6 +18,7 @@ import torch
 from sb3_formation import __version__
 from sb3_formation.experiment.evaluation import EVALUATION_TEAMS, evaluate
 from sb3_formation.experiment.pretrained import CARD_FILE, ONNX_FILE, PRETRAINED_DIR, SUMMARY_PATH, numerics_fingerprint
+from sb3_formation.experiment.recipes import load_settings
 from sb3_formation.experiment.runs import (
     FINAL_MODEL,
     FINAL_NORMALIZER,
@@ -25,7 +26,6 @@ from sb3_formation.experiment.runs import (
     latest_checkpoint,
     load_trained,
 )
-from sb3_formation.experiment.settings import load_settings
 from sb3_formation.sb3.model_files import load_model
 from sb3_formation.sb3.onnx_export import export_onnx
 from sb3_formation.utils.files import atomic_directory, folder_lock, package_writes
@@ -63,7 +63,7 @@ def export_pretrained(
     if missing or checkpoint is None:
         raise ValueError(f"{run_dir} is not a finished run: it lacks {', '.join(missing) or 'a checkpoint'}")
     state = json.loads((checkpoint / STATE_FILE).read_text())
-    protocol = dict(settings.recipe.evaluation)
+    protocol = settings.recipe.evaluation.to_dict()
     if (root / name).exists() and not replace:
         raise ValueError(f"pretrained:{name} exists in {root}: give another name, or --replace to replace it")
     with package_writes(), folder_lock(root, "folder of shipped policies", remove=True):

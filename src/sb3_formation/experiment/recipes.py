@@ -1,71 +1,75 @@
-"""Recipes: a whole training recipe as one record of data, in one YAML format.
+"""Recipes: a whole training recipe as one record of data, in one YAML format, read, merged and written here.
 
-A recipe names the task (a name of :data:`~sb3_formation.env.config.TASKS` and field overrides), the policy (MLP or
-recurrent, its cell, a team critic, sigma, action scale, other policy keyword arguments), the PPO settings, the
-curriculum (iterations per stage, success threshold), the budget, the number of parallel teams and the evaluation
-protocol. The same format serves the recipes shipped in this package (``sb3_formation/experiment/shipped_recipes/``,
-each line citing its table, equation or section), a user's file, the experiments under ``experiments/`` and a run's
-own ``config.yaml``, which is the complete recipe the run trained (:meth:`Recipe.to_dict`): ``sb3-formation train
---config runs/X/config.yaml --seed 1`` trains it again.
+A recipe names the task, the policy, the PPO settings, the curriculum, the number of parallel teams, the evaluation
+protocol and optional training features (a budget, a residual controller, imitation, the safety filter), each a typed
+section (:mod:`~sb3_formation.experiment.sections`). The same format serves the recipes shipped in this package
+(``sb3_formation/experiment/shipped_recipes/``, each line citing its table, equation or section), the recipes of the
+thesis's runs and of the shipped policies in the repository's ``recipes/`` folder, a user's file and a run's own
+``config.yaml``: the complete recipe the run trained (:meth:`Recipe.to_dict`). A recipe file may carry a ``run:``
+section, the options of a run that are not the recipe (:class:`~sb3_formation.experiment.sections.RunOptions`: seed,
+device, workers, folders, checkpoints, progress), so ``sb3-formation train --recipe runs/X/config.yaml --seed 1`` trains
+a run's recipe again.
 
 A recipe file may name a ``base:`` recipe (a shipped name, or a path relative to the file) and give only what differs:
 its sections merge into the base's key by key (:func:`merge_recipe`), as RL Zoo's YAML anchors do. :func:`load_recipe`
-resolves the chain once into a frozen :class:`Recipe`. The options of a run that are not the recipe (seed, device,
-workers, folders, checkpoints, progress) are :class:`~sb3_formation.experiment.settings.RunOptions`, written beside
-the recipe under ``run:``.
+resolves the chain once into a frozen :class:`Recipe`, :func:`load_settings` reads the file's ``run:`` section too, and
+:func:`layered_settings` puts the options of ``sb3-formation train`` (:func:`recipe_options`) over both.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import inspect
 import os
-from dataclasses import dataclass, field, fields
+import typing
+from dataclasses import MISSING, dataclass, field, fields
+from functools import cache
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
+import yaml
 from stable_baselines3 import PPO
-from stable_baselines3.common.type_aliases import Schedule
-from stable_baselines3.common.utils import LinearSchedule
 
 from sb3_formation.controllers import controller_from_spec
 from sb3_formation.controllers.base import Controller, TeamPolicy
 from sb3_formation.controllers.residual import ResidualPolicy, check_residual_scale
-from sb3_formation.env.config import TASKS, FormationConfig
+from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.observations import observation_fields
+from sb3_formation.experiment.sections import (
+    OPTION,
+    SECTIONS,
+    CurriculumSection,
+    EnvSection,
+    EvaluationSection,
+    ImitationSection,
+    PolicySection,
+    PPOSection,
+    ResidualSection,
+    RunOptions,
+    SafetySection,
+    TrainingSection,
+    field_docs,
+    keys_error,
+    option,
+    plain,
+    schedule,
+)
 from sb3_formation.safety.filter import SafetyGains
 from sb3_formation.sb3.imitation import ImitationSettings
 from sb3_formation.sb3.policies import FormationPolicy
-from sb3_formation.sb3.recurrent import CELLS, RecurrentFormationPolicy
-from sb3_formation.utils.checks import check_name, is_count, is_number
-from sb3_formation.utils.deprecation import warn_renamed
+from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
+from sb3_formation.sb3.vec_env import uses_team_critic
+from sb3_formation.utils.checks import check_name, is_count, is_integer
+from sb3_formation.utils.files import atomic_write
 from sb3_formation.utils.yaml_files import read_yaml_file
 
 #: The folder of the shipped recipes, one ``<name>.yaml`` each.
 RECIPES_FOLDER = Path(__file__).with_name("shipped_recipes")
 #: The recipe used when none is named.
 DEFAULT_RECIPE = "ch5-bearing"
-#: The key of a recipe file that holds the run options of an experiment or a run, not the recipe.
-RUN_KEY = "run"
-#: The sections of a recipe: mappings that a derived recipe merges key by key (:func:`merge_recipe`).
-SECTIONS = ("env", "policy", "ppo", "curriculum", "evaluation", "training", "residual", "imitation", "safety")
-#: Keys of a recipe's ``evaluation:`` (arguments of :func:`~sb3_formation.experiment.evaluation.evaluate`).
-EVALUATION_KEYS = ("episodes", "stage", "seed", "n_envs", "deterministic", "record")
-#: Keys of a recipe's ``policy:`` that choose the network rather than being passed to it.
-_POLICY_CHOICES = ("recurrent", "cell", "team_critic")
-#: Keyword arguments of SB3's ``PPO`` that a recipe's ``ppo:`` may give (what the run, the env and ``policy:`` set
-#: are not among them).
-PPO_KEYS = frozenset(inspect.signature(PPO.__init__).parameters) - {
-    "self",
-    "policy",
-    "env",
-    "policy_kwargs",
-    "seed",
-    "device",
-    "verbose",
-    "tensorboard_log",
-    "_init_setup_model",
-}
+#: The key of a recipe file that holds the run options, not the recipe.
+RUN_KEY = RunOptions.key
+#: The sections a recipe may leave out, written ``{}`` when off: null or ``{}`` in a derived file switches one off.
+OPTIONAL_SECTIONS = ("residual", "imitation", "safety")
 #: The most teams a recipe may play at once (``n_envs``): 70 times the thesis's 14 (thesis 5.3).
 MAX_TEAMS = 1024
 #: The most bytes a PPO iteration's rollout may hold (SB3's buffer of float32 observations and the values below, for
@@ -76,329 +80,240 @@ MAX_ROLLOUT_BYTES = 4 << 30
 ROLLOUT_VALUES = 8
 #: SB3's ``n_steps`` when a recipe gives none.
 PPO_DEFAULT_N_STEPS: int = inspect.signature(PPO.__init__).parameters["n_steps"].default
-#: Training features a recipe may switch on, and their defaults (the thesis's: none of them).
-TRAINING_DEFAULTS: dict[str, Any] = {
-    "normalize_reward": False,
-    "center_observations": False,
-    "steps": None,
-    "minutes": None,
-    "eval_every": None,
-    "eval_episodes": 20,
-}
-#: Options of ``sb3-formation train`` that change a recipe, and where each goes in it: (section or None, key).
-RECIPE_OPTIONS: dict[str, tuple[str | None, str]] = {
-    "iterations": ("curriculum", "iterations"),
-    "success_threshold": ("curriculum", "success_threshold"),
-    "n_envs": (None, "n_envs"),
-    "team_sizes": (None, "team_sizes"),
-    "recurrent": ("policy", "recurrent"),
-    "cell": ("policy", "cell"),
-    "steps": ("training", "steps"),
-    "minutes": ("training", "minutes"),
-    "normalize_reward": ("training", "normalize_reward"),
-    "eval_every": ("training", "eval_every"),
-}
+#: The recurrent cell when a recurrent recipe names none (:class:`RecurrentFormationPolicy`'s default).
+DEFAULT_CELL: str = inspect.signature(RecurrentFormationPolicy.__init__).parameters["cell"].default
+#: The longest ``base:`` chain a recipe file may have (the shipped recipes are at most 3 deep).
+MAX_BASE_CHAIN = 32
 
 
 @dataclass(frozen=True)
 class Recipe:
-    """One training recipe (see the module docstring), resolved: its ``base:`` merged in, every field plain YAML data.
+    """One training recipe (see the module docstring), resolved: its ``base:`` merged in, each section typed.
 
-    :param name: the recipe's name (its ``name:`` key, else its file's stem)
+    :param name: the recipe's name (its ``name:`` key, else its file's stem); it begins its runs' folder names
     :param description: one line for ``sb3-formation recipes``
-    :param env: ``task`` (a name of :data:`~sb3_formation.env.config.TASKS`) and any :class:`FormationConfig` fields
-        overriding it
-    :param policy: ``recurrent`` (bool), ``cell`` (``gru``/``lstm``, recurrent only), ``team_critic`` (bool; unset:
-        with the team reward, fig. 4.3), and keyword arguments of the policy class (``sigma``, ``action_scale``, ...)
-    :param ppo: keyword arguments of ``PPO`` (``n_steps``, ``batch_size``, ``learning_rate``, ...)
-    :param curriculum: ``iterations`` (PPO iterations of stages 1, 2, 3; with a budget in ``training``, their
-        proportions) and ``success_threshold`` (or null)
+    :param env: the task
+    :param policy: the network and the policy class's keyword arguments
+    :param ppo: SB3's PPO keyword arguments
+    :param curriculum: the stages' iterations and success gate
+    :param evaluation: the protocol that measures the trained policy
     :param n_envs: parallel teams during training (each team is one env of the VecEnv, its agents the env's slots)
-    :param evaluation: the evaluation protocol: ``episodes`` and ``stage``, and optionally ``seed``, ``n_envs``,
-        ``deterministic`` and ``record`` (arguments of :func:`~sb3_formation.experiment.evaluation.evaluate`)
-    :param training: optional training features (:data:`TRAINING_DEFAULTS`): ``normalize_reward`` (divide rewards by
-        a running std of the discounted return, SB3's ``VecNormalize``), ``center_observations`` (subtract the running
-        mean of the observations too, unlike thesis 3.1.4: ``ScaleNormalizeVecEnv(center=True)``), the budget
-        (``steps`` of agents, ``minutes`` of wall-clock; see :meth:`stage_iterations`), ``eval_every`` and
-        ``eval_episodes`` (periodic evaluation)
-    :param residual: optional: train a correction of a controller (``controller``: a name of
-        :data:`~sb3_formation.controllers.CONTROLLERS`, ``gains``: its keyword arguments, ``scale``: the correction's
-        bound as a fraction of F_max); the env then receives ``clip(a_controller + scale * a_policy, -1, 1)``
-    :param imitation: optional: pretrain the actor on a controller's actions before PPO (``controller``, ``gains``,
-        and the fields of :class:`~sb3_formation.sb3.imitation.ImitationSettings`: rounds, steps, epochs, batch_size,
-        learning_rate, critic_warmup)
-    :param safety: optional: train behind the safety filter ("shielded" PPO, ``docs/safety.md``): the env applies the
-        filtered action, PPO keeps its own. ``penalty`` (>= 0, default 0) subtracts ``penalty |a_safe - a|`` from each
-        agent's reward, and any field of :class:`~sb3_formation.safety.filter.SafetyGains` sets the filter's gains; a
-        non-empty section turns the filter on (``safety: {penalty: 0}`` with the default gains). The trained policy acts
-        behind the same filter wherever it is loaded or exported
-    :param team_sizes: optional: teams of several sizes in one rollout, taken in turn (team j has
-        ``team_sizes[j % len(team_sizes)]`` agents; :class:`~sb3_formation.sb3.vec_env.FormationVecEnv`); without it
-        every team has the task's ``n_agents`` (:attr:`sizes`). A policy trained on several sizes acts in teams of any
-        size
+    :param training: training features and the budget (default: the thesis's, none of them)
+    :param residual: train a bounded correction of a controller (default: none)
+    :param imitation: pretrain the actor on a controller's actions (default: none)
+    :param safety: train behind the safety filter (default: none)
+    :param team_sizes: teams of several sizes in one rollout, taken in turn (team j has team_sizes[j % len(team_sizes)]
+        agents; unset: every team has the task's n_agents); a policy trained on several sizes acts in teams of any size
     :param source: the file it was read from
     """
 
     name: str
     description: str
-    env: dict[str, Any]
-    policy: dict[str, Any]
-    ppo: dict[str, Any]
-    curriculum: dict[str, Any]
-    n_envs: int
-    evaluation: dict[str, Any]
-    training: dict[str, Any] = field(default_factory=dict)
-    residual: dict[str, Any] = field(default_factory=dict)
-    imitation: dict[str, Any] = field(default_factory=dict)
-    safety: dict[str, Any] = field(default_factory=dict)
-    team_sizes: list[int] | None = None
+    env: EnvSection
+    policy: PolicySection
+    ppo: PPOSection
+    curriculum: CurriculumSection
+    evaluation: EvaluationSection
+    n_envs: int = option()  # required: option() gives no default
+    training: TrainingSection = field(default_factory=TrainingSection)
+    residual: ResidualSection | None = None
+    imitation: ImitationSection | None = None
+    safety: SafetySection | None = None
+    team_sizes: tuple[int, ...] | None = option(None)
     source: Path | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
-        where = f"recipe {self.name!r}"
-        if not isinstance(self.name, str):
-            raise ValueError(f"{where}: its name must be text")
+        try:
+            self._check_fields()
+            self._check_policy()
+            self._check_teams()
+            self._check_controllers()
+            self._check_rollout_size()
+        except ValueError as error:
+            raise ValueError(f"recipe {self.name!r}: {error}") from error
+
+    def _check_fields(self) -> None:
+        """The name, the sections' types and the number of teams."""
+        if not (isinstance(self.name, str) and self.name):
+            raise ValueError("its name must be a non-empty string")
         check_name(self.name, "recipe name")  # it begins the name of a run's folder under --logdir
-        for section in SECTIONS:
-            if not isinstance(getattr(self, section), dict):
-                raise ValueError(f"{where}: {section} must be a mapping, got {getattr(self, section)!r}")
-        if self.env.get("task") not in TASKS:
-            raise ValueError(f"{where}: env: task must be one of {sorted(TASKS)}, got {self.env.get('task')!r}")
-        self.config()  # validates the env overrides
-        iterations: Any = self.curriculum.get("iterations")
-        valid = isinstance(iterations, (list, tuple)) and len(iterations) == 3 and all(is_count(i) for i in iterations)
-        if not valid or sum(iterations) < 1:
-            raise ValueError(f"{where}: curriculum: iterations must be three integers >= 0, not all 0, got {iterations!r}")
-        unknown = sorted(set(self.curriculum) - {"iterations", "success_threshold"})
-        if unknown:
-            raise ValueError(f"{where}: unknown curriculum keys {unknown}; valid: iterations, success_threshold")
-        threshold = self.success_threshold
-        if threshold is not None and not (is_number(threshold) and 0 <= threshold <= 1):
-            raise ValueError(f"{where}: curriculum: success_threshold must be a number in [0, 1] or null, got {threshold!r}")
-        unknown = sorted(set(self.training) - set(TRAINING_DEFAULTS))
-        if unknown:
-            raise ValueError(f"{where}: unknown training keys {unknown}; valid: {list(TRAINING_DEFAULTS)}")
-        for name in ("normalize_reward", "center_observations"):
-            if not isinstance(self.training_option(name), bool):
-                raise ValueError(f"{where}: training: {name} must be true or false")
-        for name in ("steps", "eval_every", "eval_episodes"):
-            value = self.training_option(name)
-            if value is not None and not (is_count(value) and value >= 1):
-                raise ValueError(f"{where}: training: {name} must be an integer >= 1 or null, got {value!r}")
-        minutes = self.training_option("minutes")
-        if minutes is not None and not (is_number(minutes) and minutes > 0):
-            raise ValueError(f"{where}: training: minutes must be a finite number > 0 or null, got {minutes!r}")
-        if not (is_count(self.n_envs) and self.n_envs >= 1):
-            raise ValueError(f"{where}: n_envs must be an integer >= 1, got {self.n_envs!r}")
-        unknown = sorted(set(self.evaluation) - set(EVALUATION_KEYS))
-        if unknown or not (is_count(self.evaluation.get("episodes")) and self.evaluation["episodes"] >= 1):
+        for key, section in SECTIONS.items():
+            value = getattr(self, key)
+            if not (isinstance(value, section) or (value is None and key in OPTIONAL_SECTIONS)):
+                raise ValueError(f"{key} must be a {section.__name__} (Recipe.from_dict reads mappings), got {value!r}")
+        if not (is_integer(self.n_envs) and self.n_envs >= 1):
+            raise ValueError(f"n_envs must be an integer >= 1, got {self.n_envs!r}")
+        if self.n_envs > MAX_TEAMS:
+            raise ValueError(f"n_envs must be at most {MAX_TEAMS} (teams played at once), got {self.n_envs}")
+
+    def _check_policy(self) -> None:
+        """What the policy's choices allow: no recurrent team critic, a sequence length for recurrent policies only."""
+        if self.recurrent and self.team_critic:
             raise ValueError(
-                f"{where}: evaluation needs episodes (>= 1) and may give {', '.join(EVALUATION_KEYS[1:])}, "
-                f"got {self.evaluation!r}"
+                "the task's team reward chooses the team critic, which has no recurrent version: set policy: "
+                "recurrent: false or team_critic: false"
             )
-        team_critic = self.policy.get("team_critic")
-        if not isinstance(self.policy.get("recurrent", False), bool) or team_critic not in (None, True, False):
-            raise ValueError(f"{where}: policy: recurrent must be true or false, team_critic true, false or unset")
-        if self.policy.get("cell") is not None and not self.recurrent:
-            raise ValueError(f"{where}: policy: cell {self.policy['cell']!r} applies to recurrent policies only")
-        valid_keys = PPO_KEYS | ({"max_sequence_length"} if self.recurrent else set())
-        unknown = sorted(set(self.ppo) - valid_keys)
-        if unknown:
-            hint = "; policy keyword arguments go under policy:" if "policy_kwargs" in unknown else ""
-            raise ValueError(f"{where}: unknown ppo settings {unknown}; valid: {sorted(valid_keys)}{hint}")
-        for name in ("learning_rate", "clip_range", "clip_range_vf"):
-            if self.ppo.get(name) is not None:
-                schedule(self.ppo[name], f"{where}: ppo: {name}")
-        for name in ("n_steps", "n_epochs"):
-            if name in self.ppo and not (is_count(self.ppo[name]) and self.ppo[name] >= 1):
-                raise ValueError(f"{where}: ppo: {name} must be an integer >= 1, got {self.ppo[name]!r}")
-        if "batch_size" in self.ppo and not (is_count(self.ppo["batch_size"]) and self.ppo["batch_size"] >= 2):
-            raise ValueError(  # SB3 normalises the advantages over each mini-batch: one sample has no spread
-                f"{where}: ppo: batch_size must be an integer >= 2 (advantages are normalised over a mini-batch), "
-                f"got {self.ppo['batch_size']!r}"
-            )
-        for name, low_open in (("gamma", True), ("gae_lambda", False)):
-            value = self.ppo.get(name)
-            if value is not None and not (is_number(value) and (0 < value <= 1 if low_open else 0 <= value <= 1)):
-                bounds = "(0, 1]" if low_open else "[0, 1]"
-                raise ValueError(f"{where}: ppo: {name} must be a number in {bounds}, got {value!r}")
-        self.ppo_kwargs()  # validates the policy choices
-        if self.team_sizes is not None:
-            sizes = self.team_sizes
+        if self.ppo.max_sequence_length is not None and not self.recurrent:
+            raise ValueError("ppo: max_sequence_length applies to recurrent policies only")
+
+    def _check_teams(self) -> None:
+        """Every team size is a valid task, and a team critic reads teams of the task's size."""
+        sizes = self.team_sizes
+        if sizes is not None:
             if not (isinstance(sizes, (list, tuple)) and sizes and all(is_count(size) for size in sizes)):
-                raise ValueError(f"{where}: team_sizes must be a non-empty list of team sizes, got {sizes!r}")
+                raise ValueError(f"team_sizes must be a non-empty list of team sizes, got {sizes!r}")
             for size in sizes:
                 try:
                     self.config(n_agents=size)
                 except ValueError as error:
-                    raise ValueError(f"{where}: team_sizes: {error}") from error
-        if "team_size" in self.ppo_kwargs()["policy_kwargs"] and set(self.sizes) != {self.config().n_agents}:
-            raise ValueError(
-                f"{where}: a team critic reads teams of n_agents={self.config().n_agents}; team_sizes lists {self.sizes}"
-            )
-        if self.residual:
-            unknown = sorted(set(self.residual) - {"controller", "gains", "scale"})
-            if unknown or "controller" not in self.residual or "scale" not in self.residual:
-                raise ValueError(f"{where}: residual needs controller and scale and may give gains, got {self.residual!r}")
+                    raise ValueError(f"team_sizes: {error}") from error
+            object.__setattr__(self, "team_sizes", tuple(int(size) for size in sizes))
+        n_agents = self.config().n_agents
+        if self.team_critic and set(self.sizes) != {n_agents}:
+            raise ValueError(f"a team critic reads teams of n_agents={n_agents}; team_sizes lists {self.sizes}")
+
+    def _check_controllers(self) -> None:
+        """The controllers of the residual and imitation sections act in the task."""
+        if self.residual is not None:
             try:
-                residual_base(self.residual, self.config())
+                residual_base(self.residual.to_dict(), self.config())
             except (TypeError, ValueError) as error:
-                raise ValueError(f"{where}: residual: {error}") from error
-        if self.imitation:
-            if self.recurrent or self.residual:
-                raise ValueError(f"{where}: imitation pretrains an MLP actor of whole actions: not recurrent, not residual")
+                raise ValueError(f"residual: {error}") from error
+        if self.imitation is not None:
+            if self.recurrent or self.residual is not None:
+                raise ValueError("imitation pretrains an MLP actor of whole actions: not recurrent, not residual")
             try:
-                self.imitation_settings()
                 self.teacher(self.config())
             except (TypeError, ValueError) as error:
-                raise ValueError(f"{where}: imitation: {error}") from error
-        if self.safety:
-            try:
-                self.safety_gains()
-            except ValueError as error:
-                raise ValueError(f"{where}: safety: {error}") from error
-            penalty = self.safety_penalty
-            if not (is_number(penalty) and penalty >= 0):
-                raise ValueError(f"{where}: safety: penalty must be a finite number >= 0, got {penalty!r}")
-        self.stage_iterations()  # validates the budget against the curriculum
-        if self.n_envs > MAX_TEAMS:
-            raise ValueError(f"{where}: n_envs must be at most {MAX_TEAMS} (teams played at once), got {self.n_envs}")
-        features = max(sum(field.size for field in observation_fields(self.config(n_agents=n))) for n in self.sizes)
+                raise ValueError(f"imitation: {error}") from error
+
+    def _check_rollout_size(self) -> None:
+        """A PPO iteration's rollout fits in :data:`MAX_ROLLOUT_BYTES`."""
+        features = max(sum(item.size for item in observation_fields(self.config(n_agents=n))) for n in self.sizes)
         rollout = self.steps_per_iteration() * (features + ROLLOUT_VALUES) * 4  # float32
         if rollout > MAX_ROLLOUT_BYTES:
             raise ValueError(
-                f"{where}: a PPO iteration of n_steps={self.ppo_kwargs().get('n_steps', PPO_DEFAULT_N_STEPS)} in "
-                f"{self.n_envs} teams would hold {rollout / 2**30:.1f} GiB of rollout, beyond the limit of "
-                f"{MAX_ROLLOUT_BYTES / 2**30:g} GiB: lower ppo: n_steps or n_envs"
+                f"a PPO iteration of n_steps={self.n_steps} in {self.n_envs} teams would hold {rollout / 2**30:.1f} GiB "
+                f"of rollout, beyond the limit of {MAX_ROLLOUT_BYTES / 2**30:g} GiB: lower ppo: n_steps or n_envs"
             )
 
     # Reading and writing ----------------------------------------------------------------------------------------------
 
     @classmethod
-    def from_dict(cls, name: str, values: dict[str, Any], source: Path | None = None) -> Recipe:
+    def from_dict(cls, values: Any, source: Path | None = None) -> Recipe:
         """A recipe from its YAML mapping (its ``base:`` already merged in, see :func:`load_recipe`); unknown or missing
-        keys are errors that name the valid ones. A ``name:`` key replaces ``name``; a ``run:`` block (the run options
-        of an experiment, :class:`~sb3_formation.experiment.settings.RunOptions`) is not part of the recipe."""
-        keys = [f.name for f in fields(cls) if f.name not in ("name", "source")]
+        keys are errors that name the valid ones. A ``run:`` section (:class:`RunOptions`) is not part of the recipe.
+
+        :param values: the mapping
+        :param source: the file it was read from
+        """
         if not isinstance(values, dict):
-            raise ValueError(f"recipe {name!r} must be a mapping of {keys}, not {type(values).__name__}")
-        values = _with_current_keys(values, name)
+            raise ValueError(f"a recipe must be a mapping, not {type(values).__name__}")
         values = {key: value for key, value in values.items() if key != RUN_KEY}
-        name = values.pop("name", name)
-        if not isinstance(name, str) or not name:
-            raise ValueError(f"a recipe's name must be a non-empty string, got {name!r}")
-        for section in ("training", "residual", "imitation", "safety"):
-            if values.get(section, {}) is None:  # a derived recipe switches a block off with null
-                values[section] = {}
-        required = [key for key in keys if key not in ("training", "residual", "imitation", "safety", "team_sizes")]
-        unknown, missing = sorted(set(values) - set(keys)), [key for key in required if key not in values]
+        where = f"recipe {values.get('name')!r}"
+        keys = [item.name for item in fields(cls) if item.name != "source"]
+        required = [item.name for item in fields(cls) if item.default is MISSING and item.default_factory is MISSING]
+        unknown, missing = sorted(set(values) - set(keys), key=str), [key for key in required if key not in values]
         if unknown or missing:
-            raise ValueError(f"recipe {name!r}: unknown keys {unknown}, missing keys {missing}; a recipe has {keys}")
-        return cls(name=name, source=source, **values)
+            raise keys_error(where, required, [key for key in keys if key not in required], unknown, missing)
+        try:
+            sections = {key: _read_section(key, values[key]) for key in SECTIONS if key in values}
+        except ValueError as error:
+            raise ValueError(f"{where}: {error}") from error
+        return cls(**{**values, **sections}, source=source)
 
     def to_dict(self) -> dict[str, Any]:
         """The complete recipe as plain YAML data: every env field, every training feature, the policy's choices and
         the team sizes resolved. Read back (:meth:`from_dict`) it writes the same mapping again and does not depend on the
         shipped recipes or the task defaults it was made from; a run writes it as its ``config.yaml``."""
-        policy = {name: value for name, value in self.policy.items() if name != "cell"}
-        policy |= {"recurrent": self.recurrent, "team_critic": self.team_critic}
+        values = self._as_given()
+        policy = {"recurrent": self.recurrent, **self.policy.kwargs(), "team_critic": self.team_critic}
         if self.recurrent:
             policy["cell"] = self.cell
-        return _plain(
-            {
-                "name": self.name,
-                "description": self.description,
-                "env": {"task": self.env["task"], **self.config().to_dict()},
-                "policy": policy,
-                "ppo": self.ppo,
-                "curriculum": {"iterations": list(self.iterations), "success_threshold": self.success_threshold},
-                "n_envs": self.n_envs,
-                "team_sizes": self.sizes,
-                "evaluation": self.evaluation,
-                "training": {name: self.training_option(name) for name in TRAINING_DEFAULTS},
-                "residual": self.residual,
-                "imitation": self.imitation,
-                "safety": self.safety,
-            }
-        )
+        env = {"task": self.env.task, **self.config().to_dict()}
+        return plain({**values, "env": env, "policy": policy, "team_sizes": self.sizes})
+
+    def _as_given(self) -> dict[str, Any]:
+        """The recipe's mapping as its sections hold it (the task's overrides, not every field; the policy's choices as
+        given): what :meth:`with_changes` merges into."""
+        sections = {key: {} if getattr(self, key) is None else getattr(self, key).to_dict() for key in SECTIONS}
+        return {
+            "name": self.name,
+            "description": self.description,
+            **{key: sections[key] for key in ("env", "policy", "ppo", "curriculum")},
+            "n_envs": self.n_envs,
+            "team_sizes": None if self.team_sizes is None else list(self.team_sizes),
+            **{key: sections[key] for key in ("evaluation", "training", *OPTIONAL_SECTIONS)},
+        }
 
     def with_changes(self, changes: dict[str, Any]) -> Recipe:
         """This recipe with ``changes`` (a partial recipe mapping) merged in as a ``base:`` merges a file
         (:func:`merge_recipe`), e.g. ``{"n_envs": 2, "env": {"max_steps": 60}}``; the result is validated."""
         if not changes:
             return self
-        values = merge_recipe(dataclasses.asdict(self), changes)
-        values.pop("source")
-        return Recipe.from_dict(self.name, values, source=self.source)
+        return Recipe.from_dict(merge_recipe(self._as_given(), changes), source=self.source)
 
     # What the recipe means --------------------------------------------------------------------------------------------
 
     @property
     def recurrent(self) -> bool:
         """Whether the recipe's policy is recurrent."""
-        return bool(self.policy.get("recurrent", False))
+        return self.policy.recurrent
 
     @property
     def cell(self) -> str | None:
         """The recurrent cell (``None`` for an MLP)."""
-        return (self.policy.get("cell") or "gru") if self.recurrent else None
+        return (self.policy.cell or DEFAULT_CELL) if self.recurrent else None
 
     @property
     def team_critic(self) -> bool:
-        """Whether the critic reads the whole team (fig. 4.3): as the recipe says, else exactly with the team reward."""
-        choice = self.policy.get("team_critic")
-        return self.config().team_reward if choice is None else bool(choice)
+        """Whether the critic reads the whole team (fig. 4.3): as the recipe says, else exactly with the team reward
+        (:func:`~sb3_formation.sb3.vec_env.uses_team_critic`, the rule of the env's team observations too)."""
+        return uses_team_critic(self.config(), self.policy.team_critic)
 
     @property
     def sizes(self) -> list[int]:
         """The team sizes taken in turn: ``team_sizes``, else the task's ``n_agents``."""
-        return [int(size) for size in self.team_sizes] if self.team_sizes is not None else [self.config().n_agents]
+        return list(self.team_sizes) if self.team_sizes is not None else [self.config().n_agents]
 
     @property
     def iterations(self) -> tuple[int, int, int]:
         """The curriculum's iterations of stages 1, 2 and 3 (with a budget, their proportions)."""
-        return cast("tuple[int, int, int]", tuple(int(value) for value in self.curriculum["iterations"]))  # three: validated
+        return self.curriculum.iterations
 
     @property
     def success_threshold(self) -> float | None:
         """Rolling success rate that ends stages 1-2 early, or ``None``."""
-        return self.curriculum.get("success_threshold")
+        return self.curriculum.success_threshold
 
-    def training_option(self, name: str) -> Any:
-        """A training feature's value: the recipe's, else its default (:data:`TRAINING_DEFAULTS`)."""
-        return self.training.get(name, TRAINING_DEFAULTS[name])
+    @property
+    def n_steps(self) -> int:
+        """Steps each slot plays per PPO iteration."""
+        return PPO_DEFAULT_N_STEPS if self.ppo.n_steps is None else self.ppo.n_steps
 
-    def config(self, **overrides: Any) -> FormationConfig:
-        """The recipe's task configuration, with ``overrides`` (:class:`FormationConfig` fields) applied."""
-        env = {name: value for name, value in self.env.items() if name != "task"}
-        return FormationConfig.task(self.env["task"], **{**env, **overrides})
+    def config(self, **changes: Any) -> FormationConfig:
+        """The recipe's task configuration, with ``changes`` (:class:`FormationConfig` fields) applied."""
+        return self.env.config(**changes)
 
-    def ppo_kwargs(self, recurrent: bool | None = None, cell: str | None = None) -> dict:
+    def ppo_kwargs(self) -> dict[str, Any]:
         """Keyword arguments of ``PPO`` (or, for a recurrent policy, :class:`RecurrentFormationPPO`), with the policy
-        class and its keyword arguments; a team critic reads the task's team size.
-
-        :param recurrent: override the recipe's choice of a recurrent policy (``--recurrent``/``--no-recurrent``)
-        :param cell: override the recurrent cell (``--cell``)
-        """
-        if recurrent is not None or cell is not None:
-            return self.with_changes(recipe_changes(recurrent=recurrent, cell=cell)).ppo_kwargs()
-        policy_kwargs = {name: value for name, value in self.policy.items() if name not in _POLICY_CHOICES}
+        class and its keyword arguments (schedules as data: :func:`with_schedules` turns them into SB3's); a team critic
+        reads the task's team size."""
+        policy_kwargs = self.policy.kwargs()
         if self.recurrent:
-            if self.team_critic:
-                raise ValueError(f"{self.name} uses the team critic, which has no recurrent version: set recurrent: false")
-            if self.cell not in CELLS:
-                raise ValueError(f"cell must be one of {CELLS}, got {self.cell!r}")
-            return {"policy": RecurrentFormationPolicy, **self.ppo, "policy_kwargs": {**policy_kwargs, "cell": self.cell}}
+            return {
+                "policy": RecurrentFormationPolicy,
+                **self.ppo.to_dict(),
+                "policy_kwargs": {**policy_kwargs, "cell": self.cell},
+            }
         if self.team_critic:
             policy_kwargs["team_size"] = self.config().n_agents
-        return {"policy": FormationPolicy, **self.ppo, "policy_kwargs": policy_kwargs}
+        return {"policy": FormationPolicy, **self.ppo.to_dict(), "policy_kwargs": policy_kwargs}
 
     def steps_per_iteration(self) -> int:
         """Agent-steps of one PPO iteration: n_steps in every slot (the agents of every team)."""
         sizes = self.sizes  # team j has sizes[j % len(sizes)] agents
-        return self.ppo_kwargs().get("n_steps", PPO_DEFAULT_N_STEPS) * sum(
-            sizes[team % len(sizes)] for team in range(self.n_envs)
-        )
+        return self.n_steps * sum(sizes[team % len(sizes)] for team in range(self.n_envs))
 
     def stage_iterations(self) -> tuple[int, int, int | None]:
         """PPO iterations of stages 1, 2 and 3 as trained. Without a budget, the curriculum's iterations. With a
@@ -406,9 +321,9 @@ class Recipe:
         1-2 leave); a ``minutes`` budget beside it ends training early if it runs out first. With a ``minutes`` budget
         alone, stage 3 is open-ended (``None``): stages 1-2 end at their shares of the time
         (:meth:`stage_time_shares`), stage 3 when the time is up."""
-        budget = self.training_option("steps")
+        budget = self.training.steps
         if budget is None:
-            if self.training_option("minutes") is not None:
+            if self.training.minutes is not None:
                 return (*self.iterations[:2], None)
             return self.iterations
         total = -(-budget // self.steps_per_iteration())
@@ -426,43 +341,75 @@ class Recipe:
 
     def budget_seconds(self) -> float | None:
         """The time budget in seconds, or ``None``."""
-        minutes = self.training_option("minutes")
+        minutes = self.training.minutes
         return None if minutes is None else 60.0 * minutes
 
     def safety_gains(self) -> SafetyGains | None:
-        """The safety filter's gains of a shielded recipe (:func:`safety_gains`), else ``None``."""
-        return safety_gains(self.safety)
+        """The safety filter's gains of a shielded recipe, else ``None``."""
+        return None if self.safety is None else self.safety.filter_gains()
 
     @property
     def safety_penalty(self) -> float:
-        """The reward penalty per unit of the filter's change of an action (``safety: penalty``, default 0)."""
-        return self.safety.get("penalty", 0.0)
+        """The reward penalty per unit of the filter's change of an action (0 without a safety section)."""
+        return 0.0 if self.safety is None else self.safety.penalty
 
     def imitation_settings(self) -> ImitationSettings | None:
-        """How the actor is pretrained before PPO (``None`` without an ``imitation`` block)."""
-        if not self.imitation:
-            return None
-        settings = {key: value for key, value in self.imitation.items() if key not in ("controller", "gains")}
-        unknown = sorted(set(settings) - set(ImitationSettings.__dataclass_fields__))
-        if unknown or "controller" not in self.imitation:
-            raise ValueError(
-                f"the imitation block needs controller and may give gains and {list(ImitationSettings.__dataclass_fields__)}; "
-                f"unknown: {unknown}"
-            )
-        return ImitationSettings(**settings)
+        """How the actor is pretrained before PPO (``None`` without an imitation section)."""
+        return None if self.imitation is None else self.imitation.imitation_settings()
 
     def teacher(self, config: FormationConfig) -> Controller | None:
-        """The controller the actor imitates before PPO (``None`` without an ``imitation`` block).
+        """The controller the actor imitates before PPO (``None`` without an imitation section).
 
         :param config: the task the controller acts in
         """
-        return controller_from_spec(self.imitation, config) if self.imitation else None
+        return None if self.imitation is None else controller_from_spec(self.imitation.to_dict(), config)
+
+
+def _read_section(key: str, values: Any) -> Any:
+    """The section ``key`` of a recipe mapping: ``None`` for an optional section that is null or ``{}``, the defaults
+    for a null ``training``."""
+    if key in OPTIONAL_SECTIONS and not values:
+        return None
+    return SECTIONS[key].from_dict({} if key == "training" and values is None else values)
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """Everything a training run needs: what is trained (``recipe``) and how the run is carried out (``run``, the
+    recipe file's ``run:`` section).
+
+    :param recipe: the resolved recipe
+    :param run: the run options
+    """
+
+    recipe: Recipe
+    run: RunOptions = field(default_factory=RunOptions)
+
+    def __post_init__(self) -> None:
+        if self.run.workers > self.recipe.n_envs:
+            raise ValueError(f"workers={self.run.workers} exceeds n_envs={self.recipe.n_envs}: a worker steps whole teams")
+
+    @classmethod
+    def from_dict(cls, values: Any, source: Path | None = None) -> TrainSettings:
+        """Settings from a recipe mapping with an optional ``run:`` section (its ``base:`` already merged in)."""
+        recipe = Recipe.from_dict(values, source)
+        return cls(recipe, RunOptions.from_dict(values.get(RUN_KEY) or {}))
+
+    def replace_run(self, **options: Any) -> TrainSettings:
+        """The same recipe with other run options (fields of :class:`RunOptions`)."""
+        return TrainSettings(self.recipe, self.run.replace(**options))
+
+    def to_dict(self) -> dict[str, Any]:
+        """The complete recipe (:meth:`Recipe.to_dict`) with the run options under ``run:``: a run's ``config.yaml``."""
+        return {**self.recipe.to_dict(), RUN_KEY: self.run.to_dict()}
+
+
+# Files --------------------------------------------------------------------------------------------------------------
 
 
 def merge_recipe(base: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
-    """``changes`` over ``base``, as a ``base:`` key merges a recipe file: the sections (``env``, ``policy``, ``ppo``,
-    ``curriculum``, ``evaluation``, ``training``, ``residual``, ``imitation``) merge key by key; every other value, and
-    every value inside a section, replaces the base's (lists and ``net_arch`` whole).
+    """``changes`` over ``base``, as a ``base:`` key merges a recipe file: the sections (:data:`SECTIONS`) merge key by
+    key; every other value, and every value inside a section, replaces the base's (lists and ``net_arch`` whole).
 
     :param base: the base recipe's mapping
     :param changes: the overriding mapping
@@ -474,87 +421,6 @@ def merge_recipe(base: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any
         else:
             merged[key] = value
     return merged
-
-
-def _plain(value: Any) -> Any:
-    """Tuples to lists, recursively, so that YAML writes plain lists."""
-    if isinstance(value, dict):
-        return {key: _plain(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(item) for item in value]
-    return value
-
-
-def _with_current_keys(values: dict[str, Any], name: str) -> dict[str, Any]:
-    """A recipe mapping with the keys of earlier releases renamed, each with a warning: ``teams`` -> ``n_envs``, and
-    ``env: preset`` -> ``env: task``."""
-    values = dict(values)
-    if "teams" in values and "n_envs" not in values:
-        warn_renamed(f"the key teams: of recipe {name!r}", "n_envs:", stacklevel=4)
-        values["n_envs"] = values.pop("teams")
-    env = values.get("env")
-    if isinstance(env, dict) and "preset" in env and "task" not in env:
-        warn_renamed(f"the key env: preset: of recipe {name!r}", "env: task:", stacklevel=4)
-        values["env"] = {("task" if key == "preset" else key): value for key, value in env.items()}
-    return values
-
-
-def safety_gains(section: dict[str, Any] | None) -> SafetyGains | None:
-    """The safety filter's gains that a recipe's ``safety`` section gives (the section without ``penalty``), or ``None``
-    for an empty section (no filter).
-
-    :raises ValueError: an unknown or invalid gain
-    """
-    if not section:
-        return None
-    return SafetyGains.from_dict({name: value for name, value in section.items() if name != "penalty"})
-
-
-def residual_base(spec: dict[str, Any], config: FormationConfig) -> tuple[Controller, float]:
-    """The controller and the correction's bound that a recipe's ``residual`` describes.
-
-    :param spec: ``controller``, ``scale`` and optional ``gains`` (see :class:`Recipe`)
-    :param config: the task the controller acts in
-    :raises ValueError: the controller reads the map (a residual policy is decentralised, like its controller)
-    """
-    controller = controller_from_spec(spec, config)
-    if getattr(controller, "privileged", False):
-        raise ValueError(
-            f"controller {spec['controller']!r} reads the map (privileged): a residual policy's controller must be "
-            "decentralised"
-        )
-    return controller, check_residual_scale(spec["scale"])
-
-
-def residual_policy(spec: dict[str, Any], correction: TeamPolicy) -> ResidualPolicy:
-    """The residual policy of a recipe's ``residual`` with ``correction`` (e.g. a trained model) as its learned part."""
-    base, scale = residual_base(spec, correction.config)
-    return ResidualPolicy(base, correction, scale)
-
-
-def schedule(value: Any, where: str = "schedule") -> float | Schedule:
-    """A learning rate or clip range written as data: a number (constant), or ``{start: a, end: b}`` for a linear change
-    from a at the start of training to b at its end (over the run's budget).
-
-    :param value: the data
-    :param where: what it is, for the error message
-    :raises ValueError: neither form, or not finite and > 0
-    """
-    if isinstance(value, dict) and set(value) == {"start", "end"}:
-        start, end = (value[key] for key in ("start", "end"))
-        if all(is_number(v) and v > 0 for v in (start, end)):
-            return LinearSchedule(float(start), float(end), 1.0)
-    elif is_number(value) and value > 0:
-        return float(value)
-    raise ValueError(f"{where} must be a number > 0 or {{start: a, end: b}} with numbers > 0, got {value!r}")
-
-
-def with_schedules(kwargs: dict[str, Any]) -> dict[str, Any]:
-    """PPO keyword arguments with their schedules written as data (:func:`schedule`) turned into SB3 schedules."""
-    scheduled = ("learning_rate", "clip_range", "clip_range_vf")
-    return {
-        name: schedule(value, name) if name in scheduled and value is not None else value for name, value in kwargs.items()
-    }
 
 
 def recipe_names() -> list[str]:
@@ -578,10 +444,6 @@ def recipe_path(name: str | os.PathLike[str], relative_to: Path | None = None) -
     if not path.is_file():
         raise ValueError(f"no recipe file {path}")
     return path
-
-
-#: The longest ``base:`` chain a recipe file may have (the shipped recipes are at most 3 deep).
-MAX_BASE_CHAIN = 32
 
 
 def read_recipe_file(path: Path, chain: tuple[Path, ...] = ()) -> dict[str, Any]:
@@ -610,50 +472,140 @@ def read_recipe_file(path: Path, chain: tuple[Path, ...] = ()) -> dict[str, Any]
     return merge_recipe({**inherited, "name": values["name"]}, values)
 
 
-def load_recipe(name: str | os.PathLike[str]) -> Recipe:
-    """A shipped recipe by name, or any recipe YAML file by its path, resolved (its ``base:`` chain merged in).
+def load_recipe(recipe: str | os.PathLike[str]) -> Recipe:
+    """A shipped recipe by name, or any recipe YAML file by its path, resolved (its ``base:`` chain merged in; a
+    ``run:`` section is not part of the recipe: :func:`load_settings` reads it).
 
     :raises ValueError: an unknown name (the valid ones are listed) or an invalid file
     """
-    path = recipe_path(name)
-    return Recipe.from_dict(path.stem, read_recipe_file(path), source=path)
+    path = recipe_path(recipe)
+    return Recipe.from_dict(read_recipe_file(path), source=path)
 
 
-def recipe_changes(
-    env: dict[str, Any] | None = None, ppo: dict[str, Any] | None = None, agents: int | None = None, **options: Any
-) -> dict[str, Any]:
-    """The partial recipe (for :meth:`Recipe.with_changes`) that options of ``sb3-formation train`` describe.
+def load_settings(recipe: str | os.PathLike[str]) -> TrainSettings:
+    """A recipe with its run options: a shipped recipe by name (the default run options), a recipe file with its
+    ``run:`` section (a run's ``config.yaml`` included), or a run folder (its ``config.yaml``).
 
-    :param env: :class:`FormationConfig` fields (``--env``)
-    :param ppo: ``PPO`` keyword arguments
-    :param agents: teams of this many agents (``--agents``): the task's ``n_agents``, and no ``team_sizes``
-    :param options: options of :data:`RECIPE_OPTIONS` (``None`` values are left out). A ``minutes`` budget without a
-        ``steps`` one replaces the recipe's steps budget, so that the time is the budget; ``recurrent=False`` without
-        a ``cell`` drops the recipe's cell
-    :raises ValueError: an option that is not a recipe's
+    :raises FileNotFoundError: a folder that is not a run folder
+    :raises ValueError: an unknown name (the valid ones are listed) or an invalid file
     """
-    unknown = sorted(set(options) - set(RECIPE_OPTIONS))
+    if isinstance(recipe, (str, os.PathLike)) and str(recipe) not in recipe_names() and Path(recipe).is_dir():
+        path = Path(recipe) / "config.yaml"
+        if not path.is_file():
+            raise FileNotFoundError(f"{recipe} is not a run folder: {path} is missing")
+        try:
+            return TrainSettings.from_dict(read_recipe_file(path), path)
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"{path} holds an invalid recipe: {error}") from None
+    path = recipe_path(recipe)
+    return TrainSettings.from_dict(read_recipe_file(path), path)
+
+
+def write_settings(settings: TrainSettings, path: Path) -> None:
+    """Write a run's recipe with its run options (:meth:`TrainSettings.to_dict`) atomically as a recipe file: its
+    ``config.yaml``."""
+    atomic_write(path, yaml.safe_dump(settings.to_dict(), sort_keys=False))
+
+
+# Options ------------------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RecipeOption:
+    """An option of ``sb3-formation train`` and of :func:`layered_settings`: a field of the recipe, of one of its
+    sections or of the run options, declared with :func:`~sb3_formation.experiment.sections.option`.
+
+    :param name: the option's name (a keyword of :func:`layered_settings`)
+    :param section: the key of the field's section; ``None`` for a field of the recipe itself, ``run`` for a run option
+    :param field: the field it sets
+    :param hint: the field's type
+    :param help: the field's ``:param:`` text
+    :param flag: its command-line flag
+    :param choices: the values the command line accepts, if only some
+    """
+
+    name: str
+    section: str | None
+    field: str
+    hint: Any
+    help: str
+    flag: str
+    choices: tuple[str, ...] | None
+
+
+@cache
+def recipe_options() -> tuple[RecipeOption, ...]:
+    """Every option of ``sb3-formation train`` that changes a recipe or a run: the fields declared with
+    :func:`~sb3_formation.experiment.sections.option`, the recipe's own, then its sections', then the run options."""
+    owners: list[tuple[str | None, type]] = [(None, Recipe), *SECTIONS.items(), (RUN_KEY, RunOptions)]
+    options = []
+    for section, owner in owners:
+        hints, docs = typing.get_type_hints(owner), field_docs(owner)
+        for item in fields(owner):
+            if OPTION in item.metadata:
+                declared = item.metadata[OPTION]
+                name = declared["name"] or item.name
+                flag = declared["flag"] or "--" + name.replace("_", "-")
+                options.append(
+                    RecipeOption(name, section, item.name, hints[item.name], docs[item.name], flag, declared["choices"])
+                )
+    return tuple(options)
+
+
+def option_changes(options: dict[str, Any]) -> dict[str, Any]:
+    """The partial recipe (for :meth:`Recipe.with_changes`) that options of ``sb3-formation train`` give; ``None`` values
+    are left out.
+
+    :param options: options of :func:`recipe_options` (run options apart), a section's key with a mapping that merges
+        into that section (``ppo={"n_steps": 64}``), or ``agents``: teams of this many agents (the task's ``n_agents``,
+        and no ``team_sizes``). A ``minutes`` budget without a ``steps`` one replaces the recipe's steps budget, so that
+        the time is the budget; ``recurrent=False`` without a ``cell`` drops the recipe's cell.
+    :raises ValueError: an option that changes no recipe
+    """
+    declared = {item.name: item for item in recipe_options() if item.section != RUN_KEY}
+    given = {name: value for name, value in options.items() if value is not None}
+    unknown = sorted(set(given) - set(declared) - set(SECTIONS) - {"agents"})
     if unknown:
-        raise ValueError(f"unknown recipe option(s) {unknown}; valid: {list(RECIPE_OPTIONS)}")
-    options = {name: value for name, value in options.items() if value is not None}
-    if "minutes" in options and "steps" not in options:
-        options["steps"] = None
-    if options.get("recurrent") is False and "cell" not in options:
-        options["cell"] = None  # an MLP has no cell
+        raise ValueError(f"unknown recipe option(s) {unknown}; valid: {sorted({*declared, *SECTIONS, 'agents'})}")
     changes: dict[str, Any] = {}
-    for name, value in options.items():
-        section, key = RECIPE_OPTIONS[name]
-        if section is None:
-            changes[key] = value
+    for name, value in given.items():
+        item = declared.get(name)
+        if name == "agents":
+            continue
+        if item is None:  # a section's key
+            if not isinstance(value, dict):
+                raise ValueError(f"{name} must be a mapping of its keys, got {value!r}")
+            changes[name] = {**changes.get(name, {}), **value}
+        elif item.section is None:  # a key of the recipe itself
+            changes[item.field] = value
+        elif item.field == SECTIONS[item.section].rest:  # a section's flat keys
+            changes[item.section] = {**changes.get(item.section, {}), **value}
         else:
-            changes.setdefault(section, {})[key] = value
-    for section, values in (("env", env), ("ppo", ppo)):
-        if values:
-            changes[section] = {**changes.get(section, {}), **values}
-    if agents is not None:
-        changes.setdefault("env", {})["n_agents"] = agents
+            changes.setdefault(item.section, {})[item.field] = value
+    if "minutes" in given and "steps" not in given:
+        changes.setdefault("training", {})["steps"] = None
+    if given.get("recurrent") is False and "cell" not in given:
+        changes.setdefault("policy", {})["cell"] = None  # an MLP has no cell
+    if "agents" in given:
+        changes["env"] = {**changes.get("env", {}), "n_agents": given["agents"]}
         changes.setdefault("team_sizes", None)
     return changes
+
+
+def layered_settings(recipe: str | os.PathLike[str] | None = None, **options: Any) -> TrainSettings:
+    """Settings layered as ``sb3-formation train`` layers them: a recipe with its run options (:func:`load_settings`),
+    then ``options``.
+
+    :param recipe: a shipped recipe's name or a recipe file (default: :data:`DEFAULT_RECIPE`)
+    :param options: run options (fields of :class:`RunOptions`) and recipe changes (:func:`option_changes`: ``env``,
+        ``ppo``, ``agents``, ``iterations``, ``n_envs``, ``steps``, ...); ``None`` values are ignored
+    :raises ValueError: an unknown option, or invalid values
+    """
+    settings = load_settings(DEFAULT_RECIPE if recipe is None else recipe)
+    run_names = {item.name for item in fields(RunOptions)}
+    run = {name: value for name, value in options.items() if name in run_names and value is not None}
+    changes = option_changes({name: value for name, value in options.items() if name not in run_names})
+    return TrainSettings(settings.recipe.with_changes(changes), settings.run.replace(**run))
 
 
 def thesis_recipe_for(reward: str | None, n_agents: int | None, team_reward: bool) -> str:
@@ -670,3 +622,45 @@ def thesis_recipe_for(reward: str | None, n_agents: int | None, team_reward: boo
             return "ch4-team"
         return "ch4-individual" if n_agents in (None, 3) else "ch5-angle"
     return DEFAULT_RECIPE
+
+
+# What a model file records of its recipe ----------------------------------------------------------------------------
+
+
+def safety_gains(section: dict[str, Any] | None) -> SafetyGains | None:
+    """The safety filter's gains that a recipe's ``safety`` section gives, or ``None`` for an empty section (no filter).
+
+    :raises ValueError: an unknown or invalid gain
+    """
+    return SafetySection.from_dict(section).filter_gains() if section else None
+
+
+def residual_base(spec: dict[str, Any], config: FormationConfig) -> tuple[Controller, float]:
+    """The controller and the correction's bound that a recipe's ``residual`` describes.
+
+    :param spec: ``controller``, ``scale`` and optional ``gains`` (:class:`ResidualSection`)
+    :param config: the task the controller acts in
+    :raises ValueError: the controller reads the map (a residual policy is decentralised, like its controller)
+    """
+    controller = controller_from_spec(spec, config)
+    if getattr(controller, "privileged", False):
+        raise ValueError(
+            f"controller {spec['controller']!r} reads the map (privileged): a residual policy's controller must be "
+            "decentralised"
+        )
+    return controller, check_residual_scale(spec["scale"])
+
+
+def residual_policy(spec: dict[str, Any], correction: TeamPolicy) -> ResidualPolicy:
+    """The residual policy of a recipe's ``residual`` with ``correction`` (e.g. a trained model) as its learned part."""
+    base, scale = residual_base(spec, correction.config)
+    return ResidualPolicy(base, correction, scale)
+
+
+def with_schedules(kwargs: dict[str, Any]) -> dict[str, Any]:
+    """PPO keyword arguments with their schedules written as data (:func:`~sb3_formation.experiment.sections.schedule`)
+    turned into SB3 schedules."""
+    scheduled = ("learning_rate", "clip_range", "clip_range_vf")
+    return {
+        name: schedule(value, name) if name in scheduled and value is not None else value for name, value in kwargs.items()
+    }

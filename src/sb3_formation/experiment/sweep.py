@@ -1,8 +1,8 @@
-"""Multi-seed sweeps of an experiment on Ray: one trial per seed, each an ordinary run folder.
+"""Multi-seed sweeps of a recipe on Ray: one trial per seed, each an ordinary run folder.
 
-``sweep("experiments/thesis-ch5-bearing.yaml")`` trains, then evaluates, one run per seed of the experiment as Ray
-tasks (Ray core, ``pip install 'sb3-formation[ray]'``), on this machine or, with ``address``, on a Ray cluster whose
-nodes share the log folder. Trial k writes ``<logdir>/<experiment>/seed_<s>/``; a trial whose run folder already holds
+``sweep("recipes/thesis-ch5-bearing.yaml")`` trains, then evaluates, one run per seed of the recipe file's ``run:
+seeds`` as Ray tasks (Ray core, ``pip install 'sb3-formation[ray]'``), on this machine or, with ``address``, on a Ray
+cluster whose nodes share the log folder. Trial k writes ``<logdir>/<file>/seed_<s>/``; a trial whose run folder already holds
 its final model and evaluation is skipped, one with a checkpoint is resumed, so starting a sweep again finishes it.
 A failing trial is reported with its error and does not stop the others. At the end the sweep writes
 ``aggregate.json`` and ``aggregate.md`` (mean and std over seeds) beside the run folders (``sb3-formation sweep`` also
@@ -22,22 +22,12 @@ from typing import Any, cast
 import numpy as np
 
 from sb3_formation.experiment.evaluation import SUMMARY_FILE, evaluate_target, load_summary
+from sb3_formation.experiment.recipes import TrainSettings, load_settings
 from sb3_formation.experiment.reports import TABLE_METRICS, table_number
 from sb3_formation.experiment.runs import FINAL_MODEL
-from sb3_formation.experiment.settings import TrainSettings, read_settings
 from sb3_formation.experiment.training import resume, train
 from sb3_formation.sb3.metrics import EPISODE_METRICS
 from sb3_formation.utils.files import atomic_write
-
-
-def load_experiment(path: str | os.PathLike[str]) -> TrainSettings:
-    """An experiment's settings from its YAML file (a recipe with ``run:`` options, :class:`TrainSettings`), validated."""
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"no experiment file {path}")
-    try:
-        return read_settings(path)
-    except (TypeError, ValueError) as error:
-        raise ValueError(f"{path}: {error}") from error
 
 
 def run_trial(settings: dict[str, Any], run_dir: str) -> dict[str, Any]:
@@ -56,7 +46,7 @@ def run_trial(settings: dict[str, Any], run_dir: str) -> dict[str, Any]:
             resume(folder)
         else:
             train(trial, command=f"sb3-formation sweep (trial {folder.name})", run_dir=folder)
-    summary = evaluate_target(folder, trial.recipe.evaluation).summary
+    summary = evaluate_target(folder, trial.recipe.evaluation.to_dict()).summary
     return {"status": "trained", "run_dir": run_dir, "summary": summary}
 
 
@@ -64,8 +54,8 @@ def run_trial(settings: dict[str, Any], run_dir: str) -> dict[str, Any]:
 class SweepResult:
     """What :func:`sweep` did.
 
-    :param folder: the experiment's folder (run folders and aggregate files)
-    :param label: the experiment's name and recipe, e.g. for a figure's legend
+    :param folder: the sweep's folder (run folders and aggregate files)
+    :param label: the recipe file's name and the recipe's, e.g. for a figure's legend
     :param trials: per seed: ``status`` ("skipped", "trained" or "failed"), ``run_dir``, ``summary`` or ``error``
     """
 
@@ -106,7 +96,7 @@ def aggregate(summaries: list[dict[str, Any]], over: str = "successful") -> dict
 
 def aggregate_markdown(name: str, tables: dict[str, dict[str, dict[str, float | None]]]) -> str:
     """A Markdown table of :func:`aggregate`'s results, one row per kind of episode mean (``successful``, ``all``)."""
-    headings = ["experiment", "means over", "seeds", "success rate", *(metric.label for metric in TABLE_METRICS.values())]
+    headings = ["recipe", "means over", "seeds", "success rate", *(metric.label for metric in TABLE_METRICS.values())]
     lines = ["| " + " | ".join(headings) + " |", "|" + "|".join(["---", "---"] + ["---:"] * (len(headings) - 2)) + "|"]
     for over, table in tables.items():
         cells = [name, f"{over} episodes", str(table["success_rate"]["seeds"])]
@@ -126,31 +116,32 @@ def aggregate_markdown(name: str, tables: dict[str, dict[str, dict[str, float | 
 
 
 def sweep(
-    experiment: str | os.PathLike[str],
+    recipe: str | os.PathLike[str],
     seeds: list[int] | None = None,
     address: str | None = None,
     max_concurrent: int | None = None,
     logdir: str | os.PathLike[str] | None = None,
     cpus_per_trial: float = 1.0,
 ) -> SweepResult:
-    """Train and evaluate every seed of an experiment as Ray tasks, then aggregate over the seeds.
+    """Train and evaluate every seed of a recipe as Ray tasks, then aggregate over the seeds.
 
-    :param experiment: the experiment's YAML file (``experiments/<name>.yaml``)
-    :param seeds: the seeds (default: the experiment's ``seeds``, else its ``seed``)
+    :param recipe: a recipe file with its ``run:`` section (``recipes/<name>.yaml``), or a shipped recipe's name
+    :param seeds: the seeds (default: the recipe file's ``run: seeds``, else its ``seed``)
     :param address: a Ray cluster's address (default: start Ray on this machine with its cores)
     :param max_concurrent: trials running at once (default: as many as the cluster's CPUs allow)
-    :param logdir: folder of the experiment's folder (default: the experiment's ``logdir``)
+    :param logdir: folder of the sweep's folder ``<logdir>/<file>`` (default: the recipe file's ``run: logdir``)
     :param cpus_per_trial: CPUs Ray reserves for each trial
     """
     import ray
 
-    settings = load_experiment(experiment)
+    settings = load_settings(recipe)
     seeds = list(seeds or settings.run.seeds or [settings.run.seed])
     if len(set(seeds)) != len(seeds):
         raise ValueError(f"seeds must differ, got {seeds}")
     if max_concurrent is not None and max_concurrent < 1:
         raise ValueError(f"max_concurrent must be >= 1, got {max_concurrent}")
-    folder = Path(logdir or settings.run.logdir) / Path(experiment).stem
+    name = Path(recipe).stem
+    folder = Path(logdir or settings.run.logdir) / name
     folder.mkdir(parents=True, exist_ok=True)
     trials = {seed: (settings.replace_run(seed=seed, progress_bar=False), folder / f"seed_{seed}") for seed in seeds}
     started_here = not ray.is_initialized()
@@ -160,7 +151,6 @@ def sweep(
     try:
         task = ray.remote(num_cpus=cpus_per_trial, max_retries=0)(run_trial)
         limit = max_concurrent or max(1, math.floor(ray.cluster_resources().get("CPU", 1) / cpus_per_trial))
-        name = Path(experiment).stem
         result = SweepResult(folder, name if settings.recipe.name == name else f"{name} ({settings.recipe.name})")
         waiting = list(trials.items())
         while waiting or running:
@@ -185,7 +175,7 @@ def sweep(
             ray.cancel(reference, force=True)
         if started_here:
             ray.shutdown()
-    _write_aggregate(result, Path(experiment).stem)
+    _write_aggregate(result, name)
     return result
 
 

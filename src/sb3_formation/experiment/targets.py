@@ -25,9 +25,8 @@ from sb3_formation.controllers import CONTROLLERS
 from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.env.scenes import DEFAULT_SCENES
 from sb3_formation.experiment.pretrained import load_pretrained, pretrained_folder
-from sb3_formation.experiment.recipes import DEFAULT_RECIPE, Recipe, load_recipe
+from sb3_formation.experiment.recipes import DEFAULT_RECIPE, Recipe, load_recipe, load_settings
 from sb3_formation.experiment.runs import load_trained
-from sb3_formation.experiment.settings import load_settings
 from sb3_formation.runtime import OnnxPolicy
 from sb3_formation.safety.policy import SafePolicy
 from sb3_formation.sb3.model_files import trust_pickle
@@ -144,11 +143,11 @@ def default_protocol(target: str | os.PathLike[str], recipe: str | None = None) 
     folder."""
     kind = target_kind(target)
     if kind is not None:
-        return dict(TARGET_KINDS[kind].recipe(target_name(target), recipe).evaluation)
+        return TARGET_KINDS[kind].recipe(target_name(target), recipe).evaluation.to_dict()
     folder = run_folder(target)
     if folder is None:
         return {}
-    return dict(load_settings(folder).recipe.evaluation)
+    return load_settings(folder).recipe.evaluation.to_dict()
 
 
 def evaluation_folder(target: str | os.PathLike[str], recipe: str | None = None, scenes: str = DEFAULT_SCENES) -> Path:

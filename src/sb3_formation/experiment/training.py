@@ -1,6 +1,5 @@
-"""Training runs: atomic checkpoints, periodic evaluation, stopping on signals, resuming (the settings of a run are in
-:mod:`~sb3_formation.experiment.settings`, its recipe in :mod:`~sb3_formation.experiment.recipes`, its folder's files
-in :mod:`~sb3_formation.experiment.runs`)."""
+"""Training runs: atomic checkpoints, periodic evaluation, stopping on signals, resuming (a run's recipe and run options
+are in :mod:`~sb3_formation.experiment.recipes`, its folder's files in :mod:`~sb3_formation.experiment.runs`)."""
 
 from __future__ import annotations
 
@@ -18,7 +17,6 @@ from typing import Any, cast
 
 import numpy as np
 import torch
-import yaml
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.logger import CSVOutputFormat, Logger, TensorBoardOutputFormat
@@ -26,7 +24,14 @@ from stable_baselines3.common.vec_env import VecEnv, unwrap_vec_wrapper
 
 from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.experiment.evaluation import evaluate
-from sb3_formation.experiment.recipes import residual_base, residual_policy, with_schedules
+from sb3_formation.experiment.recipes import (
+    TrainSettings,
+    load_settings,
+    residual_base,
+    residual_policy,
+    with_schedules,
+    write_settings,
+)
 from sb3_formation.experiment.runs import (
     BEST_MODEL,
     BEST_NORMALIZER,
@@ -41,7 +46,6 @@ from sb3_formation.experiment.runs import (
     reward_normalizer_file,
     save_model,
 )
-from sb3_formation.experiment.settings import TrainSettings, load_settings
 from sb3_formation.safety.policy import SafePolicy
 from sb3_formation.sb3.callbacks import (
     CollectionThreadsCallback,
@@ -58,7 +62,7 @@ from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 from sb3_formation.sb3.residual import ResidualVecEnv
 from sb3_formation.sb3.safety import SafetyVecEnv
 from sb3_formation.sb3.trained import TrainedPolicy
-from sb3_formation.sb3.vec_env import FormationVecEnv
+from sb3_formation.sb3.vec_env import FormationVecEnv, make_formation_vec_env
 from sb3_formation.utils.checks import check_path
 from sb3_formation.utils.files import atomic_directory, atomic_write, folder_lock, holds_files
 
@@ -296,32 +300,37 @@ def stop_on_signals(checkpoint: RunCheckpointCallback, optimizer: torch.optim.Op
 def make_training_env(settings: TrainSettings, stage: int, normalizer_path: Path | None = None) -> VecEnv:
     """The normalised VecEnv of a run, its teams placed for ``stage`` (with saved normaliser statistics to resume).
 
-    Observations are scaled by :class:`ScaleNormalizeVecEnv`; with reward normalisation SB3's ``VecNormalize`` divides
-    the rewards by a running std of the discounted return on top of it.
+    The teams are :func:`~sb3_formation.sb3.vec_env.make_formation_vec_env`'s, with the recipe's team critic
+    (:attr:`~sb3_formation.experiment.recipes.Recipe.team_critic`, the same rule). Observations are scaled by
+    :class:`ScaleNormalizeVecEnv`; with reward normalisation SB3's ``VecNormalize`` divides the rewards by a running std
+    of the discounted return on top of it.
     """
-    config = settings.recipe.config().replace(stage=stage)
-    venv: FormationVecEnv | SafetyVecEnv | ResidualVecEnv
-    venv = FormationVecEnv(
+    recipe = settings.recipe
+    config = recipe.config(stage=stage)
+    teams = make_formation_vec_env(
         config,
-        n_envs=settings.recipe.n_envs,
-        team_observations="team_size" in settings.recipe.ppo_kwargs()["policy_kwargs"],
+        n_envs=recipe.n_envs,
         n_workers=settings.run.workers,
-        team_sizes=settings.recipe.sizes,
+        normalize=False,
+        team_critic=recipe.team_critic,
+        team_sizes=recipe.sizes,
     )
+    venv = cast(FormationVecEnv, teams)  # normalize=False: the teams themselves
     dim, mask = venv.agent_observation_dim, venv.binary_observation_mask
-    if settings.recipe.safety:  # the filter acts on the raw observations and the final actions, below all else
-        venv = SafetyVecEnv(venv, settings.recipe.safety_gains(), settings.recipe.safety_penalty)
-    residual = settings.recipe.residual
-    if residual:  # the controller acts on the raw observations, below the normaliser
-        venv = ResidualVecEnv(cast(FormationVecEnv, venv), *residual_base(residual, config))  # a filter forwards the rest
+    gains = recipe.safety_gains()
+    if gains is not None:  # the filter acts on the raw observations and the final actions, below all else
+        teams = SafetyVecEnv(venv, gains, recipe.safety_penalty)
+    if recipe.residual is not None:  # the controller acts on the raw observations, below the normaliser
+        base = residual_base(recipe.residual.to_dict(), config)
+        teams = ResidualVecEnv(cast(FormationVecEnv, teams), *base)  # a filter forwards the rest
     if normalizer_path is None:
-        env: VecEnv = ScaleNormalizeVecEnv(venv, dim, mask, center=settings.recipe.training_option("center_observations"))
+        env: VecEnv = ScaleNormalizeVecEnv(teams, dim, mask, center=recipe.training.center_observations)
     else:
-        env = ScaleNormalizeVecEnv.load(normalizer_path, venv, training=True, agent_obs_dim=dim, binary_mask=mask)
-    if not settings.recipe.training_option("normalize_reward"):
+        env = ScaleNormalizeVecEnv.load(normalizer_path, teams, training=True, agent_obs_dim=dim, binary_mask=mask)
+    if not recipe.training.normalize_reward:
         return env
     reward_path = None if normalizer_path is None else normalizer_path.with_name(reward_normalizer_file(normalizer_path.name))
-    return normalize_rewards(env, settings.recipe.ppo_kwargs()["gamma"], reward_path)
+    return normalize_rewards(env, recipe.ppo_kwargs()["gamma"], reward_path)
 
 
 def new_run_dir(settings: TrainSettings) -> Path:
@@ -397,8 +406,9 @@ def recipe_model(settings: TrainSettings, env: VecEnv) -> PPO:
     )
     # attributes of this package's own, saved with the model (SB3's classes do not declare them)
     model.formation_config = settings.recipe.config().to_dict()  # type: ignore[attr-defined]
-    model.residual = settings.recipe.residual  # type: ignore[attr-defined]  # the model file says how its actions are meant (load_trained)
-    model.safety = settings.recipe.safety  # type: ignore[attr-defined]  # and whether they pass through the safety filter
+    recipe = settings.recipe.to_dict()  # the sections as plain data, as load_trained reads them
+    model.residual = recipe["residual"]  # type: ignore[attr-defined]  # the model file says how its actions are meant (load_trained)
+    model.safety = recipe["safety"]  # type: ignore[attr-defined]  # and whether they pass through the safety filter
     model.team_sizes = sorted(set(settings.recipe.sizes))  # type: ignore[attr-defined]  # and which team sizes it acts in
     return model
 
@@ -412,7 +422,7 @@ def _start(
     clock: TrainingClock,
 ) -> None:
     """Record the settings in ``run_dir`` (locked by the caller) and train ``model`` from the start."""
-    atomic_write(run_dir / "config.yaml", yaml.safe_dump(settings.to_dict(), sort_keys=False))
+    write_settings(settings, run_dir / "config.yaml")
     atomic_write(run_dir / "command.txt", (command or " ".join(sys.argv)) + "\n")
     imitation = settings.recipe.imitation_settings()
     if imitation is not None:
@@ -462,16 +472,18 @@ def plain_recipe(settings: TrainSettings) -> dict[str, Any]:
 
 
 def _check_recipe_unchanged(recorded: dict[str, Any] | None, recipe: dict[str, Any], run_dir: Path, checkpoint: Path) -> None:
-    """Refuse to resume when ``config.yaml`` no longer holds the recipe the checkpoint was trained with (checkpoints
-    of earlier versions record none and are not checked).
+    """Refuse to resume when ``config.yaml`` no longer holds the recipe the checkpoint was trained with. A key written
+    as null on one side and left out on the other means the same (an unset keyword argument).
 
-    :raises ValueError: naming every setting that differs, with both values
+    :raises ValueError: a checkpoint that records no recipe, or naming every setting that differs, with both values
     """
-    if recorded is None or recorded == recipe:
-        return
+    if recorded is None:
+        raise ValueError(f"{checkpoint / STATE_FILE} records no recipe: the checkpoint is damaged")
     differences = [
         f"{key}: {old!r} in the checkpoint, {new!r} in config.yaml" for key, old, new in _differences(recorded, recipe)
     ]
+    if not differences:
+        return
     raise ValueError(
         f"{run_dir / 'config.yaml'} no longer holds the recipe {checkpoint.name} was trained with "
         f"({'; '.join(differences)}): put those settings back, or train a new run with them"
@@ -534,7 +546,7 @@ def _resume(settings: TrainSettings, run_dir: Path, trusted: bool = False) -> No
 
 def make_curriculum(settings: TrainSettings, clock: TrainingClock) -> CurriculumCallback:
     """The run's curriculum: iterations per stage, the success gate and, under a time budget alone, the stages' shares
-    of the time (:meth:`TrainSettings.stage_time_shares`).
+    of the time (:meth:`~sb3_formation.experiment.recipes.Recipe.stage_time_shares`).
 
     :param settings: the run's settings
     :param clock: the run's clock
@@ -568,10 +580,10 @@ def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: Curri
     imitation = settings.recipe.imitation_settings()
     if imitation is not None and imitation.critic_warmup > 0:
         callbacks.append(FrozenActorCallback(imitation.critic_warmup, curriculum))
-    every = settings.recipe.training_option("eval_every")
+    every = settings.recipe.training.eval_every
     periodic = None
     if every is not None:
-        episodes = settings.recipe.training_option("eval_episodes")
+        episodes = settings.recipe.training.eval_episodes
         periodic = PeriodicEvaluation(run_dir, settings, curriculum, every, episodes)
         callbacks.append(periodic)
     total = curriculum.total_iterations
@@ -598,7 +610,7 @@ def _learn(model: PPO, settings: TrainSettings, run_dir: Path, curriculum: Curri
             periodic.evaluate()
             model.logger.dump(model.num_timesteps)
     if clock.exhausted:
-        minutes = settings.recipe.training_option("minutes")
+        minutes = settings.recipe.training.minutes
         print(f"time budget of {minutes:g} min reached after {curriculum.iteration} iterations")
     if checkpoint.stop_signal is not None:
         raise TrainingStopped(checkpoint.stop_signal, run_dir, latest_checkpoint(run_dir))

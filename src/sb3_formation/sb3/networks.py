@@ -78,8 +78,8 @@ def gaussian_actions(
     distribution: DiagGaussianDistribution, mean_actions: th.Tensor, log_std: th.Tensor
 ) -> DiagGaussianDistribution:
     """SB3's ``DiagGaussianDistribution.proba_distribution`` (the same Gaussian, bit for bit) without torch's argument
-    checks, which cost 8 % of a forward pass on 84 observations (``benchmarks/rollout_breakdown.py``
-    on an AMD EPYC: 384 against 354 us). A non-finite mean then reaches the VecEnv, which refuses the action, naming the team and agent.
+    checks, which cost 8 % of a forward pass on 84 observations (``benchmarks/rollout_breakdown.py`` on an AMD EPYC:
+    384 against 354 us). A non-finite mean then reaches the VecEnv, which refuses the action, naming the team and agent.
 
     :param distribution: the policy's action distribution
     :param mean_actions: ``(batch, action_dim)`` means

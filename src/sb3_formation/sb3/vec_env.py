@@ -19,7 +19,6 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvO
 from sb3_formation.env.blocks import EngineBlocks
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.engine import agent_infos
-from sb3_formation.utils.deprecation import warn_renamed
 
 
 class FormationVecEnv(VecEnv):
@@ -178,8 +177,18 @@ class FormationVecEnv(VecEnv):
         self.blocks.close()
 
 
+def uses_team_critic(config: FormationConfig, team_critic: bool | None = None) -> bool:
+    """Whether a policy of ``config`` has the team critic (fig. 4.3), whose slots observe their whole team: as
+    ``team_critic`` says, else (``None``) exactly when the task uses the team reward (eqs 27-32).
+
+    :param config: the task
+    :param team_critic: the choice, or ``None`` for the task's
+    """
+    return config.team_reward if team_critic is None else team_critic
+
+
 def make_formation_vec_env(
-    task: str = "ch5-bearing",
+    task: str | FormationConfig = "ch5-bearing",
     n_envs: int = 1,
     n_agents: int | None = None,
     stage: int | None = None,
@@ -189,41 +198,36 @@ def make_formation_vec_env(
     team_critic: bool | None = None,
     render_mode: str | None = None,
     team_sizes: Sequence[int] | None = None,
-    preset: str | None = None,
     **config_overrides: Any,
 ) -> VecEnv:
     """The one call a notebook needs: ``n_envs`` teams of a thesis task as an SB3 ``VecEnv``, one slot per agent.
 
     :param task: ``"ch4-individual"``, ``"ch4-team"``, ``"ch5-angle"`` or ``"ch5-bearing"``
-        (:data:`~sb3_formation.env.config.TASKS`)
+        (:data:`~sb3_formation.env.config.TASKS`), or a whole :class:`FormationConfig`
     :param n_envs: number of teams (the thesis trained 12 in chapter 4 and 14 in chapter 5: see the recipes)
     :param n_agents: team size (default: the task's)
     :param stage: curriculum stage (default: the task's, 1)
     :param seed: seed of the teams' scenario generators (each team gets ``seed`` + its first slot); ``None``: random
     :param n_workers: processes stepping the teams, this one included
     :param normalize: wrap in :class:`~sb3_formation.sb3.normalization.ScaleNormalizeVecEnv`
-    :param team_critic: give every slot its team's observations (default: when the task uses the team reward)
+    :param team_critic: give every slot its team's observations (default: when the task uses the team reward,
+        :func:`uses_team_critic`)
     :param render_mode: ``None`` or ``"rgb_array"``
     :param team_sizes: teams of several sizes, taken in turn (see :class:`FormationVecEnv`); default: ``n_agents``
-    :param preset: deprecated spelling of ``task``
     :param config_overrides: further :class:`FormationConfig` fields
     """
     from sb3_formation.sb3.normalization import ScaleNormalizeVecEnv
 
-    if preset is not None:
-        warn_renamed("make_formation_vec_env(preset=...)", "make_formation_vec_env(task=...)")
-        task = preset
     overrides = dict(config_overrides)
     if n_agents is not None:
         overrides["n_agents"] = n_agents
     if stage is not None:
         overrides["stage"] = stage
-    config = FormationConfig.task(task, **overrides)
-    team_observations = config.team_reward if team_critic is None else team_critic
+    config = task.replace(**overrides) if isinstance(task, FormationConfig) else FormationConfig.task(task, **overrides)
     venv = FormationVecEnv(
         config,
         n_envs=n_envs,
-        team_observations=team_observations,
+        team_observations=uses_team_critic(config, team_critic),
         n_workers=n_workers,
         render_mode=render_mode,
         team_sizes=team_sizes,

@@ -20,7 +20,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, Patch, Polygon
 
 from sb3_formation.env.rendering import AGENT_COLOURS
-from sb3_formation.experiment.settings import load_settings
+from sb3_formation.experiment.recipes import load_settings
 from sb3_formation.experiment.sweep import SweepResult
 from sb3_formation.experiment.trajectories import Trajectories
 from sb3_formation.sb3.metrics import EPISODE_METRICS, SUCCESS_RATE_TAG
