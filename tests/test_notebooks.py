@@ -30,12 +30,13 @@ def outputs(notebook: nbformat.NotebookNode, kind: str) -> list[dict]:
 
 @pytest.mark.slow
 def test_quickstart_notebook_trains_evaluates_plots_and_animates(tmp_path: Path) -> None:
-    parameters = "PRESET = 'ch5-bearing'\nITERATIONS = (1, 0, 1)\nN_ENVS = 1\nMAX_STEPS = 40\n"
-    parameters += "EVAL_EPISODES = 2\nVIDEO_STEPS = 10\nSEED = 0"
+    parameters = "RECIPE = 'residual-ch5-bearing'\nSTEPS = 1\nN_ENVS = 1\nEVAL_EPISODES = 2\nMAX_STEPS = 40\nSEED = 0"
     notebook = run_notebook("01_quickstart.ipynb", parameters, tmp_path)
     text = "".join(output["text"] for output in outputs(notebook, "stream"))
-    assert "6 slots = 1 teams x 6 agents" in text and "trained 1536 agent-steps" in text
-    assert "success rate" in text and "over 2 episodes" in text
+    assert "12 slots = 2 teams x 6 agents" in text and "trained residual-ch5-bearing into runs/notebook/" in text
+    rows = [line.split() for line in text.splitlines() if line.startswith(("trained ", "shipped ")) and "%" in line]
+    assert [row[0] for row in rows] == ["trained", "shipped"] and all(row[1].endswith("%") for row in rows)
+    assert len(list((tmp_path / "runs" / "notebook").glob("residual-ch5-bearing_6a_s0_*/final_model.zip"))) == 1
     figures = [output for output in outputs(notebook, "execute_result") if "image/png" in output["data"]]
     assert len(figures) == 2  # the trajectory and the error curves
     gifs = [output for output in outputs(notebook, "display_data") if "image/gif" in output["data"]]
