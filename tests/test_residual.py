@@ -224,7 +224,7 @@ def test_a_policy_trained_on_several_team_sizes_acts_in_teams_of_any_size(tmp_pa
         evaluate(single, episodes=1, env_overrides={"n_agents": 7})
 
 
-def test_residual_setups_are_checked() -> None:
+def test_residual_recipes_are_checked() -> None:
     setup = load_recipe("residual-ch5-bearing")
     values = setup.to_dict()
     with pytest.raises(ValueError, match="residual needs controller and scale"):
