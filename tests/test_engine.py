@@ -5,6 +5,7 @@ env's resets and state, and evaluations, bit for bit."""
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -12,7 +13,11 @@ from engine_goldens import EARLY_STEPS, GOLDENS, TASKS, case_name, cases, early_
 
 from sb3_formation import FormationConfig, FormationEnv
 from sb3_formation.env.blocks import slot_observations
-from sb3_formation.env.engine import FormationEngine
+from sb3_formation.env.config import INFO_KEYS, REWARD_TERMS
+from sb3_formation.env.dynamics import HolonomicDynamics, UnicycleDynamics
+from sb3_formation.env.engine import INFO_VALUES, ContactColumn, FormationEngine, InfoColumn, agent_infos
+from sb3_formation.env.progress import EuclideanProgress, GeodesicProgress
+from sb3_formation.env.scenarios import Scenario
 from sb3_formation.experiment.pretrained import numerics_fingerprint
 from sb3_formation.sb3.vec_env import FormationVecEnv
 
@@ -213,3 +218,63 @@ def test_a_teams_formation_is_the_pure_geometry_of_its_positions() -> None:
     formation = engine.formation(1)
     for name, value in expected._asdict().items():
         np.testing.assert_array_equal(getattr(formation, name), value, err_msg=name)
+
+
+def test_each_info_column_lands_under_its_key() -> None:
+    """The info values' first columns are the keys of ``INFO_KEYS`` that their ``InfoColumn`` names, the reward terms
+    follow in the order of ``REWARD_TERMS``, and the contacts' columns are the agent and the obstacle counts."""
+    values = np.arange(2.0 * INFO_VALUES).reshape(2, INFO_VALUES) + 0.5  # row 1, column c holds INFO_VALUES + c + 0.5
+    contacts = np.zeros((2, 2), dtype=np.int64)
+    contacts[1, ContactColumn.AGENTS], contacts[1, ContactColumn.OBSTACLES] = 3, 4
+    infos = agent_infos(values, contacts, np.array([True, False]))
+    assert INFO_VALUES == len(INFO_KEYS) - 3 == InfoColumn.FIRST_TERM + len(REWARD_TERMS)  # less contacts and success
+    for column in list(InfoColumn)[:-1]:
+        assert infos[1][column.name.lower()] == INFO_VALUES + column + 0.5
+    for k, term in enumerate(REWARD_TERMS):
+        assert infos[1][f"reward_{term}"] == INFO_VALUES + InfoColumn.FIRST_TERM + k + 0.5
+    assert (infos[1]["collisions_agent"], infos[1]["collisions_obstacle"]) == (3, 4)
+    assert (infos[0]["success"], infos[1]["success"]) == (True, False)
+
+
+def test_the_goal_distance_column_is_the_centroids_distance_to_the_goal() -> None:
+    """After every step the ``GOAL_DISTANCE`` column (what evaluations record as the final goal distance) holds
+    |p^g - p^c| of the team's positions, computed here with numpy's mean; the error columns are the team state's."""
+    config = FormationConfig.task("ch5-bearing", stage=3)
+    engine = FormationEngine([config, config.replace(n_agents=4)])
+    engine.reset(0, seed=1)
+    engine.reset(1, seed=2)
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        step = engine.step(rng.uniform(-1.0, 1.0, (10, 2)))
+        for team in (0, 1):
+            rows, state = engine.team_rows(team), engine.team_state(team)
+            distance = np.hypot(*(state.goal - state.positions.mean(axis=0)))
+            np.testing.assert_allclose(step.info_values[rows, InfoColumn.GOAL_DISTANCE], distance, rtol=1e-12)
+            np.testing.assert_array_equal(step.info_values[rows, InfoColumn.BEARING_ERROR], state.bearing_errors)
+            np.testing.assert_array_equal(step.contacts[rows, ContactColumn.OBSTACLES], state.contacts_obstacle)
+
+
+@pytest.mark.parametrize("dynamics", ["holonomic", "unicycle"])
+def test_a_full_forward_action_from_rest_reaches_v_max_along_the_heading_or_the_action(dynamics: str) -> None:
+    """A team alone in open space, at rest: the action (1, 0) is F_max = m v_max / dt, so one step reaches v_max (eq.
+    19): along +x for holonomic agents, along the heading (the start faces the goal from the centroid) for unicycles."""
+    config = FormationConfig.task("ch5-bearing", stage=3, n_agents=3, dynamics=dynamics)
+    engine = FormationEngine([config])
+    assert type(engine.dynamics) is {"holonomic": HolonomicDynamics, "unicycle": UnicycleDynamics}[dynamics]
+    triangle = np.array([[7.0, 4.0], [8.0, 4.0], [7.5, 4.8]])
+    goal = np.array([11.0, 8.0])
+    engine.reset(0, scenario=Scenario(triangle, goal))
+    step = engine.step(np.tile([1.0, 0.0], (3, 1)))
+    if dynamics == "holonomic":
+        expected = np.tile([config.v_max, 0.0], (3, 1))
+    else:
+        facing = math.atan2(*(goal - triangle.mean(axis=0))[::-1])
+        expected = np.tile(config.v_max * np.array([math.cos(facing), math.sin(facing)]), (3, 1))
+    np.testing.assert_allclose(step.velocities, expected, rtol=0, atol=1e-9 * config.v_max)
+    assert not step.contacts.any()
+
+
+def test_the_goal_progress_is_the_tasks() -> None:
+    config = FormationConfig.task("ch5-bearing")
+    assert type(FormationEngine([config]).progress) is EuclideanProgress
+    assert type(FormationEngine([config.replace(goal_progress="geodesic")]).progress) is GeodesicProgress

@@ -217,15 +217,15 @@ def test_the_geodesic_goal_term_rewards_going_round_the_wall() -> None:
         env = FormationEnv(config)
         env.reset(seed=0, options={"scenario": scenario})
         engine = env.engine
-        before = float(engine.ways[0])
+        before = float(engine.latest.ways[0])
         up = np.tile([0.0, 1.0], (config.n_agents, 1))
         observations[progress], _, _, _, infos = env.step_array(up)
-        after = float(engine.ways[0])
+        after = float(engine.latest.ways[0])
         goal_term = infos[0]["reward_goal"]
         assert goal_term == pytest.approx(config.k1 + (before - after) / (config.dt * config.v_max), abs=1e-9)
         terms[progress] = goal_term
         if progress == "euclidean":  # the thesis's: the way is the goal distance itself
-            assert after == float(engine.goal_distances[0])
+            assert after == float(engine.latest.goal_distances[0])
     assert terms["euclidean"] < FormationConfig.task("ch5-bearing").k1 < terms["geodesic"]
     # only the training reward reads the map: the observed previous reward (Table 3.1) is the thesis's in both
     np.testing.assert_array_equal(observations["euclidean"], observations["geodesic"])

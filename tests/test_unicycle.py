@@ -119,7 +119,7 @@ def test_the_heading_is_observed_and_in_the_state() -> None:
     np.testing.assert_allclose(
         rows[:, layout["heading"]], np.stack([np.cos(state.headings), np.sin(state.headings)], 1), atol=1e-7
     )
-    speeds = env.engine.forward_speeds[:, None]  # the velocity field: the forward speed along the heading
+    speeds = env.engine.dynamics.forward_speeds[:, None]  # the velocity field: the forward speed along the heading
     np.testing.assert_allclose(rows[:, layout["velocity"]], speeds * rows[:, layout["heading"]], atol=1e-7)
     assert np.abs(speeds).max() > 0.01
     global_state = env.state()

@@ -152,7 +152,7 @@ class EngineBlock:
             record = {"r": summary["return"], "l": summary["length"], "t": round(time.time() - self.start_time, 6)}
             terminal = observations[rows].copy()  # with auto_reset, the rows get the reset's observations
             timed_out = bool(step.truncated[team]) and not success
-            comm = int(engine.episode_comm_exceeded[team])
+            comm = int(engine.episodes.comm_exceeded[team])
             episodes.append(TeamEpisode(team, rows.start, terminal, timed_out, success, record, summary, comm))
             if self.auto_reset:
                 observations[rows] = self._slot_observations(engine.reset(team), rows.stop - rows.start)

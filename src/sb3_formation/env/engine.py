@@ -5,43 +5,82 @@ view of an engine of one team, :class:`~sb3_formation.env.blocks.EngineBlock` ad
 records for the SB3 ``VecEnv`` and for evaluation. The engine never resets a team by itself: a team whose episode
 ended is left as it ended (its last observation is the terminal one) and is not stepped until it is reset.
 
-A step of the live teams is: one compiled call for the forces, Pymunk for each team (each team has its own space, so
-that a team's numbers never depend on the others), then three compiled calls over the stacked arrays of every agent
-(formation geometry and nearest gaps; reward terms; lidar, observations, info values and the episode's running sums),
-with numpy between them for the weighted sum of the reward terms and the team means, and Python's ``math.hypot`` for
-the goal distance. A reset measures the new team with the same kernels. ``docs/design.md`` follows one step through.
+A step of the live teams is: the engine's :class:`~sb3_formation.env.dynamics.Dynamics` turns the actions into what
+each team's Pymunk world is told and reads the world back (each team has its own space, so that a team's numbers never
+depend on the others), then three compiled calls over the stacked arrays of every agent (formation geometry and
+nearest gaps; the step's count, reward terms and episode ends; lidar, observations, info values and the episode's
+running sums), with numpy between them for the weighted sum of the reward terms and the team means, Python's
+``math.hypot`` for the goal distance, and the engine's :class:`~sb3_formation.env.progress.GoalProgress` for the way
+to the goal that the goal term rewards. A reset measures the new team with the same kernels. ``docs/design.md``
+follows one step through.
 
-Arrays that the engine returns are never written again: the next step makes new ones, and a reset copies an array
-before it writes the reset team's rows.
+The engine keeps its numbers in the few structures of :mod:`~sb3_formation.env.stacked`; a kernel takes each as the
+plain tuple of its fields. Arrays that the engine returns are never written again: the next step makes new ones, and a
+reset copies an array before it writes the reset team's rows.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from enum import IntEnum
 from typing import Any, NamedTuple, cast
 
 import numba
 import numpy as np
 from gymnasium.utils import seeding
 
-from sb3_formation.env.clearance import ClearanceMap, goal_field, path_distance
 from sb3_formation.env.config import INFO_KEYS, REWARD_TERMS, FormationConfig
+from sb3_formation.env.dynamics import DYNAMICS_CLASSES, Dynamics
 from sb3_formation.env.episodes import episode_summary
-from sb3_formation.env.geometry import FormationState, _measure, agent_errors, reference_bearings, ring_neighbours
-from sb3_formation.env.observations import _fill_observations, observation_fields, observation_layout
-from sb3_formation.env.rewards import _reward_terms, combine_rewards, goal_term, nearest_gaps, reward_constants
+from sb3_formation.env.geometry import FormationState, _measure_into, agent_errors, reference_bearings, ring_neighbours
+from sb3_formation.env.observations import _fill_observations, observation_fields
+from sb3_formation.env.progress import GOAL_PROGRESS_CLASSES, GoalProgress
+from sb3_formation.env.rewards import RewardConstants, _reward_terms, combine_rewards, nearest_gaps, reward_constants
 from sb3_formation.env.scenarios import Scenario
 from sb3_formation.env.scenes import check_scenes_fit, draw_scenario
-from sb3_formation.env.sensors import Lidar, lidar_ranges
+from sb3_formation.env.sensors import AGENT_CHANNEL, OBSTACLE_CHANNEL, Lidar, LidarLayout, lidar_ranges, ray_directions
+from sb3_formation.env.stacked import (
+    Constants,
+    Episodes,
+    Fields,
+    Formations,
+    Shapes,
+    StepArrays,
+    StepTeams,
+    team_formation,
+    widened,
+)
 from sb3_formation.env.state import TeamState
-from sb3_formation.env.world import World, clamp_speed, split_state
+from sb3_formation.env.world import World
 
 _N_TERMS = len(REWARD_TERMS)
-_GOAL = REWARD_TERMS.index("goal")  # the goal term's row of a team's (terms, n) block
-#: columns of the info values of a step: the five errors and distances of :data:`INFO_KEYS`, then the reward terms
-#: (:func:`agent_infos` adds the contacts and success)
-INFO_VALUES = 5 + _N_TERMS
+#: the arrays of :class:`~sb3_formation.env.stacked.StepArrays` that the engine returns (never written again)
+_RETURNED = ("positions", "velocities", "contacts", "observations", "info_values")
+
+
+class InfoColumn(IntEnum):
+    """The columns of a step's info values ``(agents, INFO_VALUES)``: the keys of :data:`INFO_KEYS` that the step
+    measures (each named as its key, in upper case), then from :attr:`FIRST_TERM` on the reward terms in the order of
+    ``REWARD_TERMS`` (:func:`agent_infos` adds the contacts and success)."""
+
+    ANGLE_ERROR_DEG = 0  #: |beta^ref - beta^i| (deg)
+    BEARING_ERROR = 1  #: mean over the two neighbours of |g_j^{i,ref} - g_j^i|
+    NEIGHBOUR_DISTANCE_ERROR = 2  #: mean over the two neighbours of max(d_j^i - d^ref, 0) (m)
+    CENTROID_DISTANCE = 3  #: |p^i - p^c| (m)
+    GOAL_DISTANCE = 4  #: the team's centroid-goal distance (m)
+    FIRST_TERM = 5  #: reward term k (before its coefficient) is column ``FIRST_TERM + k``
+
+
+#: the number of columns of a step's info values (:class:`InfoColumn`)
+INFO_VALUES = InfoColumn.FIRST_TERM + _N_TERMS
+
+
+class ContactColumn(IntEnum):
+    """The columns of a step's contacts ``(agents, 2)``: what each agent touched in the step."""
+
+    AGENTS = 0  #: other agents
+    OBSTACLES = 1  #: obstacles or walls
 
 
 class EngineStep(NamedTuple):
@@ -52,8 +91,8 @@ class EngineStep(NamedTuple):
     rewards: np.ndarray  #: ``(agents,)``
     terminated: np.ndarray  #: ``(teams,)``: the centroid reached the goal in this step
     truncated: np.ndarray  #: ``(teams,)``: the step limit T_s ended the episode
-    info_values: np.ndarray  #: ``(agents, INFO_VALUES)``
-    contacts: np.ndarray  #: ``(agents, 2)`` other agents, then obstacles or walls, touched in the step
+    info_values: np.ndarray  #: ``(agents, INFO_VALUES)`` (:class:`InfoColumn`)
+    contacts: np.ndarray  #: ``(agents, 2)`` (:class:`ContactColumn`) touched in the step
     positions: np.ndarray  #: ``(agents, 2)`` (m)
     velocities: np.ndarray  #: ``(agents, 2)`` (m/s)
 
@@ -62,7 +101,9 @@ class FormationEngine:
     """Teams of one task (they may differ in ``n_agents`` only), reset one by one and stepped together.
 
     Agents are stacked one team after the other (team t holds rows ``starts[t]:starts[t + 1]``, agent 0 first). Each
-    team has its own scenario generator, curriculum stage, Pymunk world and lidar.
+    team has its own scenario generator, curriculum stage, Pymunk world and lidar. The numbers of every team are in
+    :attr:`constants`, :attr:`shapes`, :attr:`formations`, :attr:`latest` and :attr:`episodes`
+    (:mod:`~sb3_formation.env.stacked`).
 
     :param configs: the task configuration of each team
     """
@@ -79,29 +120,23 @@ class FormationEngine:
             check_scenes_fit(team_config)
         #: team sizes, and the first row of each team (and the number of rows, last)
         self.sizes = sizes = np.array([team_config.n_agents for team_config in self.configs])
-        self.starts = np.concatenate([[0], np.cumsum(sizes)])
-        n_teams, n_slots = len(sizes), int(self.starts[-1])
+        self.starts = starts = np.concatenate([[0], np.cumsum(sizes)])
+        n_teams = len(sizes)
         #: the fields of an agent's observation (Table 3.1), in order
         self.observation_fields = observation_fields(config)
-        self.observation_dim = dim = sum(field.size for field in self.observation_fields)
+        self.observation_dim = sum(field.size for field in self.observation_fields)
         #: team size -> (teams of that size, their agents' rows in team order): the groups of the stacked numpy work
         self._groups = {
-            int(size): (teams, np.concatenate([np.arange(self.starts[t], self.starts[t + 1]) for t in teams]))
+            int(size): (teams, np.concatenate([np.arange(starts[t], starts[t + 1]) for t in teams]))
             for size in np.unique(sizes)
             for teams in [np.flatnonzero(sizes == size)]
         }
         self._single_size = len(self._groups) == 1
-        # per-agent constants, stacked: neighbours (indices within the team) and reference bearings
-        self.neighbours = np.concatenate([ring_neighbours(int(n)) for n in sizes]).astype(np.int64)
-        self.reference_bearings = np.ascontiguousarray(np.concatenate([reference_bearings(int(n)) for n in sizes]))
-        # per-team objects and constants
+        # per-team objects
         self.lidars = [
             Lidar(c.lidar_rays, c.lidar_range, c.agent_radius, c.world_width, c.world_height, ring_neighbours(c.n_agents))
             for c in self.configs
         ]
-        self._directions = self.lidars[0].directions
-        self._reward_constants = np.stack([reward_constants(team_config) for team_config in self.configs])
-        self._beta_ref = np.array([team_config.beta_ref_deg for team_config in self.configs])
         self.worlds: list[World | None] = [None] * n_teams
         self.scenarios: list[Scenario | None] = [None] * n_teams
         self.generators: list[np.random.Generator] = []
@@ -114,60 +149,24 @@ class FormationEngine:
         self._coefficients = np.zeros((n_teams, _N_TERMS))
         for team, team_config in enumerate(self.configs):
             self.set_stage(team, team_config.stage)
-        # the episode state of every agent and team
-        self.observations = np.zeros((n_slots, dim), dtype=np.float32)
-        self.info_values = np.zeros((n_slots, INFO_VALUES))
-        self.positions = np.zeros((n_slots, 2))
-        self.velocities = np.zeros((n_slots, 2))
-        # unicycles' headings (rad) and forward speeds (m/s), and the heading's columns of an observation (cos, sin)
-        self.headings, self.forward_speeds = np.zeros(n_slots), np.zeros(n_slots)
-        self.unicycle = config.dynamics == "unicycle"
-        if self.unicycle:
-            self._heading_column = observation_layout(self.observation_fields)["heading"].start
-        self.previous_actions = np.zeros((n_slots, 2))
-        self.previous_rewards = np.zeros(n_slots)
-        self.contacts = np.zeros((n_slots, 2), dtype=np.int64)  # agents, obstacles touched in the last step
-        self.lidar = np.zeros((2, n_slots, config.lidar_rays))
-        self.goals = np.zeros((n_teams, 2))
-        # every team's lidar layout (Lidar.layout: its obstacles then its agents as circles, who sees which, channels),
-        # padded to the widest team's; the obstacles' circles are also what the rewards' nearest gaps measure
-        self._lidar_circles = np.zeros((n_teams, 0, 3))
-        self._lidar_visible = np.zeros((n_slots, 0), dtype=bool)
-        self._lidar_channels = np.zeros((n_teams, 0), dtype=np.int64)
-        self._lidar_counts = np.zeros(n_teams, dtype=np.int64)
-        self._walls = np.zeros((n_teams, 0, 5))  # every team's walls, padded to the most walls of a team
-        self._wall_counts = np.zeros(n_teams, dtype=np.int64)
-        self.step_counts = np.zeros(n_teams, dtype=np.int64)
-        self.goal_distances = np.zeros(n_teams)
-        #: the way (m) to the goal whose decrease the goal term rewards: the goal distance, or with ``goal_progress:
-        #: geodesic`` the way round the shapes on the team's goal field (computed at its reset)
-        self.ways = np.zeros(n_teams)
-        self._goal_fields: list[tuple[ClearanceMap, np.ndarray] | None] = [None] * n_teams
-        self._geodesic = any(team_config.goal_progress == "geodesic" for team_config in self.configs)
-        self.previous_offsets = np.zeros((n_teams, 2))  # c_g^v one step earlier
+        #: how actions move the agents, and what the goal term rewards progress along (chosen by the task)
+        self.dynamics: Dynamics = DYNAMICS_CLASSES[config.dynamics](config, starts)
+        self.progress: GoalProgress = GOAL_PROGRESS_CLASSES[config.goal_progress](self.configs, starts)
         #: teams in an episode (reset and not ended since)
         self.live = np.zeros(n_teams, dtype=bool)
-        self._every_team, self._every_team_list = np.arange(n_teams), list(range(n_teams))
         #: teams whose centroid reached the goal in their last step
         self.success = np.zeros(n_teams, dtype=bool)
-        # the formation now (FormationState's fields, stacked)
-        self.centroids = np.zeros((n_teams, 2))
-        self.centroid_distances = np.zeros(n_slots)
-        self.neighbour_offsets = np.zeros((n_slots, 2, 2))
-        self.neighbour_distances = np.zeros((n_slots, 2))
-        self.bearings = np.zeros((n_slots, 2, 2))
-        self.angles = np.zeros(n_slots)
-        self.angle_errors = np.zeros(n_slots)
-        self.bearing_errors = np.zeros((n_slots, 2))
-        self.orientation_flags = np.zeros(n_slots, dtype=bool)
-        self.range_flags = np.zeros(n_teams, dtype=bool)
-        # running sums of every team's episode (see episode_summary)
-        self.episode_lengths = np.zeros(n_teams, dtype=np.int64)
-        self.episode_returns = np.zeros(n_teams)
-        self.episode_errors = np.zeros((n_teams, 3))
-        self.episode_collisions = np.zeros((n_teams, 2), dtype=np.int64)
-        self.episode_terms = np.zeros((n_teams, _N_TERMS))
-        self.episode_comm_exceeded = np.zeros(n_teams, dtype=np.int64)  # steps with a neighbour beyond d_comm
+        self._every_team = StepTeams(np.arange(n_teams), list(range(n_teams)), slice(None), None, everyone=True)
+        self.constants = _constants(self.configs, starts)
+        n_slots = int(starts[-1])
+        self.shapes = Shapes.empty(n_teams, n_slots)
+        self.formations = Formations.zeros(n_teams, n_slots)
+        self.latest = StepArrays.zeros(n_teams, n_slots, self.observation_dim, INFO_VALUES, _N_TERMS)
+        self.episodes = Episodes.zeros(n_teams, n_slots, config.lidar_rays, _N_TERMS)
+        # the fields of the structures that are never replaced, and of the reward constants, as the kernels take them
+        self._fixed_fields = tuple(self.constants), tuple(self.formations), tuple(self.episodes)
+        self._reward_fields = tuple(reward_constants(config))
+        self._shape_fields = tuple(self.shapes)  # again at each reset (_load_shapes)
 
     @property
     def n_teams(self) -> int:
@@ -206,65 +205,70 @@ class FormationEngine:
             raise TypeError(f"the scenario must be a Scenario, got {type(scenario).__name__}")
         else:
             scenario.validate(config)
+        world = self._place(team, scenario)
+        rows, episodes = self.team_rows(team), self.episodes
+        # arrays that were returned are copied before their rows change (see the module docstring)
+        latest = self.latest = self.latest._replace(**{name: getattr(self.latest, name).copy() for name in _RETURNED})
+        latest.positions[rows] = world.positions
+        latest.velocities[rows] = world.velocities
+        latest.contacts[rows] = 0
+        latest.terms[_N_TERMS * rows.start : _N_TERMS * rows.stop] = 0.0  # the infos of a reset hold no reward terms
+        self.dynamics.reset(rows, world)
+        self._clear_episode(team, scenario.goal)
+        active = np.array([team])
+        self._measure(active, latest.positions)
+        centroid = self.formations.centroids[team]
+        latest.goal_distances[team] = math.hypot(*(episodes.goals[team] - centroid).tolist())
+        latest.ways[team] = self.progress.reset(team, scenario, centroid, float(latest.goal_distances[team]))
+        episodes.previous_offsets[team] = episodes.goals[team] - centroid  # no step before: the offset now
+        self._observe(active, rows, np.zeros(self.n_teams), accumulate=False)
+        observations: np.ndarray = latest.observations[rows].copy()
+        return observations
+
+    def _place(self, team: int, scenario: Scenario) -> World:
+        """Place ``scenario`` in the team's world (made at its first reset) and give its shapes to its lidar."""
         world = self.worlds[team]
         if world is None:
-            world = self.worlds[team] = World(config, scenario)
+            world = self.worlds[team] = World(self.configs[team], scenario)
         else:
             world.place(scenario)
         self.scenarios[team] = scenario
         lidar = self.lidars[team]
         lidar.set_obstacles(scenario.obstacles, scenario.walls)
-        self._load_lidar_layout(team, lidar)
-        rows = self.team_rows(team)
-        # arrays that were returned are copied before their rows change (see the module docstring)
-        for name in ("observations", "info_values", "contacts", "positions", "velocities"):
-            setattr(self, name, getattr(self, name).copy())
-        self.positions[rows] = world.positions
-        self.velocities[rows] = world.velocities
-        if self.unicycle:
-            self.headings, self.forward_speeds = self.headings.copy(), self.forward_speeds.copy()
-            self.headings[rows], self.forward_speeds[rows] = world.headings, 0.0
-        self.previous_actions[rows] = 0.0
-        self.previous_rewards[rows] = 0.0
-        self.contacts[rows] = 0
-        self.goals[team] = scenario.goal
-        self.step_counts[team] = 0
+        self._load_shapes(team, lidar.layout)
+        return world
+
+    def _clear_episode(self, team: int, goal: np.ndarray) -> None:
+        """Start a team's episode towards ``goal``: no step, no memory of one, no sums; live, no success."""
+        rows, episodes = self.team_rows(team), self.episodes
+        episodes.previous_actions[rows] = 0.0
+        episodes.previous_rewards[rows] = 0.0
+        episodes.goals[team] = goal
+        episodes.step_counts[team] = 0
+        episodes.returns[team] = episodes.comm_exceeded[team] = 0
+        episodes.errors[team] = episodes.term_sums[team] = episodes.collisions[team] = 0
         self.live[team], self.success[team] = True, False
-        self.episode_lengths[team] = self.episode_returns[team] = self.episode_comm_exceeded[team] = 0
-        self.episode_errors[team] = self.episode_terms[team] = self.episode_collisions[team] = 0
-        active = np.array([team])
-        self._measure(active)
-        self.goal_distances[team] = math.hypot(*(self.goals[team] - self.centroids[team]).tolist())
-        if config.goal_progress == "geodesic":
-            clearance = ClearanceMap.of(config, cast(np.ndarray, scenario.obstacles), cast(np.ndarray, scenario.walls))
-            self._goal_fields[team] = clearance, goal_field(clearance, scenario.goal)
-        self.ways[team] = self._way(team)
-        self.previous_offsets[team] = self.goals[team] - self.centroids[team]
-        no_terms = np.zeros(_N_TERMS * len(self.previous_rewards))
-        self._observe(active, self.observations, self.info_values, no_terms, np.zeros(self.n_teams), accumulate=False)
-        observations: np.ndarray = self.observations[rows].copy()
-        return observations
 
-    def _way(self, team: int) -> float:
-        """The team's way (m) to its goal now (:attr:`ways`)."""
-        field = self._goal_fields[team]
-        if self.configs[team].goal_progress == "euclidean" or field is None:
-            return float(self.goal_distances[team])
-        return path_distance(*field, self.centroids[team])
-
-    def _load_lidar_layout(self, team: int, lidar: Lidar) -> None:
-        circles, visible, channels = lidar.layout
-        count, rows = len(channels), self.team_rows(team)
-        self._lidar_circles = _widened(self._lidar_circles, count)
-        self._lidar_visible = _widened(self._lidar_visible, count)
-        self._lidar_channels = _widened(self._lidar_channels, count)
-        self._lidar_circles[team, :count] = circles
-        self._lidar_visible[rows, :count] = visible
-        self._lidar_channels[team, :count] = channels
-        self._lidar_counts[team] = count
-        self._walls = _widened(self._walls, len(lidar.walls))
-        self._walls[team, : len(lidar.walls)] = lidar.walls
-        self._wall_counts[team] = len(lidar.walls)
+    def _load_shapes(self, team: int, layout: LidarLayout) -> None:
+        """Put a team's lidar layout (its obstacles and agents as circles, who sees which, their channels, its walls)
+        into :attr:`shapes`, widened when the team has more circles or walls than any team had."""
+        count, wall_count, rows = len(layout.channels), len(layout.walls), self.team_rows(team)
+        old = self.shapes
+        shapes = self.shapes = Shapes(
+            widened(old.circles, count),
+            widened(old.visible, count),
+            widened(old.channels, count),
+            old.circle_counts,
+            widened(old.walls, wall_count),
+            old.wall_counts,
+        )
+        shapes.circles[team, :count] = layout.circles
+        shapes.visible[rows, :count] = layout.visible
+        shapes.channels[team, :count] = layout.channels
+        shapes.circle_counts[team] = count
+        shapes.walls[team, :wall_count] = layout.walls
+        shapes.wall_counts[team] = wall_count
+        self._shape_fields = tuple(shapes)
 
     # Step ---------------------------------------------------------------------------------------------------------
 
@@ -274,228 +278,118 @@ class FormationEngine:
         :param actions: ``(agents, 2)`` finite actions within [-1, 1] (the views check and clip them), every team's
             agents one after the other; the rows of teams that are not live are ignored
         """
-        everyone = bool(self.live.all())
-        pick: slice | np.ndarray
-        if everyone:  # as in every VecEnv step: no team to leave out
-            active, teams, pick, stepped = self._every_team, self._every_team_list, slice(None), None
-        else:
-            active = np.flatnonzero(self.live)
-            if active.size == 0:  # nothing to step (a block of an evaluation whose episodes are all played)
-                unchanged = (self.info_values, self.contacts, self.positions, self.velocities)
-                ended = np.zeros(self.n_teams, dtype=bool)
-                return EngineStep(self.observations, np.zeros(len(actions)), ended, ended.copy(), *unchanged)
-            teams, pick = active.tolist(), active
-            stepped = np.repeat(self.live, self.sizes)  # the rows of the live teams
-        config, starts = self.config, self.starts
-        previous_velocities = self.velocities
-        worlds = cast("list[World]", self.worlds)  # a live team has been reset, so has a world
-        pushes = (actions * config.force_max) * (config.dt / config.agent_mass)  # velocity changes (m/s)
-        if self.unicycle:  # the forward force along the heading, the turn action a share of the turn-rate limit
-            forward = np.clip(self.forward_speeds + pushes[:, 0], -config.v_max, config.v_max)
-            turns = actions[:, 1] * config.max_turn_rate
-            moved = [
-                (team, worlds[team].drive(forward[starts[team] : starts[team + 1]], turns[starts[team] : starts[team + 1]]))
-                for team in teams
-            ]
-            positions = np.concatenate([worlds[team].agent_states[:, :2] for team in teams])
-            headings = np.concatenate([worlds[team].headings for team in teams])
-            speeds = np.concatenate([worlds[team].forward_speeds for team in teams])
-            velocities = speeds[:, None] * np.stack([np.cos(headings), np.sin(headings)], axis=1)
-            self.headings = self._new_rows(self.headings, headings, stepped)
-            self.forward_speeds = self._new_rows(self.forward_speeds, speeds, stepped)
-        else:
-            commanded = clamp_speed(self.velocities + pushes, config.v_max)
-            moved = [(team, worlds[team].advance(commanded[starts[team] : starts[team + 1]])) for team in teams]
-            positions, velocities = split_state(np.concatenate([worlds[team].agent_states for team in teams]), config.v_max)
-        self.positions = self._new_rows(self.positions, positions, stepped)
-        self.velocities = self._new_rows(self.velocities, velocities, stepped)
-        contacts = np.zeros((len(actions), 2), dtype=np.int64) if everyone else self.contacts.copy()
-        if stepped is not None:
-            contacts[stepped] = 0
-        for team, touched in moved:
-            if touched is not None:
-                contacts[starts[team] : starts[team + 1]] = np.transpose(touched)
-        self.contacts = contacts
-        self.step_counts[pick] += 1
-        self.previous_offsets[pick] = self.goals[pick] - self.centroids[pick]
-        nearest_agent, nearest_obstacle = self._measure(active)  # rows of other teams: undefined
-        previous_goal_distances = self.goal_distances
-        self.goal_distances = goal_distances = self.goal_distances.copy()
-        for team, (x, y) in zip(teams, (self.goals[pick] - self.centroids[pick]).tolist()):
-            goal_distances[team] = math.hypot(x, y)  # Python's hypot: numba's and numpy's round otherwise
-        previous_ways = self.ways
-        if self._geodesic:
-            self.ways = self.ways.copy()
-            for team in teams:
-                self.ways[team] = self._way(team)
-        else:  # the thesis's goal term: the way is the goal distance
-            self.ways = goal_distances
-        terms = np.empty(_N_TERMS * len(actions)) if everyone else np.zeros(_N_TERMS * len(actions))
-        _team_terms(
-            terms,
-            active,
-            starts,
-            self.step_counts,
-            self.angle_errors,
-            self.bearing_errors,
-            self.neighbour_distances,
-            self.centroid_distances,
-            previous_ways,
-            self.ways,
-            goal_distances,
-            previous_velocities,
-            self.velocities,
-            self.neighbours,
-            nearest_agent,
-            nearest_obstacle,
-            self._reward_constants,
-            config.max_steps,
-            config.team_reward,
-        )
-        rewards, team_means = self._combine(terms)
-        terminated = goal_distances <= config.eta_g
-        truncated = ~terminated & (self.step_counts >= config.max_steps)
-        if not everyone:  # teams that were not stepped did not end now
-            terminated &= self.live
-            truncated &= self.live
-        self.success[pick] = terminated[pick]
-        self.live = self.live & ~(terminated | truncated)
-        self.previous_actions = self._new_rows(self.previous_actions, actions, stepped, select=True)
-        observed = rewards
-        if self._geodesic:  # an agent observes the reward of the thesis's goal term: the map stays out of observations
-            straight = terms.copy()
-            for team in teams:
-                team_config = self.configs[team]
-                block = straight[_N_TERMS * starts[team] : _N_TERMS * starts[team + 1]].reshape(_N_TERMS, -1)
-                block[_GOAL] = goal_term(
-                    previous_goal_distances[team],
-                    goal_distances[team],
-                    goal_distances[team],
-                    team_config.eta_g,
-                    team_config.r_reached,
-                    team_config.k1,
-                    team_config.dt,
-                    team_config.v_max,
-                )
-            observed = self._combine(straight)[0]
-        self.previous_rewards = self._new_rows(self.previous_rewards, observed, stepped, select=True)
-        observations = np.empty_like(self.observations) if everyone else self.observations.copy()
-        info_values = np.empty_like(self.info_values) if everyone else self.info_values.copy()
-        self._observe(active, observations, info_values, terms, team_means, accumulate=True)
-        self.observations, self.info_values = observations, info_values
-        return EngineStep(observations, rewards, terminated, truncated, info_values, contacts, self.positions, self.velocities)
-
-    @staticmethod
-    def _new_rows(old: np.ndarray, new: np.ndarray, rows: np.ndarray | None, select: bool = False) -> np.ndarray:
-        """A new array: ``new`` where ``rows`` (every row when ``None``), ``old`` elsewhere.
-
-        :param select: ``new`` has a row for every agent (else only for ``rows``)
-        """
-        if rows is None:
-            return new.copy() if select else new
-        merged: np.ndarray = old.copy()
-        merged[rows] = new[rows] if select else new
-        return merged
-
-    def _measure(self, active: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Measure the formation of the ``active`` teams (into the formation arrays); return the nearest gaps."""
-        config = self.config
-        return _measure_teams(
-            active,
-            self.positions,
-            self.starts,
-            self.neighbours,
-            self.reference_bearings,
-            self._beta_ref,
-            config.d_ref,
-            config.agent_radius,
-            self._lidar_circles,
-            self._lidar_counts,
-            self._walls,
-            self._wall_counts,
-            config.world_width,
-            config.world_height,
-            self.centroids,
-            self.centroid_distances,
-            self.neighbour_offsets,
-            self.neighbour_distances,
-            self.bearings,
-            self.angles,
-            self.angle_errors,
-            self.bearing_errors,
-            self.orientation_flags,
-            self.range_flags,
+        stepped = self._every_team if self.live.all() else self._live_teams()
+        if stepped.active.size == 0:  # nothing to step (a block of an evaluation whose episodes are all played)
+            return self._unchanged(len(actions))
+        previous, episodes, centroids = self.latest, self.episodes, self.formations.centroids
+        positions, velocities, contacts = self._move(actions, stepped)  # forces, physics, state (steps 1-3 of design.md)
+        self._measure(stepped.active, positions)  # formation (4)
+        goal_distances = self._goal_distances(stepped, previous.goal_distances)  # goal distance (5)
+        ways = self.progress.ways(previous.ways, goal_distances, centroids, stepped)  # and the way the goal term rewards
+        self.latest = latest = self._next_arrays(stepped, positions, velocities, contacts, goal_distances, ways)
+        ends = self._count_and_reward(stepped.active)  # reward terms (6), and which teams end (7)
+        rewards, team_means = self._combine(latest.terms)
+        terminated, truncated = self._end_episodes(stepped, *ends)
+        # what the agents observe of this step at the next: their actions, and rewards with the thesis's goal term
+        stepped.write(episodes.previous_actions, actions)
+        before_and_after = (previous.goal_distances, goal_distances)
+        observed = self.progress.observed_rewards(rewards, latest.terms, before_and_after, stepped, self._combine)
+        stepped.write(episodes.previous_rewards, observed)
+        self._observe(stepped.active, stepped.rows, team_means, accumulate=True)  # lidar, observations, infos, sums (8)
+        return EngineStep(
+            latest.observations, rewards, terminated, truncated, latest.info_values, contacts, positions, velocities
         )
 
-    def _observe(
+    def _move(self, actions: np.ndarray, stepped: StepTeams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The :attr:`dynamics` moves the stepped teams' agents: every agent's positions, velocities and contacts
+        after the step (new arrays; the other teams' rows as they were)."""
+        previous = self.latest
+        moved = self.dynamics.move(actions, previous.velocities, cast("list[World]", self.worlds), stepped)
+        contacts = np.zeros(previous.contacts.shape, dtype=np.int64) if stepped.everyone else previous.contacts.copy()
+        if stepped.rows is not None:
+            contacts[stepped.rows] = 0
+        for team, counts in zip(stepped.teams, moved.touched):
+            if counts is not None:
+                contacts[self.starts[team] : self.starts[team + 1]] = np.transpose(counts)
+        positions = stepped.merged(previous.positions, moved.positions)
+        return positions, stepped.merged(previous.velocities, moved.velocities), contacts
+
+    def _next_arrays(
         self,
-        active: np.ndarray,
-        observations: np.ndarray,
-        info_values: np.ndarray,
-        terms: np.ndarray,
-        team_means: np.ndarray,
-        accumulate: bool,
-    ) -> None:
-        """Scan, observe and fill the info values of the ``active`` teams; with ``accumulate``, add the step to their
-        episodes' running sums."""
-        config = self.config
-        _observe_teams(
-            active,
-            observations,
-            info_values,
-            self.lidar,
-            self.starts,
-            self.positions,
-            self.velocities,
-            self.goals,
-            self.centroids,
-            self.previous_offsets,
-            self.neighbour_offsets,
-            self.neighbour_distances,
-            self.centroid_distances,
-            self.angle_errors,
-            self.bearing_errors,
-            self.orientation_flags,
-            self.range_flags,
-            self.neighbours,
-            self.reference_bearings,
-            config.observe_reference_bearings,
-            self._directions,
-            self._lidar_circles,
-            self._lidar_visible,
-            self._lidar_channels,
-            self._lidar_counts,
-            self._walls,
-            self._wall_counts,
-            config.agent_radius,
-            config.world_width,
-            config.world_height,
-            config.lidar_range,
-            config.d_ref,
-            config.d_comm,
-            config.eta_c,
-            self.step_counts,
-            self.previous_actions,
-            self.previous_rewards,
-            self.goal_distances,
-            terms,
-            self.contacts,
-            team_means,
-            accumulate,
-            self.episode_lengths,
-            self.episode_returns,
-            self.episode_errors,
-            self.episode_collisions,
-            self.episode_terms,
-            self.episode_comm_exceeded,
+        stepped: StepTeams,
+        positions: np.ndarray,
+        velocities: np.ndarray,
+        contacts: np.ndarray,
+        goal_distances: np.ndarray,
+        ways: np.ndarray,
+    ) -> StepArrays:
+        """The arrays of a step: the values it measured, new arrays for its observations, info values and reward
+        terms (copies of the last step's when some teams do not step), and the values it compares with."""
+        previous, everyone, n_terms = self.latest, stepped.everyone, _N_TERMS * len(positions)
+        return StepArrays(
+            positions,
+            velocities,
+            previous.velocities,
+            contacts,
+            np.empty_like(previous.observations) if everyone else previous.observations.copy(),
+            np.empty_like(previous.info_values) if everyone else previous.info_values.copy(),
+            np.empty(n_terms) if everyone else np.zeros(n_terms),
+            goal_distances,
+            ways,
+            previous.ways,
         )
-        if self.unicycle:  # the heading's cosine and sine (observation_fields)
-            rows: slice | np.ndarray = slice(None)
-            if len(active) < self.n_teams:
-                rows = np.concatenate([np.arange(self.starts[team], self.starts[team + 1]) for team in active])
-            column = self._heading_column
-            observations[rows, column] = np.cos(self.headings[rows])
-            observations[rows, column + 1] = np.sin(self.headings[rows])
+
+    def _live_teams(self) -> StepTeams:
+        """The teams in an episode, when some are not."""
+        active = np.flatnonzero(self.live)
+        return StepTeams(active, active.tolist(), active, np.repeat(self.live, self.sizes), everyone=False)
+
+    def _unchanged(self, n_slots: int) -> EngineStep:
+        """A step of no team: every array as it was, no reward, no end."""
+        latest, ended = self.latest, np.zeros(self.n_teams, dtype=bool)
+        unchanged = (latest.info_values, latest.contacts, latest.positions, latest.velocities)
+        return EngineStep(latest.observations, np.zeros(n_slots), ended, ended.copy(), *unchanged)
+
+    def _goal_distances(self, stepped: StepTeams, previous: np.ndarray) -> np.ndarray:
+        """Every team's centroid-goal distance (m) after a step (a new array; teams not stepped: as they were)."""
+        distances: np.ndarray = previous.copy()
+        offsets = self.episodes.goals[stepped.pick] - self.formations.centroids[stepped.pick]
+        for team, (x, y) in zip(stepped.teams, offsets.tolist()):
+            distances[team] = math.hypot(x, y)  # Python's hypot: numba's and numpy's round otherwise
+        return distances
+
+    def _end_episodes(
+        self, stepped: StepTeams, terminated: np.ndarray, truncated: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The stepped teams that reached the goal (``terminated``) or T_s without it (``truncated``) leave :attr:`live`;
+        the first succeed."""
+        self.success[stepped.pick] = terminated[stepped.pick]
+        self.live = self.live & ~(terminated | truncated)
+        return terminated, truncated
+
+    def _measure(self, active: np.ndarray, positions: np.ndarray) -> None:
+        """Remember the goal offsets of the ``active`` teams and measure their formation and nearest gaps at
+        ``positions`` (into :attr:`episodes` and :attr:`formations`)."""
+        constants, formations, _ = self._fixed_fields
+        offsets = (self.episodes.goals, self.episodes.previous_offsets)
+        _measure_teams(active, constants, self._shape_fields, positions, formations, offsets)
+
+    def _count_and_reward(self, active: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Count the step of the ``active`` teams, put their reward terms into :attr:`latest`, and return which of them
+        terminated and which were truncated."""
+        constants, formations, _ = self._fixed_fields
+        latest, step_counts = tuple(self.latest), self.episodes.step_counts
+        ends: tuple[np.ndarray, np.ndarray] = _terms_and_ends(
+            active, constants, formations, latest, step_counts, self._reward_fields
+        )
+        return ends
+
+    def _observe(self, active: np.ndarray, rows: slice | np.ndarray | None, team_means: np.ndarray, accumulate: bool) -> None:
+        """Scan, observe and fill the info values of the ``active`` teams (their agents' ``rows``, ``None``: every
+        agent's); with ``accumulate``, add the step to their episodes' running sums."""
+        constants, formations, episodes = self._fixed_fields
+        _observe_teams(active, constants, self._shape_fields, formations, tuple(self.latest), episodes, team_means, accumulate)
+        self.dynamics.observe(self.latest.observations, slice(None) if rows is None else rows)
 
     def _combine(self, terms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every agent's reward (:func:`~sb3_formation.env.rewards.combine_rewards`, the teams of one size at once)
@@ -519,61 +413,51 @@ class FormationEngine:
 
     def formation(self, team: int) -> FormationState:
         """A team's formation now (copies)."""
-        rows = self.team_rows(team)
-        return FormationState(
-            centroid=self.centroids[team].copy(),
-            centroid_distances=self.centroid_distances[rows].copy(),
-            neighbour_offsets=self.neighbour_offsets[rows].copy(),
-            neighbour_distances=self.neighbour_distances[rows].copy(),
-            bearings=self.bearings[rows].copy(),
-            angles_deg=self.angles[rows].copy(),
-            angle_errors_deg=self.angle_errors[rows].copy(),
-            bearing_errors=self.bearing_errors[rows].copy(),
-            orientation_flags=self.orientation_flags[rows].copy(),
-            range_flag=bool(self.range_flags[team]),
-        )
+        view = team_formation(team, self.starts, self.formations)
+        return FormationState._make(np.copy(value) if isinstance(value, np.ndarray) else value for value in view)
 
     def team_state(self, team: int) -> TeamState:
         """A frozen snapshot of a team now (after its last reset or step)."""
         if self.worlds[team] is None:
             raise RuntimeError(f"team {team} has not been reset")
-        rows = self.team_rows(team)
-        values = self.info_values[rows]
+        rows, latest, episodes = self.team_rows(team), self.latest, self.episodes
+        values = latest.info_values[rows]
         scenario = cast(Scenario, self.scenarios[team])  # placed with the team's world
         return TeamState(
-            step=int(self.step_counts[team]),
-            positions=self.positions[rows],
-            velocities=self.velocities[rows],
-            goal=self.goals[team],
+            step=int(episodes.step_counts[team]),
+            positions=latest.positions[rows],
+            velocities=latest.velocities[rows],
+            goal=episodes.goals[team],
             obstacles=cast(np.ndarray, scenario.obstacles),  # arrays once the scenario is built
             walls=cast(np.ndarray, scenario.walls),
-            neighbours=self.neighbours[rows],
-            contacts_agent=self.contacts[rows, 0],
-            contacts_obstacle=self.contacts[rows, 1],
-            angle_errors_deg=values[:, 0],
-            bearing_errors=values[:, 1],
-            neighbour_distance_errors=values[:, 2],
-            centroid=self.centroids[team],
-            goal_distance=float(self.goal_distances[team]),
-            lidar_obstacles=self.lidar[0, rows],
-            lidar_agents=self.lidar[1, rows],
-            headings=self.headings[rows] if self.unicycle else None,
+            neighbours=self.constants.neighbours[rows],
+            contacts_agent=latest.contacts[rows, ContactColumn.AGENTS],
+            contacts_obstacle=latest.contacts[rows, ContactColumn.OBSTACLES],
+            angle_errors_deg=values[:, InfoColumn.ANGLE_ERROR_DEG],
+            bearing_errors=values[:, InfoColumn.BEARING_ERROR],
+            neighbour_distance_errors=values[:, InfoColumn.NEIGHBOUR_DISTANCE_ERROR],
+            centroid=self.formations.centroids[team],
+            goal_distance=float(latest.goal_distances[team]),
+            lidar_obstacles=episodes.lidar[OBSTACLE_CHANNEL, rows],
+            lidar_agents=episodes.lidar[AGENT_CHANNEL, rows],
+            headings=self.dynamics.headings_of(rows),
         )
 
     def infos(self, team: int) -> list[dict[str, Any]]:
         """A team's agents' info dicts after its last reset or step (keys: :data:`INFO_KEYS`)."""
         rows = self.team_rows(team)
         success = np.full(rows.stop - rows.start, self.success[team])
-        return agent_infos(self.info_values[rows], self.contacts[rows], success)
+        return agent_infos(self.latest.info_values[rows], self.latest.contacts[rows], success)
 
     def episode_summary(self, team: int) -> dict[str, Any]:
         """A team's episode so far (see :func:`~sb3_formation.env.episodes.episode_summary`)."""
+        episodes = self.episodes
         return episode_summary(
-            int(self.episode_lengths[team]),
-            float(self.episode_returns[team]),
-            self.episode_errors[team].tolist(),
-            self.episode_collisions[team].tolist(),
-            self.episode_terms[team].tolist(),
+            int(episodes.step_counts[team]),
+            float(episodes.returns[team]),
+            episodes.errors[team].tolist(),
+            episodes.collisions[team].tolist(),
+            episodes.term_sums[team].tolist(),
             bool(self.success[team]),
             int(self.stages[team]),
         )
@@ -582,14 +466,20 @@ class FormationEngine:
 def agent_infos(values: np.ndarray, contacts: np.ndarray, success: np.ndarray) -> list[dict[str, Any]]:
     """Agents' info dicts, keys in the order of :data:`INFO_KEYS` (one team's, or many teams' stacked).
 
-    :param values: ``(agents, INFO_VALUES)`` floats: the five errors and distances of :data:`INFO_KEYS`, then the
-        reward terms
-    :param contacts: ``(agents, 2)`` ints: other agents, then obstacles or walls, touched in the step
+    :param values: ``(agents, INFO_VALUES)`` floats (:class:`InfoColumn`)
+    :param contacts: ``(agents, 2)`` ints (:class:`ContactColumn`)
     :param success: ``(agents,)`` bools: the agent's team reached the goal
     """
     columns = values.T.tolist()
     touched = contacts.T.tolist()
-    columns = [*columns[:5], touched[1], touched[0], success.tolist(), *columns[5:]]
+    first_term = InfoColumn.FIRST_TERM
+    columns = [
+        *columns[:first_term],
+        touched[ContactColumn.OBSTACLES],
+        touched[ContactColumn.AGENTS],
+        success.tolist(),
+        *columns[first_term:],
+    ]
     return [dict(zip(INFO_KEYS, row)) for row in zip(*columns)]
 
 
@@ -600,254 +490,237 @@ def _row_means(rows: np.ndarray) -> np.ndarray:
     return means
 
 
-def _widened(array: np.ndarray, size: int) -> np.ndarray:
-    """``array``, or a copy with its second axis grown to ``size`` (the new entries zero)."""
-    if array.shape[1] >= size:
-        return array
-    grown = np.zeros((array.shape[0], size, *array.shape[2:]), dtype=array.dtype)
-    grown[:, : array.shape[1]] = array
-    return grown
+def _constants(configs: list[FormationConfig], starts: np.ndarray) -> Constants:
+    """An engine's constants: its teams' rows, neighbours and reference bearings, and the task's numbers.
+
+    :param configs: every team's task configuration (they differ in ``n_agents`` only)
+    :param starts: the first row of each team, then the number of rows
+    """
+    config, sizes = configs[0], [team_config.n_agents for team_config in configs]
+    return Constants(
+        starts=starts,
+        neighbours=np.concatenate([ring_neighbours(n) for n in sizes]).astype(np.int64),
+        reference_bearings=np.ascontiguousarray(np.concatenate([reference_bearings(n) for n in sizes])),
+        beta_ref=np.array([team_config.beta_ref_deg for team_config in configs]),
+        directions=ray_directions(config.lidar_rays),
+        d_ref=float(config.d_ref),
+        d_comm=float(config.d_comm),
+        eta_c=float(config.eta_c),
+        agent_radius=float(config.agent_radius),
+        width=float(config.world_width),
+        height=float(config.world_height),
+        lidar_range=float(config.lidar_range),
+        observe_reference=bool(config.observe_reference_bearings),
+    )
 
 
-# Compiled kernels: each loops over the given teams and calls, for each, the single-team kernels ------------------------
+# Compiled kernels: each loops over the given teams and calls, for each, the single-team kernels. They take each structure
+# as the plain tuple of its fields and name the fields again (see sb3_formation.env.stacked) -------------------------------
 
 
 @numba.njit(cache=True)
 def _measure_teams(
     active: np.ndarray,
+    constant_fields: Fields,
+    shape_fields: Fields,
     positions: np.ndarray,
-    starts: np.ndarray,
-    neighbours: np.ndarray,
-    reference: np.ndarray,
-    beta_ref: np.ndarray,
-    d_ref: float,
-    agent_radius: float,
-    circles: np.ndarray,
-    circle_counts: np.ndarray,
-    walls: np.ndarray,
-    wall_counts: np.ndarray,
-    width: float,
-    height: float,
-    centroids: np.ndarray,
-    centroid_distances: np.ndarray,
-    neighbour_offsets: np.ndarray,
-    neighbour_distances: np.ndarray,
-    bearings: np.ndarray,
-    angles: np.ndarray,
-    angle_errors: np.ndarray,
-    bearing_errors: np.ndarray,
-    orientation_flags: np.ndarray,
-    range_flags: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """The formation (``_measure``, flags) and nearest gaps of the ``active`` teams, into the given arrays; returns the
-    nearest gaps (rows of other teams: undefined)."""
-    n_slots = positions.shape[0]
-    nearest_agent, nearest_obstacle = np.empty(n_slots), np.empty(n_slots)
+    formation_fields: Fields,
+    offsets: tuple[np.ndarray, np.ndarray],
+) -> None:  # pragma: no cover - compiled
+    """For each of the ``active`` teams, remember its goal offset c_g^v = p^g - p^c before the step (the observation
+    compares with it), then measure its formation and its agents' nearest gaps at ``positions`` into the formations.
+
+    :param offsets: every team's goal (m) and the goal offsets (m) remembered
+    """
+    constants, shapes, formations = Constants(*constant_fields), Shapes(*shape_fields), Formations(*formation_fields)
+    goals, previous_offsets = offsets
+    starts, centroids, circles, circle_counts = constants.starts, formations.centroids, shapes.circles, shapes.circle_counts
+    walls, wall_counts = shapes.walls, shapes.wall_counts
     for team in active:
         start, end = starts[team], starts[team + 1]
+        previous_offsets[team, 0] = goals[team, 0] - centroids[team, 0]
+        previous_offsets[team, 1] = goals[team, 1] - centroids[team, 1]
         team_positions = positions[start:end]
-        centroid, distances, offsets, neighbour_distance, bearing, angle, bearing_error = _measure(
-            team_positions, neighbours[start:end], reference[start:end]
-        )
-        centroids[team] = centroid
-        centroid_distances[start:end] = distances
-        neighbour_offsets[start:end] = offsets
-        neighbour_distances[start:end] = neighbour_distance
-        bearings[start:end] = bearing
-        angles[start:end] = angle
-        bearing_errors[start:end] = bearing_error
-        in_range = True
-        for agent in range(end - start):
-            angle_errors[start + agent] = beta_ref[team] - angle[agent]
-            orientation_flags[start + agent] = angle[agent] > 0.0 and angle[agent] < 180.0
-            for slot in range(neighbour_distance.shape[1]):
-                in_range = in_range and neighbour_distance[agent, slot] <= d_ref
-        range_flags[team] = in_range
+        _store_formation(team, constants, team_positions, formations)
         obstacles = circles[team, : circle_counts[team] - (end - start)]  # the lidar's circles: obstacles, then agents
-        team_walls = walls[team, : wall_counts[team]]
-        agent_gap, obstacle_gap = nearest_gaps(team_positions, agent_radius, obstacles, team_walls, width, height)
-        nearest_agent[start:end] = agent_gap
-        nearest_obstacle[start:end] = obstacle_gap
-    return nearest_agent, nearest_obstacle
+        agent_gap, obstacle_gap = nearest_gaps(
+            team_positions,
+            constants.agent_radius,
+            obstacles,
+            walls[team, : wall_counts[team]],
+            constants.width,
+            constants.height,
+        )
+        formations.nearest_agent_distances[start:end] = agent_gap
+        formations.nearest_obstacle_gaps[start:end] = obstacle_gap
 
 
 @numba.njit(cache=True)
-def _team_terms(
-    terms: np.ndarray,
-    active: np.ndarray,
-    starts: np.ndarray,
-    step_counts: np.ndarray,
-    angle_errors: np.ndarray,
-    bearing_errors: np.ndarray,
-    neighbour_distances: np.ndarray,
-    centroid_distances: np.ndarray,
-    previous_ways: np.ndarray,
-    ways: np.ndarray,
-    goal_distances: np.ndarray,
-    previous_velocities: np.ndarray,
-    velocities: np.ndarray,
-    neighbours: np.ndarray,
-    nearest_agent: np.ndarray,
-    nearest_obstacle: np.ndarray,
-    constants: np.ndarray,
-    max_steps: int,
-    team_reward: bool,
+def _store_formation(
+    team: int, constants: Constants, positions: np.ndarray, formations: Formations
 ) -> None:  # pragma: no cover - compiled
-    """The reward terms of the ``active`` teams into ``terms``: each team's ``(terms, n)`` block of ``_reward_terms``,
-    the blocks one after the other, flat (other teams' blocks are left as they are)."""
-    n_terms = _N_TERMS
+    """A team's formation at its agents' ``positions`` (``_measure_into``, then the angle errors and the flags) into
+    its rows of ``formations``."""
+    start, end = constants.starts[team], constants.starts[team + 1]
+    formation = team_formation(team, constants.starts, formations)
+    _measure_into(positions, constants.neighbours[start:end], constants.reference_bearings[start:end], formation)
+    angles, angle_errors, orientation_flags = formation.angles_deg, formation.angle_errors_deg, formation.orientation_flags
+    neighbour_distances, beta_ref, d_ref, in_range = (
+        formation.neighbour_distances,
+        constants.beta_ref[team],
+        constants.d_ref,
+        True,
+    )
+    for agent in range(end - start):
+        angle_errors[agent] = beta_ref - angles[agent]
+        orientation_flags[agent] = angles[agent] > 0.0 and angles[agent] < 180.0
+        for slot in range(neighbour_distances.shape[1]):
+            in_range = in_range and neighbour_distances[agent, slot] <= d_ref
+    formations.range_flags[team] = in_range
+
+
+@numba.njit(cache=True)
+def _terms_and_ends(
+    active: np.ndarray,
+    constant_fields: Fields,
+    formation_fields: Fields,
+    latest_fields: Fields,
+    step_counts: np.ndarray,
+    reward_fields: Fields,
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Count the step of each of the ``active`` teams, put their reward terms into the latest step's terms (each team's
+    ``(terms, n)`` block of ``_reward_terms``, the blocks one after the other, flat; other teams' blocks are left as
+    they are), and say which of them ended: terminated (the centroid within eta_g of the goal), truncated (T_s steps
+    without that).
+
+    :param step_counts: every team's steps since its reset (:attr:`~sb3_formation.env.stacked.Episodes.step_counts`),
+        counted here
+    :param reward_fields: the :class:`~sb3_formation.env.rewards.RewardConstants`' fields
+    :return: ``(teams,)`` terminated and truncated (``False`` for the other teams)
+    """
+    constants, formations, latest = Constants(*constant_fields), Formations(*formation_fields), StepArrays(*latest_fields)
+    rewards = RewardConstants(*reward_fields)
+    starts, neighbours, terms = constants.starts, constants.neighbours, latest.terms
+    previous_ways, ways, goal_distances = latest.previous_ways, latest.ways, latest.goal_distances
+    previous_velocities, velocities = latest.previous_velocities, latest.velocities
+    nearest_agent, nearest_obstacle = formations.nearest_agent_distances, formations.nearest_obstacle_gaps
+    terminated, truncated = np.zeros(step_counts.shape[0], dtype=np.bool_), np.zeros(step_counts.shape[0], dtype=np.bool_)
     for team in active:
         start, end = starts[team], starts[team + 1]
-        block = _reward_terms(
+        step_counts[team] += 1
+        _reward_terms(
             step_counts[team],
-            angle_errors[start:end],
-            bearing_errors[start:end],
-            neighbour_distances[start:end],
-            centroid_distances[start:end],
-            previous_ways[team],
-            ways[team],
-            goal_distances[team],
-            previous_velocities[start:end],
-            velocities[start:end],
+            team_formation(team, starts, formations),
+            (previous_ways[team], ways[team], goal_distances[team]),
+            (previous_velocities[start:end], velocities[start:end]),
             neighbours[start:end],
-            nearest_agent[start:end],
-            nearest_obstacle[start:end],
-            constants[team],
-            max_steps,
-            team_reward,
+            (nearest_agent[start:end], nearest_obstacle[start:end]),
+            rewards,
+            terms[_N_TERMS * start : _N_TERMS * end].reshape(_N_TERMS, end - start),
         )
-        terms[n_terms * start : n_terms * end] = block.ravel()
+        terminated[team] = goal_distances[team] <= rewards.eta_g
+        truncated[team] = not terminated[team] and step_counts[team] >= rewards.max_steps
+    return terminated, truncated
 
 
 @numba.njit(cache=True)
 def _observe_teams(
     active: np.ndarray,
-    out: np.ndarray,
-    values: np.ndarray,
-    lidar: np.ndarray,
-    starts: np.ndarray,
-    positions: np.ndarray,
-    velocities: np.ndarray,
-    goals: np.ndarray,
-    centroids: np.ndarray,
-    previous_offsets: np.ndarray,
-    neighbour_offsets: np.ndarray,
-    neighbour_distances: np.ndarray,
-    centroid_distances: np.ndarray,
-    angle_errors: np.ndarray,
-    bearing_errors: np.ndarray,
-    orientation_flags: np.ndarray,
-    range_flags: np.ndarray,
-    neighbours: np.ndarray,
-    reference: np.ndarray,
-    observe_reference: bool,
-    directions: np.ndarray,
-    lidar_circles: np.ndarray,
-    lidar_visible: np.ndarray,
-    lidar_channels: np.ndarray,
-    lidar_counts: np.ndarray,
-    walls: np.ndarray,
-    wall_counts: np.ndarray,
-    agent_radius: float,
-    width: float,
-    height: float,
-    lidar_range: float,
-    d_ref: float,
-    d_comm: float,
-    eta_c: float,
-    step_counts: np.ndarray,
-    actions: np.ndarray,
-    rewards: np.ndarray,
-    goal_distances: np.ndarray,
-    terms: np.ndarray,
-    contacts: np.ndarray,
+    constant_fields: Fields,
+    shape_fields: Fields,
+    formation_fields: Fields,
+    latest_fields: Fields,
+    episode_fields: Fields,
     team_means: np.ndarray,
     accumulate: bool,
-    episode_lengths: np.ndarray,
-    episode_returns: np.ndarray,
-    episode_errors: np.ndarray,
-    episode_collisions: np.ndarray,
-    episode_terms: np.ndarray,
-    episode_comm_exceeded: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
-    """The ``active`` teams' lidar scans and observations (into ``lidar`` and ``out``), their agents' info values
-    (into ``values``: the five errors and distances of ``INFO_KEYS``, then the reward terms) and, with
-    ``accumulate``, their episodes' running sums."""
-    n_terms = _N_TERMS
-    dim = out.shape[1]
+    """The ``active`` teams' lidar scans (into the episodes' lidar), observations and info values (into the latest
+    step's) and, with ``accumulate``, the step added to their episodes' running sums (``team_means``: every team's
+    mean reward of the step)."""
+    constants, shapes, formations = Constants(*constant_fields), Shapes(*shape_fields), Formations(*formation_fields)
+    latest, episodes = StepArrays(*latest_fields), Episodes(*episode_fields)
     for team in active:
-        start, end = starts[team], starts[team + 1]
-        n_agents, n_circles = end - start, lidar_counts[team]
-        # the team's Lidar.scan: the agents' circles (the last ones) take the agents' positions
-        circles = lidar_circles[team, :n_circles]
-        circles[n_circles - n_agents :, :2] = positions[start:end]
-        ranges = lidar_ranges(
-            positions[start:end],
-            agent_radius,
-            directions,
-            circles,
-            lidar_visible[start:end, :n_circles],
-            lidar_channels[team, :n_circles],
-            walls[team, : wall_counts[team]],
-            width,
-            height,
-            lidar_range,
-        )
-        ranges /= lidar_range
-        lidar[:, start:end] = ranges
-        _fill_observations(
-            out[start:end],
-            lidar[0, start:end],
-            lidar[1, start:end],
-            positions[start:end],
-            velocities[start:end],
-            goals[team],
-            centroids[team],
-            previous_offsets[team],
-            neighbour_offsets[start:end],
-            neighbour_distances[start:end],
-            centroid_distances[start:end],
-            angle_errors[start:end],
-            orientation_flags[start:end],
-            range_flags[team],
-            neighbours[start:end],
-            d_ref,
-            eta_c,
-            step_counts[team],
-            actions[start:end],
-            rewards[start:end],
-        )
-        if observe_reference:
-            for agent in range(n_agents):
-                for k in range(4):
-                    out[start + agent, dim - 4 + k] = reference[start + agent, k // 2, k % 2]
-        angle, bearing, distance = agent_errors(
-            angle_errors[start:end], bearing_errors[start:end], neighbour_distances[start:end], d_ref
-        )
-        for agent in range(n_agents):
-            row = start + agent
-            values[row, 0] = angle[agent]
-            values[row, 1] = bearing[agent]
-            values[row, 2] = distance[agent]
-            values[row, 3] = centroid_distances[row]
-            values[row, 4] = goal_distances[team]
-            for term in range(n_terms):
-                values[row, 5 + term] = terms[n_terms * start + term * n_agents + agent]
-        if not accumulate:
-            continue
-        # the episode's running sums: agent by agent, each over n (as a team's infos would be summed)
-        episode_lengths[team] += 1
-        episode_returns[team] += team_means[team]
-        comm_exceeded = False
-        for agent in range(n_agents):
-            row = start + agent
-            episode_errors[team, 0] += angle[agent] / n_agents
-            episode_errors[team, 1] += bearing[agent] / n_agents
-            episode_errors[team, 2] += distance[agent] / n_agents
-            episode_collisions[team, 0] += contacts[row, 1]
-            episode_collisions[team, 1] += contacts[row, 0]
-            for term in range(n_terms):
-                episode_terms[team, term] += values[row, 5 + term] / n_agents
-            for slot in range(neighbour_distances.shape[1]):
-                comm_exceeded = comm_exceeded or neighbour_distances[row, slot] > d_comm
-        episode_comm_exceeded[team] += comm_exceeded
+        _scan(team, constants, shapes, latest.positions, episodes.lidar)
+        _fill_observations(team, constants, formations, latest, episodes)
+        _fill_info_values(team, constants, formations, latest)
+        if accumulate:
+            _add_step(team, constants, formations, latest, episodes, team_means[team])
+
+
+@numba.njit(cache=True)
+def _scan(
+    team: int, constants: Constants, shapes: Shapes, positions: np.ndarray, lidar: np.ndarray
+) -> None:  # pragma: no cover - compiled
+    """A team's ``Lidar.scan`` into its rows of ``lidar``: its agents' circles (the last ones) take their positions."""
+    start, end = constants.starts[team], constants.starts[team + 1]
+    n_circles = shapes.circle_counts[team]
+    circles = shapes.circles[team, :n_circles]
+    circles[n_circles - (end - start) :, :2] = positions[start:end]
+    layout = LidarLayout(
+        circles,
+        shapes.visible[start:end, :n_circles],
+        shapes.channels[team, :n_circles],
+        shapes.walls[team, : shapes.wall_counts[team]],
+    )
+    ranges = lidar[:, start:end]
+    lidar_ranges(
+        positions[start:end],
+        constants.directions,
+        layout,
+        constants.agent_radius,
+        constants.width,
+        constants.height,
+        constants.lidar_range,
+        ranges,
+    )
+    ranges /= constants.lidar_range
+
+
+@numba.njit(cache=True)
+def _fill_info_values(
+    team: int, constants: Constants, formations: Formations, latest: StepArrays
+) -> None:  # pragma: no cover - compiled
+    """A team's agents' info values (:class:`InfoColumn`) into their rows of ``latest.info_values``."""
+    start, end = constants.starts[team], constants.starts[team + 1]
+    n_agents, values, terms = end - start, latest.info_values, latest.terms
+    centroid_distances, goal_distance = formations.centroid_distances, latest.goal_distances[team]
+    angle, bearing, distance = agent_errors(
+        formations.angle_errors_deg[start:end],
+        formations.bearing_errors[start:end],
+        formations.neighbour_distances[start:end],
+        constants.d_ref,
+    )
+    for agent in range(n_agents):
+        row = start + agent
+        values[row, InfoColumn.ANGLE_ERROR_DEG] = angle[agent]
+        values[row, InfoColumn.BEARING_ERROR] = bearing[agent]
+        values[row, InfoColumn.NEIGHBOUR_DISTANCE_ERROR] = distance[agent]
+        values[row, InfoColumn.CENTROID_DISTANCE] = centroid_distances[row]
+        values[row, InfoColumn.GOAL_DISTANCE] = goal_distance
+        for term in range(_N_TERMS):
+            values[row, InfoColumn.FIRST_TERM + term] = terms[_N_TERMS * start + term * n_agents + agent]
+
+
+@numba.njit(cache=True)
+def _add_step(
+    team: int, constants: Constants, formations: Formations, latest: StepArrays, episodes: Episodes, team_mean: float
+) -> None:  # pragma: no cover - compiled
+    """Add a team's step to its episode's running sums: from its agents' info values, agent by agent, each over n (as
+    a team's infos would be summed)."""
+    start, end = constants.starts[team], constants.starts[team + 1]
+    n_agents, values, contacts = end - start, latest.info_values, latest.contacts
+    errors, collisions, term_sums = episodes.errors, episodes.collisions, episodes.term_sums
+    neighbour_distances, d_comm = formations.neighbour_distances, constants.d_comm
+    episodes.returns[team] += team_mean
+    comm_exceeded = False
+    for row in range(start, end):
+        errors[team, 0] += values[row, InfoColumn.ANGLE_ERROR_DEG] / n_agents
+        errors[team, 1] += values[row, InfoColumn.BEARING_ERROR] / n_agents
+        errors[team, 2] += values[row, InfoColumn.NEIGHBOUR_DISTANCE_ERROR] / n_agents
+        collisions[team, 0] += contacts[row, ContactColumn.OBSTACLES]
+        collisions[team, 1] += contacts[row, ContactColumn.AGENTS]
+        for term in range(_N_TERMS):
+            term_sums[team, term] += values[row, InfoColumn.FIRST_TERM + term] / n_agents
+        for slot in range(neighbour_distances.shape[1]):
+            comm_exceeded = comm_exceeded or neighbour_distances[row, slot] > d_comm
+    episodes.comm_exceeded[team] += comm_exceeded

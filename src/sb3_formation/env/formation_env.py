@@ -237,7 +237,7 @@ class FormationEnv(ParallelEnv):  # type: ignore[misc]  # pettingzoo ships no ty
 
     @property
     def goal(self) -> np.ndarray:
-        goal: np.ndarray = self.engine.goals[self.team].copy()
+        goal: np.ndarray = self.engine.episodes.goals[self.team].copy()
         return goal
 
     @property
@@ -253,7 +253,7 @@ class FormationEnv(ParallelEnv):  # type: ignore[misc]  # pettingzoo ships no ty
     @property
     def step_count(self) -> int:
         """Steps played since the last reset."""
-        return int(self.engine.step_counts[self.team])
+        return int(self.engine.episodes.step_counts[self.team])
 
     # Episode ------------------------------------------------------------------------------------------------------
 

@@ -95,18 +95,23 @@ def measure_formation(
     :param beta_ref_deg: reference angle beta^ref (deg)
     :param d_ref: reference neighbour distance d^ref (m)
     """
-    centroid, centroid_distances, offsets, distances, bearings, angles, bearing_errors = _measure(
-        np.ascontiguousarray(positions, dtype=np.float64), neighbours, reference
+    n_agents, n_neighbours = len(positions), neighbours.shape[1]
+    measured = FormationState(
+        centroid=np.empty(2),
+        centroid_distances=np.empty(n_agents),
+        neighbour_offsets=np.empty((n_agents, n_neighbours, 2)),
+        neighbour_distances=np.empty((n_agents, n_neighbours)),
+        bearings=np.empty((n_agents, n_neighbours, 2)),
+        angles_deg=np.empty(n_agents),
+        angle_errors_deg=np.empty(n_agents),
+        bearing_errors=np.empty((n_agents, n_neighbours)),
+        orientation_flags=np.empty(n_agents, dtype=bool),
+        range_flag=False,
     )
-    return FormationState(
-        centroid=centroid,
-        centroid_distances=centroid_distances,
-        neighbour_offsets=offsets,
-        neighbour_distances=distances,
-        bearings=bearings,
-        angles_deg=angles,
+    _measure_into(np.ascontiguousarray(positions, dtype=np.float64), neighbours, reference, measured)
+    angles, distances = measured.angles_deg, measured.neighbour_distances
+    return measured._replace(
         angle_errors_deg=beta_ref_deg - angles,
-        bearing_errors=bearing_errors,
         orientation_flags=(angles > 0.0) & (angles < 180.0),
         range_flag=bool((distances <= d_ref).all()),
     )
@@ -135,20 +140,21 @@ def agent_errors(
 
 
 @numba.njit(cache=True)
-def _measure(
-    positions: np.ndarray, neighbours: np.ndarray, reference: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
-    """Compiled core of :func:`measure_formation`: eq. 16 bearings, distances, beta^i and bearing errors in one loop."""
+def _measure_into(
+    positions: np.ndarray, neighbours: np.ndarray, reference: np.ndarray, out: FormationState
+) -> None:  # pragma: no cover - compiled
+    """Compiled core of :func:`measure_formation`: the centroid (eq. 20), distances, eq. 16 bearings, beta^i and the
+    bearing errors, in one loop, into ``out``'s arrays (its angle errors, flags and range flag are left as they are)."""
     n_agents, n_neighbours = positions.shape[0], neighbours.shape[1]
-    centroid = np.empty(2)
+    centroid, centroid_distances, offsets, distances = (
+        out.centroid,
+        out.centroid_distances,
+        out.neighbour_offsets,
+        out.neighbour_distances,
+    )
+    bearings, angles, bearing_errors = out.bearings, out.angles_deg, out.bearing_errors
     centroid[0] = positions[:, 0].sum() / n_agents
     centroid[1] = positions[:, 1].sum() / n_agents
-    centroid_distances = np.empty(n_agents)
-    offsets = np.empty((n_agents, n_neighbours, 2))
-    distances = np.empty((n_agents, n_neighbours))
-    bearings = np.zeros((n_agents, n_neighbours, 2))
-    angles = np.empty(n_agents)
-    bearing_errors = np.empty((n_agents, n_neighbours))
     for agent in range(n_agents):
         centroid_distances[agent] = math.hypot(positions[agent, 0] - centroid[0], positions[agent, 1] - centroid[1])
         for slot in range(n_neighbours):
@@ -159,10 +165,11 @@ def _measure(
             distances[agent, slot] = distance
             if distance > COINCIDENT_DISTANCE:
                 bearings[agent, slot, 0], bearings[agent, slot, 1] = dx / distance, dy / distance
+            else:  # coincident: no bearing
+                bearings[agent, slot, 0], bearings[agent, slot, 1] = 0.0, 0.0
             bearing_errors[agent, slot] = math.hypot(
                 reference[agent, slot, 0] - bearings[agent, slot, 0], reference[agent, slot, 1] - bearings[agent, slot, 1]
             )
         to_previous = math.degrees(math.atan2(bearings[agent, 0, 1], bearings[agent, 0, 0]))
         to_next = math.degrees(math.atan2(bearings[agent, 1, 1], bearings[agent, 1, 0]))
         angles[agent] = (to_previous - to_next) % 360.0
-    return centroid, centroid_distances, offsets, distances, bearings, angles, bearing_errors

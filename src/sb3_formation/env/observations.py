@@ -8,11 +8,15 @@ the agent's reference bearings come last. Raw values in SI units and degrees; no
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
 
 from sb3_formation.env.config import FormationConfig
+
+if TYPE_CHECKING:
+    from sb3_formation.env.stacked import Constants, Episodes, Formations, StepArrays
 
 #: Relative slack on velocity bounds: a clamped speed may exceed v_max by a rounding error.
 ROUNDING_SLACK = 1e-9
@@ -98,69 +102,69 @@ def observation_layout(fields: list[ObservationField]) -> dict[str, slice]:
 
 @numba.njit(cache=True)
 def _fill_observations(
-    out: np.ndarray,
-    lidar_obstacles: np.ndarray,
-    lidar_agents: np.ndarray,
-    positions: np.ndarray,
-    velocities: np.ndarray,
-    goal: np.ndarray,
-    centroid: np.ndarray,
-    previous_centroid_goal_offset: np.ndarray,
-    neighbour_offsets: np.ndarray,
-    neighbour_distances: np.ndarray,
-    centroid_distances: np.ndarray,
-    angle_errors_deg: np.ndarray,
-    orientation_flags: np.ndarray,
-    range_flag: bool,
-    neighbours: np.ndarray,
-    d_ref: float,
-    eta_c: float,
-    step: int,
-    previous_actions: np.ndarray,
-    previous_rewards: np.ndarray,
+    team: int, constants: Constants, formations: Formations, latest: StepArrays, episodes: Episodes
 ) -> None:  # pragma: no cover - compiled
-    """Every agent's observation, written into ``out``: one row per agent, fields in the order of
-    :func:`observation_fields` (the reference bearings and a unicycle's heading, when observed, are written by the
-    caller)."""
-    n_rays = lidar_obstacles.shape[1]
-    for agent in range(out.shape[0]):
-        row = out[agent]
-        row[:n_rays] = lidar_obstacles[agent]
-        row[n_rays : 2 * n_rays] = lidar_agents[agent]
-        column = 2 * n_rays
-        values = [
-            velocities[agent, 0],
-            velocities[agent, 1],
-            neighbour_offsets[agent, 0, 0],
-            neighbour_offsets[agent, 0, 1],
-            neighbour_offsets[agent, 1, 0],
-            neighbour_offsets[agent, 1, 1],
-            velocities[neighbours[agent, 0], 0] - velocities[agent, 0],
-            velocities[neighbours[agent, 0], 1] - velocities[agent, 1],
-            velocities[neighbours[agent, 1], 0] - velocities[agent, 0],
-            velocities[neighbours[agent, 1], 1] - velocities[agent, 1],
-            goal[0] - positions[agent, 0],
-            goal[1] - positions[agent, 1],
+    """A team's agents' observations, written into their rows of ``latest.observations`` in the order of
+    :func:`observation_fields` (a unicycle's heading, when observed, is written by its dynamics)."""
+    start, end = constants.starts[team], constants.starts[team + 1]
+    out, lidar, neighbours = latest.observations, episodes.lidar, constants.neighbours
+    velocities, positions = latest.velocities, latest.positions
+    offsets, distances = formations.neighbour_offsets, formations.neighbour_distances
+    centroid_distances, angle_errors = formations.centroid_distances, formations.angle_errors_deg
+    goal, centroid, previous_offset = episodes.goals[team], formations.centroids[team], episodes.previous_offsets[team]
+    range_flag, step = formations.range_flags[team], episodes.step_counts[team]
+    d_ref, eta_c, n_rays, dim = constants.d_ref, constants.eta_c, lidar.shape[2], out.shape[1]
+    for row in range(start, end):
+        observation = out[row]
+        observation[:n_rays] = lidar[0, row]
+        observation[n_rays : 2 * n_rays] = lidar[1, row]
+        preceding, succeeding = start + neighbours[row, 0], start + neighbours[row, 1]
+        motion_and_distances = (  # velocity ... centroid_distance of observation_fields
+            velocities[row, 0],
+            velocities[row, 1],
+            offsets[row, 0, 0],
+            offsets[row, 0, 1],
+            offsets[row, 1, 0],
+            offsets[row, 1, 1],
+            velocities[preceding, 0] - velocities[row, 0],
+            velocities[preceding, 1] - velocities[row, 1],
+            velocities[succeeding, 0] - velocities[row, 0],
+            velocities[succeeding, 1] - velocities[row, 1],
+            goal[0] - positions[row, 0],
+            goal[1] - positions[row, 1],
             goal[0] - centroid[0],
             goal[1] - centroid[1],
-            goal[0] - centroid[0] - previous_centroid_goal_offset[0],
-            goal[1] - centroid[1] - previous_centroid_goal_offset[1],
-            neighbour_distances[agent, 0],
-            neighbour_distances[agent, 1],
-            centroid_distances[agent],
-            neighbour_distances[agent, 0] - d_ref,
-            neighbour_distances[agent, 1] - d_ref,
-            eta_c - centroid_distances[agent],
-            angle_errors_deg[agent],
-            angle_errors_deg[neighbours[agent, 0]],
-            angle_errors_deg[neighbours[agent, 1]],
-            1.0 if orientation_flags[agent] else 0.0,
+            goal[0] - centroid[0] - previous_offset[0],
+            goal[1] - centroid[1] - previous_offset[1],
+            distances[row, 0],
+            distances[row, 1],
+            centroid_distances[row],
+        )
+        errors_flags_and_previous = (  # neighbour_distance_errors ... previous_reward
+            distances[row, 0] - d_ref,
+            distances[row, 1] - d_ref,
+            eta_c - centroid_distances[row],
+            angle_errors[row],
+            angle_errors[preceding],
+            angle_errors[succeeding],
+            1.0 if formations.orientation_flags[row] else 0.0,
             1.0 if range_flag else 0.0,
             float(step),
-            previous_actions[agent, 0],
-            previous_actions[agent, 1],
-            previous_rewards[agent],
-        ]
-        for value in values:
-            row[column] = value
-            column += 1
+            episodes.previous_actions[row, 0],
+            episodes.previous_actions[row, 1],
+            episodes.previous_rewards[row],
+        )
+        column = _write(observation, 2 * n_rays, motion_and_distances)
+        _write(observation, column, errors_flags_and_previous)
+        if constants.observe_reference:  # the last four columns
+            for k in range(4):
+                observation[dim - 4 + k] = constants.reference_bearings[row, k // 2, k % 2]
+
+
+@numba.njit(cache=True)
+def _write(row: np.ndarray, column: int, values: tuple[float, ...]) -> int:  # pragma: no cover - compiled
+    """Write ``values`` into ``row`` from ``column`` on; return the column after them."""
+    for value in values:
+        row[column] = value
+        column += 1
+    return column

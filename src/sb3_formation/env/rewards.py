@@ -12,6 +12,7 @@ would dominate. They take and return plain numpy arrays and can be called from P
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -123,54 +124,83 @@ def nearest_gaps(
     return nearest_agent, nearest_obstacle
 
 
+class RewardConstants(NamedTuple):
+    """The constants of Tables 4.1 / 5.1 that the reward terms use (:func:`reward_constants`)."""
+
+    m_ang_deg: float  #: m_ang (deg)
+    d_ref: float  #: d^ref (m)
+    m_dist: float  #: m_dist (m)
+    eta_c: float  #: eta_c (m)
+    r_c: float  #: r_c
+    eta_g: float  #: eta_g (m)
+    r_reached: float  #: r_reached
+    k1: float  #: k_1
+    dt: float  #: step length (s)
+    v_max: float  #: v_max (m/s)
+    r_j: float  #: r_j
+    r_o: float  #: r_o
+    d_safe: float  #: d_safe (m)
+    r_late: float  #: r_late
+    agent_radius: float  #: R_a (m)
+    max_steps: int  #: T_s
+    team_reward: bool  #: every agent receives the team averages (eqs 27-32)
+
+
+def reward_constants(config: FormationConfig) -> RewardConstants:
+    """The constants of ``config`` that :func:`reward_terms` needs, for the compiled kernel."""
+    floats = {name: float(getattr(config, name)) for name in RewardConstants._fields[:-2]}
+    return RewardConstants(**floats, max_steps=int(config.max_steps), team_reward=bool(config.team_reward))
+
+
 @numba.njit(cache=True)
 def _reward_terms(
     step: int,
-    angle_errors_deg: np.ndarray,
-    bearing_errors: np.ndarray,
-    neighbour_distances: np.ndarray,
-    centroid_distances: np.ndarray,
-    previous_way: float,
-    way: float,
-    goal_distance: float,
-    previous_velocities: np.ndarray,
-    velocities: np.ndarray,
+    formation: FormationState,
+    ways: tuple[float, float, float],
+    velocities: tuple[np.ndarray, np.ndarray],
     neighbours: np.ndarray,
-    nearest_agent_distances: np.ndarray,
-    nearest_obstacle_gaps: np.ndarray,
-    constants: np.ndarray,
-    max_steps: int,
-    team_reward: bool,
-) -> np.ndarray:  # pragma: no cover - compiled
-    (m_ang, d_ref, m_dist, eta_c, r_c, eta_g, r_reached, k1, dt, v_max, r_j, r_o, d_safe, r_late, agent_radius) = constants
-    n_agents = velocities.shape[0]
-    terms = np.empty((_N_TERMS, n_agents))
-    agent_contact = nearest_agent_distances <= 2.0 * agent_radius
-    obstacle_near = nearest_obstacle_gaps < d_safe
+    gaps: tuple[np.ndarray, np.ndarray],
+    constants: RewardConstants,
+    terms: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """Compiled core of :func:`reward_terms`: every term into ``terms``, ``(len(REWARD_TERMS), n)``.
+
+    :param step: step count t + 1 after this step
+    :param formation: the formation after the step (its angle and bearing errors, neighbour and centroid distances)
+    :param ways: the way (m) to the goal before and after the step, and the goal distance (m) after it (:func:`goal_term`)
+    :param velocities: ``(n, 2)`` velocities (m/s) before and after the step
+    :param neighbours: ``(n, k)`` int64 neighbour indices
+    :param gaps: ``(n,)`` centre distance (m) to the nearest other agent, and ``(n,)`` surface gap (m) to the nearest
+        obstacle or wall
+    :param constants: :func:`reward_constants`
+    :param terms: where the terms go, row ``TERM_ROW[name]`` for term ``name``
+    """
+    previous_way, way, goal_distance = ways
+    previous_velocities, now = velocities
+    nearest_agent_distances, nearest_obstacle_gaps = gaps
+    c = constants
+    n_agents = now.shape[0]
+    touching, near = False, False  # any agent touching another; any closer than d_safe to an obstacle
     for agent in range(n_agents):
-        terms[_ANGLE, agent] = angle_term(angle_errors_deg[agent], m_ang)
-        terms[_BEARING, agent] = bearing_term(bearing_errors[agent])
-        terms[_DIST, agent] = distance_term(neighbour_distances[agent], d_ref, m_dist)
-        terms[_CENTROID, agent] = centroid_term(centroid_distances[agent], eta_c, r_c)
-        terms[_MOVE, agent] = -angle_between(previous_velocities[agent], velocities[agent])
+        agent_contact = nearest_agent_distances[agent] <= 2.0 * c.agent_radius
+        obstacle_near = nearest_obstacle_gaps[agent] < c.d_safe
+        touching, near = touching or agent_contact, near or obstacle_near
+        terms[_ANGLE, agent] = angle_term(formation.angle_errors_deg[agent], c.m_ang_deg)
+        terms[_BEARING, agent] = bearing_term(formation.bearing_errors[agent])
+        terms[_DIST, agent] = distance_term(formation.neighbour_distances[agent], c.d_ref, c.m_dist)
+        terms[_CENTROID, agent] = centroid_term(formation.centroid_distances[agent], c.eta_c, c.r_c)
+        terms[_MOVE, agent] = -angle_between(previous_velocities[agent], now[agent])
         alignment = 0.0
         for neighbour in neighbours[agent]:
-            alignment += angle_between(velocities[agent], previous_velocities[neighbour])
+            alignment += angle_between(now[agent], previous_velocities[neighbour])
         terms[_VELOCITY, agent] = -alignment / neighbours.shape[1]
-        terms[_COLL, agent] = collision_term(agent_contact[agent], obstacle_near[agent], r_j, r_o)
-    if team_reward:  # eqs 28-31: per-agent terms become team averages; one team collision term
+        terms[_COLL, agent] = collision_term(agent_contact, obstacle_near, c.r_j, c.r_o)
+    if c.team_reward:  # eqs 28-31: per-agent terms become team averages; one team collision term
         for row in (_ANGLE, _BEARING, _DIST, _CENTROID, _MOVE, _VELOCITY):
             terms[row, :] = terms[row].mean()
-        terms[_COLL, :] = collision_term(agent_contact.any(), obstacle_near.any(), r_j, r_o)
-    terms[_GOAL, :] = goal_term(previous_way, way, goal_distance, eta_g, r_reached, k1, dt, v_max)
-    terms[_TIME, :] = time_term(step, max_steps, r_late)
-    return terms
-
-
-def reward_constants(config: FormationConfig) -> np.ndarray:
-    """The constants :func:`reward_terms` needs, packed for the compiled kernel (in the kernel's order)."""
-    names = "m_ang_deg d_ref m_dist eta_c r_c eta_g r_reached k1 dt v_max r_j r_o d_safe r_late agent_radius".split()
-    return np.array([float(getattr(config, name)) for name in names])
+        terms[_COLL, :] = collision_term(touching, near, c.r_j, c.r_o)
+    terms[_GOAL, :] = goal_term(previous_way, way, goal_distance, c.eta_g, c.r_reached, c.k1, c.dt, c.v_max)
+    terms[_TIME, :] = time_term(step, c.max_steps, c.r_late)
 
 
 def reward_terms(
@@ -184,7 +214,7 @@ def reward_terms(
     neighbours: np.ndarray,
     nearest_agent_distances: np.ndarray,
     nearest_obstacle_gaps: np.ndarray,
-    constants: np.ndarray | None = None,
+    constants: RewardConstants | None = None,
     ways: tuple[float, float] | None = None,
 ) -> np.ndarray:
     """Every reward term of one step, before coefficients.
@@ -199,31 +229,25 @@ def reward_terms(
     :param neighbours: ``(n, k)`` int64 neighbour indices
     :param nearest_agent_distances: ``(n,)`` centre distance (m) to the nearest other agent
     :param nearest_obstacle_gaps: ``(n,)`` surface gap (m) to the nearest obstacle or wall
-    :param constants: ``reward_constants(config)``, if already packed
+    :param constants: ``reward_constants(config)``, if already made
     :param ways: the way (m) to the goal before and after the step whose decrease the goal term rewards
         (``goal_progress: geodesic``); ``None``: the centroid-goal distances (the thesis's)
     Arrays are float64 unless said otherwise.
     :return: ``(len(REWARD_TERMS), n)`` array; row ``TERM_ROW[name]`` holds term ``name``
     """
     previous_way, way = (previous_goal_distance, goal_distance) if ways is None else ways
-    return _reward_terms(
+    terms = np.empty((_N_TERMS, len(velocities)))
+    _reward_terms(
         step,
-        formation.angle_errors_deg,
-        formation.bearing_errors,
-        formation.neighbour_distances,
-        formation.centroid_distances,
-        float(previous_way),
-        float(way),
-        float(goal_distance),
-        previous_velocities,
-        velocities,
+        formation,
+        (float(previous_way), float(way), float(goal_distance)),
+        (previous_velocities, velocities),
         neighbours,
-        nearest_agent_distances,
-        nearest_obstacle_gaps,
+        (nearest_agent_distances, nearest_obstacle_gaps),
         reward_constants(config) if constants is None else constants,
-        config.max_steps,
-        config.team_reward,
+        terms,
     )
+    return terms
 
 
 def combine_rewards(terms: np.ndarray, coefficients: np.ndarray, clip: float) -> np.ndarray:

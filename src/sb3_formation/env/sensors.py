@@ -12,7 +12,7 @@ cast): with numpy the many tiny array operations of a 6-agent scan cost ~150 us,
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import numba
 import numpy as np
@@ -44,19 +44,26 @@ def agent_visibility(n_agents: int, neighbours: np.ndarray) -> np.ndarray:
     return visible
 
 
+class LidarLayout(NamedTuple):
+    """What a team's scan checks: its circles, who sees which, their channels, and its walls."""
+
+    circles: np.ndarray  #: ``(m, 3)`` x, y, radius (m): the obstacles, then the agents (whose centres each scan sets)
+    visible: np.ndarray  #: ``(n, m)`` bool: the circles each agent may see
+    channels: np.ndarray  #: ``(m,)`` channel (0 or 1) of every circle
+    walls: np.ndarray  #: ``(w, 5)`` walls (x0, y0, x1, y1, thickness) in m, seen by channel 0
+
+
 @numba.njit(cache=True)
 def lidar_ranges(
     origins: np.ndarray,
-    agent_radius: float,
     directions: np.ndarray,
-    circles: np.ndarray,
-    visible: np.ndarray,
-    channels: np.ndarray,
-    walls: np.ndarray,
+    layout: LidarLayout,
+    agent_radius: float,
     width: float,
     height: float,
     max_range: float,
-) -> np.ndarray:  # pragma: no cover - compiled; tested through its results
+    ranges: np.ndarray,
+) -> None:  # pragma: no cover - compiled; tested through its results
     """Distance (m) along every ray from each agent's surface to the nearest visible shape, per channel.
 
     A ray's reading is the distance from the agent's surface to the first point of a shape at or beyond the surface
@@ -64,19 +71,16 @@ def lidar_ranges(
     touches the surface). The world's border and the walls belong to channel 0; each circle to its channel.
 
     :param origins: ``(n, 2)`` agent centres (m)
-    :param agent_radius: R_a (m); rays start on the agent's surface
     :param directions: ``(n_rays, 2)`` unit ray directions
-    :param circles: ``(m, 3)`` circles as (x, y, radius) in m
-    :param visible: ``(n, m)`` bool, which circles each agent may see
-    :param channels: ``(m,)`` channel (0 or 1) of every circle
-    :param walls: ``(w, 5)`` walls (x0, y0, x1, y1, thickness) in m, seen by channel 0
+    :param layout: the circles (each seen by its channel and by the agents it is visible to) and the walls
+    :param agent_radius: R_a (m); rays start on the agent's surface
     :param width: world width (m)
     :param height: world height (m)
     :param max_range: lidar range (m)
-    :return: ``(2, n, n_rays)`` distances in [0, max_range]
+    :param ranges: ``(2, n, n_rays)``, where the distances (in [0, max_range]) go
     """
+    circles, visible, channels, walls = layout
     n_agents, n_rays, n_circles = origins.shape[0], directions.shape[0], circles.shape[0]
-    ranges = np.empty((2, n_agents, n_rays))
     for agent in range(n_agents):
         px, py = origins[agent, 0], origins[agent, 1]
         for ray in range(n_rays):
@@ -102,7 +106,6 @@ def lidar_ranges(
                 entry = wall_entry(px, py, directions[ray, 0], directions[ray, 1], walls[wall], agent_radius)
                 if entry - agent_radius < ranges[0, agent, ray]:
                     ranges[0, agent, ray] = entry - agent_radius
-    return ranges
 
 
 class Lidar:
@@ -130,37 +133,24 @@ class Lidar:
     def set_obstacles(self, obstacles: np.ndarray | tuple[Any, ...], walls: np.ndarray | tuple[Any, ...] = ()) -> None:
         """Use ``obstacles`` (``(m, 3)``: x, y, radius in m) and ``walls`` (``(w, 5)``, see
         :mod:`~sb3_formation.env.shapes`) from now on."""
-        self.walls = as_walls(walls)
         n_agents = len(self._agent_visibility)
-        self._circles = np.vstack([np.asarray(obstacles, dtype=np.float64).reshape(-1, 3), np.zeros((n_agents, 3))])
-        self._circles[-n_agents:, 2] = self.agent_radius
-        n_obstacles = len(self._circles) - n_agents
-        self._visible = np.hstack([np.ones((n_agents, n_obstacles), dtype=bool), self._agent_visibility])
-        self._channels = np.r_[np.full(n_obstacles, OBSTACLE_CHANNEL), np.full(n_agents, AGENT_CHANNEL)]
-
-    @property
-    def layout(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """What a scan checks: ``(m, 3)`` circles (the obstacles, then the agents, whose centres each scan sets), the
-        ``(n, m)`` circles each agent may see, and the ``(m,)`` channel of every circle."""
-        return self._circles, self._visible, self._channels
+        circles = np.vstack([np.asarray(obstacles, dtype=np.float64).reshape(-1, 3), np.zeros((n_agents, 3))])
+        circles[-n_agents:, 2] = self.agent_radius
+        n_obstacles = len(circles) - n_agents
+        visible = np.hstack([np.ones((n_agents, n_obstacles), dtype=bool), self._agent_visibility])
+        channels = np.r_[np.full(n_obstacles, OBSTACLE_CHANNEL), np.full(n_agents, AGENT_CHANNEL)]
+        #: what a scan checks (the agents' circles take their centres at each scan)
+        self.layout = LidarLayout(circles, visible, channels, as_walls(walls))
 
     def scan(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Readings of every agent's rays, ``(obstacles, agents)``, each ``(n, n_rays)`` in [0, 1] (1 = nothing in range).
 
         :param positions: ``(n, 2)`` agent centres (m)
         """
-        self._circles[-len(positions) :, :2] = positions
-        ranges = lidar_ranges(
-            positions,
-            self.agent_radius,
-            self.directions,
-            self._circles,
-            self._visible,
-            self._channels,
-            self.walls,
-            self.width,
-            self.height,
-            self.max_range,
+        self.layout.circles[-len(positions) :, :2] = positions
+        ranges = np.empty((2, len(positions), len(self.directions)))
+        lidar_ranges(
+            positions, self.directions, self.layout, self.agent_radius, self.width, self.height, self.max_range, ranges
         )
         ranges /= self.max_range
         return ranges[OBSTACLE_CHANNEL], ranges[AGENT_CHANNEL]

@@ -130,8 +130,8 @@ def state_vector(state: TeamState, config: FormationConfig) -> np.ndarray:
     for kind, shapes, room in (("obstacles", state.obstacles, slots), ("walls", state.walls, wall_slots)):
         if len(shapes) > room:
             raise ValueError(
-                f"the global state has room for {room} {kind} (the most a scene of {config.scenes!r} places, layout "
-                f"{config.layout!r}) but this scenario has {len(shapes)}"
+                f"the global state has room for {room} {kind} (the most a scene of {config.scenes!r} places, chapter "
+                f"{config.chapter!r}) but this scenario has {len(shapes)}"
             )
     obstacles, walls = np.zeros((slots, 3)), np.zeros((wall_slots, 5))
     obstacles[: len(state.obstacles)] = state.obstacles

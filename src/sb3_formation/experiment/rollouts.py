@@ -19,6 +19,7 @@ import torch
 from sb3_formation.controllers.base import PrivilegedPolicy, TeamPolicy
 from sb3_formation.env.blocks import EngineBlocks
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.engine import InfoColumn
 from sb3_formation.env.state import TeamState
 from sb3_formation.experiment.trajectories import EpisodeRecorder
 from sb3_formation.utils.interrupts import raise_if_interrupted
@@ -135,7 +136,7 @@ def play_episodes(
                         "team": team,
                         **summary,
                         "comm_exceeded_fraction": episode.comm_exceeded_steps / summary["length"],
-                        "final_goal_distance": float(step.info_values[episode.first_slot, 4]),
+                        "final_goal_distance": float(step.info_values[episode.first_slot, InfoColumn.GOAL_DISTANCE]),
                         **{f"reward_{name}": value for name, value in terms.items()},
                         **(metrics(slots(team)) if metrics is not None else {}),
                     }

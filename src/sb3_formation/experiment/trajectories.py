@@ -15,18 +15,19 @@ import numpy as np
 
 from sb3_formation.env.blocks import BlockStep
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.engine import ContactColumn, InfoColumn
 from sb3_formation.env.geometry import ring_neighbours
 from sb3_formation.env.state import TeamState
 from sb3_formation.utils.files import atomic_write
 
 #: Per-step, per-agent arrays of :class:`Trajectories` -> where a step's arrays hold them: a column of the info values
 #: or of the contacts
-STEP_RECORDS = {
-    "angle_error_deg": ("info_values", 0),
-    "bearing_error": ("info_values", 1),
-    "neighbour_distance_error": ("info_values", 2),
-    "collisions_obstacle": ("contacts", 1),
-    "collisions_agent": ("contacts", 0),
+STEP_RECORDS: dict[str, tuple[str, int]] = {
+    "angle_error_deg": ("info_values", InfoColumn.ANGLE_ERROR_DEG),
+    "bearing_error": ("info_values", InfoColumn.BEARING_ERROR),
+    "neighbour_distance_error": ("info_values", InfoColumn.NEIGHBOUR_DISTANCE_ERROR),
+    "collisions_obstacle": ("contacts", ContactColumn.OBSTACLES),
+    "collisions_agent": ("contacts", ContactColumn.AGENTS),
 }
 
 
@@ -164,7 +165,7 @@ class EpisodeRecorder:
         self.rows["positions"].append(step.positions[slots].copy())
         self.rows["velocities"].append(step.velocities[slots].copy())
         self.rows["actions"].append(np.clip(actions[slots], -1.0, 1.0).astype(np.float64))
-        self.rows["goal_distance"].append(np.array(step.info_values[slots.start, 4]))
+        self.rows["goal_distance"].append(np.array(step.info_values[slots.start, InfoColumn.GOAL_DISTANCE]))
 
 
 def stack_recordings(
