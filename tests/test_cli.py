@@ -160,7 +160,7 @@ def test_compare_prints_a_table_and_reuses_matching_evaluations(
 def test_compare_checks_every_target_before_it_evaluates_any(
     runs: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """Issue 15, point 10: a missing second target is named before the first is evaluated into its eval/."""
+    """A missing second target is named before the first is evaluated into its eval/."""
     assert main(["evaluate", str(runs[0]), "--episodes", "4", "--n-envs", "2", "--no-progress"]) == 0
     summary = (runs[0] / "eval" / "summary.json").read_bytes()
     missing = tmp_path / "missing_run"

@@ -352,7 +352,7 @@ def test_stage_arguments_are_validated_and_numpy_integers_accepted() -> None:
 
 
 def test_substeps_keep_overlaps_within_the_tolerance_or_the_config_is_refused() -> None:
-    """Issue 15, point 9. A sub-step may move an agent OVERLAP_TOLERANCE * R * min(1 - bias^dt, 0.8) / 2 (m)."""
+    """A sub-step may move an agent OVERLAP_TOLERANCE * R * min(1 - bias^dt, 0.8) / 2 (m)."""
     thesis = FormationConfig.task("ch5-bearing")  # 0.1 * 0.2 m * 0.8 / 2 = 8 mm; 0.05 m/s * 0.3 s = 15 mm: 2 sub-steps
     assert 1 - COLLISION_BIAS**0.3 > 0.8 and thesis.max_substep_travel == pytest.approx(0.008)
     assert thesis.physics_substeps == 2
@@ -378,7 +378,7 @@ def test_largest_team_that_fits_the_start_formation() -> None:
 
 
 def test_a_config_that_needs_too_many_substeps_or_too_large_a_world_is_refused() -> None:
-    """Issue 29: v_max = 1e6 m/s needs 1e6 * 0.3 / 0.008 = 37,500,000 sub-steps per step (about 100 s each): refused,
+    """v_max = 1e6 m/s needs 1e6 * 0.3 / 0.008 = 37,500,000 sub-steps per step (about 100 s each): refused,
     naming v_max, dt and agent_radius; the fuzz-tested range stays allowed (v_max 1, dt 0.5, R_a 0.1: 0.5 m per step
     over 0.1 * 0.1 * 0.8 / 2 = 4 mm per sub-step = 125)."""
     with pytest.raises(ValueError, match=r"v_max=1e\+06 m/s, dt=0\.3 s and agent_radius=0\.2 m need 37,500,000 Pymunk"):

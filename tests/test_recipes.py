@@ -198,7 +198,7 @@ def test_thesis_recipes_train_into_the_recorded_parameters(case: str, tmp_path: 
     parameters matched; the test compares each tensor's sum and sum of squares to 1e-6, so that another CPU's rounding
     does not fail it while any change of settings, networks, seeding or data flow does. A CPU with other vector units
     (AVX-512 and AMX) rounds beyond 1e-6 in three iterations: for it, ``by_numerics`` holds the same command's
-    parameters under its :func:`numerics_fingerprint`, recorded on 2026-11-24; the code of commit c0c2d01, which met
+    parameters under its :func:`numerics_fingerprint`, recorded there; the code of commit c0c2d01, which met
     the first reference in CI, gives the same SHA-256 there."""
     data = json.loads(REFERENCE.read_text())
     reference = data.get("by_numerics", {}).get(numerics_fingerprint(), data)[case]

@@ -1,4 +1,4 @@
-"""Loading a model never runs code from the file (issue 29): model files are read as JSON and tensors, a file that
+"""Loading a model never runs code from the file: model files are read as JSON and tensors, a file that
 needs unpickling is refused unless trusted, resuming rebuilds the model from the run's recipe, and a normaliser of
 another task is refused."""
 

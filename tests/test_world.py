@@ -256,7 +256,7 @@ def test_clamp_speed_at_limit_unchanged() -> None:
 
 
 def test_resets_reuse_one_space_so_memory_stays_flat() -> None:
-    """Issue 15, point 10: a Pymunk space is freed only by the cyclic garbage collector, so a new space per episode
+    """A Pymunk space is freed only by the cyclic garbage collector, so a new space per episode
     let thousands wait (memory grew by ~90 MiB). Every episode reuses the env's one space, holding only its own
     walls, obstacles and agents."""
     env = FormationEnv(FormationConfig.task("ch5-bearing", stage=3, max_steps=2))
