@@ -103,7 +103,8 @@ class RecurrentFormationPPO(PPO):
                 for index, done in enumerate(dones)
                 if done and infos[index].get("terminal_observation") is not None and infos[index].get("TimeLimit.truncated")
             ]
-            if timeouts:  # bootstrap from the critic's state after the last real step (as SB3 does, github.com/DLR-RM/stable-baselines3/issues/633)
+            # bootstrap from the critic's state after the last real step (as SB3 does: DLR-RM/stable-baselines3 issue 633)
+            if timeouts:
                 terminal = obs_as_tensor(np.stack([infos[index]["terminal_observation"] for index in timeouts]), self.device)
                 rows = th.as_tensor(timeouts, device=self.device)
                 with th.no_grad():
