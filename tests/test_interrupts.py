@@ -5,6 +5,7 @@ from __future__ import annotations
 import gc
 import os
 import signal
+from collections.abc import Iterator
 
 import pytest
 
@@ -19,6 +20,18 @@ class InterruptedWhileFreed:
         sum(range(10_000))  # Python runs the handler here, inside the finaliser, which drops its KeyboardInterrupt
 
 
+@pytest.fixture
+def ctrl_c_handled() -> Iterator[None]:
+    """SIGINT handled as in a terminal (Python's default handler), also where the test runner was started in the
+    background, which leaves SIGINT ignored (and ``remember_ctrl_c`` then, rightly, changes nothing)."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+@pytest.mark.usefixtures("ctrl_c_handled")
 def test_a_ctrl_c_dropped_in_a_finaliser_is_raised_at_the_next_check(capsys: pytest.CaptureFixture[str]) -> None:
     with remember_ctrl_c():
         InterruptedWhileFreed()

@@ -202,7 +202,7 @@ def test_pretrained_targets_work_with_every_command(tmp_path: Path, monkeypatch:
         rate = pretrained_card(name)["summary"]["success_rate"]
         assert f"| pretrained:{name} | {pretrained_card(name)['recipe']} |" in listing and f"| {rate:.1%} (" in listing
     assert "| pretrained:ch5-bearing | residual-ch5-bearing | 6 | stage 3 |" in listing
-    assert "| pretrained:scenes-ch5-bearing | residual-scenes-ch5-bearing | 6 | mixed families |" in listing
+    assert "| pretrained:scenes-ch5-bearing | residual-scenes-ch5-bearing | 6 | mixed scenes |" in listing
     quick = ["--episodes", "2", "--n-envs", "2", "--no-progress"]
     assert main(["evaluate", "pretrained:ch5-bearing", *quick, "--trajectories", "1"]) == 0
     folder = tmp_path / "evaluations" / "pretrained-ch5-bearing_residual-ch5-bearing"
