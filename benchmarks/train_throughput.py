@@ -71,9 +71,9 @@ class PhaseTimer(BaseCallback):
 
 def build(recipe: str, workers: int) -> tuple[PPO, TrainSettings]:
     """``recipe``'s model on its training env (stage 3, 14 teams, seed 0), as ``sb3-formation train`` makes them."""
-    preset, cell = RECIPES[recipe]
+    name, cell = RECIPES[recipe]
     recurrent = {"recurrent": cell is not None, **({"cell": cell} if cell else {})}
-    settings = layered_settings(recipe=preset, n_envs=14, workers=workers, seed=0, device="cpu", **recurrent)
+    settings = layered_settings(recipe=name, n_envs=14, workers=workers, seed=0, device="cpu", **recurrent)
     env = make_training_env(settings, stage=3)
     kwargs = settings.recipe.ppo_kwargs()
     return algorithm_for(kwargs["policy"])(env=env, seed=0, device="cpu", **with_schedules(kwargs)), settings

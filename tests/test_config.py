@@ -13,7 +13,7 @@ import pytest
 
 from sb3_formation.env.config import COLLISION_BIAS, MAX_SUBSTEPS, MAX_WORLD_SIZE, FormationConfig
 
-PRESET_NAMES = ("ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing")
+TASK_NAMES = ("ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing")
 
 #: Table 4.1 (K_ref -> k_dist, m_ref -> m_dist, beta^f = 60 deg); n = 3 (thesis 4.2).
 TABLE_4_1: dict[str, Any] = {
@@ -59,7 +59,7 @@ TABLE_5_1: dict[str, Any] = {
     "chapter": "ch5",
 }
 
-EXPECTED_PRESETS: dict[str, dict[str, Any]] = {
+EXPECTED_TASKS: dict[str, dict[str, Any]] = {
     "ch4-individual": {**TABLE_4_1, "team_reward": False},
     "ch4-team": {**TABLE_4_1, "team_reward": True},
     "ch5-angle": {**TABLE_5_1, "k_angle": 0.3, "k_bearing": 0.0, "team_reward": False},  # thesis 5.3, Policy 1
@@ -90,14 +90,14 @@ def _assert_values(config: FormationConfig, expected: dict[str, Any]) -> None:
             assert actual == pytest.approx(value, rel=1e-12, abs=1e-15), f"{name}: {actual!r} != {value!r}"
 
 
-# Presets ----------------------------------------------------------------------------------------------------------
+# Tasks ------------------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", PRESET_NAMES)
-def test_preset_carries_table_values(name: str) -> None:
-    """Each preset carries its chapter's table values and the shared team specifications."""
+@pytest.mark.parametrize("name", TASK_NAMES)
+def test_task_carries_table_values(name: str) -> None:
+    """Each task carries its chapter's table values and the shared team specifications."""
     config = FormationConfig.task(name)
-    _assert_values(config, EXPECTED_PRESETS[name])
+    _assert_values(config, EXPECTED_TASKS[name])
     _assert_values(config, COMMON)
 
 
@@ -109,7 +109,7 @@ def test_ch4_uses_k1_from_table_5_1() -> None:
 
 def test_only_ch4_team_has_team_reward() -> None:
     """team_reward is True for ch4-team and False for the three others."""
-    flags = {name: FormationConfig.task(name).team_reward for name in PRESET_NAMES}
+    flags = {name: FormationConfig.task(name).team_reward for name in TASK_NAMES}
     assert flags == {"ch4-individual": False, "ch4-team": True, "ch5-angle": False, "ch5-bearing": False}
 
 
@@ -117,7 +117,7 @@ def test_only_ch4_team_has_team_reward() -> None:
     ("name", "beta"),
     [("ch4-individual", 60.0), ("ch4-team", 60.0), ("ch5-angle", 120.0), ("ch5-bearing", 120.0)],
 )
-def test_beta_ref_of_presets(name: str, beta: float) -> None:
+def test_beta_ref_of_tasks(name: str, beta: float) -> None:
     """beta^f = 60 deg for n = 3 (Table 4.1), beta^ref = 120 deg for n = 6 (Table 5.1)."""
     assert FormationConfig.task(name).beta_ref_deg == pytest.approx(beta, abs=1e-12)
 
@@ -138,30 +138,30 @@ def test_force_max(overrides: dict[str, Any], expected: float) -> None:
 
 
 def test_force_max_default_is_one_sixth_newton() -> None:
-    """The thesis numbers give F_max = 1 kg * 0.05 m/s / 0.3 s = 1/6 N for every preset."""
-    for name in PRESET_NAMES:
+    """The thesis numbers give F_max = 1 kg * 0.05 m/s / 0.3 s = 1/6 N for every task."""
+    for name in TASK_NAMES:
         assert FormationConfig.task(name).force_max == pytest.approx(1 / 6, rel=1e-12)
 
 
 # n_agents -----------------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", PRESET_NAMES)
+@pytest.mark.parametrize("name", TASK_NAMES)
 @pytest.mark.parametrize(("n_agents", "beta"), [(3, 60.0), (4, 90.0), (5, 108.0), (8, 135.0)])
-def test_any_team_size_with_any_preset(name: str, n_agents: int, beta: float) -> None:
-    """n >= 3 works with every preset; beta^ref is the n-gon's interior angle (n - 2) * 180 / n."""
+def test_any_team_size_with_any_task(name: str, n_agents: int, beta: float) -> None:
+    """n >= 3 works with every task; beta^ref is the n-gon's interior angle (n - 2) * 180 / n."""
     config = FormationConfig.task(name, n_agents=n_agents)
     assert config.n_agents == n_agents
     assert config.beta_ref_deg == pytest.approx(beta, abs=1e-12)
     # the starting n-gon fits: sides below d_ref, vertices within eta_c of the centroid, agents not overlapping
     assert config.start_circumradius <= config.eta_c + 1e-12
     assert 2 * config.agent_radius < config.start_side_length < config.d_ref
-    # the other preset values are untouched by the override
-    expected = {key: value for key, value in EXPECTED_PRESETS[name].items() if key != "n_agents"}
+    # the other task values are untouched by the override
+    expected = {key: value for key, value in EXPECTED_TASKS[name].items() if key != "n_agents"}
     _assert_values(config, expected)
 
 
-@pytest.mark.parametrize("name", PRESET_NAMES)
+@pytest.mark.parametrize("name", TASK_NAMES)
 def test_two_agents_rejected(name: str) -> None:
     """n_agents = 2 raises a ValueError naming n_agents and the bound >= 3."""
     with pytest.raises(ValueError, match=r"n_agents") as info:
@@ -169,7 +169,7 @@ def test_two_agents_rejected(name: str) -> None:
     assert ">= 3" in str(info.value)
 
 
-def test_two_agents_rejected_without_preset() -> None:
+def test_two_agents_rejected_without_task() -> None:
     """The bound holds for a directly built config too."""
     with pytest.raises(ValueError, match=r"n_agents.*>= 3"):
         FormationConfig(n_agents=2)
@@ -227,13 +227,13 @@ def test_disabled_terms_need_three_stages() -> None:
         FormationConfig.task("ch5-bearing", stage_disabled_terms=(("angle",), ()))
 
 
-def test_unknown_preset_lists_valid_presets() -> None:
+def test_unknown_task_lists_valid_tasks() -> None:
     """task('nope') raises a ValueError listing the valid tasks."""
     with pytest.raises(ValueError) as info:
         FormationConfig.task("nope")
     message = str(info.value)
     assert "nope" in message
-    for name in PRESET_NAMES:
+    for name in TASK_NAMES:
         assert name in message
 
 
@@ -272,7 +272,7 @@ def test_config_is_frozen() -> None:
 
 
 def test_config_hashable_and_equal_by_value() -> None:
-    """Two configs from the same preset are equal; a different stage is not."""
+    """Two configs from the same task are equal; a different stage is not."""
     first = FormationConfig.task("ch5-angle")
     assert first == FormationConfig.task("ch5-angle")
     assert hash(first) == hash(FormationConfig.task("ch5-angle"))
@@ -313,7 +313,7 @@ EXPECTED_COEFFICIENTS: dict[str, dict[int, dict[str, float]]] = {
 }
 
 
-@pytest.mark.parametrize("name", PRESET_NAMES)
+@pytest.mark.parametrize("name", TASK_NAMES)
 @pytest.mark.parametrize("stage", [1, 2, 3])
 def test_reward_coefficients_per_stage(name: str, stage: int) -> None:
     """reward_coefficients(stage) gives every term's coefficient with the stage's disabled terms at 0."""
@@ -323,7 +323,7 @@ def test_reward_coefficients_per_stage(name: str, stage: int) -> None:
     assert coefficients == pytest.approx(expected, abs=1e-12)
 
 
-@pytest.mark.parametrize("name", PRESET_NAMES)
+@pytest.mark.parametrize("name", TASK_NAMES)
 @pytest.mark.parametrize("stage", [1, 2, 3])
 def test_reward_coefficients_default_to_config_stage(name: str, stage: int) -> None:
     """Without an argument, reward_coefficients uses config.stage."""

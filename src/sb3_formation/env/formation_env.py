@@ -73,7 +73,7 @@ class FormationEnv(ParallelEnv):  # type: ignore[misc]  # pettingzoo ships no ty
 
     ## Rewards
 
-    Per agent, the weighted sum of the terms below (coefficients: ``FormationConfig``, presets from Tables 4.1 and
+    Per agent, the weighted sum of the terms below (coefficients: ``FormationConfig``, tasks from Tables 4.1 and
     5.1), terms of the stage's ``stage_disabled_terms`` left out, clipped to [-10, 10]. ``infos[agent]["reward_<term>"]``
     holds every term before its coefficient (flat keys, :data:`~sb3_formation.env.config.REWARD_INFO_KEYS`). With
     ``team_reward`` each per-agent term is replaced by its team average and ``coll`` by the team collision term
