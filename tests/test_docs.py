@@ -27,7 +27,7 @@ DOCS = ROOT / "docs"
 #: Pages whose ```python blocks run here, as written (the libraries page's run in tests/test_integrations.py).
 RUN_PAGES = [README, DOCS / "getting-started.md", DOCS / "environment.md", DOCS / "scenes.md", DOCS / "evaluation.md"]
 #: Modules without an API section: the ``python -m`` entry point.
-NOT_IN_API = {"sb3_formation.cli.__main__"}
+NOT_IN_API = {"sb3_formation.cli.__main__", "sb3_formation.ros.__main__"}
 #: The pages of the user's manual: every page of the site outside the research notes (docs/research/).
 MANUAL_PAGES = [*sorted(DOCS.glob("*.md")), *sorted(DOCS.glob("api/*.md"))]
 #: An ISO date (2026-11-25): a date of work, which the manual's pages do not carry.

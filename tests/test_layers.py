@@ -1,6 +1,7 @@
 """The package's layers: each imports only from the layers below it, and the environment layer loads no learning stack.
 
-Layers, bottom to top: utils, env, controllers, safety, runtime, sb3, experiment, viz, cli (docs/contributing.md, "Layers").
+Layers, bottom to top: utils, env, controllers, safety, runtime, ros, sb3, experiment, viz, cli
+(docs/contributing.md, "Layers").
 """
 
 from __future__ import annotations
@@ -14,11 +15,22 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "src" / "sb3_formation"
 #: Layer of each subpackage or top-level module, bottom (0) to top.
-LAYERS = {"utils": 0, "env": 1, "controllers": 2, "safety": 3, "runtime": 4, "sb3": 5, "experiment": 6, "viz": 7, "cli": 8}
-#: Third-party packages the bottom layers (utils, env, controllers, safety, runtime) must not import: the learning and plotting
-#: stacks (the runtime runs an exported policy with numpy and onnxruntime only).
+LAYERS = {
+    "utils": 0,
+    "env": 1,
+    "controllers": 2,
+    "safety": 3,
+    "runtime": 4,
+    "ros": 5,
+    "sb3": 6,
+    "experiment": 7,
+    "viz": 8,
+    "cli": 9,
+}
+#: Third-party packages the bottom layers (utils, env, controllers, safety, runtime, ros) must not import: the learning and
+#: plotting stacks (the runtime and the ROS 2 nodes run an exported policy with numpy and onnxruntime only).
 HEAVY = {"torch", "stable_baselines3", "matplotlib", "tensorboard", "ray", "tqdm", "imageio_ffmpeg"}
-LIGHT_LAYERS = {"utils", "env", "controllers", "safety", "runtime"}
+LIGHT_LAYERS = {"utils", "env", "controllers", "safety", "runtime", "ros"}
 
 
 def layer(relative: Path) -> str:
@@ -106,6 +118,11 @@ def test_each_layer_imports_only_from_the_layers_below() -> None:
             "runtime/onnx_policy.py: layer 'runtime' imports sb3_formation.sb3.trained from the higher layer 'sb3'",
         ),
         (
+            "ros/observer.py",
+            "from sb3_formation.sb3.vec_env import FormationVecEnv\n",
+            "ros/observer.py: layer 'ros' imports sb3_formation.sb3.vec_env from the higher layer 'sb3'",
+        ),
+        (
             "utils/checks.py",
             "from sb3_formation.env.config import FormationConfig\n",
             "utils/checks.py: layer 'utils' imports sb3_formation.env.config from the higher layer 'env'",
@@ -121,7 +138,15 @@ def test_the_rule_catches_a_forbidden_import(module: str, added: str, expected: 
 
 @pytest.mark.parametrize(
     "module",
-    ["sb3_formation", "sb3_formation.env", "sb3_formation.controllers", "sb3_formation.safety", "sb3_formation.runtime"],
+    [
+        "sb3_formation",
+        "sb3_formation.env",
+        "sb3_formation.controllers",
+        "sb3_formation.safety",
+        "sb3_formation.runtime",
+        "sb3_formation.ros.scans",
+        "sb3_formation.ros.observer",
+    ],
 )
 def test_importing_the_light_layers_loads_no_learning_stack(module: str) -> None:
     """Measured in a fresh interpreter: importing the env, the runtime (or the package's top level) leaves torch and SB3

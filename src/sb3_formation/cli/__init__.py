@@ -14,12 +14,25 @@ import signal
 import sys
 from collections.abc import Sequence
 
-from sb3_formation.cli import benchmark, compare, evaluate, export, plot, pretrained, recipes, render, rollout, sweep, train
+from sb3_formation.cli import (
+    benchmark,
+    compare,
+    evaluate,
+    export,
+    plot,
+    pretrained,
+    recipes,
+    render,
+    rollout,
+    ros,
+    sweep,
+    train,
+)
 from sb3_formation.experiment.training import TrainingStopped
 from sb3_formation.utils.interrupts import remember_ctrl_c
 
 #: The subcommands' modules, in the order ``--help`` lists them: each adds its parser, which names its ``run``.
-COMMANDS = (train, recipes, pretrained, evaluate, plot, render, compare, benchmark, sweep, rollout, export)
+COMMANDS = (train, recipes, pretrained, evaluate, plot, render, compare, benchmark, sweep, rollout, export, ros)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,272 @@
+"""Start the simulator node or a team's agent nodes in one command, without ROS's own tools (``docs/deployment.md``).
+
+``python -m sb3_formation.ros sim|agents MODEL.onnx ...`` runs the nodes (this module; it imports no torch);
+``sb3-formation ros sim|agents TARGET ...`` names the policy as every other command does (``pretrained:ch5-bearing``)
+and hands over to it. Options after ``--ros-args`` go to ROS (``--ros-args -p input_timeout:=2.0`` sets a parameter of
+every node of the process).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+#: ``--discovery`` choices -> ``ROS_AUTOMATIC_DISCOVERY_RANGE`` (``localhost``: no traffic leaves the machine).
+DISCOVERY_RANGES = {"localhost": "LOCALHOST", "subnet": "SUBNET", "off": "OFF", "system_default": "SYSTEM_DEFAULT"}
+#: The agents' namespaces, ``{index}`` standing for an agent's index in its team.
+AGENT_NAMESPACE = "agent_{index}"
+
+
+def add_arguments(commands: Any, model_help: str) -> None:
+    """Add the ``sim`` and ``agents`` subcommands to ``commands`` (an argparse subparsers object).
+
+    :param model_help: what the positional argument names (an ``.onnx`` file, or any target of ``sb3-formation``)
+    """
+    sim = commands.add_parser(
+        "sim",
+        help="the simulator as a ROS 2 node: scans, odometry, the goal and /clock out, Twist commands in",
+        description="Fly a team of the package's engine over ROS 2 topics, episode k from reset(seed=SEED + k), as "
+        "sb3-formation evaluate does. Synchronous mode steps when every agent's command of the step has arrived "
+        "(deterministic); free mode steps at RATE times wall-clock speed with the latest commands.",
+    )
+    sim.add_argument("model", help=model_help + " (whose task the simulator flies)")
+    sim.add_argument("--scenes", default="", help="the scenes to draw (default: the policy's)")
+    sim.add_argument("--stage", type=int, default=3, help="curriculum stage 1-3 (default 3)")
+    sim.add_argument("--seed", type=int, default=0, help="episode k is played from reset(seed=SEED + k) (default 0)")
+    sim.add_argument("--episodes", type=int, default=1, help="episodes to play, then stop (default 1)")
+    sim.add_argument("--mode", choices=("sync", "free"), default="sync", help="synchronous (default) or free-running")
+    sim.add_argument("--rate", type=float, default=1.0, help="free mode: simulated seconds per wall-clock second")
+    sim.add_argument(
+        "--command-timeout", type=float, default=30.0, help="sync mode: wall-clock seconds to wait for a step's commands"
+    )
+    sim.add_argument(
+        "--see-through-agents",
+        action="store_true",
+        help="scans see through the agents, as the simulator's lidar does (a check of the nodes; default: agents stop beams)",
+    )
+    sim.add_argument(
+        "--out", type=Path, default=None, help="write every episode (seed, success, steps, positions) to this .npz"
+    )
+    _add_ros_options(sim)
+    agents = commands.add_parser(
+        "agents",
+        help="a team's agent nodes: each runs the policy and the safety filter on its robot's scan, odometry and goal",
+        description="One agent node per robot: LaserScan, every teammate's Odometry and the goal in, Twist out. All "
+        "of a team's nodes in one process and executor, or one process per agent.",
+    )
+    agents.add_argument("model", help=model_help)
+    agents.add_argument("--agents", default=None, help="comma-separated agent indices (default: the whole team)")
+    agents.add_argument("--process-per-agent", action="store_true", help="one process per agent (default: one for all)")
+    agents.add_argument(
+        "--mode",
+        choices=("sync", "free"),
+        default="sync",
+        help="sync (default): act once per stamp, as the simulator's synchronous mode needs; free: on every scan (a robot)",
+    )
+    agents.add_argument("--sim-time", action="store_true", help="follow the simulator's /clock (use_sim_time), in free mode")
+    agents.add_argument("--no-filter", action="store_true", help="send the policy's actions without the safety filter")
+    _add_ros_options(agents)
+
+
+def _add_ros_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--ros-args",
+        dest="ros_args",
+        nargs=argparse.REMAINDER,
+        default=[],
+        help="the rest goes to ROS, e.g. --ros-args -p input_timeout:=2.0 (a parameter of every node of the process)",
+    )
+    parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: the environment's, else 0)")
+    parser.add_argument(
+        "--discovery",
+        choices=tuple(DISCOVERY_RANGES),
+        default="localhost",
+        help="ROS_AUTOMATIC_DISCOVERY_RANGE (default localhost: nothing leaves this machine; subnet to reach robots)",
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of ``python -m sb3_formation.ros``."""
+    parser = argparse.ArgumentParser(prog="python -m sb3_formation.ros", description=__doc__.splitlines()[0])
+    add_arguments(parser.add_subparsers(dest="command", required=True), "an exported policy (.onnx)")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``python -m sb3_formation.ros``."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    try:
+        check_arguments(args)
+        set_ros_environment(args.domain_id, args.discovery)
+        if args.command == "sim":
+            return run_sim(args)
+        return run_agents(args, argv)
+    except (ValueError, OSError, RuntimeError) as error:
+        print(f"sb3_formation.ros: error: {error}", file=sys.stderr)
+        return 2
+
+
+def check_arguments(args: argparse.Namespace) -> None:
+    """Refuse bad options in one line before anything starts."""
+    if not Path(args.model).is_file():
+        raise FileNotFoundError(
+            f"no exported policy at {args.model}: write one with `sb3-formation export TARGET --onnx FILE`"
+        )
+    if args.domain_id is not None and not 0 <= args.domain_id <= 232:
+        raise ValueError(f"--domain-id {args.domain_id} is not a ROS 2 domain id (0 to 232)")
+    if args.command == "sim":
+        if not 1 <= args.stage <= 3:
+            raise ValueError(f"--stage {args.stage} is not a curriculum stage (1, 2 or 3)")
+        if args.episodes < 1:
+            raise ValueError(f"--episodes must be at least 1, got {args.episodes}")
+        if not args.rate > 0 or not args.command_timeout > 0:
+            raise ValueError(f"--rate and --command-timeout must be > 0, got {args.rate} and {args.command_timeout}")
+        if args.out is not None and args.out.suffix != ".npz":
+            raise ValueError(f"--out {args.out}: the episodes are written as an .npz file")
+        if args.out is not None and args.out.exists():
+            raise FileExistsError(f"{args.out} exists: choose another --out (nothing is overwritten)")
+
+
+def set_ros_environment(domain_id: int | None, discovery: str) -> None:
+    """``ROS_DOMAIN_ID`` and ``ROS_AUTOMATIC_DISCOVERY_RANGE`` for this process and its children (before rclpy starts)."""
+    if domain_id is not None:
+        os.environ["ROS_DOMAIN_ID"] = str(domain_id)
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = DISCOVERY_RANGES[discovery]
+
+
+def agent_indices(text: str | None, n_agents: int) -> list[int]:
+    """The agents ``--agents`` names (default: all ``n_agents``)."""
+    if text is None:
+        return list(range(n_agents))
+    try:
+        indices = [int(part) for part in text.split(",")]
+    except ValueError:
+        raise ValueError(f"--agents takes comma-separated agent indices, got {text!r}") from None
+    wrong = [index for index in indices if not 0 <= index < n_agents]
+    if wrong or len(set(indices)) != len(indices):
+        raise ValueError(f"--agents {text}: indices must be distinct and within 0-{n_agents - 1} (a team of {n_agents})")
+    return indices
+
+
+def run_agents(args: argparse.Namespace, argv: list[str]) -> int:
+    """Run the agent nodes until interrupted: in this process, or one child process per agent (each started with
+    ``argv``, this command's arguments, for its one agent)."""
+    from sb3_formation.runtime import OnnxPolicy
+
+    policy = OnnxPolicy(args.model, threads=1)
+    indices = agent_indices(args.agents, policy.config.n_agents)
+    if args.process_per_agent and len(indices) > 1:
+        ros_at = argv.index("--ros-args") if "--ros-args" in argv else len(argv)
+        own = [arg for arg in argv[:ros_at] if arg != "--process-per-agent"]
+        own = [arg for position, arg in enumerate(own) if not _is_agents_option(own, position)]
+        commands = [
+            [sys.executable, "-m", "sb3_formation.ros", *own, "--agents", str(index), *argv[ros_at:]] for index in indices
+        ]
+        return _run_children(commands)
+    from rclpy.parameter import Parameter
+
+    from sb3_formation.ros.agent_node import AgentNode, AgentSettings
+
+    def make_nodes() -> list[Any]:
+        return [
+            AgentNode(
+                policy,
+                AgentSettings(agent=index, synchronous=args.mode == "sync", safety_filter=not args.no_filter),
+                name=f"formation_agent_{index}",
+                namespace=AGENT_NAMESPACE.format(index=index),
+                parameter_overrides=[Parameter("use_sim_time", value=args.sim_time)],
+            )
+            for index in indices
+        ]
+
+    return _spin(make_nodes, args.ros_args)
+
+
+def _is_agents_option(arguments: list[str], position: int) -> bool:
+    """Whether ``arguments[position]`` is ``--agents`` or its value (``--agents=...`` included)."""
+    argument = arguments[position]
+    return (
+        argument == "--agents" or argument.startswith("--agents=") or (position > 0 and arguments[position - 1] == "--agents")
+    )
+
+
+def run_sim(args: argparse.Namespace) -> int:
+    """Run the simulator node until its episodes are played; print them, and write them to ``--out``."""
+    from sb3_formation.ros.sim_node import SimNode, SimSettings
+    from sb3_formation.runtime import OnnxPolicy
+
+    config = OnnxPolicy(args.model, threads=1).config
+    changes: dict[str, Any] = {"stage": args.stage} | ({"scenes": args.scenes} if args.scenes else {})
+    config = config.replace(**changes)
+    settings = SimSettings(
+        seed=args.seed,
+        episodes=args.episodes,
+        synchronous=args.mode == "sync",
+        rate=args.rate,
+        command_timeout=args.command_timeout,
+        see_through_agents=args.see_through_agents,
+    )
+    nodes: list[Any] = []
+
+    def make_nodes() -> list[Any]:
+        nodes.append(SimNode(config, settings))
+        return nodes
+
+    code = _spin(make_nodes, args.ros_args, until=lambda: bool(nodes) and nodes[0].done)
+    if nodes:
+        node = nodes[0]
+        for result in node.results:
+            print(f"seed {result.seed}: {'success' if result.success else 'failure'} in {result.steps} steps")
+        if args.out is not None:
+            node.save(args.out)
+    return code
+
+
+def _spin(make_nodes: Any, ros_arguments: list[str], until: Any = None) -> int:
+    """Start rclpy, spin the nodes ``make_nodes()`` builds in one executor until ``until()`` or an interrupt (Ctrl-C or
+    SIGTERM), then shut down."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+
+    signal.signal(signal.SIGTERM, _interrupt)
+    rclpy.init(args=["sb3_formation.ros", "--ros-args", *ros_arguments] if ros_arguments else None)
+    executor = SingleThreadedExecutor()
+    try:
+        for node in make_nodes():
+            executor.add_node(node)
+        while until is None or not until():
+            executor.spin_once(timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        executor.shutdown()
+        rclpy.try_shutdown()
+    return 0
+
+
+def _interrupt(number: int, frame: Any) -> None:
+    """SIGTERM as Ctrl-C: the nodes shut down cleanly."""
+    raise KeyboardInterrupt
+
+
+def _run_children(commands: list[list[str]]) -> int:
+    """Run one child process per command until all end or this one is interrupted (then they are stopped too)."""
+    children = [subprocess.Popen(command) for command in commands]
+    try:
+        codes = [child.wait() for child in children]
+    except KeyboardInterrupt:
+        codes = []
+    finally:
+        for child in children:
+            if child.poll() is None:
+                child.send_signal(signal.SIGINT)
+        for child in children:
+            child.wait()
+    return max(codes, default=0)

@@ -1,0 +1,215 @@
+"""One agent's observation (thesis Table 3.1) built on board from what a robot knows, and its command.
+
+A robot knows its team's poses and velocities (every teammate's odometry, in one shared world frame), the goal, its
+own lidar (:mod:`~sb3_formation.ros.scans`), and what it remembers: its previous action, the step count since the goal
+was given, the team's previous velocities and centroid. :class:`AgentObserver` writes from these the row the
+simulator writes (:func:`~sb3_formation.env.observations.observation_fields`), including the previous reward, which
+it computes with the package's reward terms and the coefficients of the policy's last stage. Numpy and the
+environment layer only (no rclpy).
+
+What a robot cannot know exactly, and how the observer stands in for it: the gap to the nearest obstacle, which the
+reward's collision term compares with d_safe, is the smallest reading of its obstacle channel (the simulator measures
+it on its map); a team reward (``team_reward``), which needs every teammate's gap, is refused.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from sb3_formation.env.config import REWARD_TERMS, FormationConfig
+from sb3_formation.env.geometry import (
+    FormationState,
+    interior_angle_deg,
+    measure_formation,
+    reference_bearings,
+    ring_neighbours,
+)
+from sb3_formation.env.observations import observation_fields, observation_layout
+from sb3_formation.env.rewards import combine_rewards, reward_constants, reward_terms
+from sb3_formation.env.world import clamp_speed
+
+#: The curriculum's last stage, whose reward coefficients a deployed agent observes (all terms on).
+FINAL_STAGE = 3
+
+
+class TeamView(NamedTuple):
+    """What an agent knows of its team at one instant, in the shared world frame (REP 103: m, m/s, rad).
+
+    :param positions: ``(n, 2)`` every agent's centre, row i agent i
+    :param velocities: ``(n, 2)`` every agent's velocity
+    :param headings: ``(n,)`` every agent's heading (rad, anti-clockwise from +x)
+    """
+
+    positions: np.ndarray
+    velocities: np.ndarray
+    headings: np.ndarray
+
+
+class AgentObserver:
+    """Builds one agent's observation rows, step after step, from its team's poses, the goal and its two lidar channels.
+
+    Call :meth:`reset` when a new goal arrives (an episode starts), then per step :meth:`observe` and, with the action
+    the policy chose, :meth:`remember`.
+
+    :param config: the policy's task (from its exported metadata)
+    :param agent: the agent's index in its team (ring order, thesis Table 5.2)
+    :param stage: the curriculum stage whose reward coefficients give the observed previous reward
+    :raises ValueError: a team reward, or an agent index outside the team
+    """
+
+    def __init__(self, config: FormationConfig, agent: int, stage: int = FINAL_STAGE) -> None:
+        if config.team_reward:
+            raise ValueError(
+                "a policy trained on the team reward cannot run on board: each agent would need every "
+                "teammate's distance to its nearest obstacle"
+            )
+        if not 0 <= agent < config.n_agents:
+            raise ValueError(f"agent index {agent} is outside a team of {config.n_agents} agents (0 to {config.n_agents - 1})")
+        self.config, self.agent = config, agent
+        self.neighbours = ring_neighbours(config.n_agents)
+        self._reference = reference_bearings(config.n_agents)
+        self._beta_ref = interior_angle_deg(config.n_agents)
+        self._rewards = reward_constants(config)
+        coefficients = config.reward_coefficients(stage)
+        self._coefficients = np.array([coefficients[term] for term in REWARD_TERMS])
+        self.layout = observation_layout(observation_fields(config))
+        self.dim = sum(part.stop - part.start for part in self.layout.values())
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the last episode: no step, no previous action or reward."""
+        self.step = 0
+        self.previous_action = np.zeros(2)
+        self.previous_reward = 0.0
+        self._previous: tuple[np.ndarray, np.ndarray, float] | None = None  # velocities, goal offset, goal distance
+
+    def observe(self, team: TeamView, lidar: np.ndarray, goal: np.ndarray) -> np.ndarray:
+        """The agent's observation now, ``(dim,)`` float64; counts a step after the first call of an episode.
+
+        :param team: the team now
+        :param lidar: ``(2, n_rays)`` the agent's obstacle and agent channels, fractions of the range
+            (:func:`~sb3_formation.ros.scans.split_scan`)
+        :param goal: ``(2,)`` the goal (m)
+        """
+        config, agent = self.config, self.agent
+        positions = np.ascontiguousarray(team.positions, dtype=np.float64)
+        velocities = np.asarray(team.velocities, dtype=np.float64)
+        formation = measure_formation(positions, self.neighbours, self._reference, self._beta_ref, config.d_ref)
+        offset = goal - formation.centroid
+        goal_distance = math.hypot(float(offset[0]), float(offset[1]))
+        previous_offset = offset
+        if self._previous is not None:  # a step was taken: its reward, as the simulator gives it
+            previous_velocities, previous_offset, previous_distance = self._previous
+            self.step += 1
+            gap = float(lidar[0].min()) * config.lidar_range
+            distances, moved = (previous_distance, goal_distance), (previous_velocities, velocities)
+            self.previous_reward = self._reward(formation, positions, distances, moved, gap)
+        self._previous = velocities.copy(), offset, goal_distance
+        preceding, succeeding = self.neighbours[agent]
+        values = {
+            "lidar_obstacles": lidar[0],
+            "lidar_agents": lidar[1],
+            "velocity": velocities[agent],
+            "neighbour_offsets": formation.neighbour_offsets[agent].reshape(-1),
+            "neighbour_relative_velocities": (velocities[[preceding, succeeding]] - velocities[agent]).reshape(-1),
+            "goal_offset": goal - positions[agent],
+            "centroid_goal_offset": offset,
+            "centroid_goal_offset_change": offset - previous_offset,
+            "neighbour_distances": formation.neighbour_distances[agent],
+            "centroid_distance": formation.centroid_distances[agent],
+            "neighbour_distance_errors": formation.neighbour_distances[agent] - config.d_ref,
+            "centroid_distance_error": config.eta_c - formation.centroid_distances[agent],
+            "angle_error": formation.angle_errors_deg[agent],
+            "neighbour_angle_errors": formation.angle_errors_deg[[preceding, succeeding]],
+            "flag_orientation": float(formation.orientation_flags[agent]),
+            "flag_range": float(formation.range_flag),
+            "time_step": float(self.step),
+            "previous_action": self.previous_action,
+            "previous_reward": self.previous_reward,
+            "heading": [math.cos(team.headings[agent]), math.sin(team.headings[agent])],
+            "reference_bearings": self._reference[agent].reshape(-1),
+        }
+        row = np.empty(self.dim)
+        for name, where in self.layout.items():
+            row[where] = values[name]
+        return row
+
+    def _reward(
+        self,
+        formation: FormationState,
+        positions: np.ndarray,
+        goal_distances: tuple[float, float],
+        velocities: tuple[np.ndarray, np.ndarray],
+        gap: float,
+    ) -> float:
+        """The agent's reward for the step just taken (eq. 42 with the stage's coefficients, clipped), with the goal
+        term of the straight centroid-goal distance (the one every agent observes, :mod:`~sb3_formation.env.progress`).
+
+        :param formation: the team's formation after the step
+        :param positions: ``(n, 2)`` the team's positions (m) after the step
+        :param goal_distances: the centroid's distance (m) to the goal before and after the step
+        :param velocities: the team's velocities (m/s) before and after the step
+        :param gap: (m) the agent's distance to the nearest obstacle, from its obstacle channel
+        """
+        agent, n_agents = self.agent, self.config.n_agents
+        x, y = positions[agent]
+        nearest_agents, gaps = np.full(n_agents, np.inf), np.full(n_agents, np.inf)
+        nearest_agents[agent] = min(math.hypot(px - x, py - y) for k, (px, py) in enumerate(positions.tolist()) if k != agent)
+        gaps[agent] = gap
+        terms = reward_terms(
+            self.config,
+            self.step,
+            formation,
+            goal_distances[0],
+            goal_distances[1],
+            velocities[0],
+            velocities[1],
+            self.neighbours,
+            nearest_agents,
+            gaps,
+            self._rewards,
+        )
+        return float(combine_rewards(terms, self._coefficients, self.config.reward_clip)[agent])
+
+    def remember(self, action: np.ndarray) -> None:
+        """Keep the action the agent took (after the safety filter) for the next observation."""
+        self.previous_action = np.asarray(action, dtype=np.float64).reshape(2).copy()
+
+
+def velocity_command(config: FormationConfig, action: np.ndarray, velocity: np.ndarray, forward_speed: float) -> np.ndarray:
+    """The command a policy's action gives for the next step (the simulator's dynamics, eq. 19): a holonomic agent's
+    world-frame velocity ``clamp(v + a F_max dt / m, v_max)`` (m/s, x and y); a unicycle's forward speed
+    ``clip(v_f + a_0 F_max dt / m, +-v_max)`` (m/s) and turn rate ``a_1 max_turn_rate`` (rad/s).
+
+    :param action: ``(2,)`` the action in [-1, 1]
+    :param velocity: ``(2,)`` the agent's world-frame velocity now (m/s)
+    :param forward_speed: a unicycle's forward speed now (m/s)
+    """
+    change = (np.asarray(action, dtype=np.float64) * config.force_max) * (config.dt / config.agent_mass)
+    if config.dynamics == "unicycle":
+        forward = min(max(forward_speed + float(change[0]), -config.v_max), config.v_max)
+        return np.array([forward, float(action[1]) * config.max_turn_rate])
+    commanded: np.ndarray = clamp_speed((np.asarray(velocity, dtype=np.float64) + change)[None, :], config.v_max)[0]
+    return commanded
+
+
+def command_action(config: FormationConfig, command: np.ndarray, velocity: np.ndarray, forward_speed: float) -> np.ndarray:
+    """The action in [-1, 1] that gives ``command`` (the inverse of :func:`velocity_command`, clipped): how the
+    simulator node applies a robot's command.
+
+    :param command: ``(2,)`` a holonomic agent's world-frame velocity (m/s), or a unicycle's forward speed (m/s) and
+        turn rate (rad/s)
+    :param velocity: ``(2,)`` the agent's world-frame velocity now (m/s)
+    :param forward_speed: a unicycle's forward speed now (m/s)
+    """
+    per_action = config.force_max * (config.dt / config.agent_mass)
+    command = np.asarray(command, dtype=np.float64)
+    if config.dynamics == "unicycle":
+        action = np.array([(command[0] - forward_speed) / per_action, command[1] / config.max_turn_rate])
+    else:
+        action = (command - np.asarray(velocity, dtype=np.float64)) / per_action
+    clipped: np.ndarray = np.clip(action, -1.0, 1.0)
+    return clipped
