@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import math
 import os
+import signal
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -327,3 +330,34 @@ def test_a_real_scanner_splits_into_the_simulators_channels_and_flies_the_same_e
             assert not np.any(differs & ~stopped_by_teammates(team, config)), "a ray that differs must be one a teammate stops"
             shadowed_rays += int(differs.sum())
     assert shadowed_rays > 0, "the episodes must include obstacles behind teammates, or this test checks nothing of them"
+
+
+def test_the_two_commands_fly_a_team_one_process_per_agent(tmp_path) -> None:
+    """``sb3-formation ros sim`` and ``sb3-formation ros agents --process-per-agent``, as a user starts them: the
+    episode flown is the evaluation's (scans that see through the agents: positions within 1e-6 m), and the agents'
+    processes end cleanly when stopped."""
+    domain = str(100 + 20 * int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0) + 19)
+    command = [sys.executable, "-m", "sb3_formation.cli", "ros"]
+    out = tmp_path / "episodes.npz"
+    agents = subprocess.Popen(
+        [*command, "agents", "pretrained:ch5-bearing", "--process-per-agent", "--domain-id", domain],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        sim = [*command, "sim", "pretrained:ch5-bearing", "--see-through-agents", "--out", str(out), "--domain-id", domain]
+        done = subprocess.run(sim, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr[-2000:]
+        assert "seed 0: success in" in done.stdout, done.stdout
+    finally:
+        agents.send_signal(signal.SIGINT)
+        log, _ = agents.communicate(timeout=60)
+    assert agents.returncode == 0, log[-2000:]
+    assert "Traceback" not in log, log[-2000:]
+    reference = evaluated(MODEL, 1)
+    with np.load(out) as flown:
+        assert bool(flown["success"][0]) and int(flown["steps"][0]) == reference.episodes[0]["length"]
+        common = int(flown["steps"][0]) + 1
+        difference = np.linalg.norm(flown["positions_0"] - reference.trajectories.positions[0, :common], axis=-1).max()
+    assert difference <= 1e-6

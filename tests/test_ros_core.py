@@ -4,6 +4,12 @@ the two lidar channels and the observation rows against the simulator's, and com
 from __future__ import annotations
 
 import math
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+from xml.etree import ElementTree
 
 import numpy as np
 import pytest
@@ -11,6 +17,7 @@ import pytest
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.formation_env import FormationEnv
 from sb3_formation.env.scenarios import Scenario
+from sb3_formation.ros.launch import build_parser
 from sb3_formation.ros.observer import AgentObserver, TeamView, command_action, velocity_command
 from sb3_formation.ros.scans import Scan, ScanMount, merged_scan, resample_scan, scan_points, split_scan
 
@@ -468,3 +475,65 @@ def test_action_through_its_command_moves_agents_alike(config: FormationConfig) 
         np.testing.assert_allclose(relays[within], actions[within], rtol=0, atol=1e-12)
         unlimited.extend(within)
     assert 0 < sum(unlimited) < len(unlimited)  # both kinds occurred
+
+
+# The command that starts the nodes, and the launch file -----------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[1]
+SHIPPED_MODEL = ROOT / "src" / "sb3_formation" / "pretrained" / "ch5-bearing" / "final_model.onnx"
+
+
+def run_module(*arguments: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    command = [sys.executable, "-m", "sb3_formation.ros", *arguments]
+    return subprocess.run(command, capture_output=True, text=True, timeout=120, cwd=cwd)
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["sim", "missing.onnx"], "no exported policy at missing.onnx"),
+        (["sim", str(SHIPPED_MODEL), "--stage", "4"], "--stage 4 is not a curriculum stage"),
+        (["sim", str(SHIPPED_MODEL), "--episodes", "0"], "--episodes must be at least 1"),
+        (["sim", str(SHIPPED_MODEL), "--rate", "0"], "--rate and --command-timeout must be > 0"),
+        (["sim", str(SHIPPED_MODEL), "--out", "episodes.json"], "the episodes are written as an .npz file"),
+        (["sim", str(SHIPPED_MODEL), "--out", "taken.npz"], "taken.npz exists"),
+        (["agents", str(SHIPPED_MODEL), "--domain-id", "300"], "--domain-id 300 is not a ROS 2 domain id"),
+        (["agents", str(SHIPPED_MODEL), "--agents", "0,6"], "--agents 0,6: indices must be distinct and within 0-5"),
+    ],
+)
+def test_bad_options_get_one_line_before_anything_starts(arguments: list[str], message: str, tmp_path: Path) -> None:
+    (tmp_path / "taken.npz").write_bytes(b"kept")
+    done = run_module(*arguments, cwd=tmp_path)
+    assert done.returncode == 2
+    assert done.stderr.count("\n") == 1 and message in done.stderr, done.stderr
+    assert (tmp_path / "taken.npz").read_bytes() == b"kept"
+
+
+def test_an_unknown_option_is_refused() -> None:
+    done = run_module("agents", str(SHIPPED_MODEL), "--frobnicate")
+    assert done.returncode == 2 and "unrecognized arguments: --frobnicate" in done.stderr
+
+
+def test_the_cli_refuses_a_target_that_is_not_exported(tmp_path: Path) -> None:
+    """``sb3-formation ros`` runs exported policies: a run folder is refused with the command that exports it."""
+    done = subprocess.run(
+        [sys.executable, "-m", "sb3_formation.cli", "ros", "agents", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 2 and f"export {tmp_path} first" in done.stderr, done.stderr
+
+
+def test_the_launch_files_commands_are_the_modules() -> None:
+    """Each process of ``launch/formation.launch.xml`` is ``python3 -m sb3_formation.ros ...`` with options the module
+    accepts, once the launch arguments take their defaults (and the model a path)."""
+    launch = ElementTree.parse(ROOT / "launch" / "formation.launch.xml").getroot()
+    defaults = {arg.get("name"): arg.get("default", "model.onnx") for arg in launch.iter("arg")}
+    commands = [executable.get("cmd", "") for executable in launch.iter("executable")]
+    assert len(commands) == 2
+    parser = build_parser()
+    for command in commands:
+        words = shlex.split(re.sub(r"\$\(var (\w+)\)", lambda match: defaults[match.group(1)] or "''", command))
+        assert words[:3] == ["python3", "-m", "sb3_formation.ros"]
+        parser.parse_args(words[3:])  # exits on an option the module does not know
