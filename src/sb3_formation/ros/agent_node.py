@@ -24,6 +24,7 @@ from sb3_formation.ros.observer import FINAL_STAGE, AgentObserver, TeamView, vel
 from sb3_formation.ros.scans import ScanMount, resample_scan, split_scan
 from sb3_formation.runtime import OnnxPolicy
 from sb3_formation.safety.filter import SafetyFilter, SafetyGains
+from sb3_formation.utils.checks import is_count, is_integer, is_number
 
 
 @dataclass(frozen=True)
@@ -73,6 +74,20 @@ class AgentSettings:
     qos_depth: int = 10
     best_effort_sensors: bool = False
 
+    def __post_init__(self) -> None:
+        positive = ("max_gap", "input_timeout", "watchdog_rate")
+        for name in positive:
+            if not (is_number(getattr(self, name)) and getattr(self, name) > 0):
+                raise ValueError(f"{name} must be a number > 0, got {getattr(self, name)!r}")
+        if not (is_number(self.agent_tolerance) and self.agent_tolerance >= 0):
+            raise ValueError(f"agent_tolerance must be a number >= 0, got {self.agent_tolerance!r}")
+        if not is_count(self.agent) or not (is_integer(self.qos_depth) and self.qos_depth >= 1):
+            raise ValueError(f"agent must be an integer >= 0 and qos_depth >= 1, got {self.agent!r} and {self.qos_depth!r}")
+        if self.stage not in (1, 2, 3):
+            raise ValueError(f"stage must be 1, 2 or 3, got {self.stage!r}")
+        if "{index}" not in self.odom_topic:
+            raise ValueError(f"odom_topic must hold {{index}} where a teammate's index goes, got {self.odom_topic!r}")
+
 
 #: The goal's QoS: reliable and latched, so that a robot that starts late still gets the goal given before.
 GOAL_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -98,10 +113,11 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         self, policy: OnnxPolicy, settings: AgentSettings, name: str = "formation_agent", namespace: str = "", **kwargs: Any
     ) -> None:
         super().__init__(name, namespace=namespace, **kwargs)
-        values = {
-            item.name: self.declare_parameter(item.name, getattr(settings, item.name)).value for item in fields(settings)
-        }
-        self.settings = settings = AgentSettings(**values)
+        try:
+            self.settings = settings = AgentSettings(**declared_settings(self, settings))
+        except ValueError:  # a bad parameter override: no half-built node is left
+            self.destroy_node()
+            raise
         self.config = config = policy.config
         self.observer = AgentObserver(config, settings.agent, settings.stage)
         own = policy.safety

@@ -109,7 +109,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return run_sim(args)
         return run_agents(args, argv)
     except ImportError as error:  # no rclpy, or no message package
-        print(f"sb3_formation.ros: error: the ROS 2 nodes need {error.name}: pip install 'sb3-formation[ros]'", file=sys.stderr)
+        print(f"sb3_formation.ros: error: the nodes need {error.name}: pip install 'sb3-formation[ros]'", file=sys.stderr)
         return 2
     except (ValueError, OSError, RuntimeError) as error:
         print(f"sb3_formation.ros: error: {error}", file=sys.stderr)
