@@ -387,3 +387,33 @@ def test_a_bad_parameter_override_is_refused(context, policy) -> None:
 
     with pytest.raises(ValueError, match="watchdog_rate must be a number > 0"):
         AgentNode(policy, AgentSettings(), context=context, parameter_overrides=[Parameter("watchdog_rate", value=0.0)])
+
+
+def test_free_running_steps_at_the_clock_and_agents_follow_sim_time(context) -> None:
+    """Free-running: the simulator steps with the latest commands at ``rate`` times real time, never faster; agents in
+    free mode on the simulator's clock (``use_sim_time``) act on every scan and bring the team towards its goal."""
+    from rclpy.parameter import Parameter
+
+    from sb3_formation.ros.sim_node import SimNode, SimSettings
+
+    policy = OnnxPolicy(MODEL, threads=1)
+    config = policy.config.replace(stage=3)
+    sim = SimNode(config, SimSettings(synchronous=False, rate=4.0), context=context)
+    on_sim_time = [Parameter("use_sim_time", value=True)]
+    agents = [
+        AgentNode(policy, AgentSettings(agent=i), namespace=f"agent_{i}", context=context, parameter_overrides=on_sim_time)
+        for i in range(config.n_agents)
+    ]
+    executor = SingleThreadedExecutor(context=context)
+    for node in [sim, *agents]:
+        executor.add_node(node)
+    engine, rows = sim.env.engine, sim.env.engine.team_rows(sim.env.team)
+    goal = engine.episodes.goals[sim.env.team].copy()
+    start_distance = float(np.linalg.norm(engine.latest.positions[rows].mean(axis=0) - goal))
+    started = time.monotonic()
+    spin_until(executor, lambda: time.monotonic() - started > 4.0, timeout=60.0)
+    wall, steps = time.monotonic() - started, sim.env.step_count
+    executor.shutdown()
+    assert 0 < steps * config.dt <= 4.0 * wall * 1.05, (steps, wall)  # at most the rate (a loaded machine: fewer)
+    distance = float(np.linalg.norm(engine.latest.positions[rows].mean(axis=0) - goal))
+    assert distance < start_distance - 0.5 * steps * config.dt * config.v_max, (start_distance, distance, steps)
