@@ -36,16 +36,11 @@ FINAL_STAGE = 3
 
 
 class TeamView(NamedTuple):
-    """What an agent knows of its team at one instant, in the shared world frame (REP 103: m, m/s, rad).
+    """What an agent knows of its team at one instant, in the shared world frame (REP 103: m, m/s, rad)."""
 
-    :param positions: ``(n, 2)`` every agent's centre, row i agent i
-    :param velocities: ``(n, 2)`` every agent's velocity
-    :param headings: ``(n,)`` every agent's heading (rad, anti-clockwise from +x)
-    """
-
-    positions: np.ndarray
-    velocities: np.ndarray
-    headings: np.ndarray
+    positions: np.ndarray  #: ``(n, 2)`` every agent's centre, row i agent i
+    velocities: np.ndarray  #: ``(n, 2)`` every agent's velocity
+    headings: np.ndarray  #: ``(n,)`` every agent's heading (rad, anti-clockwise from +x)
 
 
 class AgentObserver:

@@ -38,12 +38,9 @@ class ScanMount(NamedTuple):
 
 
 class Scan(NamedTuple):
-    """The fields of a ``sensor_msgs/LaserScan`` that place its returns (REP 117: ``inf`` means no return in range).
+    """The fields of a ``sensor_msgs/LaserScan`` that place its returns (REP 117: ``inf`` means no return in range)."""
 
-    :param ranges: ``(k,)`` ranges (m) from the scanner's origin; non-finite or outside [range_min, range_max]: none
-    """
-
-    ranges: np.ndarray
+    ranges: np.ndarray  #: ``(k,)`` ranges (m) from the scanner's origin; non-finite or outside the limits: no return
     angle_min: float  #: (rad) angle of the first beam in the scanner's frame
     angle_increment: float  #: (rad) between beams (negative for a clockwise scanner)
     range_min: float  #: (m)
