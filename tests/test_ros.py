@@ -417,3 +417,14 @@ def test_free_running_steps_at_the_clock_and_agents_follow_sim_time(context) -> 
     assert 0 < steps * config.dt <= 4.0 * wall * 1.05, (steps, wall)  # at most the rate (a loaded machine: fewer)
     distance = float(np.linalg.norm(engine.latest.positions[rows].mean(axis=0) - goal))
     assert distance < start_distance - 0.5 * steps * config.dt * config.v_max, (start_distance, distance, steps)
+
+
+def test_the_nodes_import_no_learning_stack() -> None:
+    """Measured in a fresh interpreter of the ROS environment (where torch is installed): the nodes and their command
+    load neither torch nor Stable-Baselines3."""
+    code = (
+        "import sys, sb3_formation.ros.agent_node, sb3_formation.ros.sim_node, sb3_formation.ros.launch; "
+        "print(sorted(m for m in ('torch', 'stable_baselines3', 'matplotlib') if m in sys.modules))"
+    )
+    loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert loaded == "[]"
