@@ -105,6 +105,18 @@ class TeamFeed:
             self.scan.publish(scan)
 
 
+def stopped(process: subprocess.Popen, number: int) -> str:
+    """Send ``number`` to ``process`` (the parent only) and return its output once it ends; if it has not ended within
+    60 s, kill its whole process group (no agent is left running) and fail."""
+    process.send_signal(number)
+    try:
+        return str(process.communicate(timeout=60)[0])
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        process.communicate()
+        raise
+
+
 def hand_scan(ranges: np.ndarray, angle_min: float, increment: float, range_max: float = 30.0) -> LaserScan:
     """A ``LaserScan`` of ``ranges`` (m), beam k at ``angle_min + k increment`` (rad) in agent 0's base frame."""
     message = LaserScan()
@@ -346,6 +358,7 @@ def test_the_two_commands_fly_a_team_one_process_per_agent(tmp_path) -> None:
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
+        start_new_session=True,
     )
     try:
         sim = [*command, "sim", "pretrained:ch5-bearing", "--see-through-agents", "--out", str(out), "--domain-id", domain]
@@ -354,8 +367,7 @@ def test_the_two_commands_fly_a_team_one_process_per_agent(tmp_path) -> None:
         assert done.returncode == 0, done.stderr[-2000:]
         assert "seed 0: success in" in done.stdout, done.stdout
     finally:
-        agents.send_signal(signal.SIGINT)
-        log, _ = agents.communicate(timeout=60)
+        log = stopped(agents, signal.SIGTERM)  # as a process manager stops it: the parent stops its children
     assert agents.returncode == 0, log[-2000:]
     assert "Traceback" not in log, log[-2000:]
     reference = evaluated(MODEL, 1)
@@ -428,3 +440,47 @@ def test_the_nodes_import_no_learning_stack() -> None:
     )
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert loaded == "[]"
+
+
+def test_ctrl_c_stops_a_team_of_processes_even_where_it_was_ignored(context) -> None:
+    """``--process-per-agent`` started with SIGINT ignored (``nohup``, a background job): the agents come up (their
+    command topics have publishers), and Ctrl-C then stops the parent and, through it, every agent's process."""
+    domain = os.environ["ROS_DOMAIN_ID"]  # the context's own
+    command = [sys.executable, "-m", "sb3_formation.ros", "agents", str(MODEL), "--agents", "0,1", "--process-per-agent"]
+    team = subprocess.Popen(
+        [*command, "--domain-id", domain],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+        start_new_session=True,
+    )
+    listener = Node("listener", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(listener)
+    try:
+        topics = ("/agent_0/cmd_vel", "/agent_1/cmd_vel")
+        spin_until(executor, lambda: all(listener.count_publishers(topic) for topic in topics), timeout=120.0)
+    finally:
+        log = stopped(team, signal.SIGINT)
+        executor.shutdown()
+    assert team.returncode == 0, log[-2000:]
+    assert "Traceback" not in log, log[-2000:]
+
+
+def test_a_second_process_flying_the_same_agent_stops_the_simulator(context, policy) -> None:
+    """Two agent nodes of the same index in one domain (a process left running, a robot started twice): the
+    synchronous simulator refuses to fly on in one line rather than step with both's commands."""
+    from sb3_formation.ros.sim_node import SimNode, SimSettings
+
+    sim = SimNode(policy.config.replace(stage=3), SimSettings(), context=context)
+    twins = [
+        AgentNode(policy, AgentSettings(agent=0, synchronous=True), name=f"twin_{k}", namespace="agent_0", context=context)
+        for k in range(2)
+    ]
+    executor = SingleThreadedExecutor(context=context)
+    for node in [sim, *twins]:
+        executor.add_node(node)
+    with pytest.raises(RuntimeError, match="several publishers on /agent_0/cmd_vel"):
+        spin_until(executor, lambda: False, timeout=30.0)
+    executor.shutdown()

@@ -238,7 +238,7 @@ def _spin(make_nodes: Any, ros_arguments: list[str], until: Any = None) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
-    signal.signal(signal.SIGTERM, _interrupt)
+    _stop_on_signals()
     rclpy.init(args=["sb3_formation.ros", "--ros-args", *ros_arguments] if ros_arguments else None)
     executor = SingleThreadedExecutor()
     try:
@@ -259,8 +259,17 @@ def _interrupt(number: int, frame: Any) -> None:
     raise KeyboardInterrupt
 
 
+def _stop_on_signals() -> None:
+    """Ctrl-C and SIGTERM stop this process cleanly, also where SIGINT was ignored when it started (``nohup``, a
+    background job)."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, _interrupt)
+
+
 def _run_children(commands: list[list[str]]) -> int:
-    """Run one child process per command until all end or this one is interrupted (then they are stopped too)."""
+    """Run one child process per command until all end or this one is stopped (Ctrl-C or SIGTERM); then each child still
+    running gets SIGTERM, which shuts its node down cleanly."""
+    _stop_on_signals()
     children = [subprocess.Popen(command) for command in commands]
     try:
         codes = [child.wait() for child in children]
@@ -269,7 +278,7 @@ def _run_children(commands: list[list[str]]) -> int:
     finally:
         for child in children:
             if child.poll() is None:
-                child.send_signal(signal.SIGINT)
+                child.terminate()
         for child in children:
             child.wait()
     return max(codes, default=0)

@@ -188,9 +188,20 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             executor.spin_once(timeout_sec=timeout_sec)
 
     def _watch(self) -> None:
-        """Synchronous mode: start once every agent is up; fail when an agent keeps its command too long."""
+        """Synchronous mode: start once every agent is up; fail when a command topic has several publishers (another
+        process flies an agent of the same index in this domain) or an agent keeps its command too long."""
         if self.done:
             return
+        crowded = [
+            topic
+            for topic, subscription in zip(self._command_topics, self._subscriptions)
+            if subscription.get_publisher_count() > 1
+        ]
+        if crowded:
+            raise RuntimeError(
+                f"several publishers on {', '.join(crowded)}: another process flies these agents in ROS domain "
+                f"{os.environ.get('ROS_DOMAIN_ID', '0')}; stop it or choose another --domain-id"
+            )
         if self._episode < 0:
             missing = self._absent_topics()
             if missing:
