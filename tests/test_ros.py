@@ -301,15 +301,16 @@ def largest_difference(record, trajectories, episode: int) -> float:
     return float(np.linalg.norm(record.positions[:common] - trajectories.positions[episode, :common], axis=-1).max())
 
 
-@pytest.mark.parametrize("name", ["ch5-bearing", "ch5-bearing-unicycle"])
-def test_with_scans_that_see_through_agents_the_loop_is_evaluation(context, name) -> None:
+@pytest.mark.parametrize(("name", "tolerance"), [("ch5-bearing", 1e-6), ("ch5-bearing-unicycle", 1e-4)])
+def test_with_scans_that_see_through_agents_the_loop_is_evaluation(context, name, tolerance) -> None:
     """When the scans see what the simulator's lidar sees, the closed loop over ROS 2 flies the evaluation's episodes:
-    same outcomes and steps, positions within 1e-6 m (only the scans' float32 ranges differ)."""
+    same outcomes and steps, positions within ``tolerance``: only the scans' float32 ranges differ, which a unicycle's
+    turns amplify to tens of micrometres over an episode (docs/deployment.md)."""
     model = PRETRAINED / name / "final_model.onnx"
     results, _, _, _ = fly(context, model, episodes=1, see_through=True)
     reference = evaluated(model, 1)
     assert [(r.success, r.steps) for r in results] == [(row["success"], row["length"]) for row in reference.episodes]
-    assert largest_difference(results[0], reference.trajectories, 0) <= 1e-6
+    assert largest_difference(results[0], reference.trajectories, 0) <= tolerance
 
 
 def test_a_real_scanner_splits_into_the_simulators_channels_and_flies_the_same_episodes(context) -> None:
