@@ -5,8 +5,8 @@ and ``/agent_{i}/scan`` (``LaserScan`` of a scanner at the agent's centre, :func
 the team's goal on ``/goal`` (``PointStamped``, latched, stamped with the sim time its episode started) and the sim time
 on ``/clock``: steps played since the node started x dt, continuous across episodes. It applies each agent's
 ``/agent_{i}/cmd_vel`` (``Twist``) as the action that gives that command
-(:func:`~sb3_formation.ros.observer.command_action`). Each step publishes the clock, every odometry, every scan, then
-the goal, all stamped with the step's sim time (the goal with its episode's start).
+(:func:`~sb3_formation.ros.observer.command_action`). Each step publishes the clock, the goal, every odometry, then
+every scan, all stamped with the step's sim time (the goal with its episode's start).
 
 Synchronous mode (the default) steps once every agent has sent a command since the last publication, so a closed loop
 is as deterministic as an in-process one; free-running mode steps at ``rate`` times real time with the latest command
