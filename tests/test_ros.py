@@ -185,7 +185,7 @@ def test_the_node_resamples_hand_made_scans(context, policy, increment_deg, angl
 def test_a_stale_or_missing_input_stops_the_agent(context, policy) -> None:
     """Free-running: with every input fresh the agent moves; no goal, a teammate's odometry missing, or no scan for
     ``input_timeout`` gives zero commands (and the node keeps running)."""
-    settings = AgentSettings(agent=0, input_timeout=0.3, watchdog_rate=20.0)
+    settings = AgentSettings(agent=0, input_timeout=1.0, watchdog_rate=20.0)
     node = AgentNode(policy, settings, namespace="agent_0", context=context)
     feed = TeamFeed(context, policy.config.n_agents)
     executor = SingleThreadedExecutor(context=context)
@@ -211,15 +211,15 @@ def test_a_stale_or_missing_input_stops_the_agent(context, policy) -> None:
     def zero(commands: list[Twist]) -> bool:
         return bool(commands) and all(command.linear.x == command.linear.y == command.angular.z == 0.0 for command in commands)
 
-    first = play(0.6, TEAM, True, None)
+    first = play(1.5, TEAM, True, None)
     assert zero(first), f"no goal yet: the agent must stand still, got {first}"
     goal = np.array([12.0, 5.0])
-    fresh = play(0.6, TEAM, True, goal)
+    fresh = play(2.0, TEAM, True, goal)
     assert moving(fresh), f"every input fresh: the agent must move towards the goal, got {fresh[:3]}"
-    later = play(1.0, TEAM, False, goal)  # the scan stops
+    later = play(3.0, TEAM, False, goal)  # the scan stops
     assert zero(later[-5:]), "no scan for input_timeout: the agent must stop"
     feed.odometry[3] = feed.node.create_publisher(Odometry, "/agent_3/unused", 10)  # agent 3's odometry stops arriving
-    assert zero(play(1.0, TEAM, True, goal)[-5:]), "a teammate's odometry missing: the agent must stop"
+    assert zero(play(3.0, TEAM, True, goal)[-5:]), "a teammate's odometry missing: the agent must stop"
     executor.shutdown()
 
 

@@ -16,6 +16,7 @@ from geometry_msgs.msg import PointStamped, Twist
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import LaserScan
 
+from sb3_formation.controllers.shrinking import rotate
 from sb3_formation.ros.scans import Scan
 
 #: Nanoseconds in a second.
@@ -63,11 +64,7 @@ def odometry_state(message: Odometry) -> tuple[np.ndarray, float, np.ndarray]:
     """An ``Odometry``'s position ``(2,)`` (m), yaw (rad) and velocity ``(2,)`` (m/s), all in the world frame."""
     pose, twist = message.pose.pose, message.twist.twist
     yaw = yaw_of(pose.orientation)
-    if yaw == 0.0:  # a holonomic agent's body frame is the world's: no rounding
-        velocity = np.array([twist.linear.x, twist.linear.y])
-    else:
-        cos, sin = math.cos(yaw), math.sin(yaw)
-        velocity = np.array([cos * twist.linear.x - sin * twist.linear.y, sin * twist.linear.x + cos * twist.linear.y])
+    velocity = turned(np.array([twist.linear.x, twist.linear.y]), yaw)  # body frame to world (exact at yaw 0)
     return np.array([pose.position.x, pose.position.y]), yaw, velocity
 
 
@@ -111,12 +108,8 @@ def twist_message(command: np.ndarray, dynamics: str, yaw: float) -> Twist:
     message = Twist()
     if dynamics == "unicycle":
         message.linear.x, message.angular.z = float(command[0]), float(command[1])
-    elif yaw == 0.0:
-        message.linear.x, message.linear.y = float(command[0]), float(command[1])
     else:
-        cos, sin = math.cos(yaw), math.sin(yaw)
-        message.linear.x = cos * float(command[0]) + sin * float(command[1])
-        message.linear.y = -sin * float(command[0]) + cos * float(command[1])
+        message.linear.x, message.linear.y = turned(np.asarray(command, dtype=np.float64), -yaw).tolist()
     return message
 
 
@@ -124,8 +117,11 @@ def twist_command(message: Twist, dynamics: str, yaw: float) -> np.ndarray:
     """The command a ``Twist`` gives (the inverse of :func:`twist_message`)."""
     if dynamics == "unicycle":
         return np.array([message.linear.x, message.angular.z])
-    if yaw == 0.0:
-        return np.array([message.linear.x, message.linear.y])
-    cos, sin = math.cos(yaw), math.sin(yaw)
-    x, y = message.linear.x, message.linear.y
-    return np.array([cos * x - sin * y, sin * x + cos * y])
+    return turned(np.array([message.linear.x, message.linear.y]), yaw)
+
+
+def turned(vector: np.ndarray, yaw: float) -> np.ndarray:
+    """A ``(2,)`` vector turned anti-clockwise by ``yaw`` (rad): a body-frame vector into the world frame (``-yaw``:
+    back); exact at yaw 0."""
+    result: np.ndarray = rotate(vector[None, :], np.array([yaw]))[0]
+    return result
