@@ -136,12 +136,17 @@ def randomize(policy: RecurrentFormationPolicy, seed: int, scale: float = 0.6) -
                 parameter.copy_(th.randn(parameter.shape, generator=generator) * scale)
 
 
+def cloned(states: RecurrentStates) -> RecurrentStates:
+    return RecurrentStates(tuple(x.clone() for x in states.pi), tuple(x.clone() for x in states.vf), states.messages.clone())
+
+
 def random_states(policy: RecurrentFormationPolicy, n: int, seed: int) -> RecurrentStates:
     generator = th.Generator().manual_seed(seed)
     count = 1 if policy.cell == "gru" else 2
     return RecurrentStates(
         tuple(th.randn(1, n, PI_HIDDEN, generator=generator) for _ in range(count)),
         tuple(th.randn(1, n, VF_HIDDEN, generator=generator) for _ in range(count)),
+        th.zeros(n, 0),
     )
 
 
@@ -298,7 +303,7 @@ def fill_buffer(starts: np.ndarray, cell: str, max_length: int | None = None) ->
         slot_ids = th.arange(slots).view(1, -1, 1) + 1
         pi = tuple(keep * ((k + 1) * slot_ids + t + 0.01 * th.arange(PI_HIDDEN)) for k in range(count))
         vf = tuple(keep * (-(k + 1) * slot_ids - t - 0.01 * th.arange(VF_HIDDEN)) for k in range(count))
-        buffer.add_states(RecurrentStates(tuple(x.float() for x in pi), tuple(x.float() for x in vf)))
+        buffer.add_states(RecurrentStates(tuple(x.float() for x in pi), tuple(x.float() for x in vf), th.zeros(slots, 0)))
         buffer.add(obs, actions, 1 + t + n, starts[t], values, log_probs)
     buffer.compute_returns_and_advantage(last_values=th.linspace(-1, 1, slots), dones=np.arange(slots) % 2 == 1)
     return buffer
@@ -563,9 +568,9 @@ class Recorder(BaseCallback):
         record = self.rollouts[-1]
         for name in ("observations", "actions", "rewards", "episode_starts", "values", "log_probs", "returns", "advantages"):
             record[name] = getattr(buffer, name).copy()
-        record["step_states"] = [RecurrentStates(*(tuple(x.clone() for x in s) for s in step)) for step in buffer.step_states]
+        record["step_states"] = [cloned(step) for step in buffer.step_states]
         record["initial_states"] = record["step_states"][0]
-        record["last_states"] = RecurrentStates(*(tuple(x.clone() for x in s) for s in self.model._last_states))
+        record["last_states"] = cloned(self.model._last_states)
 
     def _on_step(self) -> bool:
         return True

@@ -8,6 +8,7 @@ vectors in the world frame; angles are in degrees.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import numba
@@ -25,6 +26,17 @@ def ring_neighbours(n_agents: int) -> np.ndarray:
     """
     index = np.arange(n_agents)
     return np.stack([(index - 1) % n_agents, (index + 1) % n_agents], axis=1)
+
+
+def ring_rows(team_sizes: Sequence[int]) -> np.ndarray:
+    """Ring neighbours of every row of teams stacked one after the other (the order of the policy seam's rows and of a
+    VecEnv's slots: team 0's agents, agent 0 first, then team 1's, ...).
+
+    :param team_sizes: each team's size n_j (>= 3), in row order
+    :return: ``(sum n_j, 2)`` int array: the rows of each row's preceding and succeeding neighbour in its team
+    """
+    firsts = np.cumsum([0, *team_sizes])[:-1]
+    return np.concatenate([ring_neighbours(int(n)) + first for n, first in zip(team_sizes, firsts)] or [np.zeros((0, 2), int)])
 
 
 def interior_angle_deg(n_agents: int) -> float:

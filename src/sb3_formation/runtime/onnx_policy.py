@@ -4,10 +4,12 @@ The graph (``docs/export.md``) reads the raw observations of one agent or a batc
 float32, folds in the frozen scale-only normaliser, and returns the clipped action ``action`` ``(batch, 2)``; a
 recurrent policy also reads and returns its actor's state (``hidden_in`` -> ``hidden_out``, and for an LSTM
 ``cell_in`` -> ``cell_out``, each ``(1, batch, hidden)``). A residual policy's graph returns the network's
-``correction``; :class:`OnnxPolicy` adds it to the numpy controller's action the metadata names (the residual
-composition of ``docs/export.md``) with :class:`~sb3_formation.controllers.residual.ResidualAdapter`, as training and
-evaluation do. The model's metadata (:class:`PolicyMetadata`) holds the task configuration, the observation layout,
-the team sizes, the residual and recurrent settings, the package version and the opset.
+``correction``; a policy whose agents send messages also reads the messages of each row's ring neighbours,
+``message_in`` ``(batch, 2 M)`` (preceding then succeeding), and returns the one each row sends, ``message_out``
+``(batch, M)``. :class:`OnnxPolicy` adds a residual policy's correction to the numpy controller's action the metadata
+names (the residual composition of ``docs/export.md``) with :class:`~sb3_formation.controllers.residual.ResidualAdapter`,
+as training and evaluation do. The model's metadata (:class:`PolicyMetadata`) hold the task configuration, the
+observation layout, the team sizes, the residual, recurrent and message settings, the package version and the opset.
 """
 
 from __future__ import annotations
@@ -19,13 +21,14 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, cast
+from typing import Any, NamedTuple, cast
 
 import numpy as np
 
 from sb3_formation import __version__
 from sb3_formation.controllers import ResidualAdapter, controller_from_spec
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.geometry import ring_rows
 from sb3_formation.env.observations import observation_fields, observation_layout
 from sb3_formation.safety.filter import SafetyFilter, SafetyGains
 from sb3_formation.utils.files import MAX_FILE_BYTES
@@ -40,6 +43,8 @@ GRAPH_DIGEST_KEY = METADATA_PREFIX + "graph_sha256"
 OBSERVATION_INPUT = "observation"
 #: Name of the graph's first output: the action, or a residual policy's correction.
 ACTION_OUTPUT, CORRECTION_OUTPUT = "action", "correction"
+#: Names of the graph's message input (what each row's ring neighbours sent) and output (what each row sends).
+MESSAGE_INPUT, MESSAGE_OUTPUT = "message_in", "message_out"
 #: The actor state's parts of each recurrent cell, as the graph names them (``<part>_in`` / ``<part>_out``).
 STATE_PARTS = {"gru": ("hidden",), "lstm": ("hidden", "cell")}
 #: The most elements any tensor of an exported graph may have (:func:`check_graph`): a quarter of
@@ -58,6 +63,8 @@ class PolicyMetadata:
     :param recurrent: ``cell`` (``gru`` / ``lstm``) and ``hidden`` (width of its state) of a recurrent actor, or ``None``
     :param safety: the safety filter's gains of a policy trained behind it (its actions are filtered wherever it runs),
         or ``None``; files written before the filter existed have no such key and read as ``None``
+    :param message_size: M, the values of the message each agent sends its ring neighbours every step (0: none; files
+        of policies without messages may lack the key)
     :param opset: the ONNX opset of the graph
     :param package_version: the version of sb3-formation that exported it
     """
@@ -67,6 +74,7 @@ class PolicyMetadata:
     residual: dict[str, Any] | None = None
     recurrent: dict[str, Any] | None = None
     safety: dict[str, Any] | None = None
+    message_size: int = 0
     opset: int = 0
     package_version: str = __version__
 
@@ -83,13 +91,17 @@ class PolicyMetadata:
     @property
     def input_names(self) -> list[str]:
         """The graph's inputs, in order."""
-        return [OBSERVATION_INPUT, *(f"{part}_in" for part in self.state_parts)]
+        return [
+            OBSERVATION_INPUT,
+            *(f"{part}_in" for part in self.state_parts),
+            *([MESSAGE_INPUT] if self.message_size else []),
+        ]
 
     @property
     def output_names(self) -> list[str]:
         """The graph's outputs, in order."""
         first = CORRECTION_OUTPUT if self.residual is not None else ACTION_OUTPUT
-        return [first, *(f"{part}_out" for part in self.state_parts)]
+        return [first, *(f"{part}_out" for part in self.state_parts), *([MESSAGE_OUTPUT] if self.message_size else [])]
 
     def to_properties(self) -> dict[str, str]:
         """The metadata as the model's ``metadata_props`` (key -> string)."""
@@ -106,6 +118,7 @@ class PolicyMetadata:
             "residual": self.residual,
             "recurrent": self.recurrent,
             "safety": self.safety,
+            "message_size": self.message_size,
             "opset": self.opset,
             "package_version": self.package_version,
         }
@@ -139,11 +152,15 @@ class PolicyMetadata:
                 values[key] = json.loads(text)
             except json.JSONDecodeError as error:
                 raise ValueError(f"{where}: the metadata {METADATA_PREFIX + key} is not JSON ({error})") from None
-        safety = properties.get(METADATA_PREFIX + "safety")  # optional: absent from files of unfiltered policies
-        try:
-            values["safety"] = None if safety is None else json.loads(safety)
-        except json.JSONDecodeError as error:
-            raise ValueError(f"{where}: the metadata {METADATA_PREFIX}safety is not JSON ({error})") from None
+        for key, absent in (("safety", None), ("message_size", 0)):  # optional: absent from older files
+            text = properties.get(METADATA_PREFIX + key)
+            try:
+                values[key] = absent if text is None else json.loads(text)
+            except json.JSONDecodeError as error:
+                raise ValueError(f"{where}: the metadata {METADATA_PREFIX + key} is not JSON ({error})") from None
+        size = values["message_size"]
+        if not (isinstance(size, int) and not isinstance(size, bool) and size >= 0):
+            raise ValueError(f"{where}: the metadata {METADATA_PREFIX}message_size must be an integer >= 0")
         if values["format"] != FORMAT_VERSION:
             raise ValueError(f"{where} has export format {values['format']}; this runtime reads format {FORMAT_VERSION}")
         metadata = cls(
@@ -152,6 +169,7 @@ class PolicyMetadata:
             residual=values["residual"],
             recurrent=values["recurrent"],
             safety=values["safety"],
+            message_size=values["message_size"],
             opset=int(values["opset"]),
             package_version=str(values["package_version"]),
         )
@@ -230,11 +248,20 @@ def check_graph(path: Path) -> None:
             )
 
 
+class AgentStep(NamedTuple):
+    """What :meth:`OnnxPolicy.agent_step` returns for some agents."""
+
+    actions: np.ndarray  #: ``(k, 2)`` float32 actions
+    messages: np.ndarray  #: ``(k, M)`` float32 messages each agent sends its ring neighbours (``(k, 0)`` if none)
+    state: Any  #: the agents' next state (what the next call takes)
+
+
 class OnnxPolicy:
     """An exported policy on the policy seam (:class:`~sb3_formation.controllers.base.TeamPolicy`): evaluation,
     rendering and comparison run it as any target (``onnx:path/to/file.onnx`` or the path itself).
 
-    On a robot, :meth:`agent_actions` acts for the agents it hosts (their observations and indices in the team).
+    On a robot, :meth:`agent_step` acts for the agents it hosts (their observations, their indices in the team and the
+    messages their ring neighbours sent).
 
     :param path: the ``.onnx`` file ``sb3-formation export`` wrote
     :param threads: onnxruntime's intra-op threads (``None``: its default, one per core)
@@ -285,6 +312,7 @@ class OnnxPolicy:
         widths: dict[str, Any] = {OBSERVATION_INPUT: self.observation_dim}
         if self.metadata.recurrent is not None:
             widths |= {f"{part}_in": self.metadata.recurrent.get("hidden") for part in self.metadata.state_parts}
+        widths[MESSAGE_INPUT] = 2 * self.metadata.message_size
         for node in self.session.get_inputs():
             if node.shape[-1] != widths[node.name]:
                 raise ValueError(
@@ -329,16 +357,24 @@ class OnnxPolicy:
     ) -> tuple[np.ndarray, Any]:
         """Actions for raw observations of whole teams (row k: agent ``k % n`` of team ``k // n``) and the next state.
 
+        A policy whose agents send messages delivers them here, one step late, to each row's ring neighbours in its
+        team; its state is the pair (the agents' state, the ``(k, M)`` messages they sent).
+
         :param observation: ``(..., obs_dim)`` raw observations
         :param state: what the previous call returned (``None``: zeros); a feed-forward policy returns it unchanged
         :param episode_start: ``(k,)`` flags: these rows start an episode (their recurrent state is reset)
         :param deterministic: must be True: the graph holds the mean action only
         """
         rows = self._rows(observation)
-        actions, state = self.agent_actions(
-            rows, np.arange(len(rows)) % self.config.n_agents, state, episode_start, deterministic
-        )
-        return actions.reshape(*np.shape(observation)[:-1], 2), state
+        n_agents, received = self.config.n_agents, None
+        if self.metadata.message_size:
+            state, sent = (None, None) if state is None else state
+            if sent is not None:
+                keep = 1.0 if episode_start is None else 1.0 - np.asarray(episode_start, np.float32).reshape(-1, 1)
+                received = (np.asarray(sent, np.float32) * keep)[ring_rows([n_agents] * (len(rows) // n_agents))]
+        step = self.agent_step(rows, np.arange(len(rows)) % n_agents, state, episode_start, received, deterministic)
+        actions = step.actions.reshape(*np.shape(observation)[:-1], 2)
+        return actions, ((step.state, step.messages) if self.metadata.message_size else step.state)
 
     def agent_actions(
         self,
@@ -348,30 +384,66 @@ class OnnxPolicy:
         episode_start: np.ndarray | None = None,
         deterministic: bool = True,
     ) -> tuple[np.ndarray, Any]:
-        """Actions ``(k, 2)`` for the raw observations of any agents, e.g. the one a robot hosts.
+        """:meth:`agent_step`'s actions and state, for a policy whose agents send no messages."""
+        step = self.agent_step(observations, agents, state, episode_start, deterministic=deterministic)
+        return step.actions, step.state
+
+    def agent_step(
+        self,
+        observations: np.ndarray,
+        agents: np.ndarray,
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        received: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> AgentStep:
+        """Actions ``(k, 2)`` for the raw observations of any agents, e.g. the one a robot hosts, the messages they
+        send and their next state.
 
         :param observations: ``(k, obs_dim)`` (or one ``(obs_dim,)``) raw observations
         :param agents: ``(k,)`` each row's agent index in its team (a residual policy's controller needs it)
         :param state: what the previous call returned for these rows (``None`` at the start): a recurrent graph's
             state; for a residual policy the pair (the graph's state, the controller's memory)
         :param episode_start: ``(k,)`` flags: reset these rows' state first
+        :param received: ``(k, 2, M)`` (or ``(k, 2 M)``) the messages each row's preceding and succeeding neighbours
+            sent at their last step (``None``: zeros, as at an episode's start); policies with messages only
         :param deterministic: must be True: the graph holds the mean action only
-        :raises ValueError: observations of the wrong size, a state of the wrong shape, or ``deterministic=False``
+        :raises ValueError: observations or messages of the wrong size, a state of the wrong shape, or
+            ``deterministic=False``
         """
         if not deterministic:
             raise ValueError(f"{self.source} acts deterministically only (its graph holds the mean action): drop --stochastic")
         rows = self._rows(observations)
         graph_state, memory = (state, None) if self.residual is None or state is None else state
         feeds = {OBSERVATION_INPUT: rows, **self._state_feeds(graph_state, episode_start, len(rows))}
+        feeds |= self._message_feeds(received, len(rows))
         try:
-            first, *new_state = self.session.run(self.metadata.output_names, feeds)
+            first, *outputs = self.session.run(self.metadata.output_names, feeds)
         except Exception as error:  # onnxruntime raises its own exception types (InvalidArgument, Fail, ...)
             raise RuntimeError(f"{self.source}: onnxruntime could not run the graph: {_first_line(error)}") from None
-        graph_state = tuple(new_state) if new_state else graph_state
+        messages = outputs.pop() if self.metadata.message_size else np.zeros((len(rows), 0), np.float32)
+        graph_state = tuple(outputs) if outputs else graph_state
         if self.residual is None:
-            return self._filtered(rows, first), graph_state
+            return AgentStep(self._filtered(rows, first), messages, graph_state)
         actions, memory = self.residual.act(rows, first, memory, episode_start, agents)
-        return self._filtered(rows, actions), (graph_state, memory)
+        return AgentStep(self._filtered(rows, actions), messages, (graph_state, memory))
+
+    def _message_feeds(self, received: np.ndarray | None, rows: int) -> dict[str, np.ndarray]:
+        """The graph's message input: ``received`` as ``(rows, 2 M)`` float32 (zeros if ``None``).
+
+        :raises ValueError: messages of another shape, or messages for a policy that sends none
+        """
+        size = self.metadata.message_size
+        if not size:
+            if received is not None:
+                raise ValueError(f"{self.source} is a policy whose agents send no messages: give no received messages")
+            return {}
+        if received is None:
+            return {MESSAGE_INPUT: np.zeros((rows, 2 * size), np.float32)}
+        array = np.asarray(received, np.float32)
+        if array.size != rows * 2 * size or array.shape[0] != rows:
+            raise ValueError(f"{self.source} needs received messages of shape ({rows}, 2, {size}), got {array.shape}")
+        return {MESSAGE_INPUT: array.reshape(rows, 2 * size)}
 
     def _filtered(self, rows: np.ndarray, actions: np.ndarray) -> np.ndarray:
         """``actions`` through the safety filter, if the policy has one."""

@@ -3,9 +3,11 @@
 The graph computes what :meth:`TrainedPolicy.predict <sb3_formation.sb3.trained.TrainedPolicy.predict>` computes
 deterministically, from one agent's raw observation: the frozen normaliser (in float64, as numpy does it), the actor
 (dense layers, or dense, recurrent and dense layers with the state as input and output), the bounded mean action and
-the clip to the action space. Only the actor is exported: a team critic is a training device (the actor reads the
-agent's own observation). A residual policy's controller stays numpy: the graph is the correction, and the metadata
-name the controller, its gains and the scale, which the runtime composes (``docs/export.md`` says why).
+the clip to the action space; a policy whose agents send messages also reads the messages its ring neighbours sent
+(``message_in``) and returns the one it sends (``message_out``). Only the actor is exported: a team critic is a
+training device (the actor reads the agent's own observation). A residual policy's controller stays numpy: the graph is
+the correction, and the metadata name the controller, its gains and the scale, which the runtime composes
+(``docs/export.md`` says why).
 """
 
 from __future__ import annotations
@@ -77,10 +79,13 @@ class ActorGraph(nn.Module):
         clip = float(state["clip_obs"])
         self.clip = None if math.isnan(clip) else clip
         self.recurrent = isinstance(policy, RecurrentFormationPolicy)
+        self.memory, self.message_size, self.message_net = False, 0, None
         if self.recurrent:
-            actor = cast(RecurrentFormationPolicy, policy).actor
+            recurrent = cast(RecurrentFormationPolicy, policy)
+            actor = recurrent.actor
             self.before, self.rnn, self.after = actor.before, actor.rnn, actor.after
             self.cell, self.hidden = actor.cell, actor.hidden
+            self.memory, self.message_size, self.message_net = recurrent.memory, recurrent.message_size, recurrent.message_net
         else:  # MlpExtractor's, or TeamCriticExtractor's on the own block
             self.body = cast(FormationPolicy, policy).mlp_extractor.policy_net
         self.action_net, self.action_scale = policy.action_net, policy.action_scale
@@ -88,25 +93,30 @@ class ActorGraph(nn.Module):
         self.register_buffer("low", th.as_tensor(box.low, dtype=th.float32))
         self.register_buffer("high", th.as_tensor(box.high, dtype=th.float32))
 
-    def forward(self, observation: th.Tensor, *state: th.Tensor) -> th.Tensor | tuple[th.Tensor, ...]:
-        """The clipped mean action of each row (and, recurrent, the actor's next state).
+    def forward(self, observation: th.Tensor, *inputs: th.Tensor) -> th.Tensor | tuple[th.Tensor, ...]:
+        """The clipped mean action of each row (and, recurrent with memory, the actor's next state; with messages, the
+        message each row sends).
 
         :param observation: ``(batch, obs_dim)`` float32 raw observations
-        :param state: a recurrent actor's state, ``(1, batch, hidden)`` each (``h``; ``h, c`` for an LSTM)
+        :param inputs: a recurrent actor's state with memory, ``(1, batch, hidden)`` each (``h``; ``h, c`` for an
+            LSTM); then, with messages, ``(batch, 2 M)`` the messages of each row's preceding and succeeding neighbours
         """
         scaled = (observation.double() - self.offset) / self.scale
         if self.clip is not None:
             scaled = scaled.clamp(-self.clip, self.clip)
         scaled = scaled.float()
-        if self.recurrent:
-            outputs, final = self.rnn(self.before(scaled).unsqueeze(0), state[0] if self.cell == "gru" else state)
-            latent = self.after(outputs[0])
-        else:
-            latent = self.body(scaled)
-        action = th.clamp(self.action_scale * th.tanh(self.action_net(latent)), self.low, self.high)
         if not self.recurrent:
-            return action
-        return (action, final) if self.cell == "gru" else (action, *final)
+            latent = self.body(scaled)
+            return th.clamp(self.action_scale * th.tanh(self.action_net(latent)), self.low, self.high)
+        parts = (1 if self.cell == "gru" else 2) if self.memory else 0
+        state = inputs[:parts] or (scaled.new_zeros(1, scaled.shape[0], self.hidden),) * (1 if self.cell == "gru" else 2)
+        features = self.before(th.cat([scaled, inputs[parts]], dim=-1) if self.message_size else scaled)
+        outputs, final = self.rnn(features.unsqueeze(0), state[0] if self.cell == "gru" else state)
+        latent = self.after(outputs[0])
+        action = th.clamp(self.action_scale * th.tanh(self.action_net(latent)), self.low, self.high)
+        state_out = ((final,) if self.cell == "gru" else tuple(final)) if self.memory else ()
+        message = (th.tanh(self.message_net(latent)),) if self.message_net is not None else ()
+        return (action, *state_out, *message)
 
 
 def _parts(policy: TeamPolicy) -> tuple[TrainedPolicy, dict[str, Any] | None, dict[str, Any] | None]:
@@ -155,12 +165,14 @@ def export_onnx(policy: TeamPolicy, path: str | os.PathLike[str], opset: int = D
         raise ImportError("exporting to ONNX needs onnx and onnxscript: pip install 'sb3-formation[export]'") from None
     trained, residual, safety = _parts(policy)
     graph = ActorGraph(trained).cpu().eval()
-    recurrent = {"cell": graph.cell, "hidden": graph.hidden} if graph.recurrent else None
-    metadata = PolicyMetadata(trained.config, tuple(trained.team_sizes), residual, recurrent, safety)
+    recurrent = {"cell": graph.cell, "hidden": graph.hidden} if graph.memory else None
+    metadata = PolicyMetadata(trained.config, tuple(trained.team_sizes), residual, recurrent, safety, graph.message_size)
     batch = th.export.Dim("batch")
     observation = th.zeros(EXAMPLE_ROWS, metadata.observation_dim)
     state = tuple(th.zeros(1, EXAMPLE_ROWS, graph.hidden) for _ in metadata.state_parts)
-    dynamic_shapes = ({0: batch}, tuple({1: batch} for _ in state)) if state else ({0: batch},)
+    received = (th.zeros(EXAMPLE_ROWS, 2 * graph.message_size),) if graph.message_size else ()
+    extra = tuple({1: batch} for _ in state) + tuple({0: batch} for _ in received)
+    dynamic_shapes = ({0: batch}, extra) if extra else ({0: batch},)
     exporter_log = logging.getLogger("torch.onnx")
     level = exporter_log.level
     with warnings.catch_warnings(), th.no_grad():
@@ -169,7 +181,7 @@ def export_onnx(policy: TeamPolicy, path: str | os.PathLike[str], opset: int = D
         try:
             program = th.onnx.export(
                 graph,
-                (observation, *state),
+                (observation, *state, *received),
                 dynamo=True,
                 dynamic_shapes=dynamic_shapes,
                 input_names=metadata.input_names,
@@ -184,7 +196,7 @@ def export_onnx(policy: TeamPolicy, path: str | os.PathLike[str], opset: int = D
     written = next(entry.version for entry in model.opset_import if entry.domain in ("", "ai.onnx"))
     if written != opset:
         raise RuntimeError(f"torch's exporter wrote opset {written} where {opset} was asked: nothing was written")
-    metadata = PolicyMetadata(trained.config, metadata.team_sizes, residual, recurrent, safety, opset=written)
+    metadata = PolicyMetadata(trained.config, metadata.team_sizes, residual, recurrent, safety, graph.message_size, written)
     onnx.helper.set_model_props(model, {**metadata.to_properties(), GRAPH_DIGEST_KEY: json.dumps(graph_digest(model))})
     model.producer_name = "sb3-formation"
     path = Path(path)

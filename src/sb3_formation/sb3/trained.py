@@ -17,6 +17,7 @@ import numpy as np
 
 from sb3_formation.env.blocks import slot_observations
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.geometry import ring_rows
 from sb3_formation.env.observations import observation_fields
 from sb3_formation.sb3.normalization import STATE_KEYS, observation_offset, observation_scale, scale_observations
 from sb3_formation.sb3.policies import FormationPolicy
@@ -104,6 +105,9 @@ class TrainedPolicy:
         )
         if deterministic and isinstance(self.policy, FormationPolicy):  # the same actions, faster
             return self.policy.deterministic_actions(scaled), state
+        if getattr(self.policy, "message_size", 0):  # its agents hear their ring neighbours in the rows' teams
+            neighbours = ring_rows([self.config.n_agents] * (len(rows) // self.config.n_agents))
+            return self.policy.predict(scaled, state, episode_start, deterministic, neighbours)
         return self.policy.predict(scaled, state=state, episode_start=episode_start, deterministic=deterministic)
 
 

@@ -1,15 +1,17 @@
-"""The recurrent rollout buffer: SB3's ``RolloutBuffer`` plus each step's hidden states, served as padded, masked
-minibatches of whole sequences (cut at episode starts and every ``max_sequence_length`` steps)."""
+"""The recurrent rollout buffer: SB3's ``RolloutBuffer`` plus each step's hidden states and messages, served as padded,
+masked minibatches of whole sequences (cut at episode starts and every ``max_sequence_length`` steps; with messages,
+whole teams' sequences)."""
 
 from __future__ import annotations
 
-from collections.abc import Generator
+from collections.abc import Generator, Sequence
 from typing import NamedTuple
 
 import numpy as np
 import torch as th
 from stable_baselines3.common.buffers import RolloutBuffer
 
+from sb3_formation.env.geometry import ring_rows
 from sb3_formation.sb3.recurrent.policies import RecurrentStates
 
 
@@ -24,6 +26,7 @@ class SequenceBatch(NamedTuple):
     returns: th.Tensor
     mask: th.Tensor
     states: RecurrentStates
+    neighbours: th.Tensor | None  #: ``(B, 2)`` each column's ring neighbours' columns (with messages), else ``None``
 
 
 class SequenceLayout(NamedTuple):
@@ -65,10 +68,12 @@ class RecurrentRolloutBuffer(RolloutBuffer):
     """SB3's ``RolloutBuffer`` plus the hidden states each step started from, served as sequence minibatches.
 
     Arguments are those of :class:`~stable_baselines3.common.buffers.RolloutBuffer`; ``max_sequence_length`` cuts the
-    sequences (see :func:`sequence_layout`).
+    sequences (see :func:`sequence_layout`); ``team_sizes`` (the slots' teams, in slot order) makes every minibatch
+    hold whole teams, for a policy whose agents send messages.
     """
 
     max_sequence_length: int | None = None
+    team_sizes: Sequence[int] | None = None
 
     def reset(self) -> None:
         super().reset()
@@ -83,7 +88,9 @@ class RecurrentRolloutBuffer(RolloutBuffer):
 
         A sequence is the steps of one slot from the rollout's start, an episode start or a multiple of
         ``max_sequence_length`` to the step before the next one, so no minibatch row mixes slots or episodes. It is
-        replayed from the states stored for its first step.
+        replayed from the states stored for its first step. With :attr:`team_sizes` the sequences of a team's slots
+        (which start and end together: a team's agents start their episodes together) go into one minibatch, which
+        names each sequence's neighbours' columns.
         """
         assert self.full and len(self.step_states) == self.buffer_size, "fill the buffer (and its states) first"
         layout = sequence_layout(self.episode_starts, self.max_sequence_length)
@@ -106,15 +113,29 @@ class RecurrentRolloutBuffer(RolloutBuffer):
             history = th.stack([states[part][component] for states in self.step_states])  # (T, 1, N, hidden)
             return history[steps, 0, slots].unsqueeze(0)  # (1, S, hidden)
 
-        states = RecurrentStates(
-            *(tuple(first_states(part, component) for component in range(len(self.step_states[0][part]))) for part in (0, 1))
+        pi, vf = (
+            tuple(first_states(part, component) for component in range(len(self.step_states[0][part]))) for part in (0, 1)
         )
-        order = np.random.permutation(count)  # noqa: NPY002 - SB3 seeds numpy's global generator (set_random_seed)
-        batch_of = (np.cumsum(layout.lengths[order]) - 1) // batch_size
+        messages = th.stack([states.messages for states in self.step_states])[steps, slots]  # (S, M)
+        states = RecurrentStates(pi, vf, messages)
+        group_of, neighbours = self._groups(layout)
+        groups = int(group_of.max()) + 1
+        order = np.random.permutation(groups)  # noqa: NPY002 - SB3 seeds numpy's global generator (set_random_seed)
+        rank = np.empty(groups, dtype=np.int64)
+        rank[order] = np.arange(groups)
+        batch_of = (
+            np.cumsum(np.bincount(group_of, layout.lengths, groups).astype(np.int64)[order]) - 1
+        ) // batch_size  # by rank
+        ordered = np.argsort(rank[group_of], kind="stable")  # the sequences, group by group in the drawn order
         for batch in np.unique(batch_of):
-            chosen = order[batch_of == batch]
+            chosen = ordered[batch_of[rank[group_of[ordered]]] == batch]
             rows = int(layout.lengths[chosen].max())
             index = th.as_tensor(chosen, device=self.device)
+            columns = None
+            if neighbours is not None:
+                column_of = np.full(count, -1)
+                column_of[chosen] = np.arange(len(chosen))
+                columns = th.as_tensor(column_of[neighbours[chosen]], device=self.device)
             yield SequenceBatch(
                 observations[:rows, index],
                 actions[:rows, index],
@@ -124,4 +145,19 @@ class RecurrentRolloutBuffer(RolloutBuffer):
                 returns[:rows, index],
                 self.to_torch(mask[:rows, chosen]).bool(),
                 states.select(index),
+                columns,
             )
+
+    def _groups(self, layout: SequenceLayout) -> tuple[np.ndarray, np.ndarray | None]:
+        """The group of each sequence, whose sequences go into a minibatch together (each its own, or with
+        :attr:`team_sizes` one per team and first step), and each sequence's ring neighbours' sequences (``None``
+        without :attr:`team_sizes`)."""
+        count = len(layout.lengths)
+        if self.team_sizes is None:
+            return np.arange(count), None
+        sequence_at = np.full((self.n_envs, self.buffer_size), -1)
+        sequence_at[layout.slots, layout.first_steps] = np.arange(count)
+        neighbours = sequence_at[ring_rows(self.team_sizes)[layout.slots], layout.first_steps[:, None]]
+        assert (neighbours >= 0).all(), "a team's slots must start their episodes together"
+        teams = np.repeat(np.arange(len(self.team_sizes)), self.team_sizes)[layout.slots]
+        return np.unique(teams * self.buffer_size + layout.first_steps, return_inverse=True)[1], neighbours

@@ -14,6 +14,7 @@ from stable_baselines3.common.type_aliases import Schedule
 from stable_baselines3.common.utils import explained_variance, obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_formation.env.geometry import ring_rows
 from sb3_formation.sb3.recurrent.buffers import RecurrentRolloutBuffer
 from sb3_formation.sb3.recurrent.policies import DEFAULT_MAX_SEQUENCE_LENGTH, RecurrentFormationPolicy
 
@@ -29,6 +30,9 @@ class RecurrentFormationPPO(PPO):
 
     - Each slot's actor and critic states are carried from step to step and reset when the slot's episode starts;
       time-outs are bootstrapped with the critic's state after the last real step.
+    - A policy with messages (``message_size`` > 0) needs the package's
+      :class:`~sb3_formation.sb3.vec_env.FormationVecEnv` (possibly wrapped): the slots' teams tell each slot's ring
+      neighbours, whose messages it receives one step late; its minibatches hold whole teams' sequences.
     - The update cuts every slot's rollout into sequences at episode starts and every ``max_sequence_length`` steps,
       and forms minibatches of about ``batch_size`` steps of whole sequences; each sequence is replayed from the
       states stored for its first step during the rollout (zeros at an episode start); losses are means over the real
@@ -68,6 +72,26 @@ class RecurrentFormationPPO(PPO):
         self.rollout_buffer.max_sequence_length = self.max_sequence_length
         self._last_states = self.policy.initial_state(self.n_envs)
         self._last_episode_starts = np.ones(self.n_envs, dtype=bool)  # zero states: a loaded model starts afresh
+        self._neighbours: th.Tensor | None = None
+        self._set_neighbours()
+
+    def set_env(self, env: Any, force_reset: bool = True) -> None:
+        """SB3's ``set_env``; for a policy with messages also the slots' ring neighbours (from the env's teams)."""
+        super().set_env(env, force_reset)
+        self._set_neighbours()
+
+    def _set_neighbours(self) -> None:
+        """A policy with messages: each slot's ring neighbours' slots, from the env's teams (the buffer's too).
+
+        :raises ValueError: an env that is not the package's FormationVecEnv
+        """
+        if not self.policy.message_size or self.env is None:
+            return
+        sizes = [config.n_agents for config in getattr(self.env.unwrapped, "team_configs", [])]
+        if sum(sizes) != self.n_envs:
+            raise ValueError("a policy with messages trains on the package's FormationVecEnv, whose slots are teams' agents")
+        self.rollout_buffer.team_sizes = sizes
+        self._neighbours = th.as_tensor(ring_rows(sizes), device=self.device)
 
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "_last_states"]
@@ -86,8 +110,10 @@ class RecurrentFormationPPO(PPO):
             with th.no_grad():
                 obs_tensor = obs_as_tensor(self._last_obs, self.device)
                 starts = th.as_tensor(self._last_episode_starts, dtype=th.float32, device=self.device)
-                entering = self._last_states.masked(1.0 - starts)  # reset where an episode starts
-                actions, values, log_probs, self._last_states = self.policy(obs_tensor, entering, starts)
+                entering = self.policy.entering(self._last_states, starts)  # reset where an episode starts
+                actions, values, log_probs, self._last_states = self.policy(
+                    obs_tensor, entering, starts, False, self._neighbours
+                )
             actions = actions.cpu().numpy()
             box = cast(spaces.Box, self.action_space)  # the formation env's actions
             clipped_actions = np.clip(actions, box.low, box.high)
@@ -108,10 +134,12 @@ class RecurrentFormationPPO(PPO):
                 terminal = obs_as_tensor(np.stack([infos[index]["terminal_observation"] for index in timeouts]), self.device)
                 rows = th.as_tensor(timeouts, device=self.device)
                 with th.no_grad():
+                    received = self.policy.received(self._last_states.messages, self._neighbours)
                     terminal_values = self.policy.predict_values(
                         cast(th.Tensor, terminal),
                         self._last_states.select(rows).vf,
                         th.zeros(len(timeouts), device=self.device),
+                        None if received is None else received[rows],
                     )
                 rewards[timeouts] += self.gamma * terminal_values.squeeze(-1).cpu().numpy()
             rollout_buffer.add_states(entering)
@@ -123,7 +151,8 @@ class RecurrentFormationPPO(PPO):
         with th.no_grad():
             starts = th.as_tensor(dones, dtype=th.float32, device=self.device)
             last_obs = cast(th.Tensor, obs_as_tensor(cast(np.ndarray, new_obs), self.device))  # Box observations
-            values = self.policy.predict_values(last_obs, self._last_states.vf, starts)
+            received = self.policy.received(self.policy.entering(self._last_states, starts).messages, self._neighbours)
+            values = self.policy.predict_values(last_obs, self._last_states.vf, starts, received)
         rollout_buffer.compute_returns_and_advantage(last_values=values, dones=dones)
         callback.update_locals(locals())
         callback.on_rollout_end()
@@ -144,7 +173,9 @@ class RecurrentFormationPPO(PPO):
             approx_kl_divs = []
             for batch in self.rollout_buffer.sequence_batches(self.batch_size):
                 mask = batch.mask
-                values, log_prob, entropy = self.policy.evaluate_sequences(batch.observations, batch.actions, batch.states)
+                values, log_prob, entropy = self.policy.evaluate_sequences(
+                    batch.observations, batch.actions, batch.states, batch.neighbours
+                )
                 advantages = batch.advantages
                 if self.normalize_advantage and int(mask.sum()) > 1:
                     real = advantages[mask]
