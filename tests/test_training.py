@@ -28,6 +28,7 @@ from sb3_formation.controllers import ShrinkingController
 from sb3_formation.controllers.residual import ResidualPolicy
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.formation_env import FormationEnv
+from sb3_formation.experiment.evaluation import evaluate
 from sb3_formation.experiment.recipes import TrainSettings, layered_settings, load_recipe, thesis_recipe_for
 from sb3_formation.experiment.runs import FINAL_MODEL, STATE_FILE, latest_checkpoint, load_trained
 from sb3_formation.experiment.targets import load_policy
@@ -367,16 +368,18 @@ def test_killed_recurrent_run_resumes_evaluates_and_renders(tmp_path: Path) -> N
     assert Image.open(tmp_path / "episode.gif").n_frames == 5
 
 
-def train_shrunk_through_a_kill(tmp_path: Path, recipe: str, max_steps: int) -> Path:
-    """Train ``recipe`` shrunk (small nets, short rollouts, one team, episodes of ``max_steps``) for 8 iterations into
-    ``tmp_path/run``, SIGKILL it after its third checkpoint, resume it, and check that it finished with the budget's
-    timesteps; return the run folder."""
+def train_shrunk_through_a_kill(
+    tmp_path: Path, recipe: str, max_steps: int, policy: dict[str, Any] | None = None
+) -> Path:
+    """Train ``recipe`` shrunk (small nets, short rollouts, one team, episodes of ``max_steps``; ``policy`` replaces the
+    policy section's small MLP) for 8 iterations into ``tmp_path/run``, SIGKILL it after its third checkpoint, resume
+    it, and check that it finished with the budget's timesteps; return the run folder."""
     setup = tmp_path / "shrunk.yaml"
     setup.write_text(
         yaml.safe_dump(
             {
                 "base": recipe,
-                "policy": {"net_arch": {"pi": [16], "vf": [16]}},
+                "policy": policy or {"net_arch": {"pi": [16], "vf": [16]}},
                 "ppo": {"n_steps": 32, "batch_size": 96, "n_epochs": 1},
                 "n_envs": 1,
                 "training": {"steps": 8 * 32 * 6, "eval_every": None},
@@ -421,6 +424,19 @@ def test_the_scene_recipe_trains_through_a_kill_and_resumes(tmp_path: Path) -> N
         np.testing.assert_array_equal(alone[0], actions[0])
         np.testing.assert_array_equal(alone_state[1][0], next_state[1][0])
         rows, state = env.step_array(actions)[0], next_state
+
+
+@pytest.mark.slow
+def test_a_policy_with_memory_and_messages_trains_through_a_kill_and_resumes(tmp_path: Path) -> None:
+    """The thesis's recurrent ch5-bearing recipe (shrunk) with messages of 4 values trains through a SIGKILL and a
+    resume; the run loads as that policy and plays episodes."""
+    arch = {"pi": [16], "pi_recurrent": 8, "vf": [16], "vf_recurrent": 8, "vf_after": []}
+    run_dir = train_shrunk_through_a_kill(tmp_path, "ch5-bearing", 40, {"net_arch": arch, "message_size": 4})
+    trained = load_trained(run_dir, device="cpu")
+    assert isinstance(trained.model, RecurrentFormationPPO)
+    assert trained.policy.message_size == 4 and trained.policy.memory and trained.policy.cell == "gru"
+    summary = evaluate(trained, episodes=2, n_envs=2, record=0, env_overrides={"max_steps": 40})
+    assert [row["length"] for row in summary.episodes] == [40, 40]
 
 
 @pytest.mark.slow

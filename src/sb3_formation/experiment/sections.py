@@ -31,7 +31,7 @@ from sb3_formation.env.config import TASKS, FormationConfig
 from sb3_formation.env.scenes import SCENES
 from sb3_formation.safety.filter import SafetyGains
 from sb3_formation.sb3.imitation import ImitationSettings
-from sb3_formation.sb3.recurrent import CELLS
+from sb3_formation.sb3.recurrent import CELLS, MAX_MESSAGE_SIZE
 from sb3_formation.utils.checks import check_path, is_count, is_integer, is_number
 
 #: Largest seed: numpy's and PyTorch's generators take seeds in [0, 2**32 - 1].
@@ -242,6 +242,10 @@ class PolicySection(Section):
     :param action_scale: factor on the tanh of the actor's output (thesis 4.1.2: 0.01 for the chapter-4 individual scheme)
     :param net_arch: layer widths: a list for both networks, or widths by part, ``{pi: [...], vf: [...]}`` (a recurrent
         policy's parts also ``pi_recurrent``, ``pi_after``, ``vf_recurrent``, ``vf_after``)
+    :param message_size: recurrent policies only: values of the message each agent sends its ring neighbours every
+        step, received one step late (unset: 0, none)
+    :param memory: recurrent policies only: carry the recurrent state from step to step (unset: true; false: an
+        ablation that acts on the current observation and messages only)
     """
 
     key: ClassVar[str] = "policy"
@@ -256,6 +260,8 @@ class PolicySection(Section):
     learn_sigma: bool | None = None
     action_scale: float | None = None
     net_arch: list[int] | dict[str, list[int] | int] | None = None
+    message_size: int | None = None
+    memory: bool | None = None
 
     def __post_init__(self) -> None:
         self._check("recurrent", "true or false", _is_bool)
@@ -265,8 +271,15 @@ class PolicySection(Section):
             self._check(name, "a finite number > 0", _optional(lambda value: is_number(value) and value > 0))
         self._check("learn_sigma", "true or false", _optional(_is_bool))
         self._check("net_arch", "a list of layer widths or a mapping of parts to widths", _optional(_is_net_arch))
-        if self.cell is not None and not self.recurrent:
-            raise ValueError(f"policy: cell {self.cell!r} applies to recurrent policies only")
+        self._check(
+            "message_size",
+            f"an integer in [0, {MAX_MESSAGE_SIZE}]",
+            _optional(lambda value: is_integer(value) and 0 <= value <= MAX_MESSAGE_SIZE),
+        )
+        self._check("memory", "true or false", _optional(_is_bool))
+        for name in ("cell", "message_size", "memory"):
+            if getattr(self, name) is not None and not self.recurrent:
+                raise ValueError(f"policy: {name} {getattr(self, name)!r} applies to recurrent policies only")
         if self.recurrent and self.team_critic:
             raise ValueError("policy: the team critic has no recurrent version: set recurrent: false or team_critic: false")
 
