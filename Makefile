@@ -95,7 +95,7 @@ $(ROS_VENV)/.installed: pyproject.toml
 	test -x $(ROS_BIN)/python || $(PYTHON) -m venv $(ROS_VENV)
 	$(ROS_BIN)/python -m pip install --quiet --upgrade pip
 	$(ROS_BIN)/python -m pip install --quiet torch==2.13.0
-	$(ROS_BIN)/python -m pip install --quiet -e '.[ros]' 'pytest>=8' 'pytest-xdist>=3.5'
+	$(ROS_BIN)/python -m pip install --quiet -e '.[ros,export]' 'pytest>=8' 'pytest-xdist>=3.5'
 	touch $(ROS_VENV)/.installed
 
 test-ros: $(ROS_VENV)/.installed

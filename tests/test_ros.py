@@ -15,6 +15,7 @@ import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -26,14 +27,21 @@ from geometry_msgs.msg import PointStamped, Twist  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
-from sensor_msgs.msg import LaserScan  # noqa: E402
+from sensor_msgs.msg import JointState, LaserScan  # noqa: E402
 from std_msgs.msg import Float32MultiArray  # noqa: E402
 
 from sb3_formation.env.observations import observation_fields, observation_layout  # noqa: E402
 from sb3_formation.env.sensors import ray_directions  # noqa: E402
 from sb3_formation.ros.agent_node import GOAL_QOS, AgentNode, AgentSettings  # noqa: E402
-from sb3_formation.ros.messages import goal_message, odometry_message, stamp_of  # noqa: E402
+from sb3_formation.ros.messages import (  # noqa: E402
+    goal_message,
+    odometry_message,
+    policy_message,
+    policy_message_of,
+    stamp_of,
+)
 from sb3_formation.runtime import OnnxPolicy  # noqa: E402
+from sb3_formation.safety.policy import SafePolicy  # noqa: E402
 
 PRETRAINED = Path(__file__).resolve().parents[1] / "src" / "sb3_formation" / "pretrained"
 MODEL = PRETRAINED / "ch5-bearing" / "final_model.onnx"
@@ -182,50 +190,94 @@ def test_the_node_resamples_hand_made_scans(context, policy, increment_deg, angl
     executor.shutdown()
 
 
+class FreeRun:
+    """Agent 0 free-running (``input_timeout`` 1 s) beside a :class:`TeamFeed` that plays its inputs in real time."""
+
+    def __init__(self, context: rclpy.context.Context, policy: OnnxPolicy) -> None:
+        settings = AgentSettings(agent=0, input_timeout=1.0, watchdog_rate=20.0)
+        self.node = AgentNode(policy, settings, namespace="agent_0", context=context)
+        self.feed = TeamFeed(context, policy.config.n_agents)
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.feed.node)
+        rays = policy.config.lidar_rays
+        self.scan = hand_scan(np.full(rays, np.inf), 0.0, 2 * math.pi / rays)
+
+    def play(
+        self, seconds: float, with_scan: bool, goal: np.ndarray | None, each_instant: Callable[[Any], None] | None = None
+    ) -> list[Twist]:
+        """The commands agent 0 sent while the feed played for ``seconds`` (``each_instant`` called with each stamp)."""
+        self.feed.commands.clear()
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            stamp = self.node.get_clock().now().nanoseconds / 1e9
+            self.feed.publish(stamp, TEAM, 0.0, self.scan if with_scan else None, goal)
+            if each_instant is not None:
+                each_instant(stamp_of(stamp))
+            for _ in range(20):  # every message of the instant, and the node's command
+                self.executor.spin_once(timeout_sec=0.002)
+        return list(self.feed.commands)
+
+
+def moving(commands: list[Twist]) -> bool:
+    return any(abs(command.linear.x) + abs(command.linear.y) > 0 for command in commands)
+
+
+def zero(commands: list[Twist]) -> bool:
+    return bool(commands) and all(command.linear.x == command.linear.y == command.angular.z == 0.0 for command in commands)
+
+
 def test_a_stale_or_missing_input_stops_the_agent(context, policy) -> None:
     """Free-running: with every input fresh the agent moves; no goal, a teammate's odometry missing, or no scan for
     ``input_timeout`` gives zero commands (and the node keeps running)."""
-    settings = AgentSettings(agent=0, input_timeout=1.0, watchdog_rate=20.0)
-    node = AgentNode(policy, settings, namespace="agent_0", context=context)
-    feed = TeamFeed(context, policy.config.n_agents)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    executor.add_node(feed.node)
-    config = policy.config
-    scan = hand_scan(np.full(config.lidar_rays, np.inf), 0.0, 2 * math.pi / config.lidar_rays)
-    clock = node.get_clock()
-
-    def play(seconds: float, positions: np.ndarray, with_scan: bool, goal: np.ndarray | None) -> list[Twist]:
-        feed.commands.clear()
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            now = clock.now().nanoseconds / 1e9
-            feed.publish(now, positions, 0.0, scan if with_scan else None, goal)
-            for _ in range(20):  # every message of the instant, and the node's command
-                executor.spin_once(timeout_sec=0.002)
-        return list(feed.commands)
-
-    def moving(commands: list[Twist]) -> bool:
-        return any(abs(command.linear.x) + abs(command.linear.y) > 0 for command in commands)
-
-    def zero(commands: list[Twist]) -> bool:
-        return bool(commands) and all(command.linear.x == command.linear.y == command.angular.z == 0.0 for command in commands)
-
-    first = play(1.5, TEAM, True, None)
+    run = FreeRun(context, policy)
+    first = run.play(1.5, True, None)
     assert zero(first), f"no goal yet: the agent must stand still, got {first}"
     goal = np.array([12.0, 5.0])
-    fresh = play(2.0, TEAM, True, goal)
+    fresh = run.play(2.0, True, goal)
     assert moving(fresh), f"every input fresh: the agent must move towards the goal, got {fresh[:3]}"
-    later = play(3.0, TEAM, False, goal)  # the scan stops
+    later = run.play(3.0, False, goal)  # the scan stops
     assert zero(later[-5:]), "no scan for input_timeout: the agent must stop"
-    feed.odometry[3] = feed.node.create_publisher(Odometry, "/agent_3/unused", 10)  # agent 3's odometry stops arriving
-    assert zero(play(3.0, TEAM, True, goal)[-5:]), "a teammate's odometry missing: the agent must stop"
-    executor.shutdown()
+    run.feed.odometry[3] = run.feed.node.create_publisher(Odometry, "/agent_3/unused", 10)  # agent 3's odometry stops
+    assert zero(run.play(3.0, True, goal)[-5:]), "a teammate's odometry missing: the agent must stop"
+    run.executor.shutdown()
 
 
-def fly(context: rclpy.context.Context, model: Path, episodes: int, see_through: bool, observe: bool = False) -> tuple:
-    """The simulator node and a team's agent nodes in one executor, synchronous, filter on: the simulator's episode
-    records, the env's observation rows of every step, and each agent's published observations (with ``observe``)."""
+def test_a_silent_neighbour_stops_a_talking_agent(context, tmp_path) -> None:
+    """Free-running with a policy whose agents send messages: agent 0 moves while its ring neighbours 5 and 1 talk,
+    publishes its own message, and stops once agent 1 has been silent for ``input_timeout``."""
+    from test_messages import untrained
+
+    from sb3_formation.env.config import FormationConfig
+    from sb3_formation.sb3.onnx_export import export_onnx
+
+    model = export_onnx(untrained(FormationConfig.task("ch5-bearing", stage=3), True, 4), tmp_path / "talk.onnx")
+    run = FreeRun(context, OnnxPolicy(model, threads=1))
+    neighbours = {index: run.feed.node.create_publisher(JointState, f"/agent_{index}/message", 10) for index in (5, 1)}
+    sent: list[np.ndarray] = []
+    run.feed.node.create_subscription(JointState, "/agent_0/message", lambda message: sent.append(message.position), 10)
+
+    def talk(speakers: tuple[int, ...]) -> Callable[[Any], None]:
+        return lambda stamp: [neighbours[index].publish(policy_message(stamp, np.full(4, 0.5))) for index in speakers]
+
+    goal = np.array([12.0, 5.0])
+    assert moving(run.play(2.0, True, goal, talk((5, 1)))), "every input fresh: the agent must move"
+    assert sent and len(sent[-1]) == 4
+    assert zero(run.play(3.0, True, goal, talk((5,)))[-5:]), "agent 1 silent for input_timeout: the agent must stop"
+    run.executor.shutdown()
+
+
+def fly(
+    context: rclpy.context.Context,
+    model: Path,
+    episodes: int,
+    see_through: bool,
+    observe: bool = False,
+    extra_nodes: list[Node] | None = None,
+) -> tuple:
+    """The simulator node and a team's agent nodes (and ``extra_nodes``) in one executor, synchronous, filter on: the
+    simulator's episode records, the env's observation rows of every step, and each agent's published observations
+    (with ``observe``)."""
     from sb3_formation.ros.sim_node import SimNode, SimSettings
 
     policy = OnnxPolicy(model, threads=1)
@@ -264,7 +316,7 @@ def fly(context: rclpy.context.Context, model: Path, episodes: int, see_through:
             Float32MultiArray, topic, lambda message, seen=seen: seen.append(np.array(message.data)), 5000
         )
     executor = SingleThreadedExecutor(context=context)
-    for node in [sim, *agents, listener]:
+    for node in [sim, *agents, listener, *(extra_nodes or [])]:
         executor.add_node(node)
     spin_until(executor, lambda: sim.done, timeout=600.0)
     steps = sum(record.steps for record in sim.results)
@@ -290,7 +342,6 @@ def stopped_by_teammates(positions: np.ndarray, config) -> np.ndarray:
 def evaluated(model: Path, episodes: int):
     """The same episodes evaluated in process (``sb3-formation evaluate safe:onnx:<model>``'s loop)."""
     from sb3_formation.experiment.evaluation import evaluate
-    from sb3_formation.safety.policy import SafePolicy
 
     return evaluate(SafePolicy(OnnxPolicy(model, threads=1)), episodes, stage=3, seed=0, n_envs=episodes, record=episodes)
 
@@ -347,6 +398,47 @@ def test_a_real_scanner_splits_into_the_simulators_channels_and_flies_the_same_e
     assert shadowed_rays > 0, "the episodes must include obstacles behind teammates, or this test checks nothing of them"
 
 
+def test_a_policy_with_messages_talks_to_its_neighbours_over_ros_as_in_evaluation(context, tmp_path) -> None:
+    """A policy whose agents send messages of 4 values (untrained, its layers scaled so that the messages move the
+    actions): over ROS 2 each agent publishes one message per step on its topic and acts on its two neighbours'
+    messages of the step before, so the closed loop flies the evaluation's episode (scans that see through agents:
+    positions within 1e-5 m); the same loop with the messages zeroed in process flies another."""
+    from test_messages import untrained
+
+    from sb3_formation.env.config import FormationConfig
+    from sb3_formation.experiment.evaluation import evaluate
+    from sb3_formation.sb3.onnx_export import export_onnx
+
+    model = export_onnx(untrained(FormationConfig.task("ch5-bearing", stage=3, max_steps=60), True, 3), tmp_path / "talk.onnx")
+    heard: list[tuple[int, np.ndarray]] = []
+    listener = Node("message_listener", context=context)
+    listener.create_subscription(
+        JointState, "/agent_0/message", lambda message: heard.append(policy_message_of(message)), 1000
+    )
+    results, _, _, _ = fly(context, model, episodes=1, see_through=True, extra_nodes=[listener])
+    reference = evaluated(model, 1)
+    assert [(r.success, r.steps) for r in results] == [(row["success"], row["length"]) for row in reference.episodes]
+    assert largest_difference(results[0], reference.trajectories, 0) <= 1e-5
+    stamps = [stamp for stamp, _ in heard]
+    assert len(heard) == results[0].steps == 60 and stamps == sorted(stamps) and heard[0][1].shape == (4,)
+    assert max(float(np.abs(values).max()) for _, values in heard) > 0.1
+
+    class Deaf:  # the same policy with every received message zeroed
+        def __init__(self, policy: OnnxPolicy) -> None:
+            self.policy, self.config = policy, policy.config
+
+        def fit(self, config):
+            return self
+
+        def predict(self, observation, state=None, episode_start=None, deterministic=True):
+            if state is not None:
+                state = (state[0], np.zeros_like(state[1]))
+            return self.policy.predict(observation, state, episode_start, deterministic)
+
+    deaf = evaluate(SafePolicy(Deaf(OnnxPolicy(model, threads=1))), 1, stage=3, seed=0, n_envs=1, record=1)
+    assert largest_difference(results[0], deaf.trajectories, 0) > 1e-3
+
+
 def test_the_two_commands_fly_a_team_one_process_per_agent(tmp_path) -> None:
     """``sb3-formation ros sim`` and ``sb3-formation ros agents --process-per-agent``, as a user starts them: the
     episode flown is the evaluation's (scans that see through the agents: positions within 1e-6 m), and the agents'
@@ -387,6 +479,7 @@ def test_the_two_commands_fly_a_team_one_process_per_agent(tmp_path) -> None:
         ({"agent": -1}, "agent must be an integer >= 0"),
         ({"stage": 4}, "stage must be 1, 2 or 3"),
         ({"odom_topic": "/odom"}, "odom_topic must hold {index}"),
+        ({"neighbour_message_topic": "/message"}, "neighbour_message_topic must hold {index}"),
     ],
 )
 def test_bad_agent_settings_are_refused_in_one_line(change: dict, message: str) -> None:

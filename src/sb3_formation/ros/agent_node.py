@@ -2,7 +2,8 @@
 
 It reads its ``LaserScan``, every teammate's ``Odometry`` (its own among them) and the team's goal, builds the
 observation on board (:mod:`~sb3_formation.ros.scans`, :mod:`~sb3_formation.ros.observer`), runs the exported policy
-(:class:`~sb3_formation.runtime.OnnxPolicy`) and the safety filter, and publishes its command as a ``Twist``. A stale
+(:class:`~sb3_formation.runtime.OnnxPolicy`) and the safety filter, and publishes its command as a ``Twist``. A policy
+whose agents send messages also hears its two ring neighbours' messages and sends its own (``JointState``). A stale
 or missing input gives a zero command and a logged warning.
 """
 
@@ -16,10 +17,18 @@ from geometry_msgs.msg import PointStamped, Twist
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import LaserScan
+from sensor_msgs.msg import JointState, LaserScan
 from std_msgs.msg import Float32MultiArray
 
-from sb3_formation.ros.messages import nanoseconds_of, odometry_state, scan_of, twist_message
+from sb3_formation.env.geometry import ring_neighbours
+from sb3_formation.ros.messages import (
+    nanoseconds_of,
+    odometry_state,
+    policy_message,
+    policy_message_of,
+    scan_of,
+    twist_message,
+)
 from sb3_formation.ros.observer import FINAL_STAGE, AgentObserver, TeamView, velocity_command
 from sb3_formation.ros.scans import ScanMount, resample_scan, split_scan
 from sb3_formation.runtime import OnnxPolicy
@@ -38,6 +47,9 @@ class AgentSettings:
     :param goal_topic: the team's goal (``PointStamped``, latched)
     :param cmd_topic: where the robot's command goes (``Twist``)
     :param observation_topic: where the observation is published (``Float32MultiArray``), ``""``: not published
+    :param message_topic: where the robot's message to its ring neighbours goes (``JointState``; a policy whose agents
+        send messages only)
+    :param neighbour_message_topic: a ring neighbour's message topic, ``{index}`` standing for its index
     :param scan_x: the scanner's position (m) ahead of the robot's centre, in its base frame
     :param scan_y: the scanner's position (m) left of the robot's centre
     :param scan_yaw: the scanner's yaw (rad) in the robot's base frame
@@ -61,6 +73,8 @@ class AgentSettings:
     goal_topic: str = "/goal"
     cmd_topic: str = "cmd_vel"
     observation_topic: str = ""
+    message_topic: str = "message"
+    neighbour_message_topic: str = "/agent_{index}/message"
     scan_x: float = 0.0
     scan_y: float = 0.0
     scan_yaw: float = 0.0
@@ -85,8 +99,9 @@ class AgentSettings:
             raise ValueError(f"agent must be an integer >= 0 and qos_depth >= 1, got {self.agent!r} and {self.qos_depth!r}")
         if self.stage not in (1, 2, 3):
             raise ValueError(f"stage must be 1, 2 or 3, got {self.stage!r}")
-        if "{index}" not in self.odom_topic:
-            raise ValueError(f"odom_topic must hold {{index}} where a teammate's index goes, got {self.odom_topic!r}")
+        for name in ("odom_topic", "neighbour_message_topic"):
+            if "{index}" not in getattr(self, name):
+                raise ValueError(f"{name} must hold {{index}} where a teammate's index goes, got {getattr(self, name)!r}")
 
 
 #: The goal's QoS: reliable and latched, so that a robot that starts late still gets the goal given before.
@@ -133,6 +148,11 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         self._acted_stamp = -1
         self._state: Any = None
         self._starting = True
+        #: the ring neighbours (preceding, succeeding) whose messages the robot hears, and what each sent, by stamp (ns)
+        ring = ring_neighbours(config.n_agents)[settings.agent]
+        self.neighbours = tuple(int(index) for index in ring) if policy.metadata.message_size else ()
+        self._heard: list[dict[int, np.ndarray]] = [{} for _ in self.neighbours]
+        self._acted_at = 0  # the clock (ns) when the robot first acted in this episode
         reliability = ReliabilityPolicy.BEST_EFFORT if settings.best_effort_sensors else ReliabilityPolicy.RELIABLE
         sensors = QoSProfile(depth=settings.qos_depth, reliability=reliability)
         self._scan_topic = self.create_subscription(LaserScan, settings.scan_topic, self._on_scan, sensors).topic_name
@@ -143,6 +163,14 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         self.commands = self.create_publisher(Twist, settings.cmd_topic, settings.qos_depth)
         topic = settings.observation_topic
         self.observations = self.create_publisher(Float32MultiArray, topic, settings.qos_depth) if topic else None
+        self.messages = (
+            self.create_publisher(JointState, settings.message_topic, settings.qos_depth) if self.neighbours else None
+        )
+        for slot, index in enumerate(self.neighbours):
+            topic = settings.neighbour_message_topic.format(index=index)
+            self.create_subscription(
+                JointState, topic, lambda message, slot=slot: self._on_message(slot, message), settings.qos_depth
+            )
         if not settings.synchronous:
             self.create_timer(1.0 / settings.watchdog_rate, self._watch)
 
@@ -169,7 +197,23 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         ):  # a new goal: a new episode
             self.observer.reset()
             self._state, self._starting = None, True
+            for heard in self._heard:
+                heard.clear()
         self.goal, self._goal_fresh = message, True
+        if self.settings.synchronous:
+            self._act_when_complete()
+
+    def _on_message(self, slot: int, message: JointState) -> None:
+        stamp, values = policy_message_of(message)
+        size = self.policy.metadata.message_size
+        if values.shape != (size,):
+            index = self.neighbours[slot]
+            self.get_logger().warning(f"ignored a message of agent {index} with {values.size} values, not {size}")
+            return
+        heard = self._heard[slot]
+        heard[stamp] = values
+        for old in sorted(heard)[: -self.settings.qos_depth]:
+            del heard[old]
         if self.settings.synchronous:
             self._act_when_complete()
 
@@ -186,16 +230,20 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             odometry is None or nanoseconds_of(odometry.header.stamp) != stamp for odometry in self.team
         ):
             return
+        if not self._starting and any(self._acted_stamp not in heard for heard in self._heard):
+            return  # a neighbour's message of the last step is still on its way
+        received = None if self._starting else [heard[self._acted_stamp] for heard in self._heard]
         self._acted_stamp, self._goal_fresh = stamp, False
-        self._act(scan)
+        self._act(scan, received)
 
     def _act_if_fresh(self) -> None:
         """Free-running mode: act on every scan whose other inputs are within ``input_timeout`` of it."""
         problem = self._stale_input()
         if problem:
             self._stop(problem)
-        else:
-            self._act(self.scan)
+        else:  # the newest message of each neighbour in this episode (none yet: zeros, as at an episode's start)
+            newest = [heard[max(heard)] if heard else np.zeros(self.policy.metadata.message_size) for heard in self._heard]
+            self._act(self.scan, None if self._starting else newest)
 
     def _stale_input(self) -> str:
         """What is missing or older than ``input_timeout`` (by the node's clock), or ``""``."""
@@ -208,6 +256,11 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             if odometry is None or now - nanoseconds_of(odometry.header.stamp) > timeout:
                 topic = self.settings.odom_topic.format(index=index)
                 return f"no odometry of agent {index} on {topic} for {self.settings.input_timeout} s"
+        for index, heard in zip(self.neighbours, self._heard):
+            last = max(heard) if heard else self._acted_at  # from the robot's first action of the episode
+            if not self._starting and now - last > timeout:
+                topic = self.settings.neighbour_message_topic.format(index=index)
+                return f"no message of agent {index} on {topic} for {self.settings.input_timeout} s"
         return ""
 
     def _watch(self) -> None:
@@ -220,8 +273,11 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         self.commands.publish(Twist())
         self.get_logger().warning(f"agent {self.settings.agent} stopped: {problem}", throttle_duration_sec=1.0)
 
-    def _act(self, scan: LaserScan) -> None:
-        """Observe, act, filter and publish the command."""
+    def _act(self, scan: LaserScan, received: list[np.ndarray] | None) -> None:
+        """Observe, act, filter and publish the command (and the message to the neighbours).
+
+        :param received: what the preceding and succeeding neighbours sent at the last step (``None``: nothing yet)
+        """
         goal, team = self.goal, [message for message in self.team if message is not None]
         if goal is None or len(team) < len(self.team):  # the callers act only with every input in
             raise RuntimeError("the agent node acted without a goal or a teammate's odometry")
@@ -239,10 +295,16 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         target = np.array([goal.point.x, goal.point.y])
         row = self.observer.observe(TeamView(positions, velocities, headings), lidar, target).astype(np.float32)[None, :]
         start = np.array([self._starting])
-        action, self._state = self.policy.agent_actions(row, np.array([agent]), self._state, start)
+        heard = None if received is None or not self.neighbours else np.stack(received)[None]
+        step = self.policy.agent_step(row, np.array([agent]), self._state, start, heard)
+        action, self._state = step.actions, step.state
         if self.filter is not None:
             action = self.filter.filter(row, action)[0]
+        if self._starting:
+            self._acted_at = self.get_clock().now().nanoseconds
         self._starting = False
+        if self.messages is not None:
+            self.messages.publish(policy_message(scan.header.stamp, step.messages[0]))
         self.observer.remember(action[0])
         forward_speed = float(team[agent].twist.twist.linear.x)
         command = velocity_command(config, action[0], velocities[agent], forward_speed)

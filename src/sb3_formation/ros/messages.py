@@ -1,4 +1,5 @@
-"""ROS 2 messages to and from the package's arrays: ``LaserScan``, ``Odometry``, ``PointStamped``, ``Twist``, time.
+"""ROS 2 messages to and from the package's arrays: ``LaserScan``, ``Odometry``, ``PointStamped``, ``Twist``, time, and
+the policy's messages between ring neighbours as ``JointState``.
 
 Units and frames follow REP 103 (m, rad, m/s; x forward, y left, yaw anti-clockwise) and REP 105 (a world frame shared
 by the team, default ``map``; each robot's ``base_link``). Needs rclpy's message packages:
@@ -14,7 +15,7 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PointStamped, Twist
 from nav_msgs.msg import Odometry
-from sensor_msgs.msg import LaserScan
+from sensor_msgs.msg import JointState, LaserScan
 
 from sb3_formation.controllers.shrinking import rotate
 from sb3_formation.ros.scans import Scan
@@ -125,3 +126,23 @@ def turned(vector: np.ndarray, yaw: float) -> np.ndarray:
     back); exact at yaw 0."""
     result: np.ndarray = rotate(vector[None, :], np.array([yaw]))[0]
     return result
+
+
+def policy_message(stamp: Time, values: np.ndarray) -> JointState:
+    """The message a policy's agent sends its ring neighbours, as a ``JointState``: ROS 2's own stamped vector of named
+    values (a message type of one's own would need a ROS build to generate it). The stamp is the step's the agent acted
+    on; the names are ``m0`` ... ``m{M-1}``; ``position`` holds the values.
+
+    :param stamp: the stamp of the inputs the agent acted on
+    :param values: ``(M,)`` the message
+    """
+    message = JointState()
+    message.header.stamp = stamp
+    message.name = [f"m{index}" for index in range(len(values))]
+    message.position = [float(value) for value in values]
+    return message
+
+
+def policy_message_of(message: JointState) -> tuple[int, np.ndarray]:
+    """The stamp (ns) and the values of a policy message (:func:`policy_message`)."""
+    return nanoseconds_of(message.header.stamp), np.array(message.position, dtype=np.float32)
