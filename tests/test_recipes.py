@@ -49,6 +49,7 @@ def test_the_four_thesis_recipes_are_shipped_with_their_citations() -> None:
         *(f"residual-{name}" for name in thesis),
         "residual-ch5-bearing-unicycle",
         "residual-scenes-ch5-bearing",
+        "residual-talk-scenes-ch5-bearing",
     ]
     thesis_ppo = {"n_steps": 128, "batch_size": 512, "n_epochs": 10, "learning_rate": 5e-5, "gamma": 0.995}
     thesis_ppo |= {"gae_lambda": 0.95, "clip_range": 0.2, "clip_range_vf": 20.0, "target_kl": 0.03}
