@@ -16,7 +16,7 @@ import argparse
 
 import numpy as np
 
-from sb3_formation.env.scenes import WALL_THICKNESS
+from sb3_formation.env.families import WALL_THICKNESS
 from sb3_formation.experiment.evaluation import evaluate
 from sb3_formation.experiment.statistics import wilson_interval
 from sb3_formation.experiment.targets import load_policy

@@ -78,7 +78,7 @@ def test_lidar_scale_by_hand() -> None:
 
 
 def test_team_heading_free_blocked_flip_and_leave() -> None:
-    controller = ShrinkingController(CH5, patience=0)
+    controller = ShrinkingController(CH5, patience=0, wall_search=False, k_goal=1.0)  # the radial-flip detour
     gains = controller.settings
     goal = np.array([[5.0, 0.0]])
     # free: a full step along the last heading keeps the heading on the goal
@@ -117,7 +117,7 @@ def test_team_heading_free_blocked_flip_and_leave() -> None:
 
 
 def test_patience_waits_before_turning() -> None:
-    controller = ShrinkingController(CH5, patience=3)
+    controller = ShrinkingController(CH5, patience=3, wall_search=False)  # a 1 deg turn after patience
     state = memory(controller, heading_x=1.0, progress=0.0)
     for _ in range(3):
         controller.team_heading(np.array([[5.0, 0.0]]), np.zeros((1, 2)), state)

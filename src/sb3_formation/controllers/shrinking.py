@@ -7,20 +7,47 @@ comes from values every agent of a team observes identically: the centroid-goal 
 Delta c_g. Each agent knows its own offset from the centroid, o_i = p_i - p_c = c_g - d_g.
 
 - **Team heading** (shared memory). The centroid moves at ``v_c = V R(sigma phi) c_g / |c_g|``, V = k_goal v_max:
-  the goal direction turned by phi >= 0 to the side sigma in {-1, +1}. The team's progress along the last heading
-  h, ``P <- (1 - a) P + a (-Delta c_g . h) / (V dt)``, is a bump sensor: while P < p_block (blocked) the heading
-  turns away, ``phi <- phi + omega_block`` (on the way to the goal, phi = 0, only after ``patience`` blocked steps,
-  time for the formation to shrink into an opening); while free it turns back, ``phi <- max(phi - omega_free, 0)``
+  the goal direction turned by phi >= 0 to the side sigma in {-1, +1}. V may exceed v_max: each agent's command is
+  clipped to v_max, so the team still moves at full speed along a wall its heading presses on at an angle alpha while
+  V cos(alpha) >= v_max. The team's progress along the last heading h,
+  ``P <- (1 - a) P + a (-Delta c_g . h) / (V dt)``, is a bump sensor: while P < p_block (blocked) the heading turns
+  away, ``phi <- phi + omega_block`` (on the way to the goal, phi = 0, only after ``patience`` blocked steps, time for
+  the formation to shrink into an opening); while free it turns back, ``phi <- max(phi - omega_free, 0)``
   (``omega_back`` while phi > 90 deg: round the end of an obstacle). The team so follows an obstacle's boundary on
   the side sigma and leaves it where the way to the goal is free.
-- **Detour** (shared memory, Bug2-like). A detour starts when the team is first blocked: sigma is the side the
-  centroid drifts to, ``sigma = sign(c_g x (-Delta c_g))`` (its running mean; +1 on a tie), and the hit distance
-  ``d_h = |c_g|`` and the anchor ``d_a = |c_g|`` are kept; d_h is lowered to |c_g| whenever the team is blocked
-  closer. After k flips, the detour flips when it has led ``D_flip 2^k`` further from the goal than the anchor,
-  ``|c_g| > d_a + D_flip 2^k``, or turned past phi_max: the team turns back the way it came (``phi <- |pi - phi|``,
-  ``sigma <- -sigma``, ``d_a <- |c_g|``), the doubling search of a wall's unknown end. The detour ends, freeing
-  sigma for the next obstacle, once the heading is back on the goal (phi = 0) and ``|c_g| < d_h - leave_margin``.
-  Every input is shared, so every agent of a team holds the same phi, sigma, d_h, d_a and k.
+- **Wall search** (shared memory; ``wall_search``, the default). A detour begins when the team has been blocked for
+  ``patience`` steps on its way to the goal. Its side sigma is the side the centroid drifted to,
+  ``sigma = sign(c_g x (-Delta c_g))`` (its running mean; +1 on a tie), and the heading turns by phi_0 at once. The
+  team keeps the hit point ``H = -c_g`` (the centroid's offset from the goal), the hit distance ``d_h = |c_g|``
+  (lowered whenever it is blocked closer) and the wall's normal n at H: the direction of the mean shortfall of its
+  steps, ``h + Delta c_g / (V dt)``, while it waited pressed on the wall. With p = -c_g the centroid's offset now, leg
+  k (after k flips) ends when the centroid is ``D 2^k`` along the wall from H, ``|n x (p - H)| > D 2^k``, or when it
+  is E behind H heading away from the wall, ``-n . (p - H) > E`` and ``h . n < 0`` (a dead end: a corner, the
+  world's border; E is the same for every leg). Then the team turns back the way it came at once
+  (``phi <- |pi - phi|``, ``sigma <- -sigma``): the cow-path search of the wall's unknown end, doubling on alternate
+  sides. After a dead end that side is closed: legs no longer end on their length, only at the next dead end. No leg
+  ends while the team rounds the end of a wall (phi more than ``round_deg`` below its largest value at a blocked step
+  of the leg): it has found a way round. The detour ends, freeing sigma for the next obstacle, once the heading is
+  back on the goal (phi = 0) and ``|c_g| < d_h - leave_margin``. Every input is shared, so every agent of a team
+  holds the same search (phi, sigma, H, n, d_h, k).
+
+  *Bound.* Along a straight infinite wall whose opening lies d along it from H, the centroid travels
+  ``2 D (2^j - 1) + d`` along the wall until it is abreast of the opening, j being the first leg on the opening's
+  side with ``D 2^j >= d`` (leg j - 2, on the same side, fell short); so at most ``max(2 D + d, 9 d - 2 D)``, within
+  9 times the direct path d once d >= D / 4, and ``9 d + 2 D`` for any d. That is the competitive ratio of the
+  doubling search on a line, the least any deterministic search achieves (Baeza-Yates, Culberson and Rawlins,
+  *Searching in the plane*, Information and Computation 106, 1993). Each leg ends at the first step past its length,
+  adding at most one step's travel V dt each way, and the agents reverse at their force limit (holonomic agents
+  within ``2 m v_max / (F_max dt)`` steps, 2 in the thesis's tasks). Assumptions: nothing but the wall is in the way; the team
+  follows it at a constant distance (never E behind H); it turns round the wall's end at the opening before its leg
+  ends; n is the wall's normal (an error epsilon stretches every leg by 1 / cos(epsilon)). Not guaranteed: the time
+  (the speed along the wall is the bump sensor's), walls that bend or end in a bounded world (a dead end ends a leg
+  early), the first side.
+- **Bug2-like detour** (``wall_search=False``: the rule ``pretrained:scenes-ch5-bearing`` was trained with). The
+  detour starts at the first blocked step (sigma and d_h as above) and turns by omega_block per step once the team
+  has waited ``patience`` steps; it keeps the anchor ``d_a = |c_g|`` and, after k flips, turns back
+  (``phi <- |pi - phi|``, ``sigma <- -sigma``, ``d_a <- |c_g|``) when it has led ``D_flip 2^k`` further from the goal
+  than the anchor, ``|c_g| > d_a + D_flip 2^k``, or turned past phi_max. It ends as the wall search does.
 - **Scale** (per agent, agreed with the neighbours). From the obstacle lidar's gaps g_k (m): the proximity scale
   ``s_p = s_min + (1 - s_min) clip((min_k g_k - g_lo) / (g_hi - g_lo), 0, 1)`` and the width scale
   ``s_w = (w / 2 - R_a - m_w) / r_0`` with ``w = min_k (g_k + g_{k+b/2} + 2 R_a)`` over opposite rays that both see
@@ -65,18 +92,26 @@ MEMORY_FIELDS = (
     "hit",
     "waited",
     "started",
+    "hit_x",
+    "hit_y",
+    "shortfall_x",
+    "shortfall_y",
+    "peak",
+    "closed",
 )
-_PHI, _SIGMA, _ANCHOR, _SCALE, _PROGRESS, _LATERAL, _HX, _HY, _FLIPS, _HIT, _WAITED, _STARTED = range(len(MEMORY_FIELDS))
+_PHI, _SIGMA, _ANCHOR, _SCALE, _PROGRESS, _LATERAL, _HX, _HY, _FLIPS, _HIT, _WAITED, _STARTED = range(12)
+_HIT_X, _HIT_Y, _SHORT_X, _SHORT_Y, _PEAK, _CLOSED = range(12, len(MEMORY_FIELDS))  # the wall search's own
 
 
 @dataclass(frozen=True)
 class ShrinkingGains:
     """Gains of :class:`ShrinkingController` (see the module docstring); defaults tuned for teams of 6 in the
-    ch5-bearing task on seeds 0-39 and 100-139 of every family and of stage 3, apart from the benchmark's seeds.
-    Teams of 4 do as well with them; teams of 8 pass openings and corridors far more often with
-    ``block_progress=0.55`` (they must press harder into an opening to squeeze through).
+    ch5-bearing task on seeds 0-39 and 100-139 of every family and of stage 3, the wall search's and k_goal on seeds
+    0-199 of the corridor family, apart from the benchmark's seeds. Teams of 4 do as well with them; teams of 8 pass
+    openings and corridors more often with ``block_progress=0.55`` (they must press harder into an opening to
+    squeeze through).
 
-    :param k_goal: team speed V as a fraction of v_max
+    :param k_goal: team speed V as a fraction of v_max (above 1: full speed along a wall pressed on at an angle)
     :param k_place: gain (1/s) from the distance to the agent's place in the formation to its speed
     :param k_obstacle: obstacle and wall repulsion (m^2/s per radian of rays)
     :param k_agent: repulsion of other agents (lidar) and of close neighbours (m^2/s)
@@ -89,9 +124,9 @@ class ShrinkingGains:
     :param turn_free_deg: omega_free (deg per step), its turn back while free
     :param turn_back_deg: omega_back (deg per step), its turn back while free and turned by more than 90 deg (going
         round the end of an obstacle)
-    :param max_turn_deg: phi_max (deg): turning further is a dead end, the side flips
-    :param flip_distance: D_flip (m): a detour that takes the centroid this much further from the goal than its
-        anchor flips side (twice as much after each flip)
+    :param max_turn_deg: phi_max (deg), Bug2-like detour: turning further is a dead end, the side flips
+    :param flip_distance: D_flip (m), Bug2-like detour: a detour that takes the centroid this much further from the
+        goal than its anchor flips side (twice as much after each flip)
     :param leave_margin: the detour (its side and flips) ends when the centroid is this much (m) closer to the goal
         than anywhere it was blocked, heading on the goal
     :param gap_low: g_lo (m): an obstacle this close shrinks the agent's scale to s_min
@@ -100,9 +135,17 @@ class ShrinkingGains:
     :param min_side_gap: gap_min (m): the smallest formation's neighbours keep this much room between surfaces
     :param scale_slack: delta: a scale at most this much above what the neighbours' distances show
     :param scale_relax: rho: the most the scale grows per step
+    :param wall_search: detour by the wall search; false: by the Bug2-like detour (the rule of the residual policies
+        trained before the wall search)
+    :param search_distance: D (m), wall search: leg k ends D 2^k along the wall from the hit point
+    :param search_back: E (m), wall search: a leg ends when the team heads away from the wall this far behind the
+        hit point (a dead end)
+    :param search_turn_deg: phi_0 (deg), wall search: the heading's turn when a detour begins
+    :param round_deg: wall search: no leg ends while phi is this much (deg) below its largest value at a blocked step
+        of the leg (the team is rounding the end of a wall)
     """
 
-    k_goal: float = 1.0
+    k_goal: float = 1.2
     k_place: float = 0.3
     k_obstacle: float = 0.004
     k_agent: float = 0.002
@@ -123,6 +166,11 @@ class ShrinkingGains:
     min_side_gap: float = 0.05
     scale_slack: float = 0.05
     scale_relax: float = 0.002
+    wall_search: bool = True
+    search_distance: float = 3.0
+    search_back: float = 3.0
+    search_turn_deg: float = 60.0
+    round_deg: float = 40.0
 
     def __post_init__(self) -> None:
         check_gains(self)
@@ -130,6 +178,8 @@ class ShrinkingGains:
             raise ValueError(f"ShrinkingGains.gap_high={self.gap_high!r} must exceed gap_low={self.gap_low!r}")
         if not 0 < self.progress_rate <= 1:
             raise ValueError(f"ShrinkingGains.progress_rate={self.progress_rate!r} must lie in (0, 1]")
+        if self.search_distance <= 0:
+            raise ValueError(f"ShrinkingGains.search_distance={self.search_distance!r} must be > 0 (the first leg's length)")
 
 
 class ShrinkingController(Controller):
@@ -215,8 +265,8 @@ class ShrinkingController(Controller):
     # Parts -------------------------------------------------------------------------------------------------------
 
     def team_heading(self, goal: np.ndarray, goal_change: np.ndarray, memory: np.ndarray) -> np.ndarray:
-        """The unit heading of the centroid, updating the shared part of ``memory`` in place (phi, sigma, anchor,
-        progress, lateral drift, last heading) from the shared c_g and Delta c_g only.
+        """The unit heading of the centroid, updating the shared part of ``memory`` in place (phi, sigma, the detour's
+        state, progress, lateral drift, last heading) from the shared c_g and Delta c_g only.
 
         :param goal: ``(k, 2)`` centroid-to-goal offsets c_g (m)
         :param goal_change: ``(k, 2)`` their change over the last step (m)
@@ -236,10 +286,11 @@ class ShrinkingController(Controller):
         memory[:, _LATERAL] = np.where(started, (1 - rate) * memory[:, _LATERAL] + rate * lateral, memory[:, _LATERAL])
         blocked = started & (memory[:, _PROGRESS] < gains.block_progress)
         phi, sigma, anchor = memory[:, _PHI], memory[:, _SIGMA], memory[:, _ANCHOR]
-        hit, flipped = memory[:, _HIT], memory[:, _FLIPS]
+        hit, flipped, waited = memory[:, _HIT], memory[:, _FLIPS], memory[:, _WAITED]
         ends = (hit > 0) & (phi <= 0) & (distance < hit - gains.leave_margin)
         hit[:] = np.where(ends, 0.0, hit)
-        begins = blocked & (hit <= 0)
+        waited[:] = np.where(blocked, waited + 1, 0.0)
+        begins = (hit <= 0) & (waited > gains.patience) if gains.wall_search else blocked & (hit <= 0)
         side = np.where(memory[:, _LATERAL] < 0, -1.0, 1.0)
         sigma[:] = np.where(begins, side, sigma)
         anchor[:] = np.where(begins, distance, anchor)
@@ -247,20 +298,59 @@ class ShrinkingController(Controller):
         flipped[:] = np.where(begins, 0.0, flipped)
         turn_block = math.radians(gains.turn_block_deg)
         turn_free = np.radians(np.where(phi > math.pi / 2, gains.turn_back_deg, gains.turn_free_deg))
-        waited = memory[:, _WAITED]
-        waited[:] = np.where(blocked, waited + 1, 0.0)
         turning = blocked & ((phi > 0) | (waited > gains.patience))
         phi[:] = np.where(turning, phi + turn_block, np.where(blocked, phi, np.maximum(phi - turn_free, 0.0)))
-        away = distance > anchor + gains.flip_distance * 2.0**flipped
-        flips = (hit > 0) & (phi > 0) & (away | (phi > math.radians(gains.max_turn_deg)))
+        if gains.wall_search:
+            flips = self.search_flips(goal, moved, blocked, begins, memory)
+        else:  # the Bug2-like detour: flip D_flip 2^k further from the goal than the anchor, or turned past phi_max
+            away = distance > anchor + gains.flip_distance * 2.0**flipped
+            flips = (hit > 0) & (phi > 0) & (away | (phi > math.radians(gains.max_turn_deg)))
         flipped[:] = np.where(flips, flipped + 1, flipped)
-        phi[:] = np.where(flips, np.abs(math.pi - phi), phi)  # turned by pi: the team goes back the way it came
+        # turned by pi, the team goes back the way it came (the wall search exactly: past pi, phi < 0 heads on the goal)
+        phi[:] = np.where(flips, math.pi - phi if gains.wall_search else np.abs(math.pi - phi), phi)
         sigma[:] = np.where(flips, -sigma, sigma)
         anchor[:] = np.where(flips, distance, anchor)
         heading = rotate(direction, np.where(phi > 0, sigma, 0.0) * phi)
         memory[:, [_HX, _HY]] = heading
         memory[:, _STARTED] = 1.0
         return heading
+
+    def search_flips(
+        self, goal: np.ndarray, moved: np.ndarray, blocked: np.ndarray, begins: np.ndarray, memory: np.ndarray
+    ) -> np.ndarray:
+        """The wall search's part of :meth:`team_heading`: which rows turn back now, updating the search's memory (hit
+        point, wall normal, first turn, largest blocked turn, closed side; the bump sensor re-armed on a new heading).
+
+        :param goal: ``(k, 2)`` centroid-to-goal offsets c_g (m)
+        :param moved: ``(k, 2)`` the centroid's last step, -Delta c_g (m)
+        :param blocked: ``(k,)`` rows whose progress P is below p_block
+        :param begins: ``(k,)`` rows whose detour begins now (phi, sigma and d_h already set)
+        :param memory: ``(k, len(MEMORY_FIELDS))`` memories, updated
+        """
+        gains = self.settings
+        phi, hit, peak, closed = memory[:, _PHI], memory[:, _HIT], memory[:, _PEAK], memory[:, _CLOSED]
+        place = -goal  # the centroid's offset from the goal, the same for every agent of a team
+        step_length = max(gains.k_goal * self.config.v_max * self.config.dt, 1e-300)
+        # the wall's normal: the mean shortfall of the steps while the team waits pressed on it, frozen in the detour
+        shortfall = memory[:, [_SHORT_X, _SHORT_Y]]
+        mean = shortfall + gains.progress_rate * (memory[:, [_HX, _HY]] - moved / step_length - shortfall)
+        kept = np.where((hit > 0)[:, None], shortfall, 0.0)
+        memory[:, [_SHORT_X, _SHORT_Y]] = np.where(((hit <= 0) & blocked)[:, None], mean, kept)
+        memory[:, [_HIT_X, _HIT_Y]] = np.where(begins[:, None], place, memory[:, [_HIT_X, _HIT_Y]])
+        phi[:] = np.where(begins, math.radians(gains.search_turn_deg), phi)
+        closed[:] = np.where(begins, 0.0, closed)
+        normal, way = unit(memory[:, [_SHORT_X, _SHORT_Y]]), place - memory[:, [_HIT_X, _HIT_Y]]
+        along = np.abs(way[:, 0] * normal[:, 1] - way[:, 1] * normal[:, 0])
+        heading = rotate(unit(goal), memory[:, _SIGMA] * phi)
+        dead_end = (-(way * normal).sum(axis=1) > gains.search_back) & ((heading * normal).sum(axis=1) < 0)
+        leg_done = (along > gains.search_distance * 2.0 ** memory[:, _FLIPS]) & (closed <= 0)
+        peak[:] = np.where(begins, phi, np.where(blocked, np.maximum(peak, phi), peak))
+        rounding = phi < peak - math.radians(gains.round_deg)
+        flips = (hit > 0) & (phi > 0) & ~rounding & (leg_done | dead_end)
+        closed[:] = np.where(flips & dead_end, 1.0, closed)
+        peak[:] = np.where(flips, 0.0, peak)
+        memory[:, _PROGRESS] = np.where(begins | flips, 1.0, memory[:, _PROGRESS])
+        return flips
 
     def agreed_scale(self, obstacles: np.ndarray, offsets: np.ndarray, previous: np.ndarray) -> np.ndarray:
         """Each agent's formation scale: the least of what its obstacle lidar allows (:meth:`lidar_scale`), what its
