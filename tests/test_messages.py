@@ -150,7 +150,9 @@ def test_the_onnx_graph_of_a_communicating_policy_acts_as_torch_over_whole_episo
             if step_index % 50 == 0:  # each robot of team 0 alone, with what its neighbours sent
                 for agent in range(6):
                     received = None if sent is None else sent[ring_rows([6])[agent]][None]
-                    step = runtime.agent_step(observations[agent], np.array([agent]), robot_states[agent], starts[:1], received)
+                    step = runtime.agent_step(
+                        observations[agent], np.array([agent]), robot_states[agent], starts[:1], received
+                    )
                     assert np.abs(step.actions[0] - actions[agent]).max() <= TOLERANCE
                     assert np.abs(step.messages[0] - onnx_state[1][agent]).max() <= TOLERANCE
             for agent in range(6):
