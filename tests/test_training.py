@@ -368,9 +368,7 @@ def test_killed_recurrent_run_resumes_evaluates_and_renders(tmp_path: Path) -> N
     assert Image.open(tmp_path / "episode.gif").n_frames == 5
 
 
-def train_shrunk_through_a_kill(
-    tmp_path: Path, recipe: str, max_steps: int, policy: dict[str, Any] | None = None
-) -> Path:
+def train_shrunk_through_a_kill(tmp_path: Path, recipe: str, max_steps: int, policy: dict[str, Any] | None = None) -> Path:
     """Train ``recipe`` shrunk (small nets, short rollouts, one team, episodes of ``max_steps``; ``policy`` replaces the
     policy section's small MLP) for 8 iterations into ``tmp_path/run``, SIGKILL it after its third checkpoint, resume
     it, and check that it finished with the budget's timesteps; return the run folder."""
