@@ -164,7 +164,7 @@ def test_the_onnx_graph_of_a_communicating_policy_acts_as_torch_over_whole_episo
     assert np.abs(onnx_state[1]).max() > 0.1  # the messages are not all zeros
 
 
-def test_bad_message_settings_are_one_line_errors() -> None:
+def test_bad_message_settings_are_one_line_errors(tmp_path: Path) -> None:
     config = FormationConfig.task("ch5-bearing")
     size = sum(field.size for field in observation_fields(config))
     box, actions = spaces.Box(-np.inf, np.inf, (size,), np.float32), spaces.Box(-1, 1, (2,), np.float32)
@@ -182,6 +182,14 @@ def test_bad_message_settings_are_one_line_errors() -> None:
     policy = RecurrentFormationPolicy(box, actions, lambda _: 3e-4, message_size=2, net_arch=SMALL)
     with pytest.raises(ValueError, match="needs each row's ring neighbours"):
         policy.predict(np.zeros((6, size), np.float32))
+    runtime = OnnxPolicy(export_onnx(untrained(config, True, seed=5), tmp_path / "talk.onnx"), threads=1)
+    row = np.zeros((1, size), np.float32)
+    with pytest.raises(ValueError, match="act with agent_step"):
+        runtime.agent_actions(row, np.array([0]))
+    with pytest.raises(ValueError, match=r"needs received messages of shape \(1, 2, 4\)"):
+        runtime.agent_step(row, np.array([0]), received=np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        runtime.agent_step(row, np.array([0]), received=np.full((1, 2, 4), np.nan))
     pendulum = DummyVecEnv([lambda: gymnasium.make("Pendulum-v1")])
     with pytest.raises(ValueError, match="trains on the package's FormationVecEnv"):
         RecurrentFormationPPO(env=pendulum, policy_kwargs=dict(message_size=2, net_arch=SMALL))

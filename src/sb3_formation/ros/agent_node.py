@@ -206,9 +206,9 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
     def _on_message(self, slot: int, message: JointState) -> None:
         stamp, values = policy_message_of(message)
         size = self.policy.metadata.message_size
-        if values.shape != (size,):
+        if values.shape != (size,) or not np.isfinite(values).all():
             index = self.neighbours[slot]
-            self.get_logger().warning(f"ignored a message of agent {index} with {values.size} values, not {size}")
+            self.get_logger().warning(f"ignored a message of agent {index}: not {size} finite values")
             return
         heard = self._heard[slot]
         heard[stamp] = values

@@ -384,7 +384,12 @@ class OnnxPolicy:
         episode_start: np.ndarray | None = None,
         deterministic: bool = True,
     ) -> tuple[np.ndarray, Any]:
-        """:meth:`agent_step`'s actions and state, for a policy whose agents send no messages."""
+        """:meth:`agent_step`'s actions and state, for a policy whose agents send no messages.
+
+        :raises ValueError: a policy whose agents hear their neighbours' messages (:meth:`agent_step` takes them)
+        """
+        if self.metadata.message_size:
+            raise ValueError(f"{self.source}: its agents hear their ring neighbours' messages: act with agent_step(received=)")
         step = self.agent_step(observations, agents, state, episode_start, deterministic=deterministic)
         return step.actions, step.state
 
@@ -443,6 +448,8 @@ class OnnxPolicy:
         array = np.asarray(received, np.float32)
         if array.size != rows * 2 * size or array.shape[0] != rows:
             raise ValueError(f"{self.source} needs received messages of shape ({rows}, 2, {size}), got {array.shape}")
+        if not np.isfinite(array).all():
+            raise ValueError(f"{self.source}: the received messages hold NaN or infinite values")
         return {MESSAGE_INPUT: array.reshape(rows, 2 * size)}
 
     def _filtered(self, rows: np.ndarray, actions: np.ndarray) -> np.ndarray:
