@@ -274,10 +274,12 @@ def fly(
     see_through: bool,
     observe: bool = False,
     extra_nodes: list[Node] | None = None,
+    heard: Callable[[int], bool] | None = None,
 ) -> tuple:
     """The simulator node and a team's agent nodes (and ``extra_nodes``) in one executor, synchronous, filter on: the
     simulator's episode records, the env's observation rows of every step, and each agent's published observations
-    (with ``observe``)."""
+    (with ``observe``). After the last step it spins until ``heard(steps)`` holds too (what ``extra_nodes`` listen to
+    may still be on its way)."""
     from sb3_formation.ros.sim_node import SimNode, SimSettings
 
     policy = OnnxPolicy(model, threads=1)
@@ -321,6 +323,7 @@ def fly(
     spin_until(executor, lambda: sim.done, timeout=600.0)
     steps = sum(record.steps for record in sim.results)
     spin_until(executor, lambda: not observe or all(len(seen) >= steps for seen in observed), timeout=10.0)
+    spin_until(executor, lambda: heard is None or heard(steps), timeout=10.0)
     executor.shutdown()
     return sim.results, rows, observed, config
 
@@ -415,7 +418,9 @@ def test_a_policy_with_messages_talks_to_its_neighbours_over_ros_as_in_evaluatio
     listener.create_subscription(
         JointState, "/agent_0/message", lambda message: heard.append(policy_message_of(message)), 1000
     )
-    results, _, _, _ = fly(context, model, episodes=1, see_through=True, extra_nodes=[listener])
+    results, _, _, _ = fly(
+        context, model, episodes=1, see_through=True, extra_nodes=[listener], heard=lambda steps: len(heard) >= steps
+    )
     reference = evaluated(model, 1)
     assert [(r.success, r.steps) for r in results] == [(row["success"], row["length"]) for row in reference.episodes]
     assert largest_difference(results[0], reference.trajectories, 0) <= 1e-5
