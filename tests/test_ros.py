@@ -322,8 +322,8 @@ def fly(
         executor.add_node(node)
     spin_until(executor, lambda: sim.done, timeout=600.0)
     steps = sum(record.steps for record in sim.results)
-    spin_until(executor, lambda: not observe or all(len(seen) >= steps for seen in observed), timeout=10.0)
-    spin_until(executor, lambda: heard is None or heard(steps), timeout=10.0)
+    spin_until(executor, lambda: not observe or all(len(seen) >= steps for seen in observed), timeout=60.0)
+    spin_until(executor, lambda: heard is None or heard(steps), timeout=60.0)
     executor.shutdown()
     return sim.results, rows, observed, config
 
