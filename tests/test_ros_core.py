@@ -4,8 +4,10 @@ the two lidar channels and the observation rows against the simulator's, and com
 from __future__ import annotations
 
 import math
+import os
 import re
 import shlex
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -537,3 +539,42 @@ def test_the_launch_files_commands_are_the_modules() -> None:
         words = shlex.split(re.sub(r"\$\(var (\w+)\)", lambda match: defaults[match.group(1)] or "''", command))
         assert words[:3] == ["python3", "-m", "sb3_formation.ros"]
         parser.parse_args(words[3:])  # exits on an option the module does not know
+
+
+def test_a_process_per_agent_that_does_not_stop_is_killed_and_shows_where_it_hung() -> None:
+    """The parent of ``--process-per-agent``, stopped with SIGTERM, SIGTERMs its children; one that ignores it (a hung
+    shutdown) prints its threads' stacks and is killed ``stop_timeout`` s later, and the parent says so and returns 1.
+    The other child, which ends on SIGTERM, is not reported."""
+    stuck = (
+        "import signal, time\n"
+        "from sb3_formation.ros.launch import _stop_on_signals\n"
+        "_stop_on_signals()\n"
+        "signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
+        "def hung_in_shutdown():\n"
+        "    print('ready', flush=True)\n"
+        "    time.sleep(600)\n"
+        "hung_in_shutdown()\n"
+    )
+    ending = "import time\nprint('ready', flush=True)\ntime.sleep(600)\n"
+    parent = (
+        "import sys\n"
+        "from sb3_formation.ros.launch import _run_children\n"
+        f"sys.exit(_run_children([[sys.executable, '-c', {ending!r}], [sys.executable, '-c', {stuck!r}]], 2.0))\n"
+    )
+    process = subprocess.Popen(
+        [sys.executable, "-c", parent], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True
+    )
+    try:
+        assert process.stdout is not None
+        ready = [process.stdout.readline() for _ in range(2)]
+        assert ready == ["ready\n", "ready\n"], ready
+        process.send_signal(signal.SIGTERM)
+        log = process.communicate(timeout=120)[0]  # a hang guard: the parent ends about 3 s after SIGTERM
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+    assert process.returncode == 1, log
+    assert "in hung_in_shutdown" in log, log  # the stuck child's stack, from SIGUSR1
+    reports = log.split("killed `")[1:]  # one per killed child, its command first
+    assert len(reports) == 1 and "hung_in_shutdown" in reports[0], log
+    assert reports[0].rstrip().endswith("`: it had not ended 2 s after SIGTERM"), log

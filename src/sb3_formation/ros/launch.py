@@ -9,10 +9,12 @@ every node of the process).
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import os
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -21,6 +23,9 @@ from typing import Any
 DISCOVERY_RANGES = {"localhost": "LOCALHOST", "subnet": "SUBNET", "off": "OFF", "system_default": "SYSTEM_DEFAULT"}
 #: The agents' namespaces, ``{index}`` standing for an agent's index in its team.
 AGENT_NAMESPACE = "agent_{index}"
+#: (s) how long ``--process-per-agent`` waits for an agent's process to end after SIGTERM before it kills it (ROS 2's
+#: ``ros2 launch`` waits 5 s; this leaves room for a loaded machine).
+STOP_TIMEOUT = 10.0
 
 
 def add_arguments(commands: Any, model_help: str) -> None:
@@ -237,9 +242,14 @@ def _spin(make_nodes: Any, ros_arguments: list[str], until: Any = None) -> int:
     SIGTERM), then shut down."""
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
 
     _stop_on_signals()
-    rclpy.init(args=["sb3_formation.ros", "--ros-args", *ros_arguments] if ros_arguments else None)
+    # Only the handlers above stop the process, in its main thread: rclpy's own (its default) would at the same time
+    # shut the context down and trigger the executor's guard conditions from a second thread, while the main thread
+    # destroys them.
+    arguments = ["sb3_formation.ros", "--ros-args", *ros_arguments] if ros_arguments else None
+    rclpy.init(args=arguments, signal_handler_options=SignalHandlerOptions.NO)
     executor = SingleThreadedExecutor()
     try:
         for node in make_nodes():
@@ -261,14 +271,19 @@ def _interrupt(number: int, frame: Any) -> None:
 
 def _stop_on_signals() -> None:
     """Ctrl-C and SIGTERM stop this process cleanly, also where SIGINT was ignored when it started (``nohup``, a
-    background job)."""
+    background job); SIGUSR1 prints the stack of every thread to stderr (where a process that does not stop is)."""
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, _interrupt)
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
 
 
-def _run_children(commands: list[list[str]]) -> int:
+def _run_children(commands: list[list[str]], stop_timeout: float = STOP_TIMEOUT) -> int:
     """Run one child process per command until all end or this one is stopped (Ctrl-C or SIGTERM); then each child still
-    running gets SIGTERM, which shuts its node down cleanly."""
+    running gets SIGTERM, which shuts its node down cleanly. A child still running ``stop_timeout`` s later prints its
+    threads' stacks (SIGUSR1) and is killed, and this process then returns 1.
+
+    :param stop_timeout: (s) how long the children may take to end after SIGTERM
+    """
     _stop_on_signals()
     children = [subprocess.Popen(command) for command in commands]
     try:
@@ -276,9 +291,28 @@ def _run_children(commands: list[list[str]]) -> int:
     except KeyboardInterrupt:
         codes = []
     finally:
-        for child in children:
-            if child.poll() is None:
-                child.terminate()
-        for child in children:
-            child.wait()
-    return max(codes, default=0)
+        stuck = _stop_children(children, commands, stop_timeout)
+    return 1 if stuck else max(codes, default=0)
+
+
+def _stop_children(children: list[subprocess.Popen], commands: list[list[str]], stop_timeout: float) -> bool:
+    """SIGTERM each running child and wait up to ``stop_timeout`` s for all to end; kill the ones that did not (each
+    first prints its threads' stacks) and name their ``commands``. Return whether any was killed."""
+    for child in children:
+        if child.poll() is None:
+            child.terminate()
+    deadline = time.monotonic() + stop_timeout
+    stuck = []
+    for child, command in zip(children, commands, strict=True):
+        try:
+            child.wait(timeout=max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            stuck.append((child, command))
+            child.send_signal(signal.SIGUSR1)
+    if stuck:
+        time.sleep(1.0)  # (s) time to write the stacks
+    for child, command in stuck:
+        child.kill()
+        child.wait()
+        print(f"killed `{' '.join(command[1:])}`: it had not ended {stop_timeout:g} s after SIGTERM", file=sys.stderr)
+    return bool(stuck)
