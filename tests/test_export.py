@@ -96,8 +96,13 @@ def test_onnxruntime_acts_as_torch_on_10000_observations_of_each_shipped_policy(
     actions, _ = onnx_policy.predict(observations)
     assert actions.shape == expected.shape and len(actions) >= 10_000 and actions.dtype == np.float32
     assert np.abs(actions - expected).max() <= TOLERANCE
-    # the graph's own output, before the controller's action is added (a clip at the box's edge cannot hide it)
-    correction = onnx_policy.session.run(None, {"observation": observations})[0]
+    # the graph's own output, before the controller's action is added (a clip at the box's edge cannot hide it); a
+    # recurrent graph's memory and messages heard are zeros, as at an episode's first step
+    feeds = {"observation": observations} | {
+        graph_input.name: np.zeros([len(observations) if size == "batch" else size for size in graph_input.shape], np.float32)
+        for graph_input in onnx_policy.session.get_inputs()[1:]
+    }
+    correction = onnx_policy.session.run(None, feeds)[0]
     assert np.abs(correction - torch_policy.correction.predict(observations)[0]).max() <= TOLERANCE
     assert np.abs(correction).max() > 0.1  # the graph does act
 

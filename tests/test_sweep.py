@@ -36,7 +36,12 @@ THESIS = {  # thesis 4.3-4.4 and 5.3-5.4: iterations per stage, parallel teams, 
 
 def test_every_thesis_recipe_file_has_a_quick_twin_and_the_thesis_budget() -> None:
     names = sorted(path.stem for path in RECIPES.glob("*.yaml"))
-    shipped = ["pretrained-mixed-ch5-bearing", "pretrained-ch5-bearing-unicycle", "pretrained-scenes-ch5-bearing"]
+    shipped = [
+        "pretrained-mixed-ch5-bearing",
+        "pretrained-ch5-bearing-unicycle",
+        "pretrained-scenes-ch5-bearing",
+        "pretrained-talk-scenes-ch5-bearing",
+    ]
     pretrained = [name.replace("thesis-", "pretrained-") for name in THESIS] + shipped
     assert names == sorted([*THESIS, *(name.replace("thesis-", "quick-") for name in THESIS), *pretrained])
     for name, (iterations, teams, seeds, episodes) in THESIS.items():
