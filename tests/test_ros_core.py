@@ -10,6 +10,7 @@ import shlex
 import signal
 import subprocess
 import sys
+import threading
 from pathlib import Path
 from xml.etree import ElementTree
 
@@ -565,8 +566,11 @@ def test_a_process_per_agent_that_does_not_stop_is_killed_and_shows_where_it_hun
         [sys.executable, "-c", parent], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True
     )
     try:
-        assert process.stdout is not None
-        ready = [process.stdout.readline() for _ in range(2)]
+        output, ready = process.stdout, []
+        assert output is not None
+        reader = threading.Thread(target=lambda: ready.extend(output.readline() for _ in range(2)), daemon=True)
+        reader.start()
+        reader.join(timeout=120)  # a hang guard: both children print at once
         assert ready == ["ready\n", "ready\n"], ready
         process.send_signal(signal.SIGTERM)
         log = process.communicate(timeout=120)[0]  # a hang guard: the parent ends about 3 s after SIGTERM
