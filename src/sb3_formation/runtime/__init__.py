@@ -5,6 +5,6 @@
 they run any target, and a robot calls :meth:`OnnxPolicy.agent_actions` for the agents it hosts.
 """
 
-from sb3_formation.runtime.onnx_policy import OnnxPolicy, PolicyMetadata
+from sb3_formation.runtime.onnx_policy import OnnxPolicy, PolicyMetadata, load_onnx_policy
 
-__all__ = ["OnnxPolicy", "PolicyMetadata"]
+__all__ = ["OnnxPolicy", "PolicyMetadata", "load_onnx_policy"]

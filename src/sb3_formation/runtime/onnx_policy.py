@@ -483,3 +483,17 @@ class OnnxPolicy:
             keep = 1.0 - np.asarray(episode_start, dtype=np.float32).reshape(1, rows, 1)
             arrays = [array * keep for array in arrays]
         return {f"{part}_in": array for part, array in zip(parts, arrays)}
+
+
+def load_onnx_policy(path: str | os.PathLike[str], threads: int | None = None) -> Any:
+    """The policy an exported file holds: an :class:`OnnxPolicy`, behind the safety filter
+    (:class:`~sb3_formation.safety.policy.SafePolicy`, with the gains its metadata record) when it was trained behind one.
+
+    :param path: the ``.onnx`` file ``sb3-formation export`` wrote
+    :param threads: onnxruntime's intra-op threads (``None``: its default)
+    """
+    from sb3_formation.safety.policy import SafePolicy
+
+    policy = OnnxPolicy(path, threads)
+    gains = policy.metadata.safety
+    return policy if gains is None else SafePolicy(policy, SafetyGains.from_dict(gains))
