@@ -6,7 +6,11 @@ The package is layered; each layer imports only from the layers below it (``test
 - :mod:`sb3_formation.env`: the task (config, geometry, world, sensors, observations, rewards, scenarios, the PettingZoo
   env, rendering); numpy, numba, Pymunk and Pillow only, no torch;
 - :mod:`sb3_formation.controllers`: the policy seam (anything that acts) and hand-written controllers; no torch;
+- :mod:`sb3_formation.safety`: the safety filter of control barrier functions in front of any policy, its QP solver
+  and ``SafePolicy`` (``docs/safety.md``); no torch;
 - :mod:`sb3_formation.runtime`: an exported ONNX policy run with onnxruntime (``docs/export.md``); no torch;
+- :mod:`sb3_formation.ros`: an agent node per robot and the simulator as a node over ROS 2 (``docs/deployment.md``);
+  rclpy from the ``ros`` extra, no torch;
 - :mod:`sb3_formation.sb3`: the Stable-Baselines3 layer (VecEnv, normaliser, policies, recurrent PPO, callbacks, ONNX
   export);
 - :mod:`sb3_formation.experiment`: recipes, settings, run folders, training, evaluation, policy targets, sweeps;
