@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup run test test-fast test-integrations test-ros lint typecheck format docs bench clean pretrained
+.PHONY: setup run test test-fast test-integrations test-ros lint typecheck format docs figures bench clean pretrained
 
 setup: $(STAMP)
 
@@ -34,6 +34,23 @@ run: setup
 	run="$$(ls -td $(RUN_LOGDIR)/*/ | head -n 1)" && $(BIN)/sb3-formation compare pretrained:ch5-bearing "$$run" \
 	  --labels shipped,trained --episodes 20 --n-envs 10 --seed 0 --no-progress --out "$$run/compare.png"
 	@echo "Training curves: tensorboard --logdir runs   (tensorboard is in $(BIN)/)"
+
+# The manual's pictures in docs/assets/, from the package's own commands, as `make run` makes its first ones: the
+# shipped policy pretrained:ch5-bearing flies stage 3 with fixed seeds (episode k from seed k, deterministic actions).
+# The trajectory figure of episode 0 (docs/evaluation.md) is drawn from 20 evaluated episodes played 10 teams at once,
+# the README's GIF is episode 0 (every 6th step, 25 frames per second); the evaluation's files stay in runs/figures/.
+FIGURES := runs/figures
+ASSETS := docs/assets
+
+figures: setup
+	rm -rf $(FIGURES)
+	$(BIN)/sb3-formation evaluate pretrained:ch5-bearing --episodes 20 --n-envs 10 --stage 3 --seed 0 --trajectories 1 \
+	  --out $(FIGURES) --no-progress
+	$(BIN)/sb3-formation plot trajectories $(FIGURES) --episodes 0 --out $(FIGURES)/trajectory.png
+	cp $(FIGURES)/trajectory_000.png $(ASSETS)/shipped_ch5_bearing_trajectory0.png
+	$(BIN)/sb3-formation render pretrained:ch5-bearing --stage 3 --seed 0 --frame-every 6 --fps 25 \
+	  --out $(ASSETS)/shipped_ch5_bearing_episode0.gif
+	@echo "Figures: $(ASSETS)/shipped_ch5_bearing_trajectory0.png, $(ASSETS)/shipped_ch5_bearing_episode0.gif"
 
 # Rebuild the shipped policies (docs/pretrained.md): train recipes/pretrained-<task>.yaml (seed 0) into
 # runs/pretrained-<task>/ (replacing an earlier one) and export it into src/sb3_formation/pretrained/<task>/.
