@@ -18,10 +18,11 @@ import numpy as np
 import pytest
 
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.dynamics import dynamics_model
 from sb3_formation.env.formation_env import FormationEnv
 from sb3_formation.env.scenarios import Scenario
 from sb3_formation.ros.launch import build_parser
-from sb3_formation.ros.observer import AgentObserver, TeamView, command_action, velocity_command
+from sb3_formation.ros.observer import AgentObserver, TeamView
 from sb3_formation.ros.scans import Scan, ScanMount, merged_scan, resample_scan, scan_points, split_scan
 
 #: 36 rays, 10 deg apart; R_a 0.2 m, range 1.5 m (Table 5.1): a ray sees up to 1.7 m from the agent's centre
@@ -424,12 +425,12 @@ def test_holonomic_velocity_command_by_hand() -> None:
         (0.0, 1.0): [0.025725, 0.042875],
     }
     for action, expected in cases.items():
-        command = velocity_command(config, np.array(action), velocity, 0.0)
+        command = dynamics_model(config).command(np.array(action), velocity, 0.0)
         np.testing.assert_allclose(command, expected, rtol=0, atol=1e-6)
-    assert math.hypot(*velocity_command(config, np.array([0.0, 1.0]), velocity, 0.0)) == pytest.approx(0.05, abs=1e-15)
+    assert math.hypot(*dynamics_model(config).command(np.array([0.0, 1.0]), velocity, 0.0)) == pytest.approx(0.05, abs=1e-15)
     # unclamped commands invert exactly; a command out of reach asks for the bounding action
-    np.testing.assert_allclose(command_action(config, np.array([0.02, 0.02]), velocity, 0.0), [-0.2, 0.4], atol=1e-12)
-    np.testing.assert_array_equal(command_action(config, np.array([1.0, -1.0]), velocity, 0.0), [1.0, -1.0])
+    np.testing.assert_allclose(dynamics_model(config).action(np.array([0.02, 0.02]), velocity, 0.0), [-0.2, 0.4], atol=1e-12)
+    np.testing.assert_array_equal(dynamics_model(config).action(np.array([1.0, -1.0]), velocity, 0.0), [1.0, -1.0])
 
 
 def test_unicycle_velocity_command_by_hand() -> None:
@@ -438,16 +439,20 @@ def test_unicycle_velocity_command_by_hand() -> None:
     velocity does not matter."""
     config = UNICYCLE_STAGE_3
     anything = np.array([9.0, -9.0])
-    np.testing.assert_allclose(velocity_command(config, np.array([1.0, -0.5]), anything, 0.04), [0.05, -0.25], atol=1e-15)
-    np.testing.assert_allclose(velocity_command(config, np.array([-0.4, 1.0]), anything, 0.04), [0.02, 0.5], atol=1e-15)
-    np.testing.assert_allclose(velocity_command(config, np.array([-1.0, 0.0]), anything, -0.03), [-0.05, 0.0], atol=1e-15)
-    np.testing.assert_allclose(command_action(config, np.array([0.02, 0.5]), anything, 0.04), [-0.4, 1.0], atol=1e-12)
-    np.testing.assert_array_equal(command_action(config, np.array([0.2, -2.0]), anything, 0.0), [1.0, -1.0])
+    np.testing.assert_allclose(
+        dynamics_model(config).command(np.array([1.0, -0.5]), anything, 0.04), [0.05, -0.25], atol=1e-15
+    )
+    np.testing.assert_allclose(dynamics_model(config).command(np.array([-0.4, 1.0]), anything, 0.04), [0.02, 0.5], atol=1e-15)
+    np.testing.assert_allclose(
+        dynamics_model(config).command(np.array([-1.0, 0.0]), anything, -0.03), [-0.05, 0.0], atol=1e-15
+    )
+    np.testing.assert_allclose(dynamics_model(config).action(np.array([0.02, 0.5]), anything, 0.04), [-0.4, 1.0], atol=1e-12)
+    np.testing.assert_array_equal(dynamics_model(config).action(np.array([0.2, -2.0]), anything, 0.0), [1.0, -1.0])
 
 
 @pytest.mark.parametrize("config", [STAGE_3, UNICYCLE_STAGE_3], ids=["holonomic", "unicycle"])
 def test_action_through_its_command_moves_agents_alike(config: FormationConfig) -> None:
-    """Two copies of an episode, one stepped with actions a, one with command_action(velocity_command(a)) (what the
+    """Two copies of an episode, one stepped with actions a, one with action(command(a)) of the task's dynamics model (what the
     simulator node applies of the command an agent node sends): their agents follow the same paths, within 1e-12 m,
     over 30 steps whose actions are often at the bounds (the speed clamp and the forward clip act). An action whose
     command stays within v_max (|v + 0.05 a| for a point, |v_f + 0.05 a_0| for a unicycle) comes back unchanged."""
@@ -461,10 +466,11 @@ def test_action_through_its_command_moves_agents_alike(config: FormationConfig) 
         actions = random_actions(rng, config.n_agents)
         engine = relayed.engine
         velocities = engine.latest.velocities[rows].copy()
-        speeds = engine.dynamics.forward_speeds[rows] if config.dynamics == "unicycle" else np.zeros(config.n_agents)
+        speeds = engine.dynamics.forward_speeds_of(rows)
+        speeds = np.zeros(config.n_agents) if speeds is None else speeds
         relays = np.array(
             [
-                command_action(config, velocity_command(config, action, velocity, speed), velocity, speed)
+                dynamics_model(config).action(dynamics_model(config).command(action, velocity, speed), velocity, speed)
                 for action, velocity, speed in zip(actions, velocities, speeds)
             ]
         )

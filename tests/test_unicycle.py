@@ -12,7 +12,7 @@ from pettingzoo.test import parallel_api_test
 
 from sb3_formation import FormationConfig, FormationEnv, Scenario
 from sb3_formation.controllers import ClassicalController
-from sb3_formation.controllers.classical import unicycle_action
+from sb3_formation.env.dynamics import UnicycleModel
 from sb3_formation.env.rendering import PIXELS_PER_METRE
 from sb3_formation.env.scenarios import start_formation
 from sb3_formation.env.world import SIDEWAYS_TOLERANCE
@@ -187,10 +187,10 @@ def test_feedback_linearisation_by_hand() -> None:
     of 0.08 m/s along -x is clipped to v_max backwards (push -1) without turning."""
     heading = np.array([[1.0, 0.0]] * 3)
     commands = np.array([[0.03, 0.0], [0.0, 0.01], [-0.08, 0.0]])
-    actions = unicycle_action(commands, np.zeros((3, 2)), heading, CONFIG)
+    actions = UnicycleModel(CONFIG).steer(commands, np.zeros((3, 2)), heading)
     np.testing.assert_allclose(actions, [[0.6, 0.0], [0.0, 0.2], [-1.0, 0.0]], atol=1e-12)
     # moving at 0.05 m/s along a heading of 90 deg, a command of 0.02 m/s along -x: slow down by 0.05, turn left
-    moving = unicycle_action(np.array([[-0.02, 0.0]]), np.array([[0.0, 0.05]]), np.array([[0.0, 1.0]]), CONFIG)
+    moving = UnicycleModel(CONFIG).steer(np.array([[-0.02, 0.0]]), np.array([[0.0, 0.05]]), np.array([[0.0, 1.0]]))
     np.testing.assert_allclose(moving, [[-1.0, 0.4]], atol=1e-12)
 
 

@@ -20,8 +20,9 @@ Every agent computes a velocity command from its own observation (Table 3.1), it
   keeps the polygon anti-clockwise, plus ``k_spacing (|d_j| - L)`` along each d_j to hold the side length;
 - actuation (:func:`command_action`): the command's speed is clipped to v_max and turned into the force that reaches
   it in one step, ``F = m (v* - v) / dt``, as a fraction of F_max, scaled down (direction kept) to fit the [-1, 1]^2
-  action box. A unicycle follows the command by feedback linearisation (:func:`unicycle_action`), so every controller
-  of the package drives holonomic and unicycle agents alike.
+  action box. A unicycle follows the command by feedback linearisation of the point ahead of its axle
+  (:meth:`~sb3_formation.env.dynamics.UnicycleModel.steer`), so every controller of the package drives holonomic and
+  unicycle agents alike.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ import numpy as np
 
 from sb3_formation.controllers.base import Controller, check_gains
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.dynamics import HolonomicModel, dynamics_model
 from sb3_formation.env.geometry import reference_bearings
 from sb3_formation.env.sensors import ray_directions
 
@@ -195,59 +197,27 @@ def spacing_offset(offsets: np.ndarray, side_length: float) -> np.ndarray:
 
 
 def force_action(command: np.ndarray, velocity: np.ndarray, config: FormationConfig) -> np.ndarray:
-    """The action whose force reaches the commanded velocity in one step: the command's speed clipped to v_max,
+    """The action whose force reaches the commanded velocity in one step (a point's actuation,
+    :meth:`~sb3_formation.env.dynamics.HolonomicModel.reach`): the command's speed clipped to v_max,
     ``F = m (v* - v) / dt`` as a fraction of F_max, scaled down (direction kept) to fit [-1, 1]^2.
 
     :param command: ``(k, 2)`` commanded velocities (m/s)
     :param velocity: ``(k, 2)`` current velocities (m/s)
     :param config: the task (v_max, m, dt, F_max)
     """
-    command = clip_speed(command, config.v_max)
-    action = config.agent_mass * (command - velocity) / config.dt / config.force_max
-    largest = np.abs(action).max(axis=-1, keepdims=True)
-    return action / np.maximum(largest, 1.0)
+    return HolonomicModel(config).reach(command, velocity)
 
 
 def command_action(
     command: np.ndarray, observations: np.ndarray, layout: dict[str, slice], config: FormationConfig
 ) -> np.ndarray:
-    """The action that follows commanded world-frame velocities with the task's dynamics: :func:`force_action` for
-    holonomic agents, :func:`unicycle_action` for unicycles.
+    """The action that follows commanded world-frame velocities with the task's dynamics
+    (:meth:`~sb3_formation.env.dynamics.DynamicsModel.follow`): :func:`force_action` for a point, feedback
+    linearisation of the point ahead for a unicycle (:meth:`~sb3_formation.env.dynamics.UnicycleModel.steer`).
 
     :param command: ``(k, 2)`` commanded velocities (m/s)
     :param observations: ``(k, obs_dim)`` the agents' raw observations (their velocity, and a unicycle's heading)
     :param layout: the observation's field name -> slice
     :param config: the task
     """
-    velocity = observations[:, layout["velocity"]]
-    if config.dynamics == "unicycle":
-        return unicycle_action(command, velocity, observations[:, layout["heading"]], config)
-    return force_action(command, velocity, config)
-
-
-def unicycle_action(command: np.ndarray, velocity: np.ndarray, heading: np.ndarray, config: FormationConfig) -> np.ndarray:
-    """A unicycle's action (forward force, turn rate) that moves a point ahead of its axle at the commanded velocity
-    (feedback linearisation): the point at ``l = v_max / w_max`` ahead moves at ``v h + l w h_perp`` for forward speed
-    v and turn rate w (h the heading, h_perp h turned by +90 deg), so ``v = v* . h`` and ``w = (v* . h_perp) / l``;
-    the look-ahead l lets a sideways command of v_max turn the unicycle at its limit w_max. The forward force reaches v
-    in one step, ``F = m (v - v_f) / dt`` with v_f = velocity . h, as a share of F_max clipped to [-1, 1]; the turn
-    action is w / w_max, within [-1, 1] since the command's speed is at most v_max.
-
-    :param command: ``(k, 2)`` commanded velocities (m/s), their speed clipped to v_max first
-    :param velocity: ``(k, 2)`` current velocities (m/s), along the headings
-    :param heading: ``(k, 2)`` the headings' (cos, sin)
-    :param config: the task (v_max, max_turn_rate, m, dt, F_max)
-    """
-    command = clip_speed(command, config.v_max)
-    forward = (command * heading).sum(axis=-1)
-    sideways = command[:, 1] * heading[:, 0] - command[:, 0] * heading[:, 1]
-    current = (velocity * heading).sum(axis=-1)
-    push = np.clip(config.agent_mass * (forward - current) / config.dt / config.force_max, -1.0, 1.0)
-    return np.stack([push, sideways / config.v_max], axis=-1)  # w / w_max = (v* . h_perp) / (l w_max), l w_max = v_max
-
-
-def clip_speed(command: np.ndarray, v_max: float) -> np.ndarray:
-    """Commanded velocities ``(k, 2)`` (m/s) scaled down, direction kept, to at most ``v_max``."""
-    speed = np.linalg.norm(command, axis=-1, keepdims=True)
-    clipped: np.ndarray = command * np.minimum(1.0, v_max / np.maximum(speed, 1e-300))
-    return clipped
+    return dynamics_model(config).follow(command, observations, layout)

@@ -31,10 +31,10 @@ import numpy as np
 from gymnasium.utils import seeding
 
 from sb3_formation.env.config import INFO_KEYS, REWARD_TERMS, FormationConfig
-from sb3_formation.env.dynamics import DYNAMICS_CLASSES, Dynamics
+from sb3_formation.env.dynamics import Dynamics, DynamicsModel, dynamics_model
 from sb3_formation.env.episodes import episode_summary
 from sb3_formation.env.geometry import FormationState, _measure_into, agent_errors, reference_bearings, ring_neighbours
-from sb3_formation.env.observations import _fill_observations, observation_fields
+from sb3_formation.env.observations import _fill_observations, observation_fields, observation_layout
 from sb3_formation.env.progress import GOAL_PROGRESS_CLASSES, GoalProgress
 from sb3_formation.env.rewards import RewardConstants, _reward_terms, combine_rewards, nearest_gaps, reward_constants
 from sb3_formation.env.scenarios import Scenario
@@ -149,8 +149,10 @@ class FormationEngine:
         self._coefficients = np.zeros((n_teams, _N_TERMS))
         for team, team_config in enumerate(self.configs):
             self.set_stage(team, team_config.stage)
-        #: how actions move the agents, and what the goal term rewards progress along (chosen by the task)
-        self.dynamics: Dynamics = DYNAMICS_CLASSES[config.dynamics](config, starts)
+        #: what the task's dynamics mean, how actions move the agents, and what the goal term rewards progress along
+        self.model: DynamicsModel = dynamics_model(config)
+        layout, observed = observation_layout(self.observation_fields), self.model.observed_fields()
+        self.dynamics: Dynamics = self.model.engine_dynamics(starts, layout[observed[0][0]].start if observed else 0)
         self.progress: GoalProgress = GOAL_PROGRESS_CLASSES[config.goal_progress](self.configs, starts)
         #: teams in an episode (reset and not ended since)
         self.live = np.zeros(n_teams, dtype=bool)

@@ -14,6 +14,7 @@ import numba
 import numpy as np
 
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.dynamics import dynamics_model
 
 if TYPE_CHECKING:
     from sb3_formation.env.stacked import Constants, Episodes, Formations, StepArrays
@@ -50,7 +51,7 @@ def observation_fields(config: FormationConfig) -> list[ObservationField]:
     width, height, diagonal = config.world_width, config.world_height, config.world_diagonal
     speed = config.v_max * (1 + ROUNDING_SLACK)
     extent = np.array([width, height])
-    action_unit = "fraction of F_max" if config.dynamics == "holonomic" else "forward: of F_max; turn: of max_turn_rate"
+    model = dynamics_model(config)
     angle_low, angle_high = config.beta_ref_deg - 360.0, config.beta_ref_deg
     specs = [
         ("lidar_obstacles", "l (obstacles, walls)", rays, 0.0, 1.0, "fraction of range"),
@@ -70,11 +71,10 @@ def observation_fields(config: FormationConfig) -> list[ObservationField]:
         ("flag_orientation", "f: beta^i in (0, 180)", 1, 0.0, 1.0, "0/1"),
         ("flag_range", "f: all neighbours within d^ref", 1, 0.0, 1.0, "0/1"),
         ("time_step", "t", 1, 0.0, float(config.max_steps), "steps"),
-        ("previous_action", "a_t-1^i", 2, -1.0, 1.0, action_unit),
+        ("previous_action", "a_t-1^i", 2, -1.0, 1.0, model.action_unit),
         ("previous_reward", "r_t-1^i", 1, -config.reward_clip, config.reward_clip, "reward"),
     ]
-    if config.dynamics == "unicycle":  # an extension of Table 3.1: the unicycle's heading, in the world frame
-        specs.append(("heading", "(cos theta^i, sin theta^i)", 2, -1.0, 1.0, "unit"))
+    specs.extend(model.observed_fields())  # what the dynamics add to Table 3.1 (a unicycle's heading)
     if config.observe_reference_bearings:  # a departure from Table 3.1 (FormationConfig.observe_reference_bearings)
         specs.append(("reference_bearings", "g_j^{i,ref} (preceding x, y; succeeding x, y)", 4, -1.0, 1.0, "unit"))
     return [

@@ -6,12 +6,12 @@ rebuilt from a recorded trajectory (without lidar readings), so a saved episode 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.dynamics import dynamics_model
 from sb3_formation.env.scenes import scene_slots
 from sb3_formation.env.shapes import WALL_COLUMNS
 
@@ -82,16 +82,16 @@ class TeamState:
 def state_fields(config: FormationConfig) -> list[tuple[str, int, np.ndarray, np.ndarray, str]]:
     """The fields of the global state vector, in order: (name, size, low, high, unit). The obstacle and wall fields
     have room for the most circles and walls a scene of ``config.scenes`` has (:func:`~sb3_formation.env.scenes.scene_slots`:
-    4 and 0 for the thesis's curriculum); unicycles' headings follow the velocities."""
+    4 and 0 for the thesis's curriculum); the dynamics' own fields (unicycles' headings) follow the velocities
+    (:meth:`~sb3_formation.env.dynamics.DynamicsModel.state_fields`)."""
     n, (slots, wall_slots) = config.n_agents, scene_slots(config)
     width, height, v = config.world_width, config.world_height, config.v_max * (1 + 1e-9)
     corner = np.array([width, height])
     largest_radius = max(width, height)
-    headings = [("headings", n, np.full(n, -math.pi), np.full(n, math.pi), "rad, agent 0 first")]
     return [
         ("positions", 2 * n, np.zeros(2 * n), np.tile(corner, n), "m, agent 0 (x, y) first"),
         ("velocities", 2 * n, np.full(2 * n, -v), np.full(2 * n, v), "m/s, agent 0 (x, y) first"),
-        *(headings if config.dynamics == "unicycle" else []),
+        *dynamics_model(config).state_fields(n),
         ("goal", 2, np.zeros(2), corner, "m"),
         (
             "obstacles",
@@ -136,8 +136,6 @@ def state_vector(state: TeamState, config: FormationConfig) -> np.ndarray:
     obstacles, walls = np.zeros((slots, 3)), np.zeros((wall_slots, 5))
     obstacles[: len(state.obstacles)] = state.obstacles
     walls[: len(state.walls)] = state.walls
-    if config.dynamics == "unicycle" and state.headings is None:
-        raise ValueError("the global state of unicycles holds their headings, and this state has none (a recording?)")
-    headings = [] if config.dynamics != "unicycle" else [state.headings]
-    parts = [state.positions.ravel(), state.velocities.ravel(), *headings, state.goal, obstacles.ravel(), walls.ravel()]
+    extras = dynamics_model(config).state_values(state)
+    parts = [state.positions.ravel(), state.velocities.ravel(), *extras, state.goal, obstacles.ravel(), walls.ravel()]
     return np.concatenate([*parts, [float(state.step)]]).astype(np.float32)

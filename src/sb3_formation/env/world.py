@@ -6,17 +6,18 @@ forces as the second-order integrator of eq. 19 (semi-implicit Euler, as Pymunk 
 dt, then the speed is clamped to v_max, then Pymunk moves the bodies over ``config.physics_substeps`` sub-steps and
 resolves contacts (inelastic, frictionless).
 
-Unicycle agents (``config.dynamics == "unicycle"``, :meth:`World.drive`) also have a heading theta, kept here (Pymunk's
-bodies still do not rotate). The engine turns the forward force into a forward speed v in [-v_max, v_max] and the turn
-action into a turn rate w. In every sub-step of length h an agent moves along the arc of (v, w): its velocity is the
-chord ``v sinc(w h / 2)`` in the direction ``theta + w h / 2``, so that without contacts its path is exactly a circle
-of radius v / w, and theta advances by w h. Pymunk moves positions with the velocity its last solve left before it
-solves the next one, so each sub-step sets the next arc's velocity as a force and lets Pymunk solve it with the
-contacts (a command therefore acts from the next sub-step on). The no-sideways constraint is part of that solve: each
-unicycle's centre runs in a groove (a ``GrooveJoint`` without positional correction) along the next chord, carried by
-a body of its own that is put on the agent at the start of every sub-step, so contacts can slow or stop an agent along
-its heading but cannot push it sideways (as wheels that do not skid). The solved velocity along the chord is the next
-forward speed; what is left across it is the solver's residual, dropped, and the largest such speed of a step is
+Unicycle agents (:class:`~sb3_formation.env.dynamics.UnicycleModel`, :meth:`World.drive`) also have a heading theta,
+kept here (Pymunk's bodies still do not rotate). The engine turns the forward force into a forward speed v in [-v_max,
+v_max] and the turn action into a turn rate w. In every sub-step of length h an agent moves along the arc of (v, w):
+its velocity is the chord ``v sinc(w h / 2)`` in the direction ``theta + w h / 2``, so that without contacts its path
+is exactly a circle of radius v / w, and theta advances by w h. Pymunk moves positions with the velocity its last
+solve left before it solves the next one, so each sub-step sets the next arc's velocity as a force and lets Pymunk
+solve it with the contacts (a command therefore acts from the next sub-step on). The no-sideways constraint is part of
+that solve: each unicycle's centre runs in a groove (a ``GrooveJoint`` without positional correction, which its model
+adds: :meth:`~sb3_formation.env.dynamics.DynamicsModel.constrain`) along the next chord, carried by a body of its own
+that is put on the agent at the start of every sub-step, so contacts can slow or stop an agent along its heading but
+cannot push it sideways (as wheels that do not skid). The solved velocity along the chord is the next forward speed;
+what is left across it is the solver's residual, dropped, and the largest such speed of a step is
 :attr:`World.sideways_speed` (:data:`SIDEWAYS_TOLERANCE` bounds it). Only Pymunk's overlap correction, which pushes
 overlapping bodies apart along the contact normal, can still move a jammed agent sideways (less than 2 mm per step in
 the test of a jam).
@@ -38,6 +39,7 @@ import pymunk.batch
 from pymunk._chipmunk import lib as chipmunk
 
 from sb3_formation.env.config import COLLISION_BIAS, FormationConfig
+from sb3_formation.env.dynamics import clamp_speed, dynamics_model, split_state
 from sb3_formation.env.scenarios import Scenario
 
 BORDER_THICKNESS = 1.0  #: m; the border's inner faces lie exactly on [0, W] x [0, H]
@@ -54,41 +56,9 @@ _GET_BODIES = pymunk.batch.ffi.addressof(pymunk.batch.lib, "pmSpaceBodyGetIterat
 _SET_BODIES = pymunk.batch.ffi.addressof(pymunk.batch.lib, "pmSpaceBodySetIteratorFuncBatched")
 _GET_ARBITERS = pymunk.batch.ffi.addressof(pymunk.batch.lib, "pmSpaceArbiterIteratorFuncBatched")
 _SPARE_VALUES = 8  #: values past the end of a world's state array (see World.place)
-#: Half-length (m) of a unicycle's groove: far more than an agent moves in a sub-step.
-GROOVE_HALF_LENGTH = 1.0
 #: The most sideways speed (m/s per m/s of v_max) a unicycle keeps after a sub-step's solve: the solver's residual
 #: (asserted with agents pressing on walls and on each other, tests/test_unicycle.py).
 SIDEWAYS_TOLERANCE = 1e-3
-
-
-@numba.njit(cache=True)
-def clamp_speed(velocities: np.ndarray, v_max: float) -> np.ndarray:  # pragma: no cover - compiled
-    """Scale down every velocity faster than ``v_max`` (m/s) to ``v_max``, keeping its direction.
-
-    :param velocities: ``(n, 2)`` velocities (m/s)
-    :param v_max: speed limit (m/s)
-    :return: a new ``(n, 2)`` array
-    """
-    clamped: np.ndarray = velocities.copy()
-    for index in range(velocities.shape[0]):
-        speed = math.hypot(velocities[index, 0], velocities[index, 1])
-        if speed > v_max:
-            clamped[index] *= v_max / speed
-    return clamped
-
-
-@numba.njit(cache=True)
-def split_state(state: np.ndarray, v_max: float) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """Positions and velocities from Pymunk's ``(n, 4)`` rows (x, y, v_x, v_y), the velocities clamped to ``v_max``:
-    contacts never add speed beyond numerical noise, but the bound is a promise, so what Pymunk returns is clamped too.
-
-    :return: two new ``(n, 2)`` arrays (m, m/s)
-    """
-    positions, velocities = np.empty((state.shape[0], 2)), np.empty((state.shape[0], 2))
-    for index in range(state.shape[0]):
-        positions[index, 0], positions[index, 1] = state[index, 0], state[index, 1]
-        velocities[index, 0], velocities[index, 1] = state[index, 2], state[index, 3]
-    return positions, clamp_speed(velocities, v_max)
 
 
 @numba.njit(cache=True)
@@ -190,15 +160,7 @@ class World:
             self.space.add(body, pymunk.Circle(body, config.agent_radius))
             self.agent_bodies.append(body)
         #: unicycles' groove carriers (kinematic bodies without shapes, at rest; see the module docstring)
-        self._carriers: list[pymunk.Body] = []
-        if config.dynamics == "unicycle":
-            for body in self.agent_bodies:
-                carrier = pymunk.Body(body_type=pymunk.Body.KINEMATIC)
-                carrier.position = body.position
-                groove = pymunk.GrooveJoint(carrier, body, (-GROOVE_HALF_LENGTH, 0), (GROOVE_HALF_LENGTH, 0), (0, 0))
-                groove.max_bias = 0.0
-                self.space.add(carrier, groove)
-                self._carriers.append(carrier)
+        self._carriers: list[pymunk.Body] = dynamics_model(config).constrain(self.space, self.agent_bodies)
         ids = [body.id for body in self.agent_bodies] + [body.id for body in self._obstacle_bodies]
         roles = list(range(len(self.agent_bodies))) + [-1 - index for index in range(len(self._obstacle_bodies))]
         order = np.argsort(ids)
@@ -251,8 +213,8 @@ class World:
             obstacles or walls, each agent touched during the step (each pair counted once)
         """
         config = self.config
-        if config.dynamics != "holonomic":
-            raise ValueError(f"World.step moves holonomic agents; {config.dynamics} agents move with World.drive")
+        if self._carriers:
+            raise ValueError(f"World.step moves free points; {config.dynamics} agents move with World.drive")
         contacts = self.advance(clamp_speed(self.velocities + forces * (config.dt / config.agent_mass), config.v_max))
         if contacts is None:
             return [0] * config.n_agents, [0] * config.n_agents

@@ -17,7 +17,7 @@ from geometry_msgs.msg import PointStamped, Twist
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import JointState, LaserScan
 
-from sb3_formation.controllers.shrinking import rotate
+from sb3_formation.env.dynamics import DynamicsModel, turned
 from sb3_formation.ros.scans import Scan
 
 #: Nanoseconds in a second.
@@ -102,30 +102,22 @@ def goal_message(stamp: Time, world_frame: str, goal: np.ndarray) -> PointStampe
     return message
 
 
-def twist_message(command: np.ndarray, dynamics: str, yaw: float) -> Twist:
-    """The ``Twist`` of a command (:func:`~sb3_formation.ros.observer.velocity_command`) in the robot's body frame: a
-    holonomic agent's world velocity turned by -yaw into ``linear.x, linear.y``; a unicycle's forward speed as
-    ``linear.x`` and turn rate as ``angular.z``."""
+def twist_message(command: np.ndarray, model: DynamicsModel, yaw: float) -> Twist:
+    """The ``Twist`` of a command (:meth:`~sb3_formation.env.dynamics.DynamicsModel.command`) in the robot's body frame
+    (:meth:`~sb3_formation.env.dynamics.DynamicsModel.twist`): a holonomic agent's world velocity turned by -yaw into
+    ``linear.x, linear.y``; a unicycle's forward speed as ``linear.x`` and turn rate as ``angular.z``.
+
+    :param model: the task's dynamics (:func:`~sb3_formation.env.dynamics.dynamics_model`)
+    :param yaw: the robot's heading (rad)
+    """
     message = Twist()
-    if dynamics == "unicycle":
-        message.linear.x, message.angular.z = float(command[0]), float(command[1])
-    else:
-        message.linear.x, message.linear.y = turned(np.asarray(command, dtype=np.float64), -yaw).tolist()
+    message.linear.x, message.linear.y, message.angular.z = model.twist(command, yaw)
     return message
 
 
-def twist_command(message: Twist, dynamics: str, yaw: float) -> np.ndarray:
+def twist_command(message: Twist, model: DynamicsModel, yaw: float) -> np.ndarray:
     """The command a ``Twist`` gives (the inverse of :func:`twist_message`)."""
-    if dynamics == "unicycle":
-        return np.array([message.linear.x, message.angular.z])
-    return turned(np.array([message.linear.x, message.linear.y]), yaw)
-
-
-def turned(vector: np.ndarray, yaw: float) -> np.ndarray:
-    """A ``(2,)`` vector turned anti-clockwise by ``yaw`` (rad): a body-frame vector into the world frame (``-yaw``:
-    back); exact at yaw 0."""
-    result: np.ndarray = rotate(vector[None, :], np.array([yaw]))[0]
-    return result
+    return model.twist_command((message.linear.x, message.linear.y, message.angular.z), yaw)
 
 
 def policy_message(stamp: Time, values: np.ndarray) -> JointState:

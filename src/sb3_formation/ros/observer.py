@@ -29,7 +29,6 @@ from sb3_formation.env.geometry import (
 )
 from sb3_formation.env.observations import observation_fields, observation_layout
 from sb3_formation.env.rewards import combine_rewards, reward_constants, reward_terms
-from sb3_formation.env.world import clamp_speed
 
 #: The curriculum's last stage, whose reward coefficients a deployed agent observes (all terms on).
 FINAL_STAGE = 3
@@ -172,39 +171,3 @@ class AgentObserver:
     def remember(self, action: np.ndarray) -> None:
         """Keep the action the agent took (after the safety filter) for the next observation."""
         self.previous_action = np.asarray(action, dtype=np.float64).reshape(2).copy()
-
-
-def velocity_command(config: FormationConfig, action: np.ndarray, velocity: np.ndarray, forward_speed: float) -> np.ndarray:
-    """The command a policy's action gives for the next step (the simulator's dynamics, eq. 19): a holonomic agent's
-    world-frame velocity ``clamp(v + a F_max dt / m, v_max)`` (m/s, x and y); a unicycle's forward speed
-    ``clip(v_f + a_0 F_max dt / m, +-v_max)`` (m/s) and turn rate ``a_1 max_turn_rate`` (rad/s).
-
-    :param action: ``(2,)`` the action in [-1, 1]
-    :param velocity: ``(2,)`` the agent's world-frame velocity now (m/s)
-    :param forward_speed: a unicycle's forward speed now (m/s)
-    """
-    change = (np.asarray(action, dtype=np.float64) * config.force_max) * (config.dt / config.agent_mass)
-    if config.dynamics == "unicycle":
-        forward = min(max(forward_speed + float(change[0]), -config.v_max), config.v_max)
-        return np.array([forward, float(action[1]) * config.max_turn_rate])
-    commanded: np.ndarray = clamp_speed((np.asarray(velocity, dtype=np.float64) + change)[None, :], config.v_max)[0]
-    return commanded
-
-
-def command_action(config: FormationConfig, command: np.ndarray, velocity: np.ndarray, forward_speed: float) -> np.ndarray:
-    """The action in [-1, 1] that gives ``command`` (the inverse of :func:`velocity_command`, clipped): how the
-    simulator node applies a robot's command.
-
-    :param command: ``(2,)`` a holonomic agent's world-frame velocity (m/s), or a unicycle's forward speed (m/s) and
-        turn rate (rad/s)
-    :param velocity: ``(2,)`` the agent's world-frame velocity now (m/s)
-    :param forward_speed: a unicycle's forward speed now (m/s)
-    """
-    per_action = config.force_max * (config.dt / config.agent_mass)
-    command = np.asarray(command, dtype=np.float64)
-    if config.dynamics == "unicycle":
-        action = np.array([(command[0] - forward_speed) / per_action, command[1] / config.max_turn_rate])
-    else:
-        action = (command - np.asarray(velocity, dtype=np.float64)) / per_action
-    clipped: np.ndarray = np.clip(action, -1.0, 1.0)
-    return clipped

@@ -5,7 +5,7 @@ and ``/agent_{i}/scan`` (``LaserScan`` of a scanner at the agent's centre, :func
 the team's goal on ``/goal`` (``PointStamped``, latched, stamped with the sim time its episode started) and the sim time
 on ``/clock``: steps played since the node started x dt, continuous across episodes. It applies each agent's
 ``/agent_{i}/cmd_vel`` (``Twist``) as the action that gives that command
-(:func:`~sb3_formation.ros.observer.command_action`). Each step publishes the clock, the goal, every odometry, then
+(:meth:`~sb3_formation.env.dynamics.DynamicsModel.action`). Each step publishes the clock, the goal, every odometry, then
 every scan, all stamped with the step's sim time (the goal with its episode's start).
 
 Synchronous mode (the default) steps once every agent has sent a command since the last publication, so a closed loop
@@ -33,11 +33,9 @@ from rosgraph_msgs.msg import Clock as ClockMessage
 from sensor_msgs.msg import LaserScan
 
 from sb3_formation.env.config import FormationConfig
-from sb3_formation.env.dynamics import UnicycleDynamics
 from sb3_formation.env.formation_env import FormationEnv
 from sb3_formation.ros.agent_node import GOAL_QOS, declared_settings
 from sb3_formation.ros.messages import goal_message, odometry_message, scan_message, stamp_of, twist_command
-from sb3_formation.ros.observer import command_action
 from sb3_formation.ros.scans import merged_scan
 from sb3_formation.utils.checks import is_count, is_integer, is_number
 from sb3_formation.utils.files import atomic_path
@@ -254,8 +252,7 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         actions = self._actions()
         _, _, terminated, truncated, _ = self.env.step_array(actions)
         self._steps_played += 1
-        if isinstance(self.env.engine.dynamics, UnicycleDynamics):
-            self._turn_rates = np.clip(actions[:, 1], -1.0, 1.0) * self.config.max_turn_rate
+        self._turn_rates = self.env.engine.model.turn_rates(actions)
         self._positions.append(self.env.engine.latest.positions[self._rows].copy())
         if not (terminated or truncated):
             self._publish()
@@ -272,14 +269,12 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             self._timer.cancel()
 
     def _actions(self) -> np.ndarray:
-        """``(n, 2)`` the actions that give the agents' commands (:func:`command_action`)."""
-        config = self.config
+        """``(n, 2)`` the actions that give the agents' commands (:meth:`~sb3_formation.env.dynamics.DynamicsModel.action`)."""
+        model = self.env.engine.model
         velocities, headings, speeds = self.env.engine.latest.velocities[self._rows], self._headings(), self._forward_speeds()
         return np.array(
             [
-                command_action(
-                    config, twist_command(message, config.dynamics, float(headings[i])), velocities[i], float(speeds[i])
-                )
+                model.action(twist_command(message, model, float(headings[i])), velocities[i], float(speeds[i]))
                 for i, message in enumerate(self._commands)
             ]
         )
@@ -291,10 +286,8 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
 
     def _forward_speeds(self) -> np.ndarray:
         """``(n,)`` a unicycle's forward speeds (m/s); 0 for holonomic agents."""
-        dynamics = self.env.engine.dynamics
-        return (
-            dynamics.forward_speeds[self._rows] if isinstance(dynamics, UnicycleDynamics) else np.zeros(self.config.n_agents)
-        )
+        speeds = self.env.engine.dynamics.forward_speeds_of(self._rows)
+        return np.zeros(self.config.n_agents) if speeds is None else speeds
 
     def _publish(self) -> None:
         """The clock, the goal, every odometry, then every scan, all of the step's sim time (the goal of its
@@ -304,15 +297,16 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         stamp = stamp_of(self._steps_played * config.dt)
         positions, velocities = engine.latest.positions[self._rows], engine.latest.velocities[self._rows]
         headings, speeds = self._headings(), self._forward_speeds()
-        unicycle = isinstance(engine.dynamics, UnicycleDynamics)
+        bodies = engine.model.body_velocities(velocities, speeds)  # a point's body frame is the world's
         self._received[:] = 0
         self._published_at = time.monotonic()
         self._clock.publish(ClockMessage(clock=stamp))
         self._goal.publish(goal_message(self._episode_stamp, settings.world_frame, engine.episodes.goals[self.env.team]))
         for i, publisher in enumerate(self._odometry):
-            body = np.array([speeds[i], 0.0]) if unicycle else velocities[i]  # a point's body frame is the world's
             frames = (settings.world_frame, self._frames[i])
-            publisher.publish(odometry_message(stamp, frames, positions[i], float(headings[i]), body, self._turn_rates[i]))
+            publisher.publish(
+                odometry_message(stamp, frames, positions[i], float(headings[i]), bodies[i], self._turn_rates[i])
+            )
         ranges = merged_scan(engine.lidars[self.env.team], positions, stopped_by_agents=not settings.see_through_agents)
         reach = (config.agent_radius, config.agent_radius + config.lidar_range)
         for i, publisher in enumerate(self._scans):  # beam k along world angle 2 pi k / n_rays

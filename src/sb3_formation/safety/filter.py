@@ -3,7 +3,9 @@
 ``docs/safety.md`` has the equations; in short, for one agent, from its row of thesis Table 3.1 only:
 
 - **Model.** The agent controls a point: its centre (holonomic) or, for a unicycle, the point ``l = v_max / w_max``
-  ahead of its axle that the controllers already steer (:func:`~sb3_formation.controllers.classical.unicycle_action`).
+  ahead of its axle that the controllers already steer (:class:`~sb3_formation.env.dynamics.UnicycleModel`, its
+  ``look_ahead``); the task's :class:`~sb3_formation.env.dynamics.DynamicsModel` gives the filter this model
+  (``point_problem``, ``point_actions``).
   Over a step the point moves by ``u dt``, u the velocity its action commands (holonomic: v' = clamp(v + a F_max dt / m);
   unicycle: ``v' h + l w h_perp``). The filter chooses u.
 - **Barriers.** Each constraint is a barrier h >= 0 with the discrete-time condition ``h(t+1) >= (1 - gamma) h(t)``,
@@ -30,6 +32,7 @@ import numba
 import numpy as np
 
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.dynamics import dynamics_model
 from sb3_formation.env.observations import observation_fields, observation_layout
 from sb3_formation.env.sensors import ray_directions
 from sb3_formation.safety.qp import solve_rows, solve_with_library
@@ -242,17 +245,18 @@ class SafetyFilter:
             [layout["lidar_obstacles"].start, layout["lidar_agents"].start, layout["neighbour_offsets"].start], dtype=np.int64
         )
         self._directions = ray_directions(config.lidar_rays)
-        self._unicycle = config.dynamics == "unicycle"
+        #: the task's dynamics: the point an agent steers and how its actions move it
+        self.model = dynamics_model(config)
         # the speed limit: a polygon round the disc for holonomic agents; a unicycle's action bounds are its limits
-        sides = 0 if self._unicycle else self.gains.speed_sides
+        sides = 0 if self.model.bounds_speed else self.gains.speed_sides
         angles = (np.arange(sides) + 0.5) * (2 * math.pi / max(sides, 1))
         self._speed_normals = np.stack([np.cos(angles), np.sin(angles)], axis=1)
         #: apothem of the polygon round the unit disc (units of v_max)
         self._speed_limit = 1.0 / math.cos(math.pi / self.gains.speed_sides) if sides else math.sqrt(2.0)
         #: velocity change (m/s) of a unit force action over a step
         self._push = config.force_max * config.dt / config.agent_mass
-        #: the unicycle's look-ahead l = v_max / w_max (m)
-        self.lookahead = config.v_max / config.max_turn_rate if self._unicycle else 0.0
+        #: how far ahead of its centre the point an agent steers lies (m): a unicycle's l = v_max / w_max, else 0
+        self.lookahead = self.model.look_ahead
         g = self.gains
         self._gain_vector = np.array([g.gamma, g.obstacle_margin, g.agent_margin, g.comm_margin, float(g.keep_comm_range)])
         self._capacity = 2 * config.lidar_rays + _FIXED_CONSTRAINTS + sides
@@ -278,7 +282,9 @@ class SafetyFilter:
         proposed = np.clip(proposed, -1.0, 1.0)
         v_max, dt = self.config.v_max, self.config.dt
         velocity = observations[:, self.layout["velocity"]]
-        targets, projections, bounds, frames = self._model(observations, proposed.astype(np.float64), velocity)
+        targets, projections, bounds, frames = self.model.point_problem(
+            observations, self.layout, proposed.astype(np.float64), self._push
+        )
         count = len(observations)
         rows = np.zeros((count, self._capacity, 3))
         rhs = np.zeros((count, self._capacity))
@@ -317,56 +323,8 @@ class SafetyFilter:
         changed = (solutions[:, 0] != targets[:, 0]) | (solutions[:, 1] != targets[:, 1])
         safe = proposed.copy()
         if changed.any():
-            safe[changed] = self._actions(solutions[changed, :2], velocity[changed], frames[changed]).astype(safe.dtype)
+            actions = self.model.point_actions(solutions[changed, :2], velocity[changed], frames[changed], self._push)
+            safe[changed] = actions.astype(safe.dtype)
         change = np.where(changed, np.linalg.norm(safe - proposed, axis=1), 0.0)
         infeasible = solutions[:, 2] > self.gains.infeasible_slack
         return safe, FilterReport(changed, change, infeasible, separation)
-
-    def _model(
-        self, observations: np.ndarray, proposed: np.ndarray, velocity: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The commanded velocities t of the proposed actions (units of v_max), the maps from a controlled point's
-        velocity to its centre's (identity; a unicycle's ``h h^T``), the action bounds as rows ``(a_x, a_y, b)`` on u, and
-        each row's frame (heading and its normal; identity for holonomic agents)."""
-        v_max, push = self.config.v_max, self._push
-        count = len(observations)
-        bounds = np.zeros((count, 4, 3))
-        if not self._unicycle:
-            commanded = velocity + push * proposed
-            speed = np.linalg.norm(commanded, axis=1, keepdims=True)
-            targets = commanded * np.minimum(1.0, v_max / np.maximum(speed, 1e-300)) / v_max  # the env's speed clamp
-            frames = np.tile(np.eye(2), (count, 1, 1))
-            low, high = (velocity - push) / v_max, (velocity + push) / v_max  # |a| <= 1 on each axis
-            for axis in range(2):
-                bounds[:, 2 * axis, axis], bounds[:, 2 * axis, 2] = 1.0, high[:, axis]
-                bounds[:, 2 * axis + 1, axis], bounds[:, 2 * axis + 1, 2] = -1.0, -low[:, axis]
-            return targets, frames, bounds, frames
-        heading = observations[:, self.layout["heading"]]
-        normal = np.stack([-heading[:, 1], heading[:, 0]], axis=1)
-        frames = np.stack([heading, normal], axis=1)  # rows: h, h_perp
-        current = (velocity * heading).sum(axis=1)
-        forward = np.clip(current + push * proposed[:, 0], -v_max, v_max)
-        turn = proposed[:, 1] * self.config.max_turn_rate
-        targets = (forward[:, None] * heading + (self.lookahead * turn)[:, None] * normal) / v_max
-        fast = np.minimum(v_max, current + push) / v_max
-        slow = np.maximum(-v_max, current - push) / v_max
-        sideways = self.lookahead * self.config.max_turn_rate / v_max
-        bounds[:, 0, :2], bounds[:, 0, 2] = heading, fast
-        bounds[:, 1, :2], bounds[:, 1, 2] = -heading, -slow
-        bounds[:, 2, :2], bounds[:, 2, 2] = normal, sideways
-        bounds[:, 3, :2], bounds[:, 3, 2] = -normal, sideways
-        return targets, heading[:, :, None] * heading[:, None, :], bounds, frames
-
-    def _actions(self, solutions: np.ndarray, velocity: np.ndarray, frames: np.ndarray) -> np.ndarray:
-        """The actions that command the velocities ``solutions`` (units of v_max), clipped to [-1, 1] (rounding)."""
-        commanded = solutions * self.config.v_max
-        if not self._unicycle:
-            actions = (commanded - velocity) / self._push
-        else:
-            along = np.einsum("kij,kj->ki", frames, commanded)  # (forward speed, l w)
-            current = np.einsum("kj,kj->k", frames[:, 0], velocity)
-            actions = np.stack(
-                [(along[:, 0] - current) / self._push, along[:, 1] / (self.lookahead * self.config.max_turn_rate)], axis=1
-            )
-        clipped: np.ndarray = np.clip(actions, -1.0, 1.0)
-        return clipped
