@@ -435,10 +435,10 @@ class UnicycleModel(DynamicsModel):
         return PointProblem(targets, heading[:, :, None] * heading[:, None, :], bounds, frames)
 
     def point_actions(self, solutions: np.ndarray, velocity: np.ndarray, frames: np.ndarray, push: float) -> np.ndarray:
-        commanded = solutions * self.config.v_max
-        along = np.einsum("kij,kj->ki", frames, commanded)  # (forward speed, l w)
-        current = np.einsum("kj,kj->k", frames[:, 0], velocity)
-        actions = np.stack([(along[:, 0] - current) / push, along[:, 1] / self.point_turn_speed], axis=1)
+        heading = frames[:, 0]
+        forward, turn = self.drive_of(solutions * self.config.v_max, heading)
+        current = (velocity * heading).sum(axis=-1)
+        actions = np.stack([(forward - current) / push, turn], axis=1)
         clipped: np.ndarray = np.clip(actions, -1.0, 1.0)
         return clipped
 
