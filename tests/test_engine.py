@@ -278,3 +278,21 @@ def test_the_goal_progress_is_the_tasks() -> None:
     config = FormationConfig.task("ch5-bearing")
     assert type(FormationEngine([config]).progress) is EuclideanProgress
     assert type(FormationEngine([config.replace(goal_progress="geodesic")]).progress) is GeodesicProgress
+
+
+def test_no_compiled_function_takes_more_than_twelve_arguments() -> None:
+    """Compiled kernels take a few named structures (:mod:`~sb3_formation.env.stacked`, the safety filter's
+    ``FilterConstants`` and ``Constraints``), not long lists of parallel arrays: every ``numba.njit`` function of the
+    package has at most 12 parameters."""
+    import ast
+    from pathlib import Path
+
+    import sb3_formation
+
+    crowded = []
+    for path in Path(sb3_formation.__file__).parent.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            compiled = isinstance(node, ast.FunctionDef) and any("njit" in ast.unparse(d) for d in node.decorator_list)
+            if compiled and len(node.args.args) + len(node.args.kwonlyargs) > 12:
+                crowded.append(f"{path.name}:{node.name}")
+    assert not crowded, f"compiled functions with more than 12 parameters: {crowded}"

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import Any, NamedTuple
 
 import numba
 import numpy as np
@@ -123,6 +123,38 @@ class FilterReport:
     separation: np.ndarray
 
 
+class FilterConstants(NamedTuple):
+    """What stays fixed for a filter's life, as its compiled constraint builder reads it."""
+
+    directions: np.ndarray  #: ``(n_rays, 2)`` ray directions
+    columns: np.ndarray  #: int64: the start columns of lidar_obstacles, lidar_agents and neighbour_offsets in a row
+    gains: np.ndarray  #: gamma, obstacle_margin, agent_margin, comm_margin, keep_comm_range (0/1)
+    speed_normals: np.ndarray  #: ``(sides, 2)`` outward normals of the speed polygon (none for a unicycle)
+    speed_limit: float  #: the polygon's apothem (units of v_max)
+    lidar_range: float  #: l_s (m)
+    radius: float  #: R_a (m)
+    v_max: float  #: (m/s)
+    dt: float  #: (s)
+    d_comm: float  #: the communication range (m)
+
+
+class Constraints(NamedTuple):
+    """Every agent's QP (:mod:`~sb3_formation.safety.qp`): its constraint rows, right-hand sides and count, and the
+    smallest gap its sensors measure; written by the constraint builder."""
+
+    rows: np.ndarray  #: ``(k, m, 3)`` rows ``(g_x, g_y, -1)`` (safety) or ``(a_x, a_y, 0)`` (hard)
+    rhs: np.ndarray  #: ``(k, m)`` right-hand sides
+    counts: np.ndarray  #: ``(k,)`` int64: the rows used
+    separation: np.ndarray  #: ``(k,)`` the smallest gap (m) to an obstacle, a wall or an agent
+
+    @classmethod
+    def zeros(cls, count: int, capacity: int) -> Constraints:
+        """No constraint yet for ``count`` agents of at most ``capacity`` constraints each."""
+        return cls(
+            np.zeros((count, capacity, 3)), np.zeros((count, capacity)), np.zeros(count, dtype=np.int64), np.zeros(count)
+        )
+
+
 @numba.njit(cache=True)
 def _add_row(
     rows: np.ndarray, rhs: np.ndarray, count: int, projection: np.ndarray, direction: np.ndarray, bound: float
@@ -137,37 +169,30 @@ def _add_row(
 
 @numba.njit(cache=True)
 def _build_constraints(
-    observations: np.ndarray,
-    projections: np.ndarray,
-    bounds: np.ndarray,
-    directions: np.ndarray,
-    columns: np.ndarray,
-    lidar_range: float,
-    radius: float,
-    v_max: float,
-    dt: float,
-    d_comm: float,
-    gains: np.ndarray,
-    speed_normals: np.ndarray,
-    speed_limit: float,
-    rows: np.ndarray,
-    rhs: np.ndarray,
-    counts: np.ndarray,
-    separation: np.ndarray,
+    observations: np.ndarray, projections: np.ndarray, bounds: np.ndarray, constants: FilterConstants, out: Constraints
 ) -> None:  # pragma: no cover - compiled; tested through its results
-    """Every agent's constraint rows (see the module docstring), in units of v_max (u) and v_max dt (h).
+    """Every agent's constraint rows (see the module docstring), in units of v_max (u) and v_max dt (h), into ``out``.
 
     :param observations: ``(k, obs_dim)`` raw rows
     :param projections: ``(k, 2, 2)`` the map from the controlled point's velocity to the centre's: the identity for
         a holonomic agent, ``h h^T`` for a unicycle (its centre moves along its heading h with the forward speed h . u)
     :param bounds: ``(k, 4, 3)`` each agent's four action-bound rows (a_x, a_y, b) in units of v_max
-    :param directions: ``(n_rays, 2)`` ray directions
-    :param columns: start columns of lidar_obstacles, lidar_agents, neighbour_offsets
-    :param radius: R_a (m)
-    :param gains: gamma, obstacle_margin, agent_margin, comm_margin, keep_comm_range (0/1)
-    :param speed_normals: ``(sides, 2)`` outward normals of the speed polygon
-    :param speed_limit: the polygon's apothem (units of v_max)
+    :param constants: the filter's constants
     """
+    directions, columns, gains, speed_normals = (
+        constants.directions,
+        constants.columns,
+        constants.gains,
+        constants.speed_normals,
+    )
+    lidar_range, radius, v_max, dt, d_comm = (
+        constants.lidar_range,
+        constants.radius,
+        constants.v_max,
+        constants.dt,
+        constants.d_comm,
+    )
+    speed_limit, rows, rhs, counts, separation = constants.speed_limit, out.rows, out.rhs, out.counts, out.separation
     gamma, obstacle_margin, agent_margin, comm_margin, keep_comm = gains[0], gains[1], gains[2], gains[3], gains[4]
     step = v_max * dt  # m: the unit of h
     reach = speed_limit * step  # m: the longest move of the controlled point in a step
@@ -241,24 +266,31 @@ class SafetyFilter:
         layout = observation_layout(observed)
         #: observation field name -> slice of a row, and a row's width
         self.layout, self.observation_dim = layout, sum(item.size for item in observed)
-        self._columns = np.array(
-            [layout["lidar_obstacles"].start, layout["lidar_agents"].start, layout["neighbour_offsets"].start], dtype=np.int64
-        )
-        self._directions = ray_directions(config.lidar_rays)
+        columns = [layout["lidar_obstacles"].start, layout["lidar_agents"].start, layout["neighbour_offsets"].start]
         #: the task's dynamics: the point an agent steers and how its actions move it
         self.model = dynamics_model(config)
         # the speed limit: a polygon round the disc for holonomic agents; a unicycle's action bounds are its limits
         sides = 0 if self.model.bounds_speed else self.gains.speed_sides
         angles = (np.arange(sides) + 0.5) * (2 * math.pi / max(sides, 1))
-        self._speed_normals = np.stack([np.cos(angles), np.sin(angles)], axis=1)
-        #: apothem of the polygon round the unit disc (units of v_max)
-        self._speed_limit = 1.0 / math.cos(math.pi / self.gains.speed_sides) if sides else math.sqrt(2.0)
+        speed_normals = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+        speed_limit = 1.0 / math.cos(math.pi / self.gains.speed_sides) if sides else math.sqrt(2.0)  # the apothem
         #: velocity change (m/s) of a unit force action over a step
         self._push = config.force_max * config.dt / config.agent_mass
         #: how far ahead of its centre the point an agent steers lies (m): a unicycle's l = v_max / w_max, else 0
         self.lookahead = self.model.look_ahead
         g = self.gains
-        self._gain_vector = np.array([g.gamma, g.obstacle_margin, g.agent_margin, g.comm_margin, float(g.keep_comm_range)])
+        self._constants = FilterConstants(
+            directions=ray_directions(config.lidar_rays),
+            columns=np.array(columns, dtype=np.int64),
+            gains=np.array([g.gamma, g.obstacle_margin, g.agent_margin, g.comm_margin, float(g.keep_comm_range)]),
+            speed_normals=speed_normals,
+            speed_limit=float(speed_limit),
+            lidar_range=float(config.lidar_range),
+            radius=float(config.agent_radius),
+            v_max=float(config.v_max),
+            dt=float(config.dt),
+            d_comm=float(config.d_comm),
+        )
         self._capacity = 2 * config.lidar_rays + _FIXED_CONSTRAINTS + sides
 
     def filter(self, observations: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, FilterReport]:
@@ -280,35 +312,14 @@ class SafetyFilter:
         if not np.isfinite(proposed).all():
             raise ValueError("the safety filter got actions that are not finite (NaN or inf)")
         proposed = np.clip(proposed, -1.0, 1.0)
-        v_max, dt = self.config.v_max, self.config.dt
         velocity = observations[:, self.layout["velocity"]]
         targets, projections, bounds, frames = self.model.point_problem(
             observations, self.layout, proposed.astype(np.float64), self._push
         )
         count = len(observations)
-        rows = np.zeros((count, self._capacity, 3))
-        rhs = np.zeros((count, self._capacity))
-        counts = np.zeros(count, dtype=np.int64)
-        separation = np.zeros(count)
-        _build_constraints(
-            observations,
-            projections,
-            bounds,
-            self._directions,
-            self._columns,
-            self.config.lidar_range,
-            self.config.agent_radius,
-            v_max,
-            dt,
-            self.config.d_comm,
-            self._gain_vector,
-            self._speed_normals,
-            self._speed_limit,
-            rows,
-            rhs,
-            counts,
-            separation,
-        )
+        constraints = Constraints.zeros(count, self._capacity)
+        _build_constraints(observations, projections, bounds, self._constants, constraints)
+        rows, rhs, counts, separation = constraints.rows, constraints.rhs, constraints.counts, constraints.separation
         if self.gains.solver == "fast":
             solutions = solve_rows(targets, self.gains.slack_weight, rows, rhs, counts)
         else:
