@@ -35,6 +35,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from sb3_formation.experiment.evaluation import evaluate_target
 from sb3_formation.experiment.recipes import layered_settings
 from sb3_formation.experiment.reports import table_number
+from sb3_formation.experiment.targets import Target
 from sb3_formation.experiment.training import train
 from sb3_formation.utils.machine import machine_line
 from sb3_formation.viz.plots import save_figure
@@ -96,7 +97,7 @@ def main() -> None:
     for setup in filter(None, args.recipes.split(",")):
         for seed in (int(seed) for seed in args.seeds.split(",")):
             run_dir, seconds = run(setup, seed, budget, args.eval_every, args.logdir)
-            summary = evaluate_target(run_dir, protocol, out=run_dir / "eval").summary
+            summary = evaluate_target(run_dir, changes=protocol, out=run_dir / "eval").summary
             curves[(setup, seed)], steps = success_over_time(run_dir)
             rows.append((setup, seed, summary, seconds, steps))
             print(f"{setup} seed {seed}: {summary['success_rate']:.1%} after {seconds / 60:.1f} min", flush=True)
@@ -104,7 +105,8 @@ def main() -> None:
         for recipe in args.controller_recipes.split(","):
             started = time.perf_counter()
             out = args.logdir / f"controller-{name}_{Path(recipe).stem}"
-            summary = evaluate_target(f"controller:{name}", protocol, recipe=recipe, out=out).summary
+            target = Target.parse(f"controller:{name}", recipe)
+            summary = evaluate_target(target, changes=protocol, out=out).summary
             rows.append((f"controller:{name} on {recipe}", None, summary, time.perf_counter() - started, None))
             print(f"controller:{name} on {recipe}: {summary['success_rate']:.1%}", flush=True)
     print_tables(rows, curves, budget)

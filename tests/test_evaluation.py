@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import inspect
 import json
 import math
 import re
@@ -19,9 +20,10 @@ from stable_baselines3 import PPO
 
 from sb3_formation import FormationConfig, FormationEnv, FormationPolicy, make_formation_vec_env
 from sb3_formation.controllers import Controller
-from sb3_formation.experiment.evaluation import EPISODE_COLUMNS, evaluate
+from sb3_formation.experiment.evaluation import EPISODE_COLUMNS, MAX_RECORDED_EPISODES, evaluate
 from sb3_formation.experiment.reports import comparison_table
 from sb3_formation.experiment.runs import FINAL_MODEL, FINAL_NORMALIZER, load_trained, save_model
+from sb3_formation.experiment.sections import EvaluationSection
 from sb3_formation.experiment.statistics import wilson_interval
 from sb3_formation.experiment.trajectories import Trajectories
 from sb3_formation.sb3.metrics import EPISODE_METRICS
@@ -500,6 +502,23 @@ def test_evaluate_rejects_bad_worker_and_record_counts(tiny: SimpleNamespace) ->
         evaluate(tiny.trained, episodes=2, n_envs=2, n_workers=3)
     with pytest.raises(ValueError, match="record"):
         evaluate(tiny.trained, episodes=2, record=-1)
+
+
+def test_the_evaluation_section_is_the_protocol_of_evaluate() -> None:
+    """Every field of the recipe's evaluation protocol is a keyword of evaluate(), under the same name; command-line
+    changes are validated by the section, with the message evaluate() gives for too many recorded episodes."""
+    keywords = inspect.signature(evaluate).parameters
+    assert all(item.name in keywords for item in dataclasses.fields(EvaluationSection))
+    protocol = EvaluationSection(episodes=4, stage=3, seed=2, n_envs=2, deterministic=False, record=1)
+    assert protocol.kwargs() == {"episodes": 4, "stage": 3, "seed": 2, "n_envs": 2, "deterministic": False, "record": 1}
+    assert EvaluationSection(episodes=4).kwargs() == {"episodes": 4}  # unset: evaluate()'s default
+    for record in (-1, MAX_RECORDED_EPISODES + 1):
+        with pytest.raises(
+            ValueError, match=re.escape(f"evaluation: record (--trajectories) must be in [0, 100], got {record}")
+        ):
+            protocol.replace(record=record)
+    with pytest.raises(ValueError, match="evaluation: n_envs must be an integer >= 1, got 0"):
+        protocol.replace(n_envs=0)
 
 
 def test_comparison_table_rows_hold_rate_interval_and_mean_std() -> None:

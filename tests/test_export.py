@@ -22,7 +22,7 @@ from sb3_formation.env.engine import FormationEngine
 from sb3_formation.env.observations import observation_fields
 from sb3_formation.experiment.evaluation import evaluate
 from sb3_formation.experiment.pretrained import ONNX_FILE, PRETRAINED_DIR, load_pretrained, pretrained_names
-from sb3_formation.experiment.targets import evaluation_folder, load_policy
+from sb3_formation.experiment.targets import Target, load_policy
 from sb3_formation.runtime import OnnxPolicy
 from sb3_formation.runtime.onnx_policy import METADATA_PREFIX
 from sb3_formation.sb3.onnx_export import export_onnx
@@ -253,7 +253,7 @@ def test_export_and_evaluate_from_the_command_line(
     assert main(["export", "pretrained:ch4-individual", "--onnx", str(out)]) == 0
     assert "opset 18" in capsys.readouterr().out
     assert isinstance(load_policy(f"onnx:{out}"), OnnxPolicy) and isinstance(load_policy(out), OnnxPolicy)
-    assert evaluation_folder(out) == tmp_path / "eval_policy"  # beside, not over, the model's own evaluation
+    assert Target.parse(out).evaluation_folder() == tmp_path / "eval_policy"  # beside, not over, the model's own evaluation
     assert main(["evaluate", f"onnx:{out}", "--episodes", "2", "--n-envs", "2", "--no-progress", "--trajectories", "0"]) == 0
     summary = json.loads((tmp_path / "eval_policy" / "summary.json").read_text())
     assert summary["episodes"] == 2 and summary["model"]["file"] == str(out)

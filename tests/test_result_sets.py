@@ -32,6 +32,8 @@ from sb3_formation.experiment.evaluation import (
     load_trajectories,
     stored_summary,
 )
+from sb3_formation.experiment.sections import EvaluationSection
+from sb3_formation.experiment.targets import Target
 from sb3_formation.experiment.trajectories import Trajectories
 from sb3_formation.utils.files import folder_lock
 from sb3_formation.viz.plots import save_figures
@@ -155,11 +157,11 @@ def test_compare_does_not_reuse_a_mixed_set(tmp_path: Path, monkeypatch: pytest.
     monkeypatch.chdir(tmp_path)
     assert main(["evaluate", "controller:classical", *RECIPE, *QUICK]) == 0
     folder = tmp_path / "evaluations" / "controller-classical_ch4-individual"
-    protocol = {"episodes": 2, "seed": 0}
-    assert stored_summary("controller:classical", protocol, "ch4-individual") is not None
+    target, protocol = Target.parse("controller:classical", "ch4-individual"), EvaluationSection(episodes=2, seed=0)
+    assert stored_summary(target, protocol) is not None
     with open(folder / EPISODES_FILE, "a") as stream:
         stream.write("a row of another evaluation\n")
-    assert stored_summary("controller:classical", protocol, "ch4-individual") is None
+    assert stored_summary(target, protocol) is None
 
 
 def test_summaries_of_earlier_versions_are_read_unchecked(results: dict[int, EvaluationResult], tmp_path: Path) -> None:

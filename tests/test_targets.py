@@ -11,12 +11,11 @@ import pytest
 
 from sb3_formation import FormationEnv, load_policy
 from sb3_formation.cli import main
-from sb3_formation.cli.common import target_label
 from sb3_formation.controllers import ClassicalController, RandomController, TeamPolicy
 from sb3_formation.controllers.residual import ResidualPolicy
 from sb3_formation.env.rendering import render_frame
 from sb3_formation.experiment.evaluation import evaluate
-from sb3_formation.experiment.targets import evaluation_folder, target_kind
+from sb3_formation.experiment.targets import Target
 from sb3_formation.experiment.trajectories import Trajectories
 from sb3_formation.safety.policy import SafePolicy
 
@@ -28,8 +27,9 @@ def test_targets_resolve_through_one_registry() -> None:
     assert isinstance(policy, RandomController) and isinstance(policy, TeamPolicy)
     assert policy.config.n_agents == 3 and policy.config.team_reward  # the ch4-team recipe's task
     assert load_policy("controller:random").config.n_agents == 6  # default recipe: ch5-bearing
-    assert target_kind("controller:random") == "controller" and target_kind("runs/a:b") is None
-    assert evaluation_folder("controller:random", "ch4-team") == Path("evaluations/controller-random_ch4-team")
+    assert Target.parse("controller:random").kind == "controller" and Target.parse("runs/a:b").kind == "model"
+    assert Target.parse("runs/a:b").path == Path("runs/a:b") and Target.parse("onnx:p").path == Path("p")
+    assert Target.parse("controller:random", "ch4-team").evaluation_folder() == Path("evaluations/controller-random_ch4-team")
     with pytest.raises(ValueError, match="unknown controller 'pid'; controllers: classical, privileged-planner, random"):
         load_policy("controller:pid")
     with pytest.raises(ValueError, match="a recipe applies to controller targets only"):
@@ -74,12 +74,13 @@ def test_safe_targets_put_any_target_behind_the_filter_in_every_command(
     monkeypatch.chdir(tmp_path)
     policy = load_policy("safe:controller:classical", recipe="ch4-individual")
     assert isinstance(policy, SafePolicy) and isinstance(policy.policy, ClassicalController)
-    assert policy.config.n_agents == 3 and target_kind("safe:controller:classical") == "controller"
+    assert policy.config.n_agents == 3 and Target.parse("safe:controller:classical").kind == "controller"
     assert isinstance(load_policy("safe:pretrained:ch5-bearing").policy, ResidualPolicy)
-    assert evaluation_folder("safe:controller:random") == Path("evaluations/controller-random_ch5-bearing-safe")
-    assert evaluation_folder("safe:runs/a/final_model.zip", scenes="trap") == Path("runs/a/eval-trap-safe")
+    assert Target.parse("safe:controller:random").evaluation_folder() == Path("evaluations/controller-random_ch5-bearing-safe")
+    assert Target.parse("safe:runs/a/final_model.zip").evaluation_folder("trap") == Path("runs/a/eval-trap-safe")
     (tmp_path / "runs" / "a").mkdir(parents=True)
-    assert target_label("safe:runs/a") == "safe-a" and target_label("safe:controller:random") == "safe:controller:random"
+    assert Target.parse("safe:runs/a").label == "safe-a"
+    assert Target.parse("safe:controller:random").label == "safe:controller:random"
     short = ["--recipe", "ch4-individual", *QUICK]
     for target in ("controller:classical", "safe:controller:classical"):
         assert main(["evaluate", target, *short]) == 0
@@ -114,3 +115,50 @@ def test_a_recorded_episode_is_drawn_from_its_file_without_the_policy(tmp_path: 
         render_frame(trajectories.team_state(0, 0), trajectories.config, draw_lidar=True)
     with pytest.raises(IndexError):
         trajectories.team_state(0, int(trajectories.lengths[0]) + 1)
+
+
+def test_a_target_is_parsed_once_into_one_value() -> None:
+    """``safe:`` any number of times is one filter, in the folder of ``safe:<target>`` (inside the target's own folder,
+    not the working folder); the parsed value is what every command is given."""
+    once, twice = Target.parse("safe:runs/a/final_model.zip"), Target.parse("safe:safe:runs/a/final_model.zip")
+    assert once == twice == Target("model", "runs/a/final_model.zip", safe=True)
+    assert twice.evaluation_folder() == once.evaluation_folder() == Path("runs/a/eval-safe")
+    assert str(twice) == "safe:safe:runs/a/final_model.zip" and str(Target("controller", "random", True)) == (
+        "safe:controller:random"
+    )
+    assert Target.parse("safe:safe:controller:random").evaluation_folder() == Path(
+        "evaluations/controller-random_ch5-bearing-safe"
+    )
+    policy = load_policy("safe:safe:controller:classical", recipe="ch4-individual")
+    assert isinstance(policy, SafePolicy) and isinstance(policy.policy, ClassicalController)
+    assert Target.parse(once) is once and Target.parse(once, "ch4-team").recipe == "ch4-team"
+    assert [Target.parse(text).kind for text in ("x.onnx", "onnx:x", "pretrained:a", "model:x", "runs/x")] == [
+        "onnx",
+        "onnx",
+        "pretrained",
+        "model",
+        "model",
+    ]
+    assert Target.parse("runs/x").with_recipe("ch4-team").recipe is None
+    with pytest.raises(ValueError, match="names no file"):
+        _ = Target.parse("controller:random").path
+    with pytest.raises(ValueError, match="unknown kind of target 'robot'"):
+        Target("robot", "x")
+
+
+def test_a_target_names_its_recipe_and_protocol(tmp_path: Path) -> None:
+    """A controller is evaluated in the recipe named for it, a model file of no run in none; command-line changes of
+    the protocol are validated by the evaluation section."""
+    controller = Target.parse("controller:random", "ch4-team")
+    recipe = controller.task_recipe()
+    assert recipe is not None and recipe.name == "ch4-team"
+    assert controller.protocol() == recipe.evaluation
+    assert controller.protocol(episodes=3, stage=None).episodes == 3
+    assert controller.protocol(stage=None).stage == recipe.evaluation.stage
+    with pytest.raises(ValueError, match="evaluation: stage must be 1, 2 or 3, got 4"):
+        controller.protocol(stage=4)
+    loose = Target.parse(tmp_path / "model.zip")
+    assert loose.run_folder is None and loose.task_recipe() is None
+    assert loose.protocol(episodes=2).episodes == 2
+    with pytest.raises(ValueError, match="belongs to no run folder whose recipe gives the number of episodes"):
+        loose.protocol()

@@ -16,7 +16,7 @@ from sb3_formation.cli.common import (
 )
 from sb3_formation.env.scenes import BENCHMARK_SCENES
 from sb3_formation.experiment.benchmark import BENCHMARK_EPISODES, BENCHMARK_SEED, TABLE_FILE, run_benchmark
-from sb3_formation.experiment.targets import load_policy, target_kind
+from sb3_formation.experiment.targets import Target
 from sb3_formation.utils.checks import check_name
 from sb3_formation.utils.files import folder_lock, holds_files
 
@@ -52,7 +52,8 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """``sb3-formation benchmark TARGET...``: the table, the evaluations and the figures, with ``--out`` locked from
     the check that it is new or empty to the last figure (a second benchmark into it is refused)."""
-    labels = target_labels(args.labels, args.targets)
+    targets = [Target.parse(target).with_recipe(args.recipe) for target in args.targets]
+    labels = target_labels(args.labels, targets)
     folders = [re.sub(r"[^A-Za-z0-9_.-]+", "-", label) for label in labels]
     for folder in folders:
         check_name(folder, "label")
@@ -60,12 +61,12 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"labels must differ, got {labels}")
     check_new_folder(args.out)
     with model_trust(args):
-        for target in args.targets:  # every target loads before any is evaluated
-            load_policy(target, args.recipe if target_kind(target) else None, args.device)
+        for target in targets:  # every target loads before any is evaluated
+            target.load(args.device)
         with folder_lock(args.out, "benchmark folder", remove=True):
             check_new_folder(args.out)  # again, now that no other benchmark can start writing here
             rows = run_benchmark(
-                args.targets,
+                targets,
                 folders,
                 args.out,
                 episodes=args.episodes,

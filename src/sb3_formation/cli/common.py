@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 from collections.abc import Sequence
 from contextlib import AbstractContextManager
 from pathlib import Path
@@ -12,8 +11,8 @@ from typing import Any
 from sb3_formation.env.scenes import SCENES
 from sb3_formation.experiment.evaluation import EVALUATION_TEAMS, evaluate_target
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE
-from sb3_formation.experiment.sections import MAX_SEED
-from sb3_formation.experiment.targets import evaluation_folder, run_folder, target_kind, target_path, unfiltered_target
+from sb3_formation.experiment.sections import MAX_SEED, EvaluationSection
+from sb3_formation.experiment.targets import Target
 from sb3_formation.sb3.model_files import trust_pickle
 from sb3_formation.utils.yaml_files import read_yaml
 
@@ -132,21 +131,40 @@ def print_summary(summary: dict) -> None:
         print(f"  {name:<26}{cell:>24}{statistics['mean']:>15.3f} ± {statistics['std']:.3f}")
 
 
-def evaluate_with_protocol(args: argparse.Namespace, target: str, episodes: int | None, out: Path | None = None) -> dict:
-    """Evaluate one target with the protocol options of ``args``, save its files, and return its summary."""
-    protocol = {
-        "episodes": episodes,
+def protocol_changes(args: argparse.Namespace) -> dict[str, Any]:
+    """The fields of the evaluation protocol (:class:`~sb3_formation.experiment.sections.EvaluationSection`) that the
+    protocol options of ``args`` set (``None``: the recipe's)."""
+    return {
+        "episodes": args.episodes,
         "stage": args.stage,
         "seed": args.seed,
         "n_envs": args.n_envs,
-        "workers": min(args.workers, args.n_envs),
         "deterministic": not args.stochastic,
         "record": getattr(args, "trajectories", 5),
-        "env_overrides": scene_overrides(args),
     }
-    result = evaluate_target(target, protocol, args.recipe, device=args.device, progress_bar=not args.no_progress, out=out)
-    out = out or evaluation_folder(target, args.recipe, result.scenes)
-    print(f"{target}: evaluation written to {out}")
+
+
+def evaluate_with_protocol(
+    args: argparse.Namespace, target: Target, protocol: EvaluationSection | None = None, out: Path | None = None
+) -> dict:
+    """Evaluate one target, save its files, and return its summary.
+
+    :param args: the protocol options (:func:`add_protocol_arguments`), ``--agents`` and ``--scenes``
+    :param target: the target
+    :param protocol: the protocol (default: the target's recipe's with the protocol options of ``args`` over it)
+    :param out: folder for the files (default: the target's evaluation folder)
+    """
+    result = evaluate_target(
+        target,
+        protocol,
+        changes=protocol_changes(args) if protocol is None else None,
+        workers=min(args.workers, args.n_envs),
+        env_overrides=scene_overrides(args),
+        device=args.device,
+        progress_bar=not args.no_progress,
+        out=out,
+    )
+    print(f"{target}: evaluation written to {out or target.evaluation_folder(result.scenes)}")
     return result.summary
 
 
@@ -156,25 +174,11 @@ def scene_overrides(args: argparse.Namespace) -> dict[str, Any]:
     return {name: value for name, value in overrides.items() if value is not None}
 
 
-def target_label(target: str | os.PathLike[str]) -> str:
-    """A target's default label (see :func:`target_labels`)."""
-    inner, safe = unfiltered_target(target)
-    if safe and not target_kind(inner):
-        return f"safe-{target_label(inner)}"
-    if target_kind(target):
-        return str(target)
-    path = target_path(target).resolve()
-    if path.is_file() and run_folder(path) is None:  # a model file of no run: its own name
-        return path.stem
-    return (path if path.is_dir() else path.parent).name  # a run folder, or the folder of a run's model file
-
-
-def target_labels(text: str | None, targets: Sequence[str | Path]) -> list[str]:
-    """One label per target: from ``--labels`` (comma-separated), else a ``<kind>:<name>`` target itself, a folder's
-    name, the name of the folder holding a run's model file (``run/checkpoints/iteration_10/model.zip`` ->
-    ``iteration_10``), or the name of a model file of no run (``policy.onnx`` -> ``policy``)."""
+def target_labels(text: str | None, targets: Sequence[Target]) -> list[str]:
+    """One label per target: from ``--labels`` (comma-separated), else each target's own
+    (:attr:`~sb3_formation.experiment.targets.Target.label`)."""
     if text is None:
-        return [target_label(target) for target in targets]
+        return [target.label for target in targets]
     labels = [label.strip() for label in text.split(",")]
     if len(labels) != len(targets):
         raise ValueError(f"--labels gives {len(labels)} labels for {len(targets)} runs")

@@ -9,7 +9,8 @@ from sb3_formation.cli.common import add_protocol_arguments, evaluate_with_proto
 from sb3_formation.env.scenes import DEFAULT_SCENES
 from sb3_formation.experiment.evaluation import SUMMARY_FILE, stored_summary
 from sb3_formation.experiment.reports import comparison_table
-from sb3_formation.experiment.targets import default_protocol, evaluation_file, load_policy, target_kind
+from sb3_formation.experiment.sections import EvaluationSection
+from sb3_formation.experiment.targets import Target
 from sb3_formation.utils.files import atomic_write
 
 
@@ -38,35 +39,34 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _compare(args: argparse.Namespace) -> int:
-    labels = target_labels(args.labels, args.targets)
+    # --recipe is the recipe of the controller: targets; runs and models act in the task they were trained in
+    targets = [Target.parse(target).with_recipe(args.recipe) for target in args.targets]
+    labels = target_labels(args.labels, targets)
     if len(set(labels)) != len(labels):
         raise ValueError(f"labels must differ, got {labels}")
-    # --recipe is the recipe of the controller: targets; runs and models act in the task they were trained in
-    recipes = [args.recipe if target_kind(target) else None for target in args.targets]
-    for target, recipe in zip(args.targets, recipes):  # every target loads before any is evaluated (and written to)
-        load_policy(target, recipe, args.device)
-    protocols = [default_protocol(target, args.recipe) for target in args.targets]
-    protocol = {
-        # the recipes' protocol (the larger one if they differ, e.g. chapter 4's 500 episodes and chapter 5's 200)
-        "episodes": args.episodes or max((p["episodes"] for p in protocols if "episodes" in p), default=None),
-        "stage": args.stage or max((p.get("stage", 3) for p in protocols), default=3),
-    }
-    if protocol["episodes"] is None:
+    for target in targets:  # every target loads before any is evaluated (and written to)
+        target.load(args.device)
+    # the recipes' protocol (the larger one if they differ, e.g. chapter 4's 500 episodes and chapter 5's 200)
+    protocols = [None if recipe is None else recipe.evaluation for recipe in (target.task_recipe() for target in targets)]
+    episodes = args.episodes or max((own.episodes for own in protocols if own is not None), default=None)
+    if episodes is None:
         raise ValueError(
             "none of the targets belongs to a run folder whose recipe gives the number of episodes: give --episodes"
         )
+    protocol = EvaluationSection(
+        episodes=episodes,
+        stage=args.stage or max((3 if own is None or own.stage is None else own.stage for own in protocols), default=3),
+        seed=args.seed,
+        n_envs=args.n_envs,
+        deterministic=not args.stochastic,
+        record=5,
+    )
     summaries = {}
-    for label, target, recipe in zip(labels, args.targets, recipes):
-        own = argparse.Namespace(**{**vars(args), "recipe": recipe})
-        wanted = {**protocol, "seed": args.seed, "deterministic": not args.stochastic}
-        scenes = args.scenes or DEFAULT_SCENES
-        if args.scenes is not None:
-            wanted["scenes"] = args.scenes
-        summary = None if args.force else stored_summary(target, wanted, own.recipe, scenes)
+    for label, target in zip(labels, targets):
+        summary = None if args.force else stored_summary(target, protocol, args.scenes)
         if summary is not None:
-            print(f"{target}: reusing {evaluation_file(target, SUMMARY_FILE, own.recipe, scenes)}")
-        own.stage = protocol["stage"]
-        summaries[label] = summary or evaluate_with_protocol(own, target, protocol["episodes"])
+            print(f"{target}: reusing {target.evaluation_file(SUMMARY_FILE, args.scenes or DEFAULT_SCENES)}")
+        summaries[label] = summary or evaluate_with_protocol(args, target, protocol)
     table = comparison_table(summaries, over=args.over)
     print(table)
     if args.table is not None:

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from sb3_formation.cli.common import TARGET_HELP, add_protocol_arguments, evaluate_with_protocol, model_trust, print_summary
+from sb3_formation.experiment.targets import Target
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -30,5 +31,5 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """``sb3-formation evaluate``: success rate with a Wilson interval, errors, episode table and trajectories."""
     with model_trust(args):
-        print_summary(evaluate_with_protocol(args, args.target, args.episodes, args.out))
+        print_summary(evaluate_with_protocol(args, Target.parse(args.target, args.recipe), out=args.out))
     return 0

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from sb3_formation.cli.common import TARGET_HELP, add_trust_pickle_option, model_trust
-from sb3_formation.experiment.targets import load_policy
+from sb3_formation.experiment.targets import Target
 from sb3_formation.runtime import OnnxPolicy
 from sb3_formation.sb3.onnx_export import DEFAULT_OPSET, SUPPORTED_OPSETS, export_onnx
 
@@ -37,7 +37,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """``sb3-formation export``: the target's policy written to ``--onnx``, then read back by the runtime."""
     with model_trust(args):
-        policy = load_policy(args.target, device="cpu")
+        policy = Target.parse(args.target).load(device="cpu")
     path = export_onnx(policy, args.onnx, opset=args.opset)
     metadata = OnnxPolicy(path).metadata
     print(f"{args.target} exported to {path} (opset {metadata.opset})")

@@ -9,7 +9,7 @@ from sb3_formation.cli.common import add_recipe_option, add_scenes_option, indic
 from sb3_formation.env.scenes import DEFAULT_SCENES
 from sb3_formation.experiment.evaluation import TRAJECTORIES_FILE, load_summary, load_trajectories
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE, load_settings
-from sb3_formation.experiment.targets import evaluation_file
+from sb3_formation.experiment.targets import Target
 from sb3_formation.experiment.trajectories import Trajectories
 
 #: The figures ``plot`` draws.
@@ -55,7 +55,8 @@ def run(args: argparse.Namespace) -> int:
     if args.figure in ("trajectories", "errors"):
         if len(args.targets) != 1:
             raise ValueError(f"{args.figure} draws one evaluation; got {len(args.targets)} targets")
-        path = evaluation_file(args.targets[0], TRAJECTORIES_FILE, args.recipe, args.scenes or DEFAULT_SCENES)
+        target = Target.parse(args.targets[0]).with_recipe(args.recipe)
+        path = target.evaluation_file(TRAJECTORIES_FILE, args.scenes or DEFAULT_SCENES)
         trajectories = load_trajectories(path)
         indices = _recordedindices(trajectories, args.episodes)
         default = path.parent / "figures" / ("trajectory.png" if args.figure == "trajectories" else "errors.png")
@@ -72,14 +73,15 @@ def run(args: argparse.Namespace) -> int:
                 }
             )
     elif args.figure == "bars":
-        labels = target_labels(args.labels, args.targets)
-        summaries = dict(zip(labels, (load_summary(target, args.recipe) for target in args.targets)))
+        targets = [Target.parse(target).with_recipe(args.recipe) for target in args.targets]
+        summaries = dict(zip(target_labels(args.labels, targets), map(load_summary, targets)))
         written = [save_figure(plot_evaluation_bars(summaries, over=args.over), args.out or Path("evaluation_bars.png"))]
     else:
-        labels = target_labels(args.labels, args.targets) if args.labels else [_recipe_label(t) for t in args.targets]
+        runs = [Path(run) for run in args.targets]  # run folders
+        labels = target_labels(args.labels, list(map(Target.parse, runs))) if args.labels else list(map(_recipe_label, runs))
         groups: dict[str, list[Path]] = {}
-        for label, target in zip(labels, args.targets):
-            groups.setdefault(label, []).append(target)
+        for label, run in zip(labels, runs):
+            groups.setdefault(label, []).append(run)
         figure = plot_training_curves(groups, window=args.window)
         written = [save_figure(figure, args.out or Path("training_curves.png"))]
     for path in written:

@@ -16,7 +16,7 @@ from sb3_formation.cli.common import (
     scene_overrides,
     seed_value,
 )
-from sb3_formation.experiment.targets import evaluation_folder, load_policy
+from sb3_formation.experiment.targets import Target
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -48,9 +48,10 @@ def run(args: argparse.Namespace) -> int:
     """``sb3-formation render``: a video of evaluation episodes."""
     from sb3_formation.viz.video import render_episodes  # imported only by the command that uses it
 
+    target = Target.parse(args.target, args.recipe)
     with model_trust(args):
-        policy = load_policy(args.target, args.recipe, device=args.device)
-    out = args.out or evaluation_folder(args.target, args.recipe, args.scenes or policy.config.scenes) / "episodes.mp4"
+        policy = target.load(device=args.device)
+    out = args.out or target.evaluation_folder(args.scenes or policy.config.scenes) / "episodes.mp4"
     frames = render_episodes(
         policy,
         out,

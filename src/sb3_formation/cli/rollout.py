@@ -13,7 +13,7 @@ from sb3_formation.env.rendering import render_frame
 from sb3_formation.env.state import TeamState
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE
 from sb3_formation.experiment.rollouts import PlayJob, play_episodes, seed_policy
-from sb3_formation.experiment.targets import load_policy
+from sb3_formation.experiment.targets import Target
 from sb3_formation.utils.files import atomic_path
 
 
@@ -44,7 +44,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """``sb3-formation rollout``: episodes of any policy with per-episode metrics and a PNG of the final frame."""
     with model_trust(args):
-        policy = load_policy(args.target, args.recipe, device="cpu")
+        policy = Target.parse(args.target, args.recipe).load(device="cpu")
     overrides = {"stage": args.stage}
     if args.agents is not None:
         overrides["n_agents"] = args.agents

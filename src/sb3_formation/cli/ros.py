@@ -10,7 +10,7 @@ import sys
 
 from sb3_formation.cli.common import TARGET_HELP
 from sb3_formation.experiment.pretrained import ONNX_FILE, pretrained_folder
-from sb3_formation.experiment.targets import is_onnx_target, target_kind, target_name, target_path
+from sb3_formation.experiment.targets import Target
 from sb3_formation.ros.launch import add_arguments
 
 
@@ -25,15 +25,15 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.set_defaults(run=run)
 
 
-def exported_file(target: str) -> str:
+def exported_file(target: Target) -> str:
     """The ``.onnx`` file of a target: a shipped policy's, or the exported file it names.
 
     :raises ValueError: a target that is neither (export it first)
     """
-    if target_kind(target) == "pretrained":
-        return str(pretrained_folder(target_name(target)) / ONNX_FILE)
-    if is_onnx_target(target):
-        return str(target_path(target))
+    if target.kind == "pretrained":
+        return str(pretrained_folder(target.name) / ONNX_FILE)
+    if target.kind == "onnx":
+        return str(target.path)
     raise ValueError(
         f"the ROS 2 nodes run an exported policy: export {target} first (sb3-formation export {target} --onnx FILE)"
     )
@@ -43,6 +43,6 @@ def run(args: argparse.Namespace) -> int:
     """Hand over to ``python -m sb3_formation.ros`` with the target's ``.onnx`` file (this process is replaced)."""
     argv = shlex.split(args.command_line)
     argv = argv[argv.index("ros") + 1 :]
-    argv[argv.index(args.model)] = exported_file(args.model)
+    argv[argv.index(args.model)] = exported_file(Target.parse(args.model))
     os.execv(sys.executable, [sys.executable, "-m", "sb3_formation.ros", *argv])
     return 0  # pragma: no cover - execv does not return

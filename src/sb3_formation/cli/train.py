@@ -166,8 +166,13 @@ def run(args: argparse.Namespace) -> int:
         run_dir = train(settings, command=args.command_line, run_dir=args.run_dir)
     print(f"run folder: {run_dir}")
     if settings.run.evaluate and (run_dir / FINAL_MODEL).exists():
-        protocol = {**settings.recipe.evaluation.to_dict(), "workers": settings.run.workers}
-        result = evaluate_target(run_dir, protocol, device=settings.run.device, progress_bar=settings.run.progress_bar)
+        result = evaluate_target(
+            run_dir,
+            settings.recipe.evaluation,
+            workers=settings.run.workers,
+            device=settings.run.device,
+            progress_bar=settings.run.progress_bar,
+        )
         print_summary(result.summary)
     print(f"tensorboard --logdir {Path(run_dir).parent}")
     return 0

@@ -37,7 +37,8 @@ from typing import Any
 from sb3_formation import __version__
 from sb3_formation.env.scenes import BENCHMARK_SCENES
 from sb3_formation.experiment.evaluation import EvaluationResult, evaluate_target
-from sb3_formation.experiment.targets import target_kind
+from sb3_formation.experiment.sections import EvaluationSection
+from sb3_formation.experiment.targets import Target
 from sb3_formation.utils.files import atomic_write
 from sb3_formation.utils.machine import machine_line
 
@@ -90,7 +91,7 @@ class BenchmarkRow:
 
 
 def run_benchmark(
-    targets: Sequence[str | os.PathLike[str]],
+    targets: Sequence[Target | str | os.PathLike[str]],
     labels: Sequence[str],
     out: str | os.PathLike[str],
     episodes: int = BENCHMARK_EPISODES,
@@ -107,7 +108,8 @@ def run_benchmark(
     """Evaluate every target on every scene set; write each evaluation under ``out/<label>/<scenes>/``, then the table
     (``benchmark.md``) and its figures as data (``benchmark.json``).
 
-    :param targets: run folders, model files or ``<kind>:<name>`` targets
+    :param targets: targets, or what :meth:`~sb3_formation.experiment.targets.Target.parse` reads (run folders, model
+        files, ``<kind>:<name>`` targets)
     :param labels: one label per target (folder names)
     :param out: the benchmark's folder
     :param episodes: episodes per target and scene set
@@ -124,26 +126,29 @@ def run_benchmark(
     if len(labels) != len(targets) or len(set(labels)) != len(labels):
         raise ValueError(f"give one distinct label per target, got {list(labels)} for {len(targets)} targets")
     out = Path(out)
+    protocol = EvaluationSection(
+        episodes=episodes, stage=3, seed=seed, n_envs=min(n_envs, episodes), deterministic=True, record=1
+    )
     rows = []
-    for target, label in zip(targets, labels):
+    for text, label in zip(targets, labels):
+        target = Target.parse(text)
+        if target.kind == "controller":  # others act in their own task
+            target = target.with_recipe(recipe)
         for scene_set in scenes:
             overrides: dict[str, Any] = {"scenes": scene_set}
             if n_agents is not None:
                 overrides["n_agents"] = n_agents
-            protocol = {
-                "episodes": episodes,
-                "stage": 3,
-                "seed": seed,
-                "n_envs": min(n_envs, episodes),
-                "workers": min(workers, n_envs, episodes),
-                "deterministic": True,
-                "record": 1,
-                "env_overrides": overrides,
-            }
             folder = out / label / scene_set
-            own_recipe = recipe if target_kind(target) == "controller" else None  # others act in their own task
             started = time.perf_counter()
-            result = evaluate_target(target, protocol, own_recipe, device=device, progress_bar=progress_bar, out=folder)
+            result = evaluate_target(
+                target,
+                protocol,
+                workers=min(workers, n_envs, episodes),
+                env_overrides=overrides,
+                device=device,
+                progress_bar=progress_bar,
+                out=folder,
+            )
             rows.append(BenchmarkRow(label, scene_set, result, folder, time.perf_counter() - started))
     run = {
         "machine": machine_line(),

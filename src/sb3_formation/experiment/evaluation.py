@@ -12,7 +12,7 @@ import hashlib
 import io
 import json
 import os
-from collections.abc import Collection
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,8 +24,10 @@ from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.env.config import REWARD_TERMS
 from sb3_formation.env.scenes import DEFAULT_SCENES
 from sb3_formation.experiment.rollouts import PlayJob, play_episodes, seed_policy
+from sb3_formation.experiment.sections import MAX_RECORDED_EPISODES as MAX_RECORDED_EPISODES
+from sb3_formation.experiment.sections import EvaluationSection, check_record
 from sb3_formation.experiment.statistics import mean_and_std, wilson_interval
-from sb3_formation.experiment.targets import default_protocol, evaluation_file, evaluation_folder, load_policy
+from sb3_formation.experiment.targets import Target
 from sb3_formation.experiment.trajectories import Trajectories, stack_recordings
 from sb3_formation.safety.policy import SafePolicy
 from sb3_formation.sb3.callbacks import threads_beside_workers, torch_threads
@@ -47,6 +49,8 @@ EPISODE_COLUMNS = (
 SUMMARY_FILE, EPISODES_FILE, TRAJECTORIES_FILE = "summary.json", "episodes.csv", "trajectories.npz"
 #: Key of ``summary.json`` giving the SHA-256 of the other files of its evaluation (readers check them against it).
 FILES_KEY = "files"
+#: The protocol's fields that an evaluation summary records (:func:`stored_summary` matches them).
+RECORDED_PROTOCOL = ("episodes", "stage", "seed", "deterministic")
 #: Teams an evaluation plays at once by default: more teams per policy call spread the call's fixed cost, and the
 #: engine steps them at once (``benchmarks/evaluation_throughput.py`` measures the default command)
 EVALUATION_TEAMS = 16
@@ -150,11 +154,6 @@ def policy_identity(policy: TeamPolicy) -> dict[str, Any] | None:
     return None if gains is None else {"controller": type(policy).__name__, "gains": gains}
 
 
-#: The most episodes an evaluation records step by step (``record``): they are held in memory until written, about
-#: 6 MB each at the scene families' 2,500 steps and 6 agents, so 0.6 GB at most.
-MAX_RECORDED_EPISODES = 100
-
-
 def evaluate(
     policy: TeamPolicy,
     episodes: int,
@@ -190,11 +189,7 @@ def evaluate(
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     if not 1 <= n_workers <= n_envs:
         raise ValueError(f"n_workers must be in [1, n_envs={n_envs}], got {n_workers}")
-    if not 0 <= record <= MAX_RECORDED_EPISODES:
-        raise ValueError(
-            f"record (--trajectories) must be in [0, {MAX_RECORDED_EPISODES}], got {record}: recorded episodes are held "
-            "in memory until written (about 6 MB for a 2,500-step episode of 6 agents)"
-        )
+    check_record(record)
     config = policy.config.replace(**{**(env_overrides or {}), "stage": stage})
     policy = policy.fit(config)
     n_teams = min(n_envs, episodes)
@@ -220,46 +215,49 @@ def evaluate(
 
 
 def evaluate_target(
-    target: str | os.PathLike[str],
-    protocol: dict[str, Any] | None = None,
-    recipe: str | None = None,
+    target: Target | str | os.PathLike[str],
+    protocol: EvaluationSection | None = None,
+    *,
+    changes: Mapping[str, Any] | None = None,
+    workers: int = 1,
+    env_overrides: dict[str, Any] | None = None,
     device: str = "auto",
     progress_bar: bool = False,
     out: str | os.PathLike[str] | None = None,
 ) -> EvaluationResult:
-    """Evaluate the policy a target names (see :func:`~sb3_formation.experiment.targets.load_policy`) and write its files.
+    """Evaluate the policy a target names (:meth:`~sb3_formation.experiment.targets.Target.load`) and write its files.
 
-    :param target: a run folder, a model ``.zip`` or ``controller:<name>``
-    :param protocol: :func:`evaluate` arguments (``episodes``, ``stage``, ``seed``, ``n_envs``, ``workers``,
-        ``deterministic``, ``record``, ``env_overrides``); ``episodes`` and ``stage`` default to the evaluation protocol
-        of the target's recipe (the thesis's: stage 3, 500 episodes in chapter 4, 200 in chapter 5)
-    :param recipe: the recipe of a ``controller:`` target
+    :param target: a :class:`~sb3_formation.experiment.targets.Target`, or what :meth:`Target.parse` reads (a run
+        folder, a model file, ``controller:<name>``, ...)
+    :param protocol: the evaluation protocol (default: the target's recipe's, :meth:`Target.protocol`; the thesis's:
+        stage 3, 500 episodes in chapter 4, 200 in chapter 5)
+    :param changes: fields of the protocol replaced (``None`` keeps its value), validated by the section
+    :param workers: processes playing the episodes (``n_workers`` of :func:`evaluate`)
+    :param env_overrides: :class:`FormationConfig` fields to change from the policy's configuration
     :param device: torch device
     :param progress_bar: show a progress bar
-    :param out: folder for the files (default: :func:`~sb3_formation.experiment.targets.evaluation_folder`)
-    :raises ValueError: the folder is inside the installed package (:func:`~sb3_formation.utils.files.check_writable`)
+    :param out: folder for the files (default: :meth:`Target.evaluation_folder`)
+    :raises ValueError: the folder is inside the installed package (:func:`~sb3_formation.utils.files.check_writable`),
+        or the protocol is incomplete or invalid
     """
-    protocol = {key: value for key, value in (protocol or {}).items() if value is not None}
-    check_writable(out or evaluation_folder(target, recipe))  # before the work (the scene suffix does not move it)
-    policy = load_policy(target, recipe=recipe, device=device)
-    protocol = {**default_protocol(target, recipe), **protocol}
-    if "episodes" not in protocol:
-        raise ValueError(f"{target} belongs to no run folder whose recipe gives the number of episodes: give --episodes")
-    if "workers" in protocol:
-        protocol["n_workers"] = protocol.pop("workers")
-    result = evaluate(policy, progress_bar=progress_bar, **protocol)
-    result.save(out or evaluation_folder(target, recipe, result.scenes))
+    target = Target.parse(target)
+    check_writable(out or target.evaluation_folder())  # before the work (the scene suffix does not move it)
+    policy = target.load(device)
+    changes = {name: value for name, value in (changes or {}).items() if value is not None}
+    protocol = target.protocol(**changes) if protocol is None else protocol.replace(**changes)
+    result = evaluate(policy, **protocol.kwargs(), env_overrides=env_overrides, n_workers=workers, progress_bar=progress_bar)
+    result.save(out or target.evaluation_folder(result.scenes))
     return result
 
 
-def load_summary(target: str | os.PathLike[str], recipe: str | None = None, scenes: str = DEFAULT_SCENES) -> dict[str, Any]:
-    """The stored evaluation summary of a target (see :func:`~sb3_formation.experiment.targets.evaluation_file`), checked
-    against the other files of its evaluation (see :func:`check_evaluation_set`).
+def load_summary(target: Target | str | os.PathLike[str], scenes: str = DEFAULT_SCENES) -> dict[str, Any]:
+    """The stored evaluation summary of a target (see :meth:`~sb3_formation.experiment.targets.Target.evaluation_file`),
+    checked against the other files of its evaluation (see :func:`check_evaluation_set`).
 
     :raises FileNotFoundError: none was written
     :raises ValueError: the file is not an evaluation summary, or the folder holds a mixed set
     """
-    path = evaluation_file(target, SUMMARY_FILE, recipe, scenes)
+    path = Target.parse(target).evaluation_file(SUMMARY_FILE, scenes)
     summary = read_summary(path)
     check_evaluation_set(path.parent, summary)
     return summary
@@ -315,15 +313,19 @@ def load_trajectories(path: str | os.PathLike[str]) -> Trajectories:
 
 
 def stored_summary(
-    target: str | os.PathLike[str], protocol: dict[str, Any], recipe: str | None = None, scenes: str = DEFAULT_SCENES
+    target: Target | str | os.PathLike[str], protocol: EvaluationSection, scenes: str | None = None
 ) -> dict | None:
-    """The target's stored evaluation summary (on ``scenes``) if it is of the same policy (the model file's SHA-256, or
-    the controller and its gains) under ``protocol`` (summary keys such as ``episodes``, ``stage``, ``seed``), else
-    ``None``."""
+    """The target's stored evaluation summary if it is of the same policy (the model file's SHA-256, or the controller
+    and its gains) under ``protocol`` (the fields a summary records, :data:`RECORDED_PROTOCOL`, that it sets) on
+    ``scenes`` (``None``: the default scenes' evaluation, whatever scenes it records), else ``None``."""
+    target = Target.parse(target)
+    wanted = {name: value for name, value in protocol.kwargs().items() if name in RECORDED_PROTOCOL}
+    if scenes is not None:
+        wanted["scenes"] = scenes
     try:
-        summary = load_summary(target, recipe, scenes)
-        identity = policy_identity(load_policy(target, recipe, device="cpu"))
+        summary = load_summary(target, scenes or DEFAULT_SCENES)
+        identity = policy_identity(target.load(device="cpu"))
     except (FileNotFoundError, ValueError):
         return None
     same_policy = identity is not None and summary.get("model") == identity
-    return summary if same_policy and all(summary.get(key) == value for key, value in protocol.items()) else None
+    return summary if same_policy and all(summary.get(key) == value for key, value in wanted.items()) else None

@@ -63,7 +63,7 @@ def export_pretrained(
     if missing or checkpoint is None:
         raise ValueError(f"{run_dir} is not a finished run: it lacks {', '.join(missing) or 'a checkpoint'}")
     state = json.loads((checkpoint / STATE_FILE).read_text())
-    protocol = settings.recipe.evaluation.to_dict()
+    protocol = settings.recipe.evaluation.replace(record=0)
     if (root / name).exists() and not replace:
         raise ValueError(f"pretrained:{name} exists in {root}: give another name, or --replace to replace it")
     with package_writes(), folder_lock(root, "folder of shipped policies", remove=True):
@@ -81,7 +81,7 @@ def export_pretrained(
             shutil.copyfile(run_dir / "config.yaml", folder / "config.yaml")
             shipped = load_trained(folder, device="cpu")
             export_onnx(shipped, folder / ONNX_FILE)
-            result = evaluate(shipped, **{**protocol, "record": 0}, progress_bar=progress_bar)
+            result = evaluate(shipped, **protocol.kwargs(), progress_bar=progress_bar)
             # the summary names the shipped model (its SHA-256), not the temporary folder it was evaluated in
             result = dataclasses.replace(result, model={**cast("dict[str, str]", result.model), "file": f"pretrained:{name}"})
             result.save((folder / SUMMARY_PATH).parent)
@@ -102,7 +102,8 @@ def export_pretrained(
                     "python": platform.python_version(),
                 },
                 "exported": datetime.date.today().isoformat(),
-                "evaluation_teams": protocol.get("n_envs", EVALUATION_TEAMS),  # teams played at once: a replay plays as many
+                # teams played at once: a replay plays as many
+                "evaluation_teams": EVALUATION_TEAMS if protocol.n_envs is None else protocol.n_envs,
                 "numerics": numerics_fingerprint(),  # where a machine's is the same, the stored episodes replay exactly
             }
             (folder / CARD_FILE).write_text(json.dumps(card, indent=2) + "\n")

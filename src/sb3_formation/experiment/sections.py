@@ -398,6 +398,25 @@ class CurriculumSection(Section):
         )
 
 
+#: The most episodes an evaluation records step by step (``record``): they are held in memory until written, about
+#: 6 MB each at the scene families' 2,500 steps and 6 agents, so 0.6 GB at most.
+MAX_RECORDED_EPISODES = 100
+
+
+def check_record(record: Any, where: str = "") -> None:
+    """Refuse to record more episodes step by step than :data:`MAX_RECORDED_EPISODES` (or fewer than none).
+
+    :param record: the episodes to record
+    :param where: what the message begins with (e.g. the section's key)
+    :raises ValueError: naming the option (``--trajectories``) and why there is a limit
+    """
+    if not (is_count(record) and record <= MAX_RECORDED_EPISODES):
+        raise ValueError(
+            f"{where}record (--trajectories) must be in [0, {MAX_RECORDED_EPISODES}], got {record}: recorded episodes are "
+            "held in memory until written (about 6 MB for a 2,500-step episode of 6 agents)"
+        )
+
+
 @dataclass(frozen=True)
 class EvaluationSection(Section):
     """``evaluation:``: the protocol that measures a trained policy, keyword arguments of
@@ -408,7 +427,7 @@ class EvaluationSection(Section):
     :param seed: episode k plays the scenario of seed + k
     :param n_envs: teams played at once
     :param deterministic: play the policy's mean action (else sample it)
-    :param record: episodes whose steps are recorded for the figures
+    :param record: episodes whose steps are recorded for the figures (at most :data:`MAX_RECORDED_EPISODES`)
     """
 
     key: ClassVar[str] = "evaluation"
@@ -427,7 +446,13 @@ class EvaluationSection(Section):
         self._check("seed", "an integer in [0, 2**32 - 1]", _optional(lambda value: is_count(value) and value <= MAX_SEED))
         self._check("n_envs", "an integer >= 1", _optional(_at_least(1)))
         self._check("deterministic", "true or false", _optional(_is_bool))
-        self._check("record", "an integer >= 0", _optional(is_count))
+        if self.record is not None:
+            check_record(self.record, f"{self.key}: ")
+
+    def kwargs(self) -> dict[str, Any]:
+        """The keyword arguments of :func:`~sb3_formation.experiment.evaluation.evaluate` that the protocol sets (each
+        field is one, of the same name)."""
+        return self.to_dict()
 
 
 @dataclass(frozen=True)

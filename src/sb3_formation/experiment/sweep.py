@@ -46,7 +46,7 @@ def run_trial(settings: dict[str, Any], run_dir: str) -> dict[str, Any]:
             resume(folder)
         else:
             train(trial, command=f"sb3-formation sweep (trial {folder.name})", run_dir=folder)
-    summary = evaluate_target(folder, trial.recipe.evaluation.to_dict()).summary
+    summary = evaluate_target(folder, trial.recipe.evaluation).summary
     return {"status": "trained", "run_dir": run_dir, "summary": summary}
 
 
