@@ -27,6 +27,7 @@ from sb3_formation.experiment.recipes import (
     TrainSettings,
     layered_settings,
     load_recipe,
+    read_safety_gains,
     recipe_names,
     recipe_options,
 )
@@ -277,6 +278,10 @@ def test_a_recipes_safety_section_is_checked_and_turns_the_filter_on() -> None:
     assert load_recipe("fast-ch5-bearing").safety_gains() is None
     assert shielded.with_changes({"safety": {"gamma": 0.2}}).safety_gains() == SafetyGains(gamma=0.2)
     assert Recipe.from_dict(shielded.to_dict()).safety == shielded.safety  # written and read back
+    # one reading of the gains: of the section, and of its mapping as a model file records it
+    recorded = shielded.to_dict()["safety"]
+    assert read_safety_gains(recorded) == read_safety_gains(shielded.safety) == shielded.safety_gains()
+    assert read_safety_gains({}) is None and read_safety_gains(None) is None
     for section, message in (
         ({"gama": 0.2}, r"safety: unknown safety filter setting\(s\) \['gama'\]"),
         ({"penalty": -1}, "safety: penalty must be a finite number >= 0"),

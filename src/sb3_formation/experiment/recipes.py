@@ -345,8 +345,8 @@ class Recipe:
         return None if minutes is None else 60.0 * minutes
 
     def safety_gains(self) -> SafetyGains | None:
-        """The safety filter's gains of a shielded recipe, else ``None``."""
-        return None if self.safety is None else self.safety.filter_gains()
+        """The safety filter's gains of a shielded recipe, else ``None``: :func:`read_safety_gains` of its section."""
+        return read_safety_gains(self.safety)
 
     @property
     def safety_penalty(self) -> float:
@@ -371,6 +371,17 @@ def _read_section(key: str, values: Any) -> Any:
     if key in OPTIONAL_SECTIONS and not values:
         return None
     return SECTIONS[key].from_dict({} if key == "training" and values is None else values)
+
+
+def read_safety_gains(section: SafetySection | dict[str, Any] | None) -> SafetyGains | None:
+    """The safety filter's gains of a recipe's ``safety`` section (the section, or its mapping as a run's model file
+    records it), or ``None`` for no section (no filter): the one reading of the gains, which training a shielded
+    policy (:meth:`Recipe.safety_gains`) and loading it (:func:`~sb3_formation.experiment.runs.load_trained`) share.
+
+    :raises ValueError: an unknown or invalid gain
+    """
+    read: SafetySection | None = _read_section(SafetySection.key, section) if isinstance(section, dict) else section
+    return None if read is None else SafetyGains.from_dict(read.gains)
 
 
 @dataclass(frozen=True)
@@ -625,14 +636,6 @@ def thesis_recipe_for(reward: str | None, n_agents: int | None, team_reward: boo
 
 
 # What a model file records of its recipe ----------------------------------------------------------------------------
-
-
-def safety_gains(section: dict[str, Any] | None) -> SafetyGains | None:
-    """The safety filter's gains that a recipe's ``safety`` section gives, or ``None`` for an empty section (no filter).
-
-    :raises ValueError: an unknown or invalid gain
-    """
-    return SafetySection.from_dict(section).filter_gains() if section else None
 
 
 def residual_base(spec: dict[str, Any], config: FormationConfig) -> tuple[Controller, float]:

@@ -20,7 +20,7 @@ from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecNormalize, unwrap_vec_wrapper
 
 from sb3_formation.controllers.base import TeamPolicy
-from sb3_formation.experiment.recipes import residual_policy, safety_gains
+from sb3_formation.experiment.recipes import read_safety_gains, residual_policy
 from sb3_formation.safety.policy import SafePolicy
 from sb3_formation.sb3.model_files import (
     load_model,
@@ -144,5 +144,5 @@ def load_trained(path: str | os.PathLike[str], device: str = "auto", trusted: bo
     residual = getattr(model, "residual", None)  # a correction of a controller (a recipe's residual)
     # ResidualPolicy's config is a read-only property where TeamPolicy (controllers/base.py) declares a settable attribute
     policy: TeamPolicy = residual_policy(residual, trained) if residual else trained  # type: ignore[assignment]
-    gains = safety_gains(getattr(model, "safety", None))  # trained behind the safety filter: it acts behind it
+    gains = read_safety_gains(getattr(model, "safety", None))  # trained behind the safety filter: it acts behind it
     return policy if gains is None else SafePolicy(policy, gains)

@@ -552,7 +552,7 @@ class SafetySection(Section):
 
     :param penalty: reward lost per unit of the filter's change ``|a_safe - a|`` of each agent's action (>= 0)
     :param gains: fields of :class:`~sb3_formation.safety.filter.SafetyGains` (unset: its defaults), written beside
-        ``penalty:``
+        ``penalty:`` (:func:`~sb3_formation.experiment.recipes.read_safety_gains` reads them)
     """
 
     key: ClassVar[str] = "safety"
@@ -564,13 +564,9 @@ class SafetySection(Section):
     def __post_init__(self) -> None:
         self._check("penalty", "a finite number >= 0", lambda value: is_number(value) and value >= 0)
         try:
-            self.filter_gains()
+            SafetyGains.from_dict(self.gains)
         except ValueError as error:
             raise ValueError(f"safety: {error}") from None
-
-    def filter_gains(self) -> SafetyGains:
-        """The safety filter's gains."""
-        return SafetyGains.from_dict(self.gains)
 
 
 #: The sections of a recipe by their keys, in the order a recipe file writes them.
