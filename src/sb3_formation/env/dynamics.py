@@ -208,9 +208,9 @@ class DynamicsModel(ABC):
         [-1, 1] (rounding); ``frames`` and ``push`` as of :meth:`point_problem`."""
 
     @abstractmethod
-    def engine_dynamics(self, starts: np.ndarray, observed_column: int) -> Dynamics:
+    def engine_dynamics(self, starts: np.ndarray) -> Dynamics:
         """The engine's stateful part of these dynamics, for agents stacked by ``starts`` (the first row of each
-        team, then the number of rows), writing what they observe from ``observed_column`` on."""
+        team, then the number of rows)."""
 
 
 class HolonomicModel(DynamicsModel):
@@ -283,8 +283,8 @@ class HolonomicModel(DynamicsModel):
         clipped: np.ndarray = np.clip(actions, -1.0, 1.0)
         return clipped
 
-    def engine_dynamics(self, starts: np.ndarray, observed_column: int) -> Dynamics:
-        return HolonomicDynamics(self, starts, observed_column)
+    def engine_dynamics(self, starts: np.ndarray) -> Dynamics:
+        return HolonomicDynamics(self, starts)
 
 
 class UnicycleModel(DynamicsModel):
@@ -442,8 +442,8 @@ class UnicycleModel(DynamicsModel):
         clipped: np.ndarray = np.clip(actions, -1.0, 1.0)
         return clipped
 
-    def engine_dynamics(self, starts: np.ndarray, observed_column: int) -> Dynamics:
-        return UnicycleDynamics(self, starts, observed_column)
+    def engine_dynamics(self, starts: np.ndarray) -> Dynamics:
+        return UnicycleDynamics(self, starts)
 
 
 #: ``FormationConfig.dynamics`` -> its model: the one place where a dynamics is named
@@ -468,14 +468,13 @@ class Dynamics(ABC):
 
     :param model: the task's dynamics (the teams differ in ``n_agents`` only)
     :param starts: the first row of each team, then the number of rows
-    :param observed_column: the first column of what an agent observes beyond Table 3.1
-        (:meth:`DynamicsModel.observed_fields`)
     """
 
-    def __init__(self, model: DynamicsModel, starts: np.ndarray, observed_column: int) -> None:
+    def __init__(self, model: DynamicsModel, starts: np.ndarray) -> None:
         self.model, self.config = model, model.config
         self.starts = starts
-        self.observed_column = observed_column
+        #: ``(agents, e)`` what every agent observes of its state beyond a point's (:meth:`observe`)
+        self.observed = np.zeros((int(starts[-1]), sum(field[2] for field in model.observed_fields())))
 
     @abstractmethod
     def move(self, actions: np.ndarray, velocities: np.ndarray, worlds: list[World], stepped: StepTeams) -> Moved:
@@ -491,9 +490,10 @@ class Dynamics(ABC):
     def reset(self, rows: slice, world: World) -> None:
         """Start the episode of a team (its agents' ``rows``) placed in ``world``."""
 
-    @abstractmethod
-    def observe(self, observations: np.ndarray, rows: slice | np.ndarray) -> None:
-        """Write what agents ``rows`` observe of their state beyond a point's into their rows of ``observations``."""
+    def observe(self, rows: slice | np.ndarray) -> np.ndarray:
+        """What every agent observes of its state beyond a point's, :attr:`observed`, with agents ``rows`` brought up
+        to date (:meth:`DynamicsModel.observed_values`)."""
+        return self.observed
 
     @abstractmethod
     def headings_of(self, rows: slice) -> np.ndarray | None:
@@ -517,9 +517,6 @@ class HolonomicDynamics(Dynamics):
     def reset(self, rows: slice, world: World) -> None:
         """A point keeps no state beyond its position and velocity."""
 
-    def observe(self, observations: np.ndarray, rows: slice | np.ndarray) -> None:
-        """A point's observation is Table 3.1's."""
-
     def headings_of(self, rows: slice) -> np.ndarray | None:
         return None
 
@@ -530,8 +527,8 @@ class HolonomicDynamics(Dynamics):
 class UnicycleDynamics(Dynamics):
     """Unicycles (:class:`UnicycleModel`): keeps every agent's heading and forward speed."""
 
-    def __init__(self, model: DynamicsModel, starts: np.ndarray, observed_column: int) -> None:
-        super().__init__(model, starts, observed_column)
+    def __init__(self, model: DynamicsModel, starts: np.ndarray) -> None:
+        super().__init__(model, starts)
         #: every agent's heading (rad, anti-clockwise from +x) and forward speed (m/s)
         self.headings, self.forward_speeds = np.zeros(int(starts[-1])), np.zeros(int(starts[-1]))
 
@@ -554,10 +551,9 @@ class UnicycleDynamics(Dynamics):
         self.headings, self.forward_speeds = self.headings.copy(), self.forward_speeds.copy()
         self.headings[rows], self.forward_speeds[rows] = world.headings, 0.0
 
-    def observe(self, observations: np.ndarray, rows: slice | np.ndarray) -> None:
-        column = self.observed_column
-        observations[rows, column] = np.cos(self.headings[rows])
-        observations[rows, column + 1] = np.sin(self.headings[rows])
+    def observe(self, rows: slice | np.ndarray) -> np.ndarray:
+        self.observed[rows] = self.model.observed_values(self.headings[rows])
+        return self.observed
 
     def headings_of(self, rows: slice) -> np.ndarray | None:
         return self.headings[rows]

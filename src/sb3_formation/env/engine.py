@@ -34,7 +34,7 @@ from sb3_formation.env.config import INFO_KEYS, REWARD_TERMS, FormationConfig
 from sb3_formation.env.dynamics import Dynamics, DynamicsModel, dynamics_model
 from sb3_formation.env.episodes import episode_summary
 from sb3_formation.env.geometry import FormationState, _measure_into, agent_errors, reference_bearings, ring_neighbours
-from sb3_formation.env.observations import _fill_observations, observation_fields, observation_layout
+from sb3_formation.env.observations import _fill_observations, observation_fields
 from sb3_formation.env.progress import GOAL_PROGRESS_CLASSES, GoalProgress
 from sb3_formation.env.rewards import RewardConstants, _reward_terms, combine_rewards, nearest_gaps, reward_constants
 from sb3_formation.env.scenarios import Scenario
@@ -151,8 +151,7 @@ class FormationEngine:
             self.set_stage(team, team_config.stage)
         #: what the task's dynamics mean, how actions move the agents, and what the goal term rewards progress along
         self.model: DynamicsModel = dynamics_model(config)
-        layout, observed = observation_layout(self.observation_fields), self.model.observed_fields()
-        self.dynamics: Dynamics = self.model.engine_dynamics(starts, layout[observed[0][0]].start if observed else 0)
+        self.dynamics: Dynamics = self.model.engine_dynamics(starts)
         self.progress: GoalProgress = GOAL_PROGRESS_CLASSES[config.goal_progress](self.configs, starts)
         #: teams in an episode (reset and not ended since)
         self.live = np.zeros(n_teams, dtype=bool)
@@ -390,8 +389,9 @@ class FormationEngine:
         """Scan, observe and fill the info values of the ``active`` teams (their agents' ``rows``, ``None``: every
         agent's); with ``accumulate``, add the step to their episodes' running sums."""
         constants, formations, episodes = self._fixed_fields
-        _observe_teams(active, constants, self._shape_fields, formations, tuple(self.latest), episodes, team_means, accumulate)
-        self.dynamics.observe(self.latest.observations, slice(None) if rows is None else rows)
+        observed = self.dynamics.observe(slice(None) if rows is None else rows)
+        latest = tuple(self.latest)
+        _observe_teams(active, constants, self._shape_fields, formations, latest, episodes, observed, team_means, accumulate)
 
     def _combine(self, terms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every agent's reward (:func:`~sb3_formation.env.rewards.combine_rewards`, the teams of one size at once)
@@ -633,17 +633,21 @@ def _observe_teams(
     formation_fields: Fields,
     latest_fields: Fields,
     episode_fields: Fields,
+    observed: np.ndarray,
     team_means: np.ndarray,
     accumulate: bool,
 ) -> None:  # pragma: no cover - compiled
     """The ``active`` teams' lidar scans (into the episodes' lidar), observations and info values (into the latest
     step's) and, with ``accumulate``, the step added to their episodes' running sums (``team_means``: every team's
-    mean reward of the step)."""
+    mean reward of the step).
+
+    :param observed: ``(agents, e)`` what every agent's dynamics add to its observation
+    """
     constants, shapes, formations = Constants(*constant_fields), Shapes(*shape_fields), Formations(*formation_fields)
     latest, episodes = StepArrays(*latest_fields), Episodes(*episode_fields)
     for team in active:
         _scan(team, constants, shapes, latest.positions, episodes.lidar)
-        _fill_observations(team, constants, formations, latest, episodes)
+        _fill_observations(team, constants, formations, latest, episodes, observed)
         _fill_info_values(team, constants, formations, latest)
         if accumulate:
             _add_step(team, constants, formations, latest, episodes, team_means[team])

@@ -1,20 +1,28 @@
-"""The per-agent observation of thesis Table 3.1: its fields, their order, honest bounds, and the compiled filler.
+"""The per-agent observation of thesis Table 3.1: its fields, their order, honest bounds, and the one row builder.
 
 Order (``docs/design.md`` "Sensors and observation"): lidar l, state z, errors e, flags f, then previous action /
-reward / time step s; with ``FormationConfig.observe_reference_bearings`` (a departure, for teams of several sizes)
-the agent's reference bearings come last. Raw values in SI units and degrees; normalisation belongs to the SB3 layer.
+reward / time step s; then what the dynamics add (a unicycle's heading,
+:meth:`~sb3_formation.env.dynamics.DynamicsModel.observed_fields`); with ``FormationConfig.observe_reference_bearings``
+(a departure, for teams of several sizes) the agent's reference bearings come last. Raw values in SI units and
+degrees; normalisation belongs to the SB3 layer.
+
+:func:`observation_row` writes one agent's row from its team's motion and formation, its lidar and what it remembers;
+it is compiled, and both the engine's kernel (:func:`_fill_observations`, every agent of a team) and the on-board
+observer (:class:`~sb3_formation.ros.observer.AgentObserver`, from Python) call it, so a row is defined once.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numba
 import numpy as np
 
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.dynamics import dynamics_model
+from sb3_formation.env.geometry import FormationState
+from sb3_formation.env.stacked import team_formation
 
 if TYPE_CHECKING:
     from sb3_formation.env.stacked import Constants, Episodes, Formations, StepArrays
@@ -100,65 +108,125 @@ def observation_layout(fields: list[ObservationField]) -> dict[str, slice]:
     return layout
 
 
+class RowTask(NamedTuple):
+    """What a team's rows share: its agents' neighbours and reference bearings (agent 0 first, indices within the team)
+    and the task's constants."""
+
+    neighbours: np.ndarray  #: ``(n, 2)`` int64: each agent's preceding and succeeding neighbour
+    reference_bearings: np.ndarray  #: ``(n, 2, 2)`` reference bearings g_j^{i,ref}
+    d_ref: float  #: reference neighbour distance d^ref (m)
+    eta_c: float  #: centroid distance eta_c (m)
+    observe_reference: bool  #: a row ends with the agent's reference bearings
+
+
+class AgentInputs(NamedTuple):
+    """What one agent's row takes beyond its team's motion and formation and its lidar."""
+
+    goal: np.ndarray  #: ``(2,)`` the goal (m)
+    previous_offset: np.ndarray  #: ``(2,)`` the team's c_g^v = p^g - p^c one step earlier (m)
+    step: float  #: steps since the reset
+    previous_action: np.ndarray  #: ``(2,)`` the agent's action of the last step
+    previous_reward: float  #: the agent's reward of the last step
+    observed: np.ndarray  #: ``(e,)`` what its dynamics add (:meth:`~sb3_formation.env.dynamics.DynamicsModel.observed_values`)
+
+
+@numba.njit(cache=True)
+def observation_row(
+    out: np.ndarray,
+    agent: int,
+    positions: np.ndarray,
+    velocities: np.ndarray,
+    formation: FormationState,
+    lidar: np.ndarray,
+    inputs: AgentInputs,
+    task: RowTask,
+) -> None:  # pragma: no cover - compiled
+    """Write one agent's observation into ``out`` (its row, ``(dim,)``), in the order of :func:`observation_fields`.
+
+    :param agent: the agent's index in its team
+    :param positions: ``(n, 2)`` its team's positions (m)
+    :param velocities: ``(n, 2)`` its team's velocities (m/s)
+    :param formation: its team's formation (angle errors and flags included)
+    :param lidar: ``(2, rays)`` its obstacle and agent channels, fractions of the range
+    :param inputs: its goal, memory and dynamics' values
+    :param task: its team's neighbours and reference bearings, and the task's constants
+    """
+    n_rays, goal, centroid, previous_offset = lidar.shape[1], inputs.goal, formation.centroid, inputs.previous_offset
+    offsets, distances = formation.neighbour_offsets, formation.neighbour_distances
+    centroid_distances, angle_errors = formation.centroid_distances, formation.angle_errors_deg
+    out[:n_rays] = lidar[0]
+    out[n_rays : 2 * n_rays] = lidar[1]
+    preceding, succeeding = task.neighbours[agent, 0], task.neighbours[agent, 1]
+    motion_and_distances = (  # velocity ... centroid_distance of observation_fields
+        velocities[agent, 0],
+        velocities[agent, 1],
+        offsets[agent, 0, 0],
+        offsets[agent, 0, 1],
+        offsets[agent, 1, 0],
+        offsets[agent, 1, 1],
+        velocities[preceding, 0] - velocities[agent, 0],
+        velocities[preceding, 1] - velocities[agent, 1],
+        velocities[succeeding, 0] - velocities[agent, 0],
+        velocities[succeeding, 1] - velocities[agent, 1],
+        goal[0] - positions[agent, 0],
+        goal[1] - positions[agent, 1],
+        goal[0] - centroid[0],
+        goal[1] - centroid[1],
+        goal[0] - centroid[0] - previous_offset[0],
+        goal[1] - centroid[1] - previous_offset[1],
+        distances[agent, 0],
+        distances[agent, 1],
+        centroid_distances[agent],
+    )
+    errors_flags_and_previous = (  # neighbour_distance_errors ... previous_reward
+        distances[agent, 0] - task.d_ref,
+        distances[agent, 1] - task.d_ref,
+        task.eta_c - centroid_distances[agent],
+        angle_errors[agent],
+        angle_errors[preceding],
+        angle_errors[succeeding],
+        1.0 if formation.orientation_flags[agent] else 0.0,
+        1.0 if formation.range_flag else 0.0,
+        inputs.step,
+        inputs.previous_action[0],
+        inputs.previous_action[1],
+        inputs.previous_reward,
+    )
+    column = _write(out, 2 * n_rays, motion_and_distances)
+    column = _write(out, column, errors_flags_and_previous)
+    for value in inputs.observed:  # the dynamics' fields
+        out[column] = value
+        column += 1
+    if task.observe_reference:  # the last four columns
+        for k in range(4):
+            out[column + k] = task.reference_bearings[agent, k // 2, k % 2]
+
+
 @numba.njit(cache=True)
 def _fill_observations(
-    team: int, constants: Constants, formations: Formations, latest: StepArrays, episodes: Episodes
+    team: int, constants: Constants, formations: Formations, latest: StepArrays, episodes: Episodes, observed: np.ndarray
 ) -> None:  # pragma: no cover - compiled
-    """A team's agents' observations, written into their rows of ``latest.observations`` in the order of
-    :func:`observation_fields` (a unicycle's heading, when observed, is written by its dynamics)."""
+    """A team's agents' observations (:func:`observation_row`), written into their rows of ``latest.observations``.
+
+    :param observed: ``(agents, e)`` what every agent's dynamics add to its row
+    """
     start, end = constants.starts[team], constants.starts[team + 1]
-    out, lidar, neighbours = latest.observations, episodes.lidar, constants.neighbours
-    velocities, positions = latest.velocities, latest.positions
-    offsets, distances = formations.neighbour_offsets, formations.neighbour_distances
-    centroid_distances, angle_errors = formations.centroid_distances, formations.angle_errors_deg
-    goal, centroid, previous_offset = episodes.goals[team], formations.centroids[team], episodes.previous_offsets[team]
-    range_flag, step = formations.range_flags[team], episodes.step_counts[team]
-    d_ref, eta_c, n_rays, dim = constants.d_ref, constants.eta_c, lidar.shape[2], out.shape[1]
-    for row in range(start, end):
-        observation = out[row]
-        observation[:n_rays] = lidar[0, row]
-        observation[n_rays : 2 * n_rays] = lidar[1, row]
-        preceding, succeeding = start + neighbours[row, 0], start + neighbours[row, 1]
-        motion_and_distances = (  # velocity ... centroid_distance of observation_fields
-            velocities[row, 0],
-            velocities[row, 1],
-            offsets[row, 0, 0],
-            offsets[row, 0, 1],
-            offsets[row, 1, 0],
-            offsets[row, 1, 1],
-            velocities[preceding, 0] - velocities[row, 0],
-            velocities[preceding, 1] - velocities[row, 1],
-            velocities[succeeding, 0] - velocities[row, 0],
-            velocities[succeeding, 1] - velocities[row, 1],
-            goal[0] - positions[row, 0],
-            goal[1] - positions[row, 1],
-            goal[0] - centroid[0],
-            goal[1] - centroid[1],
-            goal[0] - centroid[0] - previous_offset[0],
-            goal[1] - centroid[1] - previous_offset[1],
-            distances[row, 0],
-            distances[row, 1],
-            centroid_distances[row],
+    formation = team_formation(team, constants.starts, formations)
+    task = RowTask(
+        constants.neighbours[start:end],
+        constants.reference_bearings[start:end],
+        constants.d_ref,
+        constants.eta_c,
+        constants.observe_reference,
+    )
+    positions, velocities, out = latest.positions[start:end], latest.velocities[start:end], latest.observations
+    goal, previous_offset, step = episodes.goals[team], episodes.previous_offsets[team], float(episodes.step_counts[team])
+    for agent in range(end - start):
+        row = start + agent
+        inputs = AgentInputs(
+            goal, previous_offset, step, episodes.previous_actions[row], episodes.previous_rewards[row], observed[row]
         )
-        errors_flags_and_previous = (  # neighbour_distance_errors ... previous_reward
-            distances[row, 0] - d_ref,
-            distances[row, 1] - d_ref,
-            eta_c - centroid_distances[row],
-            angle_errors[row],
-            angle_errors[preceding],
-            angle_errors[succeeding],
-            1.0 if formations.orientation_flags[row] else 0.0,
-            1.0 if range_flag else 0.0,
-            float(step),
-            episodes.previous_actions[row, 0],
-            episodes.previous_actions[row, 1],
-            episodes.previous_rewards[row],
-        )
-        column = _write(observation, 2 * n_rays, motion_and_distances)
-        _write(observation, column, errors_flags_and_previous)
-        if constants.observe_reference:  # the last four columns
-            for k in range(4):
-                observation[dim - 4 + k] = constants.reference_bearings[row, k // 2, k % 2]
+        observation_row(out[row], agent, positions, velocities, formation, episodes.lidar[:, row], inputs, task)
 
 
 @numba.njit(cache=True)

@@ -3,8 +3,9 @@
 A robot knows its team's poses and velocities (every teammate's odometry, in one shared world frame), the goal, its
 own lidar (:mod:`~sb3_formation.ros.scans`), and what it remembers: its previous action, the step count since the goal
 was given, the team's previous velocities and centroid. :class:`AgentObserver` writes from these the row the
-simulator writes (:func:`~sb3_formation.env.observations.observation_fields`), including the previous reward, which
-it computes with the package's reward terms and the coefficients of the policy's last stage. Numpy and the
+simulator writes (:func:`~sb3_formation.env.observations.observation_fields`), with the simulator's own row builder
+(:func:`~sb3_formation.env.observations.observation_row`), including the previous reward, which it computes with the
+package's reward terms and the coefficients of the policy's last stage. Numpy and the
 environment layer only (no rclpy).
 
 What a robot cannot know exactly, and how the observer stands in for it: the gap to the nearest obstacle, which the
@@ -20,6 +21,7 @@ from typing import NamedTuple
 import numpy as np
 
 from sb3_formation.env.config import REWARD_TERMS, FormationConfig
+from sb3_formation.env.dynamics import dynamics_model
 from sb3_formation.env.geometry import (
     FormationState,
     interior_angle_deg,
@@ -27,7 +29,7 @@ from sb3_formation.env.geometry import (
     reference_bearings,
     ring_neighbours,
 )
-from sb3_formation.env.observations import observation_fields, observation_layout
+from sb3_formation.env.observations import AgentInputs, RowTask, observation_fields, observation_layout, observation_row
 from sb3_formation.env.rewards import combine_rewards, reward_constants, reward_terms
 
 #: The curriculum's last stage, whose reward coefficients a deployed agent observes (all terms on).
@@ -71,6 +73,10 @@ class AgentObserver:
         self._coefficients = np.array([coefficients[term] for term in REWARD_TERMS])
         self.layout = observation_layout(observation_fields(config))
         self.dim = sum(part.stop - part.start for part in self.layout.values())
+        self._model = dynamics_model(config)
+        self._task = RowTask(
+            self.neighbours, self._reference, float(config.d_ref), float(config.eta_c), bool(config.observe_reference_bearings)
+        )
         self.reset()
 
     def reset(self) -> None:
@@ -88,7 +94,7 @@ class AgentObserver:
             (:func:`~sb3_formation.ros.scans.split_scan`)
         :param goal: ``(2,)`` the goal (m)
         """
-        config, agent = self.config, self.agent
+        config, agent, goal = self.config, self.agent, np.asarray(goal, dtype=np.float64)
         positions = np.ascontiguousarray(team.positions, dtype=np.float64)
         velocities = np.asarray(team.velocities, dtype=np.float64)
         formation = measure_formation(positions, self.neighbours, self._reference, self._beta_ref, config.d_ref)
@@ -102,33 +108,12 @@ class AgentObserver:
             distances, moved = (previous_distance, goal_distance), (previous_velocities, velocities)
             self.previous_reward = self._reward(formation, positions, distances, moved, gap)
         self._previous = velocities.copy(), offset, goal_distance
-        preceding, succeeding = self.neighbours[agent]
-        values = {
-            "lidar_obstacles": lidar[0],
-            "lidar_agents": lidar[1],
-            "velocity": velocities[agent],
-            "neighbour_offsets": formation.neighbour_offsets[agent].reshape(-1),
-            "neighbour_relative_velocities": (velocities[[preceding, succeeding]] - velocities[agent]).reshape(-1),
-            "goal_offset": goal - positions[agent],
-            "centroid_goal_offset": offset,
-            "centroid_goal_offset_change": offset - previous_offset,
-            "neighbour_distances": formation.neighbour_distances[agent],
-            "centroid_distance": formation.centroid_distances[agent],
-            "neighbour_distance_errors": formation.neighbour_distances[agent] - config.d_ref,
-            "centroid_distance_error": config.eta_c - formation.centroid_distances[agent],
-            "angle_error": formation.angle_errors_deg[agent],
-            "neighbour_angle_errors": formation.angle_errors_deg[[preceding, succeeding]],
-            "flag_orientation": float(formation.orientation_flags[agent]),
-            "flag_range": float(formation.range_flag),
-            "time_step": float(self.step),
-            "previous_action": self.previous_action,
-            "previous_reward": self.previous_reward,
-            "heading": [math.cos(team.headings[agent]), math.sin(team.headings[agent])],
-            "reference_bearings": self._reference[agent].reshape(-1),
-        }
+        headings = np.asarray(team.headings, dtype=np.float64)[agent : agent + 1]
+        observed = self._model.observed_values(headings)[0]
+        inputs = AgentInputs(goal, previous_offset, float(self.step), self.previous_action, self.previous_reward, observed)
         row = np.empty(self.dim)
-        for name, where in self.layout.items():
-            row[where] = values[name]
+        lidar = np.asarray(lidar, dtype=np.float64)
+        observation_row(row, agent, positions, velocities, formation, lidar, inputs, self._task)
         return row
 
     def _reward(
