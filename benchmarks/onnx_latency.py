@@ -88,7 +88,11 @@ def main() -> None:
             shipped.correction.predict,
             lambda row: network.run(None, {"observation": row}),
         ),
-        ("MLP whole action (+ numpy controller)", shipped.predict, lambda row: exported.agent_actions(row, np.zeros(1, int))),
+        (
+            "MLP whole action (+ numpy controller)",
+            shipped.predict,
+            lambda row: exported.agent_step(row, np.zeros(1, int)).action,
+        ),
     ]
 
     config = shipped.config

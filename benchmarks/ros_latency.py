@@ -15,11 +15,11 @@ before the scan is published to the start of the callback that receives the node
 a command arrives before the next odometry; median, p90, p99 and max over ``--steps`` steps after ``--warm-up`` are
 printed.
 
-The reference, measured in the same run on the node's core once it has stopped: the node's work without ROS, for the
-same steps in the same order (``resample_scan``, ``split_scan``, ``AgentObserver.observe``, ``OnnxPolicy.agent_actions``,
-``SafetyFilter.filter``, ``AgentObserver.remember``, ``velocity_command``; onnxruntime on one thread), its median and
-p99, the ratios ROS / in process, and the largest difference between the node's commands and the in-process ones (a
-check that the node did the same work on the same inputs).
+The reference, measured in the same run on the node's core once it has stopped: the node's work without ROS, the
+module the node runs (:meth:`sb3_formation.ros.onboard.Onboard.step`: resample, split, observe, the policy's agent step
+behind the filter, remember, command; onnxruntime on one thread), built as the node builds it, for the same steps in
+the same order, its median and p99, the ratios ROS / in process, and the largest difference between the node's
+commands and the in-process ones (a check that the node did the same work on the same inputs).
 
 Usage (in the ROS environment): ``.venv-ros/bin/python benchmarks/ros_latency.py [--steps 2000] [--rate 20]
 [--note "machine shared with other work"] [--out [FILE]]`` (``--out``: also write the output to
@@ -54,13 +54,13 @@ from rclpy.utilities import get_rmw_implementation_identifier
 from sensor_msgs.msg import LaserScan
 
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.dynamics import dynamics_model
 from sb3_formation.env.formation_env import FormationEnv
-from sb3_formation.ros.agent_node import GOAL_QOS, AgentSettings
+from sb3_formation.ros.agent_node import GOAL_QOS
 from sb3_formation.ros.messages import goal_message, odometry_message, scan_message, scan_of, stamp_of, twist_command
-from sb3_formation.ros.observer import AgentObserver, TeamView, velocity_command
-from sb3_formation.ros.scans import Scan, ScanMount, merged_scan, resample_scan, split_scan
-from sb3_formation.runtime import OnnxPolicy
-from sb3_formation.safety.filter import SafetyFilter, SafetyGains
+from sb3_formation.ros.onboard import AgentSettings, Onboard, TeamView
+from sb3_formation.ros.scans import merged_scan
+from sb3_formation.runtime import load_onnx_policy
 from sb3_formation.safety.policy import SafePolicy
 from sb3_formation.utils.machine import machine_line
 
@@ -96,7 +96,7 @@ class Replay(NamedTuple):
 
 def record_episode(seed: int) -> Replay:
     """A stage-3 episode of the shipped policy behind the safety filter, from ``reset(seed=seed)``."""
-    exported = OnnxPolicy(MODEL, threads=1)
+    exported = load_onnx_policy(MODEL, threads=1)
     if exported.config.dynamics != "holonomic":
         raise ValueError(f"{MODEL} flies {exported.config.dynamics} agents: this benchmark replays holonomic ones")
     config = exported.config.replace(stage=3)
@@ -226,7 +226,7 @@ def wait_for_node(feed: Feed, node: subprocess.Popen[bytes], log: IO[bytes]) -> 
 def over_ros(feed: Feed, replay: Replay, count: int, rate: float) -> tuple[list[float], np.ndarray, list[int]]:
     """Replay ``count`` steps at ``rate`` Hz: each step's scan-to-command seconds, the commands ``(count, 2)``, and the
     steps whose command came after the next step was due."""
-    config, period = replay.config, 1.0 / rate
+    config, period, model = replay.config, 1.0 / rate, dynamics_model(replay.config)
     frames = [(WORLD_FRAME, BASE_FRAME.format(index=index)) for index in range(config.n_agents)]
     seconds, commands, late = [], [], []
     due = time.perf_counter()
@@ -240,7 +240,7 @@ def over_ros(feed: Feed, replay: Replay, count: int, rate: float) -> tuple[list[
         feed.spin_until(due + period / 2)
         elapsed, command = feed.command_after(agent_scan(stamp_of(time.time()), step.ranges, config))
         seconds.append(elapsed)
-        commands.append(twist_command(command, config.dynamics, 0.0))
+        commands.append(twist_command(command, model, 0.0))
         due += period
         if time.perf_counter() > due:
             late.append(k)
@@ -249,45 +249,13 @@ def over_ros(feed: Feed, replay: Replay, count: int, rate: float) -> tuple[list[
     return seconds, np.array(commands), late
 
 
-class OnBoard:
-    """The agent node's work without ROS (:meth:`~sb3_formation.ros.agent_node.AgentNode._act` between the messages):
-    the same parts, built as the node builds them, acting on the arrays its messages hold."""
-
-    def __init__(self) -> None:
-        exported, self.settings = OnnxPolicy(MODEL, threads=1), AgentSettings(agent=AGENT)
-        self.config = config = exported.config  # the node's: the exported task, observed at the last stage
-        self.observer = AgentObserver(config, AGENT, self.settings.stage)
-        self.safety = SafetyFilter(config, exported.safety.gains if exported.safety is not None else SafetyGains())
-        self.policy = exported.without_filter()
-        self.mount, self.headings = ScanMount(), np.zeros(config.n_agents)
-        self.state: object = None
-
-    def reset(self) -> None:
-        """A new goal: a new episode."""
-        self.observer.reset()
-        self.state = None
-
-    def act(self, step: Step, scan: Scan, goal: np.ndarray, starting: bool) -> tuple[np.ndarray, bool, np.ndarray]:
-        """The command for one step, whether the filter changed the action, and the observed lidar channels.
-
-        :param starting: the step starts an episode
-        """
-        config, settings = self.config, self.settings
-        readings = resample_scan(scan, self.mount, 0.0, config, settings.max_gap)
-        lidar = split_scan(readings, config, step.positions, AGENT, settings.agent_tolerance)
-        team = TeamView(step.positions, step.velocities, self.headings)
-        row = self.observer.observe(team, lidar, goal).astype(np.float32)[None, :]
-        proposed, self.state = self.policy.agent_actions(row, np.array([AGENT]), self.state, np.array([starting]))
-        action, report = self.safety.filter(row, proposed)
-        self.observer.remember(action[0])
-        command = velocity_command(config, action[0], step.velocities[AGENT], 0.0)
-        return command, bool(report.changed[0]), lidar
-
-
 def in_process(replay: Replay, count: int) -> tuple[list[float], np.ndarray, int, int]:
     """The node's work on the same ``count`` steps without ROS: each step's seconds, the commands ``(count, 2)``, the
     steps whose action the filter changed, and those with an obstacle in agent 0's range."""
-    onboard = OnBoard()
+    onboard = Onboard(load_onnx_policy(MODEL, threads=1), AgentSettings(agent=AGENT))  # as the node builds it
+    safe = onboard.policy
+    assert isinstance(safe, SafePolicy), "the node's policy is behind the filter"
+    headings, obstacles = np.zeros(replay.config.n_agents), onboard.observer.layout["lidar_obstacles"]
     scans = [  # what the node reads: the scan after serialisation (float32 fields)
         scan_of(deserialize_message(serialize_message(agent_scan(stamp_of(0.0), step.ranges, replay.config)), LaserScan))
         for step in replay.steps
@@ -298,11 +266,12 @@ def in_process(replay: Replay, count: int) -> tuple[list[float], np.ndarray, int
         if index == 0:
             onboard.reset()
         start = time.perf_counter()
-        command, filtered, lidar = onboard.act(replay.steps[index], scans[index], replay.goal, index == 0)
+        step = replay.steps[index]
+        done = onboard.step(scans[index], TeamView(step.positions, step.velocities, headings), 0.0, replay.goal)
         seconds.append(time.perf_counter() - start)
-        commands.append(command)
-        changed += filtered
-        near += bool(lidar[0].min() < 1.0)
+        commands.append(done.command)
+        changed += bool(safe.report is not None and safe.report.changed[0])
+        near += bool(done.row[obstacles].min() < 1.0)
     return seconds, np.array(commands), changed, near
 
 

@@ -191,7 +191,7 @@ def test_the_runtime_acts_in_a_process_that_never_loads_torch_or_sb3() -> None:
         "import sys, numpy as np\n"
         "from sb3_formation.runtime import OnnxPolicy\n"
         f"policy = OnnxPolicy({str(PRETRAINED_DIR / 'ch5-bearing' / ONNX_FILE)!r})\n"
-        "actions, _ = policy.agent_actions(np.zeros((1, policy.observation_dim), np.float32), np.array([2]))\n"
+        "actions = policy.agent_step(np.zeros((1, policy.observation_dim), np.float32), np.array([2])).action\n"
         "assert actions.shape == (1, 2)\n"
         "print(sorted(m for m in ('torch', 'stable_baselines3') if m in sys.modules))\n"
     )
@@ -222,7 +222,7 @@ def test_a_robot_acts_for_its_own_agent_with_its_index() -> None:
     team = played_observations(load_pretrained("ch5-bearing"), 6, seed=2)
     together, _ = policy.predict(team)
     for agent in range(6):
-        alone, _ = policy.agent_actions(team[agent], np.array([agent]))
+        alone = policy.agent_step(team[agent], np.array([agent])).action
         assert np.array_equal(alone[0], together[agent])
 
 

@@ -206,7 +206,7 @@ def test_onnxruntime_errors_at_run_time_are_one_line(tmp_path: Path) -> None:
 
     policy = OnnxPolicy(spoiled_graph(tmp_path, reshapes_wrongly))
     with pytest.raises(RuntimeError, match=r"spoilt\.onnx: onnxruntime could not run the graph: ") as error:
-        policy.agent_actions(np.zeros((1, policy.observation_dim), np.float32), np.zeros(1, int))
+        policy.agent_step(np.zeros((1, policy.observation_dim), np.float32), np.zeros(1, int))
     assert "\n" not in str(error.value)
 
 

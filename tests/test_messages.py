@@ -153,8 +153,8 @@ def test_the_onnx_graph_of_a_communicating_policy_acts_as_torch_over_whole_episo
                     step = runtime.agent_step(
                         observations[agent], np.array([agent]), robot_states[agent], starts[:1], received
                     )
-                    assert np.abs(step.actions[0] - actions[agent]).max() <= TOLERANCE
-                    assert np.abs(step.messages[0] - onnx_state[1][agent]).max() <= TOLERANCE
+                    assert np.abs(step.action[0] - actions[agent]).max() <= TOLERANCE
+                    assert np.abs(step.message[0] - onnx_state[1][agent]).max() <= TOLERANCE
             for agent in range(6):
                 robot_states[agent] = None if onnx_state[0] is None else (onnx_state[0][0][:, agent : agent + 1],)
             starts[:] = False
@@ -184,8 +184,6 @@ def test_bad_message_settings_are_one_line_errors(tmp_path: Path) -> None:
         policy.predict(np.zeros((6, size), np.float32))
     runtime = OnnxPolicy(export_onnx(untrained(config, True, seed=5), tmp_path / "talk.onnx"), threads=1)
     row = np.zeros((1, size), np.float32)
-    with pytest.raises(ValueError, match="act with agent_step"):
-        runtime.agent_actions(row, np.array([0]))
     with pytest.raises(ValueError, match=r"needs received messages of shape \(1, 2, 4\)"):
         runtime.agent_step(row, np.array([0]), received=np.zeros((1, 3)))
     with pytest.raises(ValueError, match="NaN or infinite"):

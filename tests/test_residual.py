@@ -12,6 +12,7 @@ from PIL import Image
 
 from sb3_formation.cli import main
 from sb3_formation.controllers import ClassicalController, ShrinkingController
+from sb3_formation.controllers.base import AgentStep, Policy, no_messages
 from sb3_formation.controllers.residual import ResidualAdapter, ResidualPolicy, add_correction
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.formation_env import FormationEnv
@@ -24,7 +25,7 @@ from sb3_formation.sb3.vec_env import FormationVecEnv
 CH5 = FormationConfig.task("ch5-bearing", stage=3)
 
 
-class ConstantPolicy:
+class ConstantPolicy(Policy):
     """A correction that is the same action for every row."""
 
     def __init__(self, config: FormationConfig, action: tuple[float, float]) -> None:
@@ -33,8 +34,9 @@ class ConstantPolicy:
     def fit(self, config: FormationConfig) -> ConstantPolicy:
         return self
 
-    def predict(self, observation, state=None, episode_start=None, deterministic=True):
-        return np.tile(self.action, (len(np.asarray(observation).reshape(-1, observation.shape[-1])), 1)), None
+    def agent_step(self, observations, agents, state=None, episode_start=None, received=None, deterministic=True):
+        rows = len(np.asarray(observations).reshape(-1, np.shape(observations)[-1]))
+        return AgentStep(np.tile(self.action, (rows, 1)), None, no_messages(rows))
 
 
 def test_a_correction_is_bounded_and_the_sum_clipped() -> None:
@@ -78,14 +80,14 @@ def test_the_adapter_serves_a_team_or_one_agent_and_resets_the_memory_of_the_row
     starts = np.arange(6) < 3  # agents 0-2 start an episode, 3-5 go on
     memory, own_memories, forgetful = None, [None] * 6, 0
     for _ in range(80):
-        fresh = adapter.act(rows, correction)[0]  # no memory: every row starts an episode
-        restarted = adapter.act(rows, correction, memory, starts)[0]
-        actions, memory = adapter.act(rows, correction, memory)
+        fresh = adapter.corrected(rows, correction)[0]  # no memory: every row starts an episode
+        restarted = adapter.corrected(rows, correction, memory, starts)[0]
+        actions, memory = adapter.corrected(rows, correction, memory)
         np.testing.assert_array_equal(restarted[:3], fresh[:3])
         np.testing.assert_array_equal(restarted[3:], actions[3:])
         forgetful += not np.array_equal(actions, fresh)
         for agent in range(6):
-            alone, own_memories[agent] = adapter.act(
+            alone, own_memories[agent] = adapter.corrected(
                 rows[[agent]], correction[[agent]], own_memories[agent], agents=np.array([agent])
             )
             np.testing.assert_array_equal(alone[0], actions[agent])

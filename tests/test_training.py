@@ -33,7 +33,7 @@ from sb3_formation.experiment.recipes import TrainSettings, layered_settings, lo
 from sb3_formation.experiment.runs import FINAL_MODEL, STATE_FILE, latest_checkpoint, load_trained
 from sb3_formation.experiment.targets import load_policy
 from sb3_formation.experiment.training import make_training_env
-from sb3_formation.runtime import OnnxPolicy
+from sb3_formation.runtime import OnnxPolicy, load_onnx_policy
 from sb3_formation.safety import SafetyGains
 from sb3_formation.safety.policy import SafePolicy
 from sb3_formation.sb3.model_files import read_model_data
@@ -448,8 +448,8 @@ def test_the_shielded_recipe_trains_through_a_kill_resumes_and_exports_its_filte
     assert {"safety/changed_fraction", "safety/change_mean", "safety/infeasible_steps", "safety/min_separation"} <= tags
     policy = load_policy(run_dir)
     assert isinstance(policy, SafePolicy) and policy.filter.gains == SafetyGains()
-    runtime = OnnxPolicy(export_onnx(policy, tmp_path / "shielded.onnx"), threads=1)
-    assert runtime.safety is not None and runtime.safety.gains == SafetyGains()
+    runtime = load_onnx_policy(export_onnx(policy, tmp_path / "shielded.onnx"), threads=1)
+    assert isinstance(runtime, SafePolicy) and runtime.filter.gains == SafetyGains()
     env = FormationEnv(policy.config.replace(scenes="clutter"))
     rows = np.stack(list(env.reset(seed=2)[0].values()))
     layout = env.observation_layout
@@ -460,7 +460,7 @@ def test_the_shielded_recipe_trains_through_a_kill_resumes_and_exports_its_filte
     np.testing.assert_allclose(exported, filtered, rtol=0, atol=1e-6)
     assert np.abs(filtered - unfiltered).max() > 0.01  # the filter acted
     # behind safe: it is filtered once, with its own gains
-    assert SafePolicy(runtime).filter.gains == SafetyGains() and SafePolicy(runtime).policy.safety is None
+    assert SafePolicy(runtime).filter.gains == SafetyGains() and isinstance(SafePolicy(runtime).policy, OnnxPolicy)
 
 
 @pytest.mark.slow

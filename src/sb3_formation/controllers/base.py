@@ -1,12 +1,20 @@
-"""The policy seam: anything that acts in the formation env, learned or hand-written.
+"""The policy seam: anything that acts in the formation env, learned or hand-written, answers the same two calls.
 
-A :class:`TeamPolicy` has Stable-Baselines3's ``predict(observation, state, episode_start, deterministic)`` over the
-*raw* observations of whole teams: row k is agent ``k % n`` of team ``k // n`` (the slot order of
-:class:`~sb3_formation.sb3.vec_env.FormationVecEnv`), each row the env's own observation (thesis Table 3.1, SI
-units). Whatever a policy needs beyond that (normalisation, team observations for a critic, an agent index) it does
-itself: evaluation, rendering and comparison never need to know what kind of policy they drive. A policy that draws
-random numbers of its own (not torch's global generator) may also have ``seed(seed)``: evaluation calls it with its
-seed, so that the same seed gives the same episodes.
+- **One per team**, Stable-Baselines3's ``predict(observation, state, episode_start, deterministic) -> (actions,
+  state)`` over the *raw* observations of whole teams: row k is agent ``k % n`` of team ``k // n`` (the slot order of
+  :class:`~sb3_formation.sb3.vec_env.FormationVecEnv`), each row the env's own observation (thesis Table 3.1, SI
+  units). Evaluation, rendering and comparison call it.
+- **One per agent**, ``agent_step(observations, agents, state, episode_start, received, deterministic) ->``
+  :class:`AgentStep` ``(action, state, message)``, for rows of any agents (e.g. the one a robot hosts) with their
+  indices in their teams and the messages their ring neighbours sent them. The robot's on-board pipeline calls it.
+
+:class:`Policy` writes ``predict`` once over ``agent_step``: it routes the messages that a talking policy's agents
+send (``message_size`` M > 0) to their ring neighbours in the rows' teams, one step late, and its state is then the pair
+(the agents' state, the messages they sent). Every kind of policy (controllers, residual policies, trained SB3 models,
+exported ONNX files, a policy behind the safety filter) is a :class:`Policy`. Whatever a policy needs beyond the raw
+rows (normalisation, an agent index) it does itself. A policy that draws random numbers of its own (not torch's global
+generator) may also have ``seed(seed)``: evaluation calls it with its seed, so that the same seed gives the same
+episodes. Whether a policy can act in a task is decided by one check, :func:`check_fit`.
 """
 
 from __future__ import annotations
@@ -15,24 +23,44 @@ import copy
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import fields
-from typing import Any, Protocol, TypeVar, runtime_checkable
+from typing import Any, NamedTuple, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.geometry import ring_rows
 from sb3_formation.env.observations import observation_fields, observation_layout
 from sb3_formation.env.state import TeamState
 from sb3_formation.utils.checks import is_number
 
 GainsT = TypeVar("GainsT")
 
+#: The task settings that shape an agent's observation (its fields and their sizes) or what an action means.
+OBSERVATION_SHAPING_FIELDS = ("n_agents", "dynamics", "lidar_rays", "observe_reference_bearings")
+
+
+class AgentStep(NamedTuple):
+    """What :meth:`Policy.agent_step` returns for ``k`` agents."""
+
+    action: np.ndarray  #: ``(k, 2)`` float32 actions in [-1, 1]
+    state: Any  #: the agents' next state (what the next call takes; ``None`` for a policy without memory)
+    message: np.ndarray  #: ``(k, M)`` float32 messages the agents send their ring neighbours (``(k, 0)`` if none)
+
 
 @runtime_checkable
 class TeamPolicy(Protocol):
-    """Anything that acts: SB3's ``predict`` over raw team observations, the config it acts in, and :meth:`fit`."""
+    """Anything that acts: the team call, the agent call, the config it acts in and :meth:`fit` (see the module
+    docstring; :class:`Policy` implements it)."""
 
-    #: The task the policy acts in by default (for a trained policy: the one it was trained in).
-    config: FormationConfig
+    @property
+    def config(self) -> FormationConfig:
+        """The task the policy acts in by default (for a trained policy: the one it was trained in)."""
+        ...
+
+    @property
+    def message_size(self) -> int:
+        """M, the values of the message each agent sends its ring neighbours every step (0: none)."""
+        ...
 
     def predict(
         self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
@@ -42,6 +70,27 @@ class TeamPolicy(Protocol):
         :param observation: raw observations; row k is agent ``k % n`` of team ``k // n``
         :param state: what the previous call returned (``None`` at the start)
         :param episode_start: ``(k,)`` flags: these rows start a new episode (reset their memory)
+        :param deterministic: act without exploration noise
+        """
+        ...
+
+    def agent_step(
+        self,
+        observations: np.ndarray,
+        agents: np.ndarray,
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        received: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> AgentStep:
+        """Actions, next state and sent messages of rows of any agents.
+
+        :param observations: ``(k, obs_dim)`` raw observations
+        :param agents: ``(k,)`` each row's agent index in its team
+        :param state: what the previous call returned for these rows (``None`` at the start)
+        :param episode_start: ``(k,)`` flags: these rows start an episode (their state is reset)
+        :param received: ``(k, 2, M)`` (or ``(k, 2 M)``) what each row's preceding and succeeding neighbours sent at
+            their last step (``None``: zeros, as at an episode's start); a talking policy's only
         :param deterministic: act without exploration noise
         """
         ...
@@ -66,6 +115,114 @@ class PrivilegedPolicy(TeamPolicy, Protocol):
         ...
 
 
+def check_fit(who: str, trained: FormationConfig, config: FormationConfig, any_team_size: bool = False) -> None:
+    """Refuse a task whose agents observe or act otherwise than the policy's: the one fit check of every policy.
+
+    :param who: the policy, for the message (e.g. its model file)
+    :param trained: the task the policy acts in (for a learned one: the task it was trained in)
+    :param config: the task it is asked to act in
+    :param any_team_size: it acts in teams of any size (trained on several): ``n_agents`` may differ
+    :raises ValueError: one line naming every setting of :data:`OBSERVATION_SHAPING_FIELDS` that differs (or the
+        observation fields, if they differ otherwise)
+    """
+    differences = [
+        f"{name}={getattr(trained, name)!r} in the model, {getattr(config, name)!r} in the env"
+        for name in OBSERVATION_SHAPING_FIELDS
+        if getattr(trained, name) != getattr(config, name) and not (name == "n_agents" and any_team_size)
+    ]
+    if not differences and _field_sizes(trained) != _field_sizes(config):
+        differences = [f"observation fields {_field_sizes(trained)} in the model, {_field_sizes(config)} in the env"]
+    if differences:
+        raise ValueError(f"{who} does not fit this env: " + "; ".join(differences))
+
+
+def _field_sizes(config: FormationConfig) -> list[tuple[str, int]]:
+    return [(field.name, field.size) for field in observation_fields(config)]
+
+
+class Policy(ABC):
+    """Base of every policy: :meth:`agent_step` and :meth:`fit` are a subclass's; :meth:`predict` (the team call) is
+    written here once over :meth:`agent_step`, routing a talking policy's messages within each team.
+
+    :param config: the task the policy acts in
+    """
+
+    config: FormationConfig
+
+    @property
+    def message_size(self) -> int:
+        """M, the values of the message each agent sends its ring neighbours every step (0: none)."""
+        return 0
+
+    def predict(
+        self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
+    ) -> tuple[np.ndarray, Any]:
+        """SB3's signature over raw observations of whole teams (row k: agent ``k % n`` of team ``k // n``):
+        :meth:`agent_step` on every row. A talking policy's state is the pair (the agents' state, the ``(k, M)``
+        messages they sent); each row receives, one step late, the messages of its ring neighbours in its team
+        (zeros where an episode starts)."""
+        shape = np.shape(observation)
+        if len(shape) == 0:
+            raise ValueError(f"observations must be rows of one agent's observation each, got an array of shape {shape}")
+        rows = np.asarray(observation).reshape(-1, shape[-1])
+        n_agents, received = self.config.n_agents, None
+        if self.message_size:
+            state, sent = (None, None) if state is None else state
+            if sent is not None:
+                keep = 1.0 if episode_start is None else 1.0 - np.asarray(episode_start, np.float32).reshape(-1, 1)
+                received = (np.asarray(sent, np.float32) * keep)[ring_rows([n_agents] * (len(rows) // n_agents))]
+        step = self.agent_step(rows, np.arange(len(rows)) % n_agents, state, episode_start, received, deterministic)
+        actions = step.action.reshape(*shape[:-1], 2)
+        return actions, ((step.state, step.message) if self.message_size else step.state)
+
+    @abstractmethod
+    def agent_step(
+        self,
+        observations: np.ndarray,
+        agents: np.ndarray,
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        received: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> AgentStep:
+        """Actions ``(k, 2)``, next state and sent messages of rows of any agents (see :class:`TeamPolicy`)."""
+
+    @abstractmethod
+    def fit(self, config: FormationConfig) -> Policy:
+        """A policy acting in envs of ``config`` (``self`` if it already does); :func:`check_fit` decides.
+
+        :raises ValueError: the policy cannot act there
+        """
+
+    def received_messages(self, received: np.ndarray | None, rows: int) -> np.ndarray | None:
+        """``received`` as float32 ``(rows, 2 M)`` (``None`` stays ``None``), checked.
+
+        :raises ValueError: messages of another shape, with NaN or infinite values, or messages for a policy whose
+            agents send none
+        """
+        size = self.message_size
+        if received is None:
+            return None
+        if not size:
+            raise ValueError(f"{self.describe()} is a policy whose agents send no messages: give no received messages")
+        array = np.asarray(received, np.float32)
+        if array.size != rows * 2 * size or array.ndim == 0 or array.shape[0] != rows:
+            raise ValueError(f"{self.describe()} needs received messages of shape ({rows}, 2, {size}), got {array.shape}")
+        if not np.isfinite(array).all():
+            raise ValueError(f"{self.describe()}: the received messages hold NaN or infinite values")
+        return array.reshape(rows, 2 * size)
+
+    def describe(self) -> str:
+        """The policy, for messages: its source file if it has one, else its class."""
+        source = getattr(self, "source", None)
+        return str(source) if source is not None else type(self).__name__
+
+
+def no_messages(rows: int) -> np.ndarray:
+    """The ``(rows, 0)`` float32 messages of agents that send none."""
+    return np.zeros((rows, 0), np.float32)
+
+
 def check_gains(gains: Any) -> None:
     """Refuse a gains dataclass any of whose values is not a finite number >= 0 (a bool where its default is one).
 
@@ -81,7 +238,7 @@ def check_gains(gains: Any) -> None:
             raise ValueError(f"{type(gains).__name__}.{item.name}={value!r} is invalid: it must be {allowed}")
 
 
-class Controller(ABC):
+class Controller(Policy):
     """Base class of hand-written controllers: each agent acts from its own raw observation and its index.
 
     Controllers are decentralised: :meth:`act` sees one row per agent (the fields of :attr:`layout`) and the agents'
@@ -122,7 +279,8 @@ class Controller(ABC):
 
     def fit(self, config: FormationConfig) -> Controller:
         """The same controller (a shallow copy: same gains, same generator) acting in envs of ``config``; the copy's
-        :meth:`_fit_task` derives what depends on the task."""
+        :meth:`_fit_task` derives what depends on the task. A controller reads its observation's fields by name and
+        acts through the task's dynamics, so it fits every task."""
         if config == self.config:
             return self
         fitted = copy.copy(self)
@@ -136,46 +294,21 @@ class Controller(ABC):
         controller that keeps nothing of it leaves this as it is."""
         return
 
-    def predict(
-        self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
-    ) -> tuple[np.ndarray, Any]:
-        """SB3's signature: :meth:`agent_step` on every row (row k: agent k % n), actions clipped to [-1, 1]."""
-        observation = np.asarray(observation, dtype=np.float64)
-        rows = observation.reshape(-1, observation.shape[-1])
-        agents = np.arange(len(rows)) % self.config.n_agents
-        actions, state = self.agent_step(rows, agents, state, episode_start, deterministic)
-        return actions.reshape(*observation.shape[:-1], 2), state
-
     def agent_step(
         self,
         observations: np.ndarray,
         agents: np.ndarray,
         state: Any = None,
         episode_start: np.ndarray | None = None,
+        received: np.ndarray | None = None,
         deterministic: bool = True,
-    ) -> tuple[np.ndarray, Any]:
-        """Actions ``(k, 2)`` (as :meth:`agent_actions`) for rows of any agents, and the controller's next state (its
-        memory of these rows): what every caller that carries a controller's memory calls (:meth:`predict`, and
-        :class:`~sb3_formation.controllers.residual.ResidualAdapter`). A memoryless controller returns ``None``; one with
-        memory overrides this.
-
-        :param observations: ``(k, obs_dim)`` raw observations
-        :param agents: ``(k,)`` each row's agent index in its team
-        :param state: what the previous call returned for these rows (``None`` at the start)
-        :param episode_start: ``(k,)`` flags: these rows start an episode (their memory is reset)
-        :param deterministic: act without noise
-        """
-        return self.agent_actions(observations, agents, deterministic), None
-
-    def agent_actions(self, observations: np.ndarray, agents: np.ndarray, deterministic: bool = True) -> np.ndarray:
-        """:meth:`act` on rows of any agents (e.g. one robot's), clipped to [-1, 1], as float32 ``(k, 2)``.
-
-        :param observations: ``(k, obs_dim)`` raw observations
-        :param agents: ``(k,)`` each row's agent index in its team
-        :param deterministic: act without noise
-        """
+    ) -> AgentStep:
+        """:meth:`act` on rows of any agents, clipped to [-1, 1], as float32 ``(k, 2)``; a memoryless controller's
+        state is ``None`` (one with memory overrides this); its agents send no messages."""
         observations = np.asarray(observations, dtype=np.float64)
-        return np.clip(self.act(observations, np.asarray(agents), deterministic), -1.0, 1.0).astype(np.float32)
+        self.received_messages(received, len(observations))
+        actions = np.clip(self.act(observations, np.asarray(agents), deterministic), -1.0, 1.0).astype(np.float32)
+        return AgentStep(actions, None, no_messages(len(observations)))
 
     @abstractmethod
     def act(self, observations: np.ndarray, agents: np.ndarray, deterministic: bool) -> np.ndarray:

@@ -2,8 +2,8 @@
 
 ``a = clip(a_base + scale * a_correction, -1, 1)``: the correction (a policy's action in [-1, 1]^2) moves the
 controller's action by at most ``scale`` (a fraction of F_max) per component. With a zero correction the residual
-policy is the controller. :class:`ResidualAdapter` computes the sum and carries the controller's memory wherever a
-residual policy acts: in evaluation (:class:`ResidualPolicy`), in training
+policy is the controller. :class:`ResidualAdapter` computes the sum (:meth:`ResidualAdapter.corrected`) and carries
+the controller's memory wherever a residual policy acts: in evaluation (:class:`ResidualPolicy`), in training
 (:class:`~sb3_formation.sb3.residual.ResidualVecEnv`) and in the torch-free runtime
 (:class:`~sb3_formation.runtime.OnnxPolicy`).
 """
@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from sb3_formation.controllers.base import Controller, TeamPolicy
+from sb3_formation.controllers.base import AgentStep, Controller, Policy, TeamPolicy
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.utils.checks import is_number
 
@@ -44,7 +44,7 @@ class ResidualAdapter:
     """The controller's side of a residual policy: the controller, its memory, the scale and the sum
     (:func:`add_correction`), for rows of agents whose learned corrections the caller has.
 
-    The memory is carried as Stable-Baselines3 carries a policy's state: :meth:`act` returns it, the caller hands it
+    The memory is carried as Stable-Baselines3 carries a policy's state: :meth:`corrected` returns it, the caller hands it
     back with the next rows (the same rows, in the same order), and ``episode_start`` flags the rows whose episode
     starts now, whose memory the controller resets (``None`` as the memory starts every row's episode; a memoryless
     controller's memory is ``None``). The adapter holds no memory itself: a policy's ``predict`` must start afresh
@@ -70,7 +70,7 @@ class ResidualAdapter:
         controller = self.controller.fit(config)
         return self if controller is self.controller else ResidualAdapter(controller, self.scale)
 
-    def act(
+    def corrected(
         self,
         observations: np.ndarray,
         correction: np.ndarray,
@@ -91,12 +91,13 @@ class ResidualAdapter:
         """
         rows = np.asarray(observations, dtype=np.float64).reshape(-1, np.shape(observations)[-1])
         agents = np.arange(len(rows)) % self.controller.config.n_agents if agents is None else np.asarray(agents).reshape(-1)
-        base, memory = self.controller.agent_step(rows, agents, memory, episode_start, deterministic)
+        base, memory, _ = self.controller.agent_step(rows, agents, memory, episode_start, deterministic=deterministic)
         return add_correction(base.astype(np.float64), correction, self.scale), memory
 
 
-class ResidualPolicy:
-    """A controller plus a policy's bounded correction, on the policy seam (raw team observations).
+class ResidualPolicy(Policy):
+    """A controller plus a policy's bounded correction, on the policy seam. Its state is the pair (the correction's
+    state, the controller's memory); its agents send the correction's messages.
 
     :param base: the controller
     :param correction: the policy whose actions are the corrections (e.g. a trained model)
@@ -117,8 +118,12 @@ class ResidualPolicy:
         return self.residual.scale
 
     @property
-    def config(self) -> FormationConfig:
+    def config(self) -> FormationConfig:  # type: ignore[override]  # the correction's: read-only
         return self.correction.config
+
+    @property
+    def message_size(self) -> int:
+        return self.correction.message_size
 
     @property
     def source(self) -> Any:
@@ -126,18 +131,25 @@ class ResidualPolicy:
         return getattr(self.correction, "source", None)
 
     def fit(self, config: FormationConfig) -> ResidualPolicy:
-        """The residual policy acting in envs of ``config`` (both parts fitted)."""
+        """The residual policy acting in envs of ``config`` (both parts fitted: the correction's fit decides)."""
         base, correction = self.base.fit(config), self.correction.fit(config)
         if base is self.base and correction is self.correction:
             return self
         return ResidualPolicy(base, correction, self.scale)
 
-    def predict(
-        self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
-    ) -> tuple[np.ndarray, Any]:
-        """The controller's actions plus the scaled corrections; the state is the pair (the correction's state, the
-        controller's memory)."""
+    def agent_step(
+        self,
+        observations: np.ndarray,
+        agents: np.ndarray,
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        received: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> AgentStep:
+        """The controller's actions plus the scaled corrections of the correction's agent step."""
         correction_state, memory = (None, None) if state is None else state
-        correction, correction_state = self.correction.predict(observation, correction_state, episode_start, deterministic)
-        actions, memory = self.residual.act(observation, correction, memory, episode_start, deterministic=deterministic)
-        return actions.reshape(*np.shape(observation)[:-1], 2), (correction_state, memory)
+        step = self.correction.agent_step(observations, agents, correction_state, episode_start, received, deterministic)
+        actions, memory = self.residual.corrected(
+            observations, step.action, memory, episode_start, np.asarray(agents), deterministic
+        )
+        return AgentStep(actions, (step.state, memory), step.message)

@@ -72,7 +72,7 @@ from typing import Any
 
 import numpy as np
 
-from sb3_formation.controllers.base import Controller, check_gains
+from sb3_formation.controllers.base import AgentStep, Controller, check_gains, no_messages
 from sb3_formation.controllers.classical import MIN_GAP, command_action, lidar_repulsion, unit
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.geometry import reference_polygon
@@ -223,10 +223,12 @@ class ShrinkingController(Controller):
         agents: np.ndarray,
         state: Any = None,
         episode_start: np.ndarray | None = None,
+        received: np.ndarray | None = None,
         deterministic: bool = True,
-    ) -> tuple[np.ndarray, np.ndarray]:
+    ) -> AgentStep:
         """Actions for rows of any agents and their memory as the next state (reset where ``episode_start``)."""
         observations = np.asarray(observations, dtype=np.float64)
+        self.received_messages(received, len(observations))
         memory = self.initial_memory(len(observations))
         if state is not None:
             memory = np.array(state, dtype=np.float64).reshape(len(observations), len(MEMORY_FIELDS))
@@ -234,7 +236,7 @@ class ShrinkingController(Controller):
                 starts = np.asarray(episode_start, dtype=bool).reshape(-1)
                 memory[starts] = self.initial_memory(int(starts.sum()))
         actions, memory = self.step(observations, np.asarray(agents), memory)
-        return np.clip(actions, -1.0, 1.0).astype(np.float32), memory
+        return AgentStep(np.clip(actions, -1.0, 1.0).astype(np.float32), memory, no_messages(len(observations)))
 
     def act(self, observations: np.ndarray, agents: np.ndarray, deterministic: bool) -> np.ndarray:
         return self.step(observations, agents, self.initial_memory(len(observations)))[0]

@@ -166,9 +166,9 @@ def agent_indices(text: str | None, n_agents: int) -> list[int]:
 def run_agents(args: argparse.Namespace, argv: list[str]) -> int:
     """Run the agent nodes until interrupted: in this process, or one child process per agent (each started with
     ``argv``, this command's arguments, for its one agent)."""
-    from sb3_formation.runtime import OnnxPolicy
+    from sb3_formation.runtime import load_onnx_policy
 
-    policy = OnnxPolicy(args.model, threads=1)
+    policy = load_onnx_policy(args.model, threads=1)
     indices = agent_indices(args.agents, policy.config.n_agents)
     if args.process_per_agent and len(indices) > 1:
         ros_at = argv.index("--ros-args") if "--ros-args" in argv else len(argv)
@@ -180,7 +180,8 @@ def run_agents(args: argparse.Namespace, argv: list[str]) -> int:
         return _run_children(commands)
     from rclpy.parameter import Parameter
 
-    from sb3_formation.ros.agent_node import AgentNode, AgentSettings
+    from sb3_formation.ros.agent_node import AgentNode
+    from sb3_formation.ros.onboard import AgentSettings
 
     def make_nodes() -> list[Any]:
         return [

@@ -9,7 +9,9 @@ recurrent policy also reads and returns its actor's state (``hidden_in`` -> ``hi
 ``(batch, M)``. :class:`OnnxPolicy` adds a residual policy's correction to the numpy controller's action the metadata
 names (the residual composition of ``docs/export.md``) with :class:`~sb3_formation.controllers.residual.ResidualAdapter`,
 as training and evaluation do. The model's metadata (:class:`PolicyMetadata`) hold the task configuration, the
-observation layout, the team sizes, the residual, recurrent and message settings, the package version and the opset.
+observation layout, the team sizes, the residual, recurrent, safety and message settings, the package version and the
+opset. An :class:`OnnxPolicy` never filters its actions: :func:`load_onnx_policy` puts a policy trained behind the
+safety filter behind :class:`~sb3_formation.safety.policy.SafePolicy`, with the gains its metadata record.
 """
 
 from __future__ import annotations
@@ -21,16 +23,17 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple, cast
+from typing import Any, cast
 
 import numpy as np
 
 from sb3_formation import __version__
 from sb3_formation.controllers import ResidualAdapter, controller_from_spec
+from sb3_formation.controllers.base import AgentStep, Policy, TeamPolicy, check_fit, no_messages
 from sb3_formation.env.config import FormationConfig
-from sb3_formation.env.geometry import ring_rows
 from sb3_formation.env.observations import observation_fields, observation_layout
-from sb3_formation.safety.filter import SafetyFilter, SafetyGains
+from sb3_formation.safety.filter import SafetyGains
+from sb3_formation.safety.policy import SafePolicy
 from sb3_formation.utils.files import MAX_FILE_BYTES
 
 #: Prefix of the metadata keys this package writes into an exported model.
@@ -209,7 +212,7 @@ def check_graph(path: Path) -> None:
     beyond :data:`~sb3_formation.utils.files.MAX_FILE_BYTES`, weights kept in external files, or any tensor (weight,
     input, output, or value whose size shape inference knows before the graph runs) of more than
     :data:`MAX_TENSOR_ELEMENTS` elements. A size computed from the observation's values at run time is not known
-    here; onnxruntime's errors at run time are one-line errors (:meth:`OnnxPolicy.agent_actions`).
+    here; onnxruntime's errors at run time are one-line errors (:meth:`OnnxPolicy.agent_step`).
 
     :raises ValueError: naming the file and what is wrong
     """
@@ -248,17 +251,10 @@ def check_graph(path: Path) -> None:
             )
 
 
-class AgentStep(NamedTuple):
-    """What :meth:`OnnxPolicy.agent_step` returns for some agents."""
-
-    actions: np.ndarray  #: ``(k, 2)`` float32 actions
-    messages: np.ndarray  #: ``(k, M)`` float32 messages each agent sends its ring neighbours (``(k, 0)`` if none)
-    state: Any  #: the agents' next state (what the next call takes)
-
-
-class OnnxPolicy:
-    """An exported policy on the policy seam (:class:`~sb3_formation.controllers.base.TeamPolicy`): evaluation,
-    rendering and comparison run it as any target (``onnx:path/to/file.onnx`` or the path itself).
+class OnnxPolicy(Policy):
+    """An exported policy on the policy seam (:class:`~sb3_formation.controllers.base.Policy`): evaluation,
+    rendering and comparison run it as any target (``onnx:path/to/file.onnx`` or the path itself). It never filters its
+    actions (:func:`load_onnx_policy` puts a shielded export behind the filter).
 
     On a robot, :meth:`agent_step` acts for the agents it hosts (their observations, their indices in the team and the
     messages their ring neighbours sent).
@@ -295,12 +291,11 @@ class OnnxPolicy:
         self.observation_dim = self.metadata.observation_dim
         self._check_declared_widths()
         spec = self.metadata.residual
-        #: a residual policy's controller and scale, which :meth:`agent_actions` adds to the graph's correction, else None
+        #: a residual policy's controller and scale, which :meth:`agent_step` adds to the graph's correction, else None
         self.residual = None if spec is None else ResidualAdapter(controller_from_spec(spec, self.config), spec["scale"])
-        gains = self.metadata.safety
         try:
-            #: the safety filter of a policy trained behind it (:meth:`agent_actions` applies it), else ``None``
-            self.safety = None if gains is None else SafetyFilter(self.config, SafetyGains.from_dict(gains))
+            #: the safety filter's gains of a policy trained behind it (:func:`load_onnx_policy` applies them), else None
+            self.safety_gains = None if self.metadata.safety is None else SafetyGains.from_dict(self.metadata.safety)
         except (TypeError, ValueError) as error:
             raise ValueError(f"{self.source}: the safety filter's gains in its metadata are invalid: {error}") from None
 
@@ -325,73 +320,22 @@ class OnnxPolicy:
         """Whether it acts in teams of any size (it was trained on several)."""
         return len(self.metadata.team_sizes) > 1
 
+    @property
+    def message_size(self) -> int:
+        return self.metadata.message_size
+
     def fit(self, config: FormationConfig) -> OnnxPolicy:
         """The policy acting in envs of ``config``: ``self``, or a copy (same session) whose controller acts there.
 
-        :raises ValueError: naming every difference that changes the observation (or the team size, for a policy
-            trained on one)
+        :raises ValueError: :func:`~sb3_formation.controllers.base.check_fit`'s differences
         """
         if config == self.config:
             return self
-        differences = [
-            f"{name}={getattr(self.config, name)} in the model, {getattr(config, name)} in the env"
-            for name in ("n_agents", "lidar_rays", "observe_reference_bearings")
-            if getattr(self.config, name) != getattr(config, name) and not (name == "n_agents" and self.any_team_size)
-        ]
-        if differences:
-            raise ValueError(f"{self.source} does not fit this env's observations: " + "; ".join(differences))
+        check_fit(str(self.source), self.config, config, self.any_team_size)
         fitted = copy.copy(self)
         fitted.config = config
         fitted.residual = None if self.residual is None else self.residual.fit(config)
-        fitted.safety = None if self.safety is None else SafetyFilter(config, self.safety.gains)
         return fitted
-
-    def without_filter(self) -> OnnxPolicy:
-        """The same policy without its safety filter (for a caller that filters its actions itself)."""
-        unfiltered = copy.copy(self)
-        unfiltered.safety = None
-        return unfiltered
-
-    def predict(
-        self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
-    ) -> tuple[np.ndarray, Any]:
-        """Actions for raw observations of whole teams (row k: agent ``k % n`` of team ``k // n``) and the next state.
-
-        A policy whose agents send messages delivers them here, one step late, to each row's ring neighbours in its
-        team; its state is the pair (the agents' state, the ``(k, M)`` messages they sent).
-
-        :param observation: ``(..., obs_dim)`` raw observations
-        :param state: what the previous call returned (``None``: zeros); a feed-forward policy returns it unchanged
-        :param episode_start: ``(k,)`` flags: these rows start an episode (their recurrent state is reset)
-        :param deterministic: must be True: the graph holds the mean action only
-        """
-        rows = self._rows(observation)
-        n_agents, received = self.config.n_agents, None
-        if self.metadata.message_size:
-            state, sent = (None, None) if state is None else state
-            if sent is not None:
-                keep = 1.0 if episode_start is None else 1.0 - np.asarray(episode_start, np.float32).reshape(-1, 1)
-                received = (np.asarray(sent, np.float32) * keep)[ring_rows([n_agents] * (len(rows) // n_agents))]
-        step = self.agent_step(rows, np.arange(len(rows)) % n_agents, state, episode_start, received, deterministic)
-        actions = step.actions.reshape(*np.shape(observation)[:-1], 2)
-        return actions, ((step.state, step.messages) if self.metadata.message_size else step.state)
-
-    def agent_actions(
-        self,
-        observations: np.ndarray,
-        agents: np.ndarray,
-        state: Any = None,
-        episode_start: np.ndarray | None = None,
-        deterministic: bool = True,
-    ) -> tuple[np.ndarray, Any]:
-        """:meth:`agent_step`'s actions and state, for a policy whose agents send no messages.
-
-        :raises ValueError: a policy whose agents hear their neighbours' messages (:meth:`agent_step` takes them)
-        """
-        if self.metadata.message_size:
-            raise ValueError(f"{self.source}: its agents hear their ring neighbours' messages: act with agent_step(received=)")
-        step = self.agent_step(observations, agents, state, episode_start, deterministic=deterministic)
-        return step.actions, step.state
 
     def agent_step(
         self,
@@ -402,8 +346,8 @@ class OnnxPolicy:
         received: np.ndarray | None = None,
         deterministic: bool = True,
     ) -> AgentStep:
-        """Actions ``(k, 2)`` for the raw observations of any agents, e.g. the one a robot hosts, the messages they
-        send and their next state.
+        """Actions ``(k, 2)`` for the raw observations of any agents, e.g. the one a robot hosts, their next state and
+        the messages they send.
 
         :param observations: ``(k, obs_dim)`` (or one ``(obs_dim,)``) raw observations
         :param agents: ``(k,)`` each row's agent index in its team (a residual policy's controller needs it)
@@ -421,40 +365,19 @@ class OnnxPolicy:
         rows = self._rows(observations)
         graph_state, memory = (state, None) if self.residual is None or state is None else state
         feeds = {OBSERVATION_INPUT: rows, **self._state_feeds(graph_state, episode_start, len(rows))}
-        feeds |= self._message_feeds(received, len(rows))
+        received = self.received_messages(received, len(rows))
+        if self.message_size:
+            feeds[MESSAGE_INPUT] = np.zeros((len(rows), 2 * self.message_size), np.float32) if received is None else received
         try:
             first, *outputs = self.session.run(self.metadata.output_names, feeds)
         except Exception as error:  # onnxruntime raises its own exception types (InvalidArgument, Fail, ...)
             raise RuntimeError(f"{self.source}: onnxruntime could not run the graph: {_first_line(error)}") from None
-        messages = outputs.pop() if self.metadata.message_size else np.zeros((len(rows), 0), np.float32)
+        messages = outputs.pop() if self.message_size else no_messages(len(rows))
         graph_state = tuple(outputs) if outputs else graph_state
         if self.residual is None:
-            return AgentStep(self._filtered(rows, first), messages, graph_state)
-        actions, memory = self.residual.act(rows, first, memory, episode_start, agents)
-        return AgentStep(self._filtered(rows, actions), messages, (graph_state, memory))
-
-    def _message_feeds(self, received: np.ndarray | None, rows: int) -> dict[str, np.ndarray]:
-        """The graph's message input: ``received`` as ``(rows, 2 M)`` float32 (zeros if ``None``).
-
-        :raises ValueError: messages of another shape, or messages for a policy that sends none
-        """
-        size = self.metadata.message_size
-        if not size:
-            if received is not None:
-                raise ValueError(f"{self.source} is a policy whose agents send no messages: give no received messages")
-            return {}
-        if received is None:
-            return {MESSAGE_INPUT: np.zeros((rows, 2 * size), np.float32)}
-        array = np.asarray(received, np.float32)
-        if array.size != rows * 2 * size or array.shape[0] != rows:
-            raise ValueError(f"{self.source} needs received messages of shape ({rows}, 2, {size}), got {array.shape}")
-        if not np.isfinite(array).all():
-            raise ValueError(f"{self.source}: the received messages hold NaN or infinite values")
-        return {MESSAGE_INPUT: array.reshape(rows, 2 * size)}
-
-    def _filtered(self, rows: np.ndarray, actions: np.ndarray) -> np.ndarray:
-        """``actions`` through the safety filter, if the policy has one."""
-        return actions if self.safety is None else self.safety.filter(rows, actions)[0]
+            return AgentStep(first, graph_state, messages)
+        actions, memory = self.residual.corrected(rows, first, memory, episode_start, np.asarray(agents).reshape(-1))
+        return AgentStep(actions, (graph_state, memory), messages)
 
     def _rows(self, observation: np.ndarray) -> np.ndarray:
         """``observation`` as float32 rows of one agent's observation each."""
@@ -485,15 +408,12 @@ class OnnxPolicy:
         return {f"{part}_in": array for part, array in zip(parts, arrays)}
 
 
-def load_onnx_policy(path: str | os.PathLike[str], threads: int | None = None) -> Any:
+def load_onnx_policy(path: str | os.PathLike[str], threads: int | None = None) -> TeamPolicy:
     """The policy an exported file holds: an :class:`OnnxPolicy`, behind the safety filter
     (:class:`~sb3_formation.safety.policy.SafePolicy`, with the gains its metadata record) when it was trained behind one.
 
     :param path: the ``.onnx`` file ``sb3-formation export`` wrote
     :param threads: onnxruntime's intra-op threads (``None``: its default)
     """
-    from sb3_formation.safety.policy import SafePolicy
-
     policy = OnnxPolicy(path, threads)
-    gains = policy.metadata.safety
-    return policy if gains is None else SafePolicy(policy, SafetyGains.from_dict(gains))
+    return policy if policy.safety_gains is None else SafePolicy(policy, policy.safety_gains)

@@ -1,6 +1,7 @@
-"""Any policy behind the safety filter: :class:`SafePolicy`, a :class:`~sb3_formation.controllers.base.TeamPolicy` that
-passes another one's actions through :class:`~sb3_formation.safety.filter.SafetyFilter`, and keeps per-agent counts of
-what the filter did for the episode loop's rows."""
+"""Any policy behind the safety filter: :class:`SafePolicy`, a :class:`~sb3_formation.controllers.base.Policy` that
+passes another one's actions through :class:`~sb3_formation.safety.filter.SafetyFilter` in both calls of the policy
+contract, and keeps per-agent counts of what the filter did for the episode loop's rows. It is the one place where the
+filter is applied to a policy (:class:`~sb3_formation.sb3.safety.SafetyVecEnv` applies it to a VecEnv for training)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from sb3_formation.controllers.base import TeamPolicy
+from sb3_formation.controllers.base import AgentStep, Policy, TeamPolicy
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.safety.filter import FilterReport, SafetyFilter, SafetyGains
 
@@ -58,10 +59,9 @@ class FilterTally:
         }
 
 
-class SafePolicy:
+class SafePolicy(Policy):
     """A policy whose actions pass through the safety filter; every other attribute is the wrapped policy's (so a
-    privileged policy stays one, and ``seed`` reaches it). Wrapping a :class:`SafePolicy`, or a policy that filters its
-    own actions (an exported shielded policy, :class:`~sb3_formation.runtime.OnnxPolicy`), filters once, with its gains
+    privileged policy stays one, and ``seed`` reaches it). Wrapping a :class:`SafePolicy` filters once, with its gains
     unless others are given.
 
     :param policy: the policy that proposes actions
@@ -73,23 +73,26 @@ class SafePolicy:
 
     def __init__(self, policy: TeamPolicy, gains: SafetyGains | None = None) -> None:
         if isinstance(policy, SafePolicy):  # one filter is enough
-            outer: SafePolicy = policy
-            policy, gains = outer.policy, gains or outer.filter.gains
-        own = getattr(policy, "safety", None)
-        if isinstance(own, SafetyFilter):  # a policy that filters its own actions (an exported shielded one): this does
-            policy, gains = policy.without_filter(), gains or own.gains  # type: ignore[attr-defined]
+            gains = gains or policy.filter.gains
+            policy = policy.policy
         self.policy = policy
         #: the task the wrapped policy acts in
         self.config: FormationConfig = policy.config
         self.filter = SafetyFilter(policy.config, gains)
         self.tally = FilterTally()
+        #: what the filter did at the last :meth:`agent_step` (``None`` before the first)
+        self.report: FilterReport | None = None
 
     def __getattr__(self, name: str) -> Any:
-        if name in ("policy", "config", "filter", "tally"):  # not yet set (unpickling): no recursion
+        if name in ("policy", "config", "filter", "tally", "report"):  # not yet set (unpickling): no recursion
             raise AttributeError(name)
         return getattr(self.policy, name)
 
-    def fit(self, config: FormationConfig) -> TeamPolicy:
+    @property
+    def message_size(self) -> int:
+        return self.policy.message_size
+
+    def fit(self, config: FormationConfig) -> SafePolicy:
         """The wrapped policy fitted to ``config`` behind a filter of the same gains."""
         fitted = self.policy.fit(config)
         return self if fitted is self.policy else SafePolicy(fitted, self.filter.gains)
@@ -109,6 +112,35 @@ class SafePolicy:
         self.tally.add(report)
         return safe.reshape(np.shape(actions)), state
 
+    def agent_step(
+        self,
+        observations: np.ndarray,
+        agents: np.ndarray,
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        received: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> AgentStep:
+        """The wrapped policy's agent step with its actions filtered (its state and messages as they are); what the
+        filter did is kept in :attr:`report`."""
+        step = self.policy.agent_step(observations, agents, state, episode_start, received, deterministic)
+        rows = np.asarray(observations).reshape(len(step.action), -1)
+        safe, self.report = self.filter.filter(rows, step.action)
+        return step._replace(action=safe)
+
     def episode_metrics(self, rows: slice) -> dict[str, float]:
         """What the filter did to ``rows`` (a team's) since their episode started (:meth:`FilterTally.metrics`)."""
         return self.tally.metrics(rows)
+
+
+def with_filter(policy: TeamPolicy, filtered: bool) -> TeamPolicy:
+    """``policy`` behind the safety filter or not: a :class:`SafePolicy` keeps its gains (an export trained behind the
+    filter loads as one, with its own gains), any other policy gets the default gains; unfiltered, a
+    :class:`SafePolicy` gives its wrapped policy.
+
+    :param policy: the policy
+    :param filtered: whether its actions pass through the filter
+    """
+    if filtered:
+        return SafePolicy(policy)
+    return policy.policy if isinstance(policy, SafePolicy) else policy

@@ -45,7 +45,7 @@ class ResidualVecEnv(ActionVecEnvWrapper):
     def _env_actions(self, observations: np.ndarray, actions: np.ndarray) -> np.ndarray:
         corrected = np.empty((len(observations), 2), dtype=np.float32)
         for group, (residual, slots) in enumerate(self._residuals):
-            corrected[slots], self._memories[group] = residual.act(
+            corrected[slots], self._memories[group] = residual.corrected(
                 observations[slots], actions[slots], self._memories[group], self._starts[slots]
             )
         return corrected

@@ -365,27 +365,59 @@ class RecurrentFormationPolicy(ModeOnChange, BasePolicy):
         :param neighbours: ``(n, 2)`` each row's ring neighbours' rows (a policy with messages only)
         :return: actions clipped to the action space, and the new state (numpy arrays)
         """
-        self.set_training_mode(False)
         observation = np.asarray(observation, dtype=np.float32)
         single = observation.ndim == 1
-        batch = observation.reshape(-1, cast(spaces.Box, self.observation_space).shape[0])
+        n = observation.reshape(-1, cast(spaces.Box, self.observation_space).shape[0]).shape[0]
+        parts = len(self.actor.initial_state(1, self.device))
+        pi_state = None if state is None else tuple(state[:parts])
+        received = None
+        if self.message_size:
+            if neighbours is None:
+                raise ValueError("a policy with messages needs each row's ring neighbours (neighbours=ring_rows(team_sizes))")
+            sent = np.zeros((n, self.message_size), np.float32) if state is None else np.asarray(state[parts], np.float32)
+            if episode_start is not None:
+                sent = sent * (1.0 - np.asarray(episode_start, np.float32).reshape(-1, 1))
+            received = sent[np.asarray(neighbours)].reshape(n, -1)
+        actions, pi_state, sent = self.actor_step(observation, pi_state, episode_start, received, deterministic)
+        return (actions[0] if single else actions), (*pi_state, *((sent,) if self.message_size else ()))
+
+    def actor_step(
+        self,
+        observation: np.ndarray,
+        state: tuple[np.ndarray, ...] | None = None,
+        episode_start: np.ndarray | None = None,
+        received: np.ndarray | None = None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
+        """One step of the actor for rows of any agents, given the messages they received: the policy contract's agent
+        call (:meth:`~sb3_formation.sb3.trained.TrainedPolicy.agent_step`) on normalised observations.
+
+        :param observation: ``(n, obs_dim)`` observations
+        :param state: the actor's cell state the previous call returned (``None``: zeros)
+        :param episode_start: ``(n,)`` flags: reset these rows' states first (``None``: no reset)
+        :param received: ``(n, 2 M)`` what each row's preceding and succeeding neighbours sent (``None``: zeros)
+        :param deterministic: return the mean action instead of a sample
+        :return: actions clipped to the action space, the actor's next cell state and the ``(n, M)`` messages sent
+        """
+        self.set_training_mode(False)
+        batch = np.asarray(observation, dtype=np.float32).reshape(-1, cast(spaces.Box, self.observation_space).shape[0])
         n = batch.shape[0]
         actions: th.Tensor | np.ndarray  # a tensor, then its clipped numpy values
         with th.no_grad():
-            states = self.initial_state(n)
+            pi_state = self.actor.initial_state(n, self.device)
             if state is not None:
-                arrays = [th.as_tensor(np.asarray(array), dtype=th.float32, device=self.device) for array in state]
-                parts = len(states.pi)
-                states = RecurrentStates(
-                    tuple(arrays[:parts]), states.vf, arrays[parts] if self.message_size else states.messages
-                )
-            starts = th.zeros(n) if episode_start is None else th.as_tensor(episode_start).float().reshape(-1)
-            states = self.entering(states, starts.to(self.device))
+                pi_state = tuple(th.as_tensor(np.asarray(array), dtype=th.float32, device=self.device) for array in state)
+            if episode_start is not None:
+                pi_state = _kept(pi_state, 1.0 - th.as_tensor(episode_start).float().reshape(-1).to(self.device))
+            if not self.memory:
+                pi_state = self.actor.initial_state(n, self.device)
             features = self.extract_features(th.as_tensor(batch, device=self.device), self.features_extractor)
-            inputs = self._inputs(features, self.received(states.messages, neighbours))
-            actor_output, pi_state = self.actor(inputs.unsqueeze(0), states.pi)
+            if self.message_size:
+                messages = np.zeros((n, 2 * self.message_size), np.float32) if received is None else received
+                features = self._inputs(features, th.as_tensor(messages, dtype=th.float32, device=self.device))
+            actor_output, pi_state = self.actor(features.unsqueeze(0), pi_state)
             actions = self._distribution(actor_output[0]).get_actions(deterministic=deterministic)
-            sent = (self._message(actor_output[0]),) if self.message_size else ()
+            sent = self._message(actor_output[0])
         box = cast(spaces.Box, self.action_space)  # checked in __init__
         actions = cast(np.ndarray, np.clip(actions.cpu().numpy(), box.low, box.high))
-        return (actions[0] if single else actions), tuple(tensor.cpu().numpy() for tensor in (*pi_state, *sent))
+        return actions, tuple(tensor.cpu().numpy() for tensor in pi_state), sent.cpu().numpy()
