@@ -12,12 +12,12 @@ import pytest
 from engine_goldens import EARLY_STEPS, GOLDENS, TASKS, case_name, cases, early_steps
 
 from sb3_formation import FormationConfig, FormationEnv
-from sb3_formation.env.blocks import slot_observations
 from sb3_formation.env.config import INFO_KEYS, REWARD_TERMS
 from sb3_formation.env.dynamics import HolonomicDynamics, UnicycleDynamics
 from sb3_formation.env.engine import INFO_VALUES, ContactColumn, FormationEngine, InfoColumn, agent_infos
 from sb3_formation.env.progress import EuclideanProgress, GeodesicProgress
 from sb3_formation.env.scenarios import Scenario
+from sb3_formation.env.slots import slot_observations
 from sb3_formation.experiment.pretrained import numerics_fingerprint
 from sb3_formation.sb3.vec_env import FormationVecEnv
 

@@ -1,7 +1,7 @@
 """``FormationEngine``: the one implementation of a reset, a step and a team's episode state, for any number of teams.
 
 Every view of the task steps through it: :class:`~sb3_formation.env.formation_env.FormationEnv` is the PettingZoo
-view of an engine of one team, :class:`~sb3_formation.env.blocks.EngineBlock` adds automatic resets and episode
+view of an engine of one team, :class:`~sb3_formation.env.auto_reset.EngineBlock` adds automatic resets and episode
 records for the SB3 ``VecEnv`` and for evaluation. The engine never resets a team by itself: a team whose episode
 ended is left as it ended (its last observation is the terminal one) and is not stepped until it is reset.
 
