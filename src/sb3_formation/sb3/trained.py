@@ -1,8 +1,8 @@
 """``TrainedPolicy``: a trained SB3 model paired with its normaliser statistics, acting on raw observations.
 
-It is the adapter between the policy seam (:class:`~sb3_formation.controllers.base.TeamPolicy`: raw observations of
-whole teams) and what the network was trained on: observations scaled by the frozen statistics and, for a team critic,
-each slot's own observation followed by its whole team's.
+It is the adapter between the policy contract (:class:`~sb3_formation.controllers.base.Policy`: raw observations of
+any agents) and what the network was trained on: observations scaled by the frozen statistics and, for a team critic,
+each slot's own observation followed by its team's (which only the critic reads: the actor reads the first block).
 """
 
 from __future__ import annotations
@@ -15,19 +15,16 @@ from typing import Any
 
 import numpy as np
 
+from sb3_formation.controllers.base import AgentStep, Policy, check_fit, no_messages
 from sb3_formation.env.config import FormationConfig
-from sb3_formation.env.geometry import ring_rows
 from sb3_formation.env.observations import observation_fields
-from sb3_formation.env.slots import slot_observations
 from sb3_formation.sb3.normalization import STATE_KEYS, observation_offset, observation_scale, scale_observations
 from sb3_formation.sb3.policies import FormationPolicy
-
-#: Fields that shape the observation vector: a model only fits envs that agree on them.
-OBSERVATION_SHAPING_FIELDS = ("n_agents", "lidar_rays")
+from sb3_formation.sb3.recurrent.policies import RecurrentFormationPolicy
 
 
 @dataclass
-class TrainedPolicy:
+class TrainedPolicy(Policy):
     """A trained model with what it needs to act: its task configuration and its normaliser statistics.
 
     :param model: an SB3 algorithm (its ``policy`` acts) or anything with SB3's ``predict`` on normalised observations
@@ -76,39 +73,49 @@ class TrainedPolicy:
         """Whether it acts in teams of any size: trained on several, with no team critic (which reads a whole team)."""
         return len(self.team_sizes) > 1 and not self.team_observations
 
+    @property
+    def message_size(self) -> int:
+        return int(getattr(self.policy, "message_size", 0))
+
     def fit(self, config: FormationConfig) -> TrainedPolicy:
         """The policy acting in envs of ``config``: ``self``, or (a policy of :attr:`any_team_size` in a team of
         another size) a copy that acts there.
 
-        :raises ValueError: naming every observation-shaping difference, or normaliser statistics of another layout
+        :raises ValueError: :func:`~sb3_formation.controllers.base.check_fit`'s differences, or normaliser statistics of
+            another layout
         """
-        shaping = [name for name in OBSERVATION_SHAPING_FIELDS if not (name == "n_agents" and self.any_team_size)]
-        differences = [
-            f"{name}={getattr(self.config, name)} in the model, {getattr(config, name)} in the env"
-            for name in shaping
-            if getattr(self.config, name) != getattr(config, name)
-        ]
-        if differences:
-            raise ValueError("the model does not fit this env's observations: " + "; ".join(differences))
+        check_fit(self.describe(), self.config, config, self.any_team_size)
         mismatch = normalizer_mismatch(self.normalizer_state, config)
         if mismatch is not None:
             raise ValueError(f"the normaliser statistics do not fit this env's observations: {mismatch}")
         return self if config.n_agents == self.config.n_agents else dataclasses.replace(self, config=config)
 
-    def predict(
-        self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
-    ) -> tuple[np.ndarray, Any]:
-        """The model's actions for raw observations of whole teams (row k: agent ``k % n`` of team ``k // n``)."""
-        rows = np.asarray(observation).reshape(-1, self._scale.size)
-        scaled = scale_observations(
-            slot_observations(rows, self.config.n_agents, self.team_observations), self._scale, self._clip, self._offset
-        )
+    def describe(self) -> str:
+        return "the model" if self.source is None else str(self.source)
+
+    def agent_step(
+        self,
+        observations: np.ndarray,
+        agents: np.ndarray,
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        received: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> AgentStep:
+        """The model's actions for raw observations of any agents (scaled by the frozen statistics), its next state
+        (a recurrent actor's cell state) and the messages its agents send."""
+        rows = np.asarray(observations).reshape(-1, self._scale.size)
+        received = self.received_messages(received, len(rows))
+        if self.team_observations:  # the actor reads a slot's own block only; the team's blocks feed the critic
+            rows = np.hstack([rows, np.zeros((len(rows), self.config.n_agents * rows.shape[1]), rows.dtype)])
+        scaled = scale_observations(rows, self._scale, self._clip, self._offset)
+        if isinstance(self.policy, RecurrentFormationPolicy):
+            actions, state, message = self.policy.actor_step(scaled, state, episode_start, received, deterministic)
+            return AgentStep(actions, state, message)
         if deterministic and isinstance(self.policy, FormationPolicy):  # the same actions, faster
-            return self.policy.deterministic_actions(scaled), state
-        if getattr(self.policy, "message_size", 0):  # its agents hear their ring neighbours in the rows' teams
-            neighbours = ring_rows([self.config.n_agents] * (len(rows) // self.config.n_agents))
-            return self.policy.predict(scaled, state, episode_start, deterministic, neighbours)
-        return self.policy.predict(scaled, state=state, episode_start=episode_start, deterministic=deterministic)
+            return AgentStep(self.policy.deterministic_actions(scaled), state, no_messages(len(rows)))
+        actions, state = self.policy.predict(scaled, state=state, episode_start=episode_start, deterministic=deterministic)
+        return AgentStep(actions, state, no_messages(len(rows)))
 
 
 def normalizer_mismatch(state: dict[str, np.ndarray], config: FormationConfig) -> str | None:
