@@ -17,6 +17,9 @@ from sb3_formation.env.auto_reset import ARRAY_FIELDS, BlockStep, EngineBlock, s
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.utils.processes import SharedArrays, WorkerProcess, gather, wait_started, worker_context
 
+#: what a step of the pool gives (:class:`~sb3_formation.env.auto_reset.BlockStep`) is importable from here too
+__all__ = ["WORKER_SPIN", "BlockStep", "EngineBlocks"]
+
 #: seconds a worker process polls for the next step before it sleeps (waking it would cost more than a step), and the
 #: parent for a worker's reply; the steps of a rollout follow each other well within it, training phases do not
 WORKER_SPIN = 0.02
