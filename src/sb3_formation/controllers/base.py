@@ -142,9 +142,8 @@ def _field_sizes(config: FormationConfig) -> list[tuple[str, int]]:
 
 class Policy(ABC):
     """Base of every policy: :meth:`agent_step` and :meth:`fit` are a subclass's; :meth:`predict` (the team call) is
-    written here once over :meth:`agent_step`, routing a talking policy's messages within each team.
-
-    :param config: the task the policy acts in
+    written here once over :meth:`agent_step`, routing a talking policy's messages within each team. A subclass sets
+    :attr:`config`, the task the policy acts in.
     """
 
     config: FormationConfig
