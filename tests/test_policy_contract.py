@@ -162,3 +162,45 @@ def test_an_export_trained_behind_the_filter_loads_behind_it_and_never_filters_i
     expected, _ = shielded.predict(rows)
     assert np.abs(filtered - expected).max() <= TOLERANCE
     assert np.abs(filtered - unfiltered).max() > 0.01
+
+
+def one_line_error(call: Callable[[], object], match: str) -> None:
+    with pytest.raises(ValueError, match=match) as error:
+        call()
+    assert "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_non_finite_or_misshapen_inputs_are_refused_in_one_line_by_every_kind(kind: str, tmp_path: Path) -> None:
+    """A NaN or infinite observation, rows of the wrong width, agent indices that do not match the rows, a state with
+    a NaN or of the wrong kind, and non-finite received messages: each a one-line ValueError, in both calls, never NaN
+    actions."""
+    policy = build(kind, tmp_path)
+    rows = ROWS[1].copy()
+    for bad in (np.nan, np.inf, -np.inf):
+        spoilt = rows.copy()
+        spoilt[4, 3] = bad
+        one_line_error(lambda spoilt=spoilt: policy.predict(spoilt), "observations hold NaN or infinite values")
+        one_line_error(lambda spoilt=spoilt: policy.agent_step(spoilt[[4]], np.array([4])), "NaN or infinite")
+    one_line_error(lambda: policy.predict(rows[:, :-1]), "features per agent")
+    one_line_error(lambda: policy.agent_step(rows[:2], np.array([0])), "2 observation rows")
+    _, state = policy.predict(rows)
+    if base_kind(kind) in WITH_MEMORY:
+        spoilt_state = nan_filled(state)
+        one_line_error(lambda: policy.predict(rows, spoilt_state), "state holds NaN or infinite values")
+        one_line_error(lambda: policy.predict(rows, 5), "state")
+        one_line_error(lambda: policy.predict(rows, ("a", "b", "c")), "state")
+    if base_kind(kind) in TALKING:
+        heard = np.full((1, 2, 4), np.nan)
+        one_line_error(lambda: policy.agent_step(rows[[0]], np.array([0]), received=heard), "NaN or infinite")
+    else:
+        one_line_error(lambda: policy.agent_step(rows[[0]], np.array([0]), received=np.zeros((1, 2, 4))), "send no messages")
+
+
+def nan_filled(state: Any) -> Any:
+    """The same structure as a policy's state, every number NaN."""
+    if state is None:
+        return None
+    if isinstance(state, tuple | list):
+        return type(state)(nan_filled(part) for part in state)
+    return np.full(np.shape(state), np.nan)

@@ -34,7 +34,7 @@ class ConstantPolicy(Policy):
     def fit(self, config: FormationConfig) -> ConstantPolicy:
         return self
 
-    def agent_step(self, observations, agents, state=None, episode_start=None, received=None, deterministic=True):
+    def _agent_step(self, observations, agents, state, episode_start, received, deterministic):
         rows = len(np.asarray(observations).reshape(-1, np.shape(observations)[-1]))
         return AgentStep(np.tile(self.action, (rows, 1)), None, no_messages(rows))
 

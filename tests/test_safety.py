@@ -271,3 +271,39 @@ def test_shielded_vec_env_applies_the_filtered_action_penalises_the_change_and_r
         team_rows = slice(team * config.n_agents, (team + 1) * config.n_agents)
         assert episode["filter_changed_fraction"] == pytest.approx(changed[team_rows].sum() / (steps * config.n_agents))
         assert episode["filter_infeasible_steps"] == 0 and episode["min_separation"] > 0
+
+
+@pytest.mark.filterwarnings("ignore:overflow encountered")
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("velocity", np.nan),
+        ("velocity", np.inf),
+        ("lidar_obstacles", -np.inf),
+        ("lidar_obstacles", np.nan),
+        ("neighbour_offsets", np.nan),
+    ],
+)
+def test_the_filter_never_returns_or_passes_a_non_finite_action(field: str, value: float) -> None:
+    """A NaN or infinite velocity, lidar reading or neighbour offset in one row is refused in one line (it used to give
+    NaN actions, or pass the proposed action through unreported); rows far beyond any reachable state (1e300 m) give
+    finite actions or a one-line refusal, never NaN."""
+    config = FormationConfig.task("ch5-bearing", stage=3)
+    safety = SafetyFilter(config)
+    env = FormationEnv(config)
+    rows = np.stack(list(env.reset(seed=0)[0].values())).astype(np.float64)
+    layout = env.observation_layout
+    spoilt = rows.copy()
+    spoilt[2, layout[field].start] = value
+    with pytest.raises(ValueError, match="observation rows that are not finite") as error:
+        safety.filter(spoilt, np.zeros((6, 2)))
+    assert "\n" not in str(error.value)
+    huge = rows.copy()
+    huge[:, layout["neighbour_offsets"]] = 1e300
+    huge[:, layout["velocity"]] = 1e300
+    try:
+        safe, _ = safety.filter(huge, np.ones((6, 2)))
+    except ValueError as refused:
+        assert "\n" not in str(refused)
+    else:
+        assert np.isfinite(safe).all()

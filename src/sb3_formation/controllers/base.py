@@ -20,6 +20,7 @@ episodes. Whether a policy can act in a task is decided by one check, :func:`che
 from __future__ import annotations
 
 import copy
+import functools
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import fields
@@ -166,7 +167,7 @@ class Policy(ABC):
         rows = np.asarray(observation).reshape(-1, shape[-1])
         n_agents, received = self.config.n_agents, None
         if self.message_size:
-            state, sent = (None, None) if state is None else state
+            state, sent = state_pair(self.describe(), state)
             if sent is not None:
                 keep = 1.0 if episode_start is None else 1.0 - np.asarray(episode_start, np.float32).reshape(-1, 1)
                 received = (np.asarray(sent, np.float32) * keep)[ring_rows([n_agents] * (len(rows) // n_agents))]
@@ -174,7 +175,6 @@ class Policy(ABC):
         actions = step.action.reshape(*shape[:-1], 2)
         return actions, ((step.state, step.message) if self.message_size else step.state)
 
-    @abstractmethod
     def agent_step(
         self,
         observations: np.ndarray,
@@ -184,7 +184,41 @@ class Policy(ABC):
         received: np.ndarray | None = None,
         deterministic: bool = True,
     ) -> AgentStep:
-        """Actions ``(k, 2)``, next state and sent messages of rows of any agents (see :class:`TeamPolicy`)."""
+        """Actions ``(k, 2)``, next state and sent messages of rows of any agents (see :class:`TeamPolicy`): the inputs
+        checked here, then the subclass's :meth:`_agent_step`.
+
+        :raises ValueError: one line: observations of the wrong shape or not finite, agent indices that do not match
+            the rows, a state or received messages that are not finite, messages for a policy whose agents send none
+        """
+        rows = np.asarray(observations)
+        rows = rows[None] if rows.ndim == 1 else rows
+        size = observation_size(self.config)
+        if rows.ndim != 2 or rows.shape[1] != size:
+            raise ValueError(
+                f"{self.describe()} reads observations of {size} features per agent (the layout of its task), got an "
+                f"array of shape {np.shape(observations)}"
+            )
+        if not np.isfinite(rows).all():
+            raise ValueError(f"{self.describe()}: the observations hold NaN or infinite values")
+        agents = np.asarray(agents).reshape(-1)
+        if len(agents) != len(rows):
+            raise ValueError(f"{self.describe()}: {len(agents)} agent indices for {len(rows)} observation rows")
+        check_state(self.describe(), state)
+        heard = self.received_messages(received, len(rows))
+        return self._agent_step(rows, agents, state, episode_start, heard, deterministic)
+
+    @abstractmethod
+    def _agent_step(
+        self,
+        observations: np.ndarray,
+        agents: np.ndarray,
+        state: Any,
+        episode_start: np.ndarray | None,
+        received: np.ndarray | None,
+        deterministic: bool,
+    ) -> AgentStep:
+        """:meth:`agent_step` of checked inputs: ``(k, obs_dim)`` finite rows, ``(k,)`` agent indices, a finite state,
+        and ``received`` as ``(k, 2 M)`` float32 (or ``None``)."""
 
     @abstractmethod
     def fit(self, config: FormationConfig) -> Policy:
@@ -215,6 +249,61 @@ class Policy(ABC):
         """The policy, for messages: its source file if it has one, else its class."""
         source = getattr(self, "source", None)
         return str(source) if source is not None else type(self).__name__
+
+
+@functools.lru_cache(maxsize=64)
+def observation_size(config: FormationConfig) -> int:
+    """Features of one agent's observation in envs of ``config``."""
+    return sum(field.size for field in observation_fields(config))
+
+
+def check_state(who: str, state: Any) -> None:
+    """Refuse a policy's state unless it is numbers, all finite (arrays, nested in tuples or lists; ``None`` parts).
+
+    :raises ValueError: one line naming ``who``
+    """
+    if state is None:
+        return
+    if isinstance(state, tuple | list):
+        for part in state:
+            check_state(who, part)
+        return
+    try:
+        finite = bool(np.isfinite(np.asarray(state, dtype=np.float64)).all())
+    except (TypeError, ValueError):
+        raise ValueError(f"{who}: the state must be the arrays the policy returned, got a {type(state).__name__}") from None
+    if not finite:
+        raise ValueError(f"{who}: the state holds NaN or infinite values")
+
+
+def state_pair(who: str, state: Any) -> tuple[Any, Any]:
+    """A state that is a pair (e.g. a residual policy's: the correction's state, the controller's memory), split;
+    ``None`` gives ``(None, None)``.
+
+    :raises ValueError: one line: a state that is not the pair the policy returned
+    """
+    if state is None:
+        return None, None
+    if not (isinstance(state, tuple | list) and len(state) == 2):
+        raise ValueError(f"{who}: the state must be the pair the policy returned, got {type(state).__name__}")
+    return state[0], state[1]
+
+
+def cell_state(who: str, state: Any, parts: Sequence[str], shape: tuple[int, ...]) -> list[np.ndarray]:
+    """A recurrent actor's state as float32 arrays, one per part (zeros if ``state`` is ``None``).
+
+    :param who: the policy, for the message
+    :param parts: the state's parts (``hidden``, and ``cell`` for an LSTM)
+    :param shape: each part's shape, ``(1, rows, hidden)``
+    :raises ValueError: one line: a state that is not that many arrays of that shape
+    """
+    if state is None:
+        return [np.zeros(shape, np.float32) for _ in parts]
+    arrays = [np.asarray(part, np.float32) for part in state] if isinstance(state, tuple | list) else []
+    if len(arrays) != len(parts) or any(array.shape != shape for array in arrays):
+        got = [array.shape for array in arrays] if arrays else type(state).__name__
+        raise ValueError(f"{who} needs a state of {len(parts)} arrays of shape {shape} ({', '.join(parts)}), got {got}")
+    return arrays
 
 
 def no_messages(rows: int) -> np.ndarray:
@@ -293,20 +382,19 @@ class Controller(Policy):
         controller that keeps nothing of it leaves this as it is."""
         return
 
-    def agent_step(
+    def _agent_step(
         self,
         observations: np.ndarray,
         agents: np.ndarray,
-        state: Any = None,
-        episode_start: np.ndarray | None = None,
-        received: np.ndarray | None = None,
-        deterministic: bool = True,
+        state: Any,
+        episode_start: np.ndarray | None,
+        received: np.ndarray | None,
+        deterministic: bool,
     ) -> AgentStep:
         """:meth:`act` on rows of any agents, clipped to [-1, 1], as float32 ``(k, 2)``; a memoryless controller's
         state is ``None`` (one with memory overrides this); its agents send no messages."""
         observations = np.asarray(observations, dtype=np.float64)
-        self.received_messages(received, len(observations))
-        actions = np.clip(self.act(observations, np.asarray(agents), deterministic), -1.0, 1.0).astype(np.float32)
+        actions = np.clip(self.act(observations, agents, deterministic), -1.0, 1.0).astype(np.float32)
         return AgentStep(actions, None, no_messages(len(observations)))
 
     @abstractmethod

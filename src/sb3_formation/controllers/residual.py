@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from sb3_formation.controllers.base import AgentStep, Controller, Policy, TeamPolicy
+from sb3_formation.controllers.base import AgentStep, Controller, Policy, TeamPolicy, state_pair
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.utils.checks import is_number
 
@@ -137,19 +137,17 @@ class ResidualPolicy(Policy):
             return self
         return ResidualPolicy(base, correction, self.scale)
 
-    def agent_step(
+    def _agent_step(
         self,
         observations: np.ndarray,
         agents: np.ndarray,
-        state: Any = None,
-        episode_start: np.ndarray | None = None,
-        received: np.ndarray | None = None,
-        deterministic: bool = True,
+        state: Any,
+        episode_start: np.ndarray | None,
+        received: np.ndarray | None,
+        deterministic: bool,
     ) -> AgentStep:
         """The controller's actions plus the scaled corrections of the correction's agent step."""
-        correction_state, memory = (None, None) if state is None else state
+        correction_state, memory = state_pair(self.describe(), state)
         step = self.correction.agent_step(observations, agents, correction_state, episode_start, received, deterministic)
-        actions, memory = self.residual.corrected(
-            observations, step.action, memory, episode_start, np.asarray(agents), deterministic
-        )
+        actions, memory = self.residual.corrected(observations, step.action, memory, episode_start, agents, deterministic)
         return AgentStep(actions, (step.state, memory), step.message)

@@ -217,25 +217,32 @@ class ShrinkingController(Controller):
         memory[:, _PROGRESS] = 1.0
         return memory
 
-    def agent_step(
+    def _agent_step(
         self,
         observations: np.ndarray,
         agents: np.ndarray,
-        state: Any = None,
-        episode_start: np.ndarray | None = None,
-        received: np.ndarray | None = None,
-        deterministic: bool = True,
+        state: Any,
+        episode_start: np.ndarray | None,
+        received: np.ndarray | None,
+        deterministic: bool,
     ) -> AgentStep:
-        """Actions for rows of any agents and their memory as the next state (reset where ``episode_start``)."""
+        """Actions for rows of any agents and their memory as the next state (reset where ``episode_start``).
+
+        :raises ValueError: a memory that is not ``(k, len(MEMORY_FIELDS))`` numbers
+        """
         observations = np.asarray(observations, dtype=np.float64)
-        self.received_messages(received, len(observations))
         memory = self.initial_memory(len(observations))
         if state is not None:
-            memory = np.array(state, dtype=np.float64).reshape(len(observations), len(MEMORY_FIELDS))
+            memory = np.array(state, dtype=np.float64)
+            if memory.shape != (len(observations), len(MEMORY_FIELDS)):
+                raise ValueError(
+                    f"the shrinking controller's state is its memory of shape ({len(observations)}, {len(MEMORY_FIELDS)}),"
+                    f" got {memory.shape}"
+                )
             if episode_start is not None:
                 starts = np.asarray(episode_start, dtype=bool).reshape(-1)
                 memory[starts] = self.initial_memory(int(starts.sum()))
-        actions, memory = self.step(observations, np.asarray(agents), memory)
+        actions, memory = self.step(observations, agents, memory)
         return AgentStep(np.clip(actions, -1.0, 1.0).astype(np.float32), memory, no_messages(len(observations)))
 
     def act(self, observations: np.ndarray, agents: np.ndarray, deterministic: bool) -> np.ndarray:

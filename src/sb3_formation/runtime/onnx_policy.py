@@ -29,7 +29,7 @@ import numpy as np
 
 from sb3_formation import __version__
 from sb3_formation.controllers import ResidualAdapter, controller_from_spec
-from sb3_formation.controllers.base import AgentStep, Policy, TeamPolicy, check_fit, no_messages
+from sb3_formation.controllers.base import AgentStep, Policy, TeamPolicy, cell_state, check_fit, no_messages, state_pair
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.observations import observation_fields, observation_layout
 from sb3_formation.safety.filter import SafetyGains
@@ -337,14 +337,14 @@ class OnnxPolicy(Policy):
         fitted.residual = None if self.residual is None else self.residual.fit(config)
         return fitted
 
-    def agent_step(
+    def _agent_step(
         self,
         observations: np.ndarray,
         agents: np.ndarray,
-        state: Any = None,
-        episode_start: np.ndarray | None = None,
-        received: np.ndarray | None = None,
-        deterministic: bool = True,
+        state: Any,
+        episode_start: np.ndarray | None,
+        received: np.ndarray | None,
+        deterministic: bool,
     ) -> AgentStep:
         """Actions ``(k, 2)`` for the raw observations of any agents, e.g. the one a robot hosts, their next state and
         the messages they send.
@@ -362,10 +362,9 @@ class OnnxPolicy(Policy):
         """
         if not deterministic:
             raise ValueError(f"{self.source} acts deterministically only (its graph holds the mean action): drop --stochastic")
-        rows = self._rows(observations)
-        graph_state, memory = (state, None) if self.residual is None or state is None else state
+        rows = np.asarray(observations, dtype=np.float32)
+        graph_state, memory = (state, None) if self.residual is None else state_pair(str(self.source), state)
         feeds = {OBSERVATION_INPUT: rows, **self._state_feeds(graph_state, episode_start, len(rows))}
-        received = self.received_messages(received, len(rows))
         if self.message_size:
             feeds[MESSAGE_INPUT] = np.zeros((len(rows), 2 * self.message_size), np.float32) if received is None else received
         try:
@@ -376,18 +375,8 @@ class OnnxPolicy(Policy):
         graph_state = tuple(outputs) if outputs else graph_state
         if self.residual is None:
             return AgentStep(first, graph_state, messages)
-        actions, memory = self.residual.corrected(rows, first, memory, episode_start, np.asarray(agents).reshape(-1))
+        actions, memory = self.residual.corrected(rows, first, memory, episode_start, agents)
         return AgentStep(actions, (graph_state, memory), messages)
-
-    def _rows(self, observation: np.ndarray) -> np.ndarray:
-        """``observation`` as float32 rows of one agent's observation each."""
-        observation = np.asarray(observation, dtype=np.float32)
-        if observation.ndim == 0 or observation.shape[-1] != self.observation_dim:
-            raise ValueError(
-                f"{self.source} reads observations of {self.observation_dim} features per agent (the layout of its task), "
-                f"got an array of shape {observation.shape}"
-            )
-        return observation.reshape(-1, self.observation_dim)
 
     def _state_feeds(self, state: Any, episode_start: np.ndarray | None, rows: int) -> dict[str, np.ndarray]:
         """The graph's state inputs: ``state`` (zeros if ``None``) with the rows of ``episode_start`` reset."""
@@ -396,12 +385,7 @@ class OnnxPolicy(Policy):
             return {}
         recurrent = cast("dict[str, Any]", self.metadata.recurrent)  # a recurrent actor's: it has state parts
         shape = (1, rows, recurrent["hidden"])
-        arrays = [np.zeros(shape, np.float32) for _ in parts] if state is None else [np.asarray(a, np.float32) for a in state]
-        if len(arrays) != len(parts) or any(array.shape != shape for array in arrays):
-            shapes = [array.shape for array in arrays]
-            raise ValueError(
-                f"{self.source} needs a state of {len(parts)} arrays of shape {shape} ({', '.join(parts)}), got {shapes}"
-            )
+        arrays = cell_state(str(self.source), state, parts, shape)
         if episode_start is not None:
             keep = 1.0 - np.asarray(episode_start, dtype=np.float32).reshape(1, rows, 1)
             arrays = [array * keep for array in arrays]

@@ -298,7 +298,8 @@ class SafetyFilter:
         float64, kept; anything else becomes float64), and what the filter did. Each row is filtered from itself alone;
         rows whose actions keep every constraint come back as they were (after clipping to [-1, 1]).
 
-        :raises ValueError: rows or actions of the wrong shape, or actions that are not finite
+        :raises ValueError: rows or actions of the wrong shape, rows or actions that are not finite, or rows so far out of
+            range that the safe actions would not be (the filter never returns a non-finite action)
         """
         observations = np.asarray(observations, dtype=np.float64)
         proposed = np.asarray(actions)
@@ -311,6 +312,8 @@ class SafetyFilter:
             raise ValueError(f"the safety filter takes ({len(observations)}, 2) actions, got shape {proposed.shape}")
         if not np.isfinite(proposed).all():
             raise ValueError("the safety filter got actions that are not finite (NaN or inf)")
+        if not np.isfinite(observations).all():
+            raise ValueError("the safety filter got observation rows that are not finite (NaN or inf)")
         proposed = np.clip(proposed, -1.0, 1.0)
         velocity = observations[:, self.layout["velocity"]]
         targets, projections, bounds, frames = self.model.point_problem(
@@ -336,6 +339,8 @@ class SafetyFilter:
         if changed.any():
             actions = self.model.point_actions(solutions[changed, :2], velocity[changed], frames[changed], self._push)
             safe[changed] = actions.astype(safe.dtype)
+        if not np.isfinite(safe).all():  # finite rows beyond any reachable state (e.g. 1e300 m) can overflow
+            raise ValueError("the safety filter could not keep these rows' actions finite: their values are out of range")
         change = np.where(changed, np.linalg.norm(safe - proposed, axis=1), 0.0)
         infeasible = solutions[:, 2] > self.gains.infeasible_slack
         return safe, FilterReport(changed, change, infeasible, separation)

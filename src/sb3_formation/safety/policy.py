@@ -112,14 +112,14 @@ class SafePolicy(Policy):
         self.tally.add(report)
         return safe.reshape(np.shape(actions)), state
 
-    def agent_step(
+    def _agent_step(
         self,
         observations: np.ndarray,
         agents: np.ndarray,
-        state: Any = None,
-        episode_start: np.ndarray | None = None,
-        received: np.ndarray | None = None,
-        deterministic: bool = True,
+        state: Any,
+        episode_start: np.ndarray | None,
+        received: np.ndarray | None,
+        deterministic: bool,
     ) -> AgentStep:
         """The wrapped policy's agent step with its actions filtered (its state and messages as they are); what the
         filter did is kept in :attr:`report`."""

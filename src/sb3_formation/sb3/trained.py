@@ -15,9 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from sb3_formation.controllers.base import AgentStep, Policy, check_fit, no_messages
+from sb3_formation.controllers.base import AgentStep, Policy, cell_state, check_fit, no_messages
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.observations import observation_fields
+from sb3_formation.runtime.onnx_policy import STATE_PARTS
 from sb3_formation.sb3.normalization import STATE_KEYS, observation_offset, observation_scale, scale_observations
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent.policies import RecurrentFormationPolicy
@@ -93,23 +94,24 @@ class TrainedPolicy(Policy):
     def describe(self) -> str:
         return "the model" if self.source is None else str(self.source)
 
-    def agent_step(
+    def _agent_step(
         self,
         observations: np.ndarray,
         agents: np.ndarray,
-        state: Any = None,
-        episode_start: np.ndarray | None = None,
-        received: np.ndarray | None = None,
-        deterministic: bool = True,
+        state: Any,
+        episode_start: np.ndarray | None,
+        received: np.ndarray | None,
+        deterministic: bool,
     ) -> AgentStep:
         """The model's actions for raw observations of any agents (scaled by the frozen statistics), its next state
         (a recurrent actor's cell state) and the messages its agents send."""
-        rows = np.asarray(observations).reshape(-1, self._scale.size)
-        received = self.received_messages(received, len(rows))
+        rows = np.asarray(observations)
         if self.team_observations:  # the actor reads a slot's own block only; the team's blocks feed the critic
             rows = np.hstack([rows, np.zeros((len(rows), self.config.n_agents * rows.shape[1]), rows.dtype)])
         scaled = scale_observations(rows, self._scale, self._clip, self._offset)
         if isinstance(self.policy, RecurrentFormationPolicy):
+            actor, shape = self.policy.actor, (1, len(rows), self.policy.actor.hidden)
+            state = None if state is None else tuple(cell_state(self.describe(), state, STATE_PARTS[actor.cell], shape))
             actions, state, message = self.policy.actor_step(scaled, state, episode_start, received, deterministic)
             return AgentStep(actions, state, message)
         if deterministic and isinstance(self.policy, FormationPolicy):  # the same actions, faster
