@@ -4,20 +4,26 @@ It reads its ``LaserScan``, every teammate's ``Odometry`` (its own among them) a
 arrays to the on-board pipeline (:class:`~sb3_formation.ros.onboard.Onboard`: observation, policy, safety filter,
 command) when its inputs are in, and publishes the command as a ``Twist``. A policy whose agents send messages also
 hears its two ring neighbours' messages and sends its own (``JointState``). A stale or missing input gives a zero
-command and a logged warning. The node is a shell over :mod:`~sb3_formation.ros.onboard`: subscriptions, when to act,
-and messages to arrays and back.
+command and a logged warning, and so does an unusable one (a value that is not finite or out of bounds, a stamp from
+the future, a scan too large, a second publisher on the command topic): the node never stops on its inputs and never
+publishes a non-finite command. The node is a shell over :mod:`~sb3_formation.ros.onboard`, which holds every rule:
+subscriptions, when to act, and messages to arrays and back.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import fields
 from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PointStamped, Twist
 from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock as ClockMessage
 from sensor_msgs.msg import JointState, LaserScan
 from std_msgs.msg import Float32MultiArray
 
@@ -30,7 +36,17 @@ from sb3_formation.ros.messages import (
     scan_of,
     twist_message,
 )
-from sb3_formation.ros.onboard import AgentSettings, Onboard, TeamView
+from sb3_formation.ros.onboard import (
+    AgentSettings,
+    Onboard,
+    Silence,
+    TeamView,
+    UnusableInput,
+    command_problem,
+    scan_size_problem,
+    stamp_problem,
+    typed_parameters,
+)
 
 #: The goal's QoS: reliable and latched, so that a robot that starts late still gets the goal given before.
 GOAL_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -38,8 +54,14 @@ GOAL_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durabilit
 
 def declared_settings(node: Node, settings: Any) -> dict[str, Any]:
     """Declare every field of a node's settings (a dataclass) as a ROS parameter of the node, its value the default;
-    return the values the parameters have (``--ros-args -p name:=value`` overrides)."""
-    return {item.name: node.declare_parameter(item.name, getattr(settings, item.name)).value for item in fields(settings)}
+    return the values the parameters have (``--ros-args -p name:=value`` overrides), as the settings' types
+    (:func:`~sb3_formation.ros.onboard.typed_parameters`: an integer for a number is taken, another type is a
+    one-line ``ValueError``, not rclpy's exception)."""
+    anything = ParameterDescriptor(dynamic_typing=True)  # the type is checked in one line below
+    values = {
+        item.name: node.declare_parameter(item.name, getattr(settings, item.name), anything).value for item in fields(settings)
+    }
+    return typed_parameters(settings, values)
 
 
 class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
@@ -58,13 +80,9 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         super().__init__(name, namespace=namespace, **kwargs)
         try:
             self.settings = settings = AgentSettings(**declared_settings(self, settings))
-        except ValueError:  # a bad parameter override: no half-built node is left
-            self.destroy_node()
-            raise
-        try:
             #: the robot's pipeline: observation, policy, filter, command
             self.onboard = Onboard(policy, settings)
-        except ValueError:
+        except ValueError:  # a bad parameter override: no half-built node is left
             self.destroy_node()
             raise
         self.config = config = policy.config
@@ -73,15 +91,20 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         self.goal: PointStamped | None = None
         self._goal_fresh = False
         self._acted_stamp = -1
-        #: the ring neighbours (preceding, succeeding) whose messages the robot hears, and what each sent, by stamp (ns)
+        #: the ring neighbours (preceding, succeeding) whose messages the robot hears, and what each sent, by stamp (ns;
+        #: ``None``: an unusable message), and the newest each sent (free mode)
         self.neighbours = self.onboard.neighbours
-        self._heard: list[dict[int, np.ndarray]] = [{} for _ in self.neighbours]
+        self._heard: list[dict[int, np.ndarray | None]] = [{} for _ in self.neighbours]
+        self._latest: list[tuple[int, np.ndarray | None] | None] = [None for _ in self.neighbours]
         self._acted_at = 0  # the clock (ns) when the robot first acted in this episode
+        #: wall-clock silence of each input; another publisher on the command topic (the watchdog looks)
+        self._silence = Silence(2.0 / settings.watchdog_rate)
+        self._crowded = False
         reliability = ReliabilityPolicy.BEST_EFFORT if settings.best_effort_sensors else ReliabilityPolicy.RELIABLE
         sensors = QoSProfile(depth=settings.qos_depth, reliability=reliability)
         self._scan_topic = self.create_subscription(LaserScan, settings.scan_topic, self._on_scan, sensors).topic_name
-        for index in range(config.n_agents):
-            topic = settings.odom_topic.format(index=index)
+        self._odom_topics = [settings.odom_topic.format(index=index) for index in range(config.n_agents)]
+        for index, topic in enumerate(self._odom_topics):
             self.create_subscription(Odometry, topic, lambda message, index=index: self._on_odometry(index, message), sensors)
         self.create_subscription(PointStamped, settings.goal_topic, self._on_goal, GOAL_QOS)
         self.commands = self.create_publisher(Twist, settings.cmd_topic, settings.qos_depth)
@@ -95,13 +118,19 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             self.create_subscription(
                 JointState, topic, lambda message, slot=slot: self._on_message(slot, message), settings.qos_depth
             )
-        if not settings.synchronous:
-            self.create_timer(1.0 / settings.watchdog_rate, self._watch)
+        if settings.synchronous:  # the simulator's sign of life while it waits for a step's commands
+            self.create_subscription(ClockMessage, settings.clock_topic, lambda _: self._heard_input("clock"), 1)
+        # on the wall clock: a stopped simulator or /clock still stops the robot
+        self.create_timer(1.0 / settings.watchdog_rate, self._watch, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     # Inputs ---------------------------------------------------------------------------------------------------------
 
+    def _heard_input(self, name: str) -> None:
+        self._silence.heard(name, time.monotonic())
+
     def _on_scan(self, message: LaserScan) -> None:
         self.scan = message
+        self._heard_input("scan")
         if self.settings.synchronous:
             self._act_when_complete()
         else:
@@ -109,11 +138,13 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
 
     def _on_odometry(self, index: int, message: Odometry) -> None:
         self.team[index] = message
+        self._heard_input(f"odometry {index}")
         if self.settings.synchronous:
             self._act_when_complete()
 
     def _on_goal(self, message: PointStamped) -> None:
         current = self.goal
+        self._heard_input("goal")
         if current is None or (message.point.x, message.point.y, nanoseconds_of(message.header.stamp)) != (
             current.point.x,
             current.point.y,
@@ -122,21 +153,28 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             self.onboard.reset()
             for heard in self._heard:
                 heard.clear()
+            self._latest = [None for _ in self.neighbours]
         self.goal, self._goal_fresh = message, True
         if self.settings.synchronous:
             self._act_when_complete()
 
     def _on_message(self, slot: int, message: JointState) -> None:
         stamp, values = policy_message_of(message)
+        self._heard_input(f"message {slot}")
         size = self.onboard.message_size
         if values.shape != (size,) or not np.isfinite(values).all():
             index = self.neighbours[slot]
-            self.get_logger().warning(f"ignored a message of agent {index}: not {size} finite values")
-            return
+            self.get_logger().warning(
+                f"agent {self.settings.agent}: a message of agent {index} is not {size} finite values: stopping until "
+                "a usable one",
+                throttle_duration_sec=1.0,
+            )
+            values = None
         heard = self._heard[slot]
         heard[stamp] = values
         for old in sorted(heard)[: -self.settings.qos_depth]:
             del heard[old]
+        self._latest[slot] = stamp, values
         if self.settings.synchronous:
             self._act_when_complete()
 
@@ -158,7 +196,13 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             return  # a neighbour's message of the last step is still on its way
         received = None if starting else [heard[self._acted_stamp] for heard in self._heard]
         self._acted_stamp, self._goal_fresh = stamp, False
-        self._act(scan, received)
+        problem = self._crowding() or self._frame_problem()
+        if problem:
+            self._stop(problem)
+        elif received is not None and any(values is None for values in received):
+            self._stop("a neighbour's message of the last step is unusable")
+        else:
+            self._act(scan, received)
 
     def _act_if_fresh(self) -> None:
         """Free-running mode: act on every scan whose other inputs are within ``input_timeout`` of it."""
@@ -166,59 +210,136 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         if problem:
             self._stop(problem)
         else:  # the newest message of each neighbour in this episode (none yet: zeros, as at an episode's start)
-            newest = [heard[max(heard)] if heard else np.zeros(self.onboard.message_size) for heard in self._heard]
+            size = self.onboard.message_size
+            newest = [np.zeros(size) if latest is None else latest[1] for latest in self._latest]
             self._act(self.scan, None if self.onboard.starting else newest)
 
     def _stale_input(self) -> str:
-        """What is missing or older than ``input_timeout`` (by the node's clock), or ``""``."""
-        now, timeout = self.get_clock().now().nanoseconds, self.settings.input_timeout * 1e9
+        """Free-running mode: what is missing, stale (older than ``input_timeout`` by its stamp and the node's clock,
+        or not heard for that long on the wall clock), stamped in the future or otherwise unusable, or ``""``."""
+        settings = self.settings
+        now, timeout = self.get_clock().now().nanoseconds, settings.input_timeout
+        problem = self._crowding()
+        if problem:
+            return problem
         if self.goal is None:
             return "no goal yet"
-        if self.scan is None or now - nanoseconds_of(self.scan.header.stamp) > timeout:
-            return f"no scan on {self._scan_topic} for {self.settings.input_timeout} s"
-        for index, odometry in enumerate(self.team):
-            if odometry is None or now - nanoseconds_of(odometry.header.stamp) > timeout:
-                topic = self.settings.odom_topic.format(index=index)
-                return f"no odometry of agent {index} on {topic} for {self.settings.input_timeout} s"
-        for index, heard in zip(self.neighbours, self._heard):
-            last = max(heard) if heard else self._acted_at  # from the robot's first action of the episode
-            if not self.onboard.starting and now - last > timeout:
-                topic = self.settings.neighbour_message_topic.format(index=index)
-                return f"no message of agent {index} on {topic} for {self.settings.input_timeout} s"
+        inputs = [
+            (self._scan_topic, "scan", self.scan),
+            *zip(self._odom_topics, (f"odometry {i}" for i in range(len(self.team))), self.team),
+        ]
+        for topic, name, message in inputs:
+            if message is None or self._silence.silent_for(name) > timeout:
+                return f"nothing on {topic} for {timeout:g} s"
+            problem = stamp_problem(f"the message on {topic}", nanoseconds_of(message.header.stamp), now, settings)
+            if problem:
+                return problem
+        problem = stamp_problem(
+            f"the goal on {settings.goal_topic}", nanoseconds_of(self.goal.header.stamp), now, settings, False
+        )
+        if problem:
+            return problem
+        for slot, (index, latest) in enumerate(zip(self.neighbours, self._latest)):
+            if self.onboard.starting:
+                break
+            topic = settings.neighbour_message_topic.format(index=index)
+            if latest is None:  # nothing in this episode: silent since the robot's first action
+                if now - self._acted_at > timeout * 1e9:
+                    return f"no message of agent {index} on {topic} for {timeout:g} s"
+                continue
+            if latest[1] is None:
+                return f"the last message of agent {index} on {topic} is unusable"
+            problem = stamp_problem(f"the message of agent {index} on {topic}", latest[0], now, settings)
+            if problem or self._silence.silent_for(f"message {slot}") > timeout:
+                return problem or f"no message of agent {index} on {topic} for {timeout:g} s"
+        problem = self._frame_problem()
+        if problem:
+            return problem
+        try:
+            self.onboard.check(*self._arrays(self.scan))
+        except UnusableInput as unusable:
+            return str(unusable)
+        return ""
+
+    def _crowding(self) -> str:
+        if self._crowded:
+            return (
+                f"another node publishes on {self.commands.topic_name}: one robot, two pilots (a process left running, "
+                "a robot started twice); stop one"
+            )
+        return ""
+
+    def _frame_problem(self) -> str:
+        goal, team = self.goal, self.team
+        frames = {message.header.frame_id for message in team if message is not None}
+        frames |= {goal.header.frame_id} if goal is not None else set()
+        if frames != {self.settings.world_frame}:
+            return f"poses and goal must be in the world frame {self.settings.world_frame!r}, got {sorted(frames)}"
         return ""
 
     def _watch(self) -> None:
-        problem = self._stale_input()
+        """The watchdog (a wall-clock timer, every mode): another publisher on the command topic; free mode: stale or
+        unusable inputs; synchronous mode: nothing heard from the simulator for ``input_timeout``."""
+        self._silence.tick(time.monotonic())
+        self._crowded = self.count_publishers(self.commands.topic_name) > 1
+        if not self.settings.synchronous:
+            problem = self._stale_input()
+        elif self._silence.ever_heard() and min(self._silence_of_all()) > self.settings.input_timeout:
+            problem = f"nothing heard from the simulator for {self.settings.input_timeout:g} s"
+        else:
+            problem = ""
         if problem:
             self._stop(problem)
+
+    def _silence_of_all(self) -> list[float]:
+        names = ["scan", "goal", "clock", *(f"odometry {i}" for i in range(len(self.team)))]
+        return [self._silence.silent_for(name) for name in names] + [
+            self._silence.silent_for(f"message {slot}") for slot in range(len(self.neighbours))
+        ]
 
     def _stop(self, problem: str) -> None:
         """A zero command, and a warning (at most one a second) saying why."""
         self.commands.publish(Twist())
         self.get_logger().warning(f"agent {self.settings.agent} stopped: {problem}", throttle_duration_sec=1.0)
 
-    def _act(self, scan: LaserScan, received: list[np.ndarray] | None) -> None:
-        """Observe, act, filter and publish the command (and the message to the neighbours).
-
-        :param received: what the preceding and succeeding neighbours sent at the last step (``None``: nothing yet)
-        """
+    def _arrays(self, scan: LaserScan) -> tuple:
+        """The inputs of :meth:`Onboard.step` (scan, team, forward speed, goal) from the messages (all present)."""
+        problem = scan_size_problem(len(scan.ranges))  # before anything is allocated for it
+        if problem:
+            raise UnusableInput(problem)
         goal, team = self.goal, [message for message in self.team if message is not None]
         if goal is None or len(team) < len(self.team):  # the callers act only with every input in
             raise RuntimeError("the agent node acted without a goal or a teammate's odometry")
-        frames = {message.header.frame_id for message in team} | {goal.header.frame_id}
-        if frames != {self.settings.world_frame}:
-            self._stop(f"poses and goal must be in the world frame {self.settings.world_frame!r}, got {sorted(frames)}")
-            return
-        agent = self.settings.agent
         states = [odometry_state(message) for message in team]
         view = TeamView(*(np.array([state[part] for state in states]) for part in (0, 2, 1)))
-        goal_point = np.array([goal.point.x, goal.point.y])
+        forward_speed = float(team[self.settings.agent].twist.twist.linear.x)
+        return scan_of(scan), view, forward_speed, np.array([goal.point.x, goal.point.y])
+
+    def _act(self, scan: LaserScan, received: list[np.ndarray] | None) -> None:
+        """Observe, act, filter and publish the command (and the message to the neighbours); an unusable input (the
+        on-board checks) gives a zero command instead.
+
+        :param received: what the preceding and succeeding neighbours sent at the last step (``None``: nothing yet)
+        """
         if self.onboard.starting:
             self._acted_at = self.get_clock().now().nanoseconds
         heard = None if received is None or not self.neighbours else np.stack(received)
-        step = self.onboard.step(scan_of(scan), view, float(team[agent].twist.twist.linear.x), goal_point, heard)
+        try:
+            inputs = self._arrays(scan)
+            step = self.onboard.step(*inputs, heard)
+        except UnusableInput as unusable:
+            self._stop(str(unusable))
+            return
+        view = inputs[1]
         if self.messages is not None:
             self.messages.publish(policy_message(scan.header.stamp, step.message))
-        self.commands.publish(twist_message(step.command, self.onboard.dynamics, float(view.headings[agent])))
+        twist = twist_message(step.command, self.onboard.dynamics, float(view.headings[self.settings.agent]))
+        problem = command_problem(
+            (twist.linear.x, twist.linear.y, twist.linear.z, twist.angular.x, twist.angular.y, twist.angular.z)
+        )
+        if problem:  # the last check before publishing
+            self._stop(problem)
+            return
+        self.commands.publish(twist)
         if self.observations is not None:
             self.observations.publish(Float32MultiArray(data=step.row.tolist()))

@@ -22,6 +22,8 @@ from sb3_formation.ros.scans import Scan
 
 #: Nanoseconds in a second.
 NANOSECONDS = 1_000_000_000
+#: How far from 1 the norm of an orientation quaternion may be (drivers round them); further, it is not a rotation.
+QUATERNION_TOLERANCE = 0.01
 
 
 def stamp_of(seconds: float) -> Time:
@@ -62,11 +64,20 @@ def odometry_message(
 
 
 def odometry_state(message: Odometry) -> tuple[np.ndarray, float, np.ndarray]:
-    """An ``Odometry``'s position ``(2,)`` (m), yaw (rad) and velocity ``(2,)`` (m/s), all in the world frame."""
+    """An ``Odometry``'s position ``(2,)`` (m), yaw (rad) and velocity ``(2,)`` (m/s), all in the world frame.
+
+    An orientation that is not a unit quaternion (within :data:`QUATERNION_TOLERANCE`) gives a NaN yaw and velocity,
+    which the on-board checks refuse (:func:`~sb3_formation.ros.onboard.team_problem`)."""
     pose, twist = message.pose.pose, message.twist.twist
-    yaw = yaw_of(pose.orientation)
+    q = pose.orientation
+    norm = math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w) if _finite(q.x, q.y, q.z, q.w) else math.nan
+    yaw = yaw_of(q) if abs(norm - 1.0) <= QUATERNION_TOLERANCE else math.nan
     velocity = turned(np.array([twist.linear.x, twist.linear.y]), yaw)  # body frame to world (exact at yaw 0)
     return np.array([pose.position.x, pose.position.y]), yaw, velocity
+
+
+def _finite(*values: float) -> bool:
+    return all(math.isfinite(value) for value in values)
 
 
 def scan_message(

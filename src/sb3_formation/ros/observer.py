@@ -16,7 +16,7 @@ it on its map); a team reward (``team_reward``), which needs every teammate's ga
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -152,6 +152,14 @@ class AgentObserver:
             self._rewards,
         )
         return float(combine_rewards(terms, self._coefficients, self.config.reward_clip)[agent])
+
+    def memory(self) -> tuple[Any, ...]:
+        """What the observer remembers of the episode (for :meth:`restore`)."""
+        return self.step, self.previous_action.copy(), self.previous_reward, self._previous
+
+    def restore(self, memory: tuple[Any, ...]) -> None:
+        """Forget the steps since :meth:`memory` gave ``memory`` (a step that was not acted on)."""
+        self.step, self.previous_action, self.previous_reward, self._previous = memory
 
     def remember(self, action: np.ndarray) -> None:
         """Keep the action the agent took (after the safety filter) for the next observation."""

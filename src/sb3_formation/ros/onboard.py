@@ -12,12 +12,23 @@ into arrays and back) runs for every step it acts on, and what the latency bench
    (:func:`~sb3_formation.safety.policy.with_filter`: an export trained behind the filter keeps its own gains);
 4. the action remembered for the next observation, and turned into the command the task's dynamics give it (eq. 19).
 
+Every input is checked before it reaches the policy (:meth:`Onboard.check`; ``docs/guarantees.md``, "On the robot"):
+a scan of more than :data:`MAX_SCAN_RANGES` ranges or with angles or limits that place no return, a pose, velocity or
+goal that is not finite or beyond :data:`MAX_COORDINATE` / :data:`MAX_SPEED`, a neighbour's message of the wrong size
+or not finite, is an :class:`UnusableInput` (a one-line ``ValueError`` naming it), and so are a row, an action or a
+command that came out non-finite. The node turns each into a zero command and a warning. The helpers the node uses
+to judge its messages' stamps and its wall-clock silence (:func:`stamp_problem`, :class:`Silence`), the last check of
+a command before it is published (:func:`command_problem`) and the reading of ROS parameters
+(:func:`typed_parameters`) are here too, so that the node holds none of these rules.
+
 Numpy, the environment layer, the policy contract and the filter only: no rclpy.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, fields
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -28,7 +39,19 @@ from sb3_formation.env.geometry import ring_neighbours
 from sb3_formation.ros.observer import FINAL_STAGE, AgentObserver, TeamView
 from sb3_formation.ros.scans import Scan, ScanMount, resample_scan, split_scan
 from sb3_formation.safety.policy import with_filter
-from sb3_formation.utils.checks import is_count, is_integer, is_number
+from sb3_formation.utils.checks import is_count, is_integer, is_number, is_real
+
+#: The most ranges a ``LaserScan`` may hold (a 0.05 deg scanner's 7200 fit): resampling costs rays x ranges, about
+#: 0.06 s per scan of this size on one core, so a larger one is refused, before anything is allocated for it.
+MAX_SCAN_RANGES = 8192
+#: (m) The largest |x| or |y| of a pose or of the goal: ten times the largest world (``MAX_WORLD_SIZE``, 10 km).
+MAX_COORDINATE = 1e5
+#: (m/s) The largest speed an odometry may report (no robot of this kind moves faster).
+MAX_SPEED = 100.0
+
+
+class UnusableInput(ValueError):
+    """An input the robot must not act on, in one line naming it; the node publishes a zero command instead."""
 
 
 @dataclass(frozen=True)
@@ -50,10 +73,16 @@ class AgentSettings:
     :param scan_yaw: the scanner's yaw (rad) in the robot's base frame
     :param max_gap: (m) neighbouring returns at most this far apart are one surface (:func:`resample_scan`)
     :param agent_tolerance: (m) a return this close to a teammate's disc is that teammate (:func:`split_scan`)
-    :param input_timeout: (s) an input older than this is stale: the robot stops
-    :param watchdog_rate: (Hz) how often stale inputs are looked for between scans
+    :param input_timeout: (s) an input older than this (by its stamp and the node's clock), or not heard for this
+        long on the wall clock, is stale: the robot stops
+    :param future_tolerance: (s) an input stamped further ahead of the node's clock than this is unusable (free mode)
+    :param watchdog_rate: (Hz) how often stale inputs are looked for between scans (a wall-clock timer, in every mode)
     :param synchronous: act only on a scan and every teammate's odometry of one stamp and a goal received since the
-        last command (the simulator's synchronous mode: one command per step, deterministic); no watchdog
+        last command (the simulator's synchronous mode: one command per step, deterministic); stamps are matched, not
+        judged by the clock, and the watchdog stops the robot once nothing (inputs or ``clock_topic``) has been heard
+        for ``input_timeout`` (a simulator that stopped)
+    :param clock_topic: the simulator's clock, which it also publishes while it waits for commands: a sign of life that
+        synchronous mode's watchdog listens to
     :param safety_filter: filter the actions (the policy's own gains if it was trained behind the filter, else the
         defaults)
     :param stage: the curriculum stage whose reward coefficients the observed previous reward uses
@@ -76,20 +105,23 @@ class AgentSettings:
     max_gap: float = 0.1
     agent_tolerance: float = 0.05
     input_timeout: float = 1.0
+    future_tolerance: float = 0.5
     watchdog_rate: float = 10.0
     synchronous: bool = False
     safety_filter: bool = True
     stage: int = FINAL_STAGE
     qos_depth: int = 10
     best_effort_sensors: bool = False
+    clock_topic: str = "/clock"
 
     def __post_init__(self) -> None:
         positive = ("max_gap", "input_timeout", "watchdog_rate")
         for name in positive:
             if not (is_number(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"{name} must be a number > 0, got {getattr(self, name)!r}")
-        if not (is_number(self.agent_tolerance) and self.agent_tolerance >= 0):
-            raise ValueError(f"agent_tolerance must be a number >= 0, got {self.agent_tolerance!r}")
+        for name in ("agent_tolerance", "future_tolerance"):
+            if not (is_number(getattr(self, name)) and getattr(self, name) >= 0):
+                raise ValueError(f"{name} must be a number >= 0, got {getattr(self, name)!r}")
         if not is_count(self.agent) or not (is_integer(self.qos_depth) and self.qos_depth >= 1):
             raise ValueError(f"agent must be an integer >= 0 and qos_depth >= 1, got {self.agent!r} and {self.qos_depth!r}")
         if self.stage not in (1, 2, 3):
@@ -143,10 +175,29 @@ class Onboard:
         #: no step taken yet in this episode
         self.starting = True
 
+    def check(
+        self, scan: Scan, team: TeamView, forward_speed: float, goal: np.ndarray, received: np.ndarray | None = None
+    ) -> None:
+        """Refuse inputs the robot must not act on (the arguments of :meth:`step`), before anything is computed of them.
+
+        :raises UnusableInput: one line naming the input and what is wrong with it
+        """
+        problem = scan_problem(scan) or team_problem(team, self.config.n_agents)
+        if not problem and not (is_real(forward_speed) and abs(forward_speed) <= MAX_SPEED):
+            problem = f"the robot's forward speed {forward_speed!r} is not a number within {MAX_SPEED:g} m/s"
+        if not problem:
+            problem = _point_problem("the goal", goal)
+        if not problem and received is not None and self.message_size:
+            values = np.asarray(received)
+            if values.shape != (2, self.message_size) or not np.isfinite(values).all():
+                problem = f"the neighbours' messages are not 2 x {self.message_size} finite values"
+        if problem:
+            raise UnusableInput(problem)
+
     def step(
         self, scan: Scan, team: TeamView, forward_speed: float, goal: np.ndarray, received: np.ndarray | None = None
     ) -> OnboardStep:
-        """Observe, act (filtered, if on), remember and command, for one step.
+        """Check the inputs (:meth:`check`), observe, act (filtered, if on), remember and command, for one step.
 
         :param scan: the robot's scan
         :param team: every teammate's pose and velocity in the world frame (the robot's own among them)
@@ -154,15 +205,155 @@ class Onboard:
         :param goal: ``(2,)`` the goal (m)
         :param received: ``(2, M)`` what the preceding and succeeding neighbours sent at their last step (``None``:
             zeros, as at an episode's start)
+        :raises UnusableInput: an input the robot must not act on, or a row, action or command that came out
+            non-finite; the robot's memory (observer, policy state) is then as before the call
         """
+        self.check(scan, team, forward_speed, goal, received)
         config, settings, agent = self.config, self.settings, self.settings.agent
         readings = resample_scan(scan, self.mount, float(team.headings[agent]), config, settings.max_gap)
         lidar = split_scan(readings, config, team.positions, agent, settings.agent_tolerance)
+        memory = self.observer.memory()
         row = self.observer.observe(team, lidar, np.asarray(goal, dtype=np.float64)).astype(np.float32)[None, :]
+        if not np.isfinite(row).all():
+            self.observer.restore(memory)
+            raise UnusableInput("the observation row came out non-finite: not acted on")
         heard = None if received is None or not self.message_size else np.asarray(received)[None]
         start = np.array([self.starting])
-        action, self.state, message = self.policy.agent_step(row, np.array([agent]), self.state, start, heard)
-        self.starting = False
-        self.observer.remember(action[0])
+        action, state, message = self.policy.agent_step(row, np.array([agent]), self.state, start, heard)
         command = self.dynamics.command(action[0], team.velocities[agent], forward_speed)
+        if not (np.isfinite(action).all() and np.isfinite(command).all() and np.isfinite(message).all()):
+            self.observer.restore(memory)
+            raise UnusableInput(f"the policy gave a non-finite action, command or message: {action[0].tolist()}")
+        self.state, self.starting = state, False
+        self.observer.remember(action[0])
         return OnboardStep(command, message[0], row[0], action[0])
+
+
+def scan_problem(scan: Scan) -> str:
+    """What makes a scan unusable, or ``""``: more than :data:`MAX_SCAN_RANGES` ranges (counted before anything is
+    allocated) or none, angles that are not finite, limits that are NaN or admit no range (``range_min > range_max``).
+    Ranges that are NaN, infinite or outside the limits are beams without a return (REP 117), not a fault."""
+    problem = scan_size_problem(len(scan.ranges))
+    if problem:
+        return problem
+    if not (math.isfinite(scan.angle_min) and math.isfinite(scan.angle_increment)):
+        return f"the scan's angles are not finite (angle_min {scan.angle_min}, angle_increment {scan.angle_increment})"
+    if not scan.range_min <= scan.range_max:  # NaN fails too
+        return f"the scan's limits admit no range (range_min {scan.range_min}, range_max {scan.range_max})"
+    return ""
+
+
+def scan_size_problem(count: int) -> str:
+    """What makes a scan of ``count`` ranges unusable (none, or more than :data:`MAX_SCAN_RANGES`), or ``""``."""
+    if not 1 <= count <= MAX_SCAN_RANGES:
+        return f"a scan of {count} ranges (1 to {MAX_SCAN_RANGES} are taken)"
+    return ""
+
+
+def team_problem(team: TeamView, n_agents: int) -> str:
+    """What makes the team's poses and velocities unusable, naming the first teammate at fault, or ``""``: the wrong
+    number of agents, a position beyond :data:`MAX_COORDINATE`, a velocity beyond :data:`MAX_SPEED`, a heading that is
+    not finite (an orientation that is not a rotation, :func:`~sb3_formation.ros.messages.odometry_state`), or NaN."""
+    positions, velocities = np.asarray(team.positions, dtype=np.float64), np.asarray(team.velocities, dtype=np.float64)
+    headings = np.asarray(team.headings, dtype=np.float64)
+    if positions.shape != (n_agents, 2) or velocities.shape != (n_agents, 2) or headings.shape != (n_agents,):
+        return f"the team's poses are not those of {n_agents} agents"
+    for index in range(n_agents):
+        problem = _point_problem(f"agent {index}'s position", positions[index])
+        if problem:
+            return f"odometry of agent {index}: {problem}"
+        if not (np.isfinite(velocities[index]).all() and np.abs(velocities[index]).max() <= MAX_SPEED):
+            return f"odometry of agent {index}: velocity {velocities[index].tolist()} is not finite within {MAX_SPEED:g} m/s"
+        if not math.isfinite(headings[index]):
+            return f"odometry of agent {index}: its orientation is not a rotation (unit quaternion)"
+    return ""
+
+
+def _point_problem(what: str, point: np.ndarray) -> str:
+    point = np.asarray(point, dtype=np.float64)
+    if point.shape != (2,) or not (np.isfinite(point).all() and np.abs(point).max() <= MAX_COORDINATE):
+        return f"{what} {point.tolist()} is not a finite point within {MAX_COORDINATE:g} m"
+    return ""
+
+
+def stamp_problem(what: str, stamp: int, now: int, settings: AgentSettings, judge_age: bool = True) -> str:
+    """What makes an input's stamp unusable by the node's clock, or ``""``: older than ``input_timeout`` (when
+    ``judge_age``: a latched goal's stamp is when it was given), or ahead of the clock by more than
+    ``future_tolerance``.
+
+    :param what: the input, for the message (its topic, say)
+    :param stamp: (ns) the input's stamp
+    :param now: (ns) the node's clock
+    """
+    age = (now - stamp) / 1e9
+    if judge_age and age > settings.input_timeout:
+        return f"{what} is {age:.3g} s old (input_timeout {settings.input_timeout:g} s)"
+    if -age > settings.future_tolerance:
+        return f"{what} is stamped {-age:.3g} s ahead of the clock (future_tolerance {settings.future_tolerance:g} s)"
+    return ""
+
+
+class Silence:
+    """How long each input has not been heard, in wall-clock time the node could have heard it: a gap between two of
+    the node's events (a callback, a watchdog tick) counts at most ``longest_gap`` s, so a node whose own work held
+    its executor (a policy's first step compiling its kernels, say) does not take its inputs for stale when it wakes.
+    Times are ``time.monotonic()`` seconds; a stopped ``/clock`` does not stop this.
+
+    :param longest_gap: (s) the most one gap between events counts (a couple of watchdog periods)
+    """
+
+    def __init__(self, longest_gap: float) -> None:
+        self.longest_gap = longest_gap
+        #: (s) wall-clock time the node could hear, since it started
+        self.listening = 0.0
+        self._last: float | None = None
+        self._heard: dict[str, float] = {}
+
+    def tick(self, now: float) -> None:
+        """An event of the node at wall-clock time ``now`` (s)."""
+        if self._last is not None:
+            self.listening += min(max(now - self._last, 0.0), self.longest_gap)
+        self._last = now
+
+    def heard(self, name: str, now: float) -> None:
+        """Input ``name`` arrived at ``now`` (s)."""
+        self.tick(now)
+        self._heard[name] = self.listening
+
+    def silent_for(self, name: str) -> float:
+        """(s) since ``name`` was last heard (``inf``: never)."""
+        return self.listening - self._heard[name] if name in self._heard else math.inf
+
+    def ever_heard(self) -> bool:
+        return bool(self._heard)
+
+
+def command_problem(values: Iterable[float]) -> str:
+    """The last check of a command (a ``Twist``'s six values) before it is published: ``""`` if every value is finite."""
+    values = list(values)
+    if all(math.isfinite(value) for value in values):
+        return ""
+    return f"refused to publish a non-finite command {values}"
+
+
+def typed_parameters(defaults: Any, values: Mapping[str, Any]) -> dict[str, Any]:
+    """ROS parameter values (``--ros-args -p name:=value``) as the types of a node's settings (a dataclass of
+    defaults): an integer where a number (float) is declared is taken as that float (``-p input_timeout:=2``); any
+    other type (``-p agent:=1.5``, ``-p input_timeout:=abc``) is a one-line ``ValueError`` naming the parameter.
+    """
+    typed = {}
+    for item in fields(defaults):
+        default, value = getattr(defaults, item.name), values[item.name]
+        if isinstance(default, bool):
+            kind, fits = "true or false", isinstance(value, bool)
+        elif isinstance(default, int):
+            kind, fits = "an integer", is_integer(value)
+        elif isinstance(default, float):
+            kind, fits = "a number", is_real(value)
+            value = float(value) if fits else value
+        else:
+            kind, fits = "a string", isinstance(value, str)
+        if not fits:
+            raise ValueError(f"parameter {item.name} must be {kind}, got {value!r}")
+        typed[item.name] = value
+    return typed

@@ -13,10 +13,16 @@ is as deterministic as an in-process one; free-running mode steps at ``rate`` ti
 of each agent. The stamps are sim time: a node that judges its inputs' age by its clock (a free-running agent node)
 runs with ``use_sim_time``. Episode k is played from ``reset(seed=seed + k)``, as ``sb3-formation evaluate`` plays its
 episodes, and recorded (:class:`EpisodeRecord`) for comparison with an evaluation.
+
+While it waits for a step's commands, the synchronous mode publishes the clock again every :data:`WATCH_PERIOD` (the
+same time): the agents' watchdogs hear the simulator alive, and stop their robots once it stops. In either mode a
+command topic with two publishers stops the node in one line, and a command that is not finite is taken as a zero
+command, with a warning.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from dataclasses import asdict, dataclass
@@ -40,7 +46,8 @@ from sb3_formation.ros.scans import merged_scan
 from sb3_formation.utils.checks import is_count, is_integer, is_number
 from sb3_formation.utils.files import atomic_path
 
-#: (s) wall-clock period of the synchronous mode's checks: are the agents up, has a command timed out
+#: (s) wall-clock period of the node's checks: two publishers on a command topic; synchronous mode: are the agents up,
+#: has a command timed out (and the clock published again, a sign of life)
 WATCH_PERIOD = 0.1
 
 
@@ -130,13 +137,12 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         settings = SimSettings() if settings is None else settings
         env = FormationEnv(config)  # unknown scenes, or scenes that cannot place the team, fail here
         super().__init__(name, **kwargs)
-        values = declared_settings(self, settings)
-        if values != asdict(settings):
-            try:
-                settings = SimSettings(**values)
-            except ValueError:
-                self.destroy_node()
-                raise
+        try:
+            values = declared_settings(self, settings)
+            settings = settings if values == asdict(settings) else SimSettings(**values)
+        except ValueError:
+            self.destroy_node()
+            raise
         self.settings, self.env = settings, env
         self.config = config = env.config
         n_agents = config.n_agents
@@ -165,9 +171,8 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             for index, topic in enumerate(self._command_topics)
         ]
         wall = Clock(clock_type=ClockType.STEADY_TIME)
-        if settings.synchronous:
-            self._timer = self.create_timer(WATCH_PERIOD, self._watch, clock=wall)
-        else:
+        self._watch_timer = self.create_timer(WATCH_PERIOD, self._watch, clock=wall)
+        if not settings.synchronous:
             self._start_episode()
             self._timer = self.create_timer(config.dt / settings.rate, self._advance, clock=wall)
 
@@ -186,8 +191,9 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             executor.spin_once(timeout_sec=timeout_sec)
 
     def _watch(self) -> None:
-        """Synchronous mode: start once every agent is up; fail when a command topic has several publishers (another
-        process flies an agent of the same index in this domain) or an agent keeps its command too long."""
+        """Fail when a command topic has several publishers (another process flies an agent of the same index in this
+        domain); synchronous mode: start once every agent is up, fail when an agent keeps its command too long, and
+        publish the clock again while waiting (the agents' watchdogs hear the simulator alive)."""
         if self.done:
             return
         crowded = [
@@ -200,6 +206,8 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
                 f"several publishers on {', '.join(crowded)}: another process flies these agents in ROS domain "
                 f"{os.environ.get('ROS_DOMAIN_ID', '0')}; stop it or choose another --domain-id"
             )
+        if not self.settings.synchronous:
+            return
         if self._episode < 0:
             missing = self._absent_topics()
             if missing:
@@ -207,6 +215,7 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             else:
                 self._start_episode()
             return
+        self._clock.publish(ClockMessage(clock=stamp_of(self._steps_played * self.config.dt)))
         if time.monotonic() - self._published_at > self.settings.command_timeout:
             silent = np.flatnonzero(self._received == 0).tolist()
             raise TimeoutError(
@@ -228,6 +237,13 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         return commands + sensors
 
     def _on_command(self, index: int, message: Twist) -> None:
+        values = (message.linear.x, message.linear.y, message.linear.z, message.angular.x, message.angular.y)
+        if not all(math.isfinite(value) for value in (*values, message.angular.z)):
+            self.get_logger().warning(
+                f"a command of agent {index} on {self._command_topics[index]} is not finite: taken as a zero command",
+                throttle_duration_sec=1.0,
+            )
+            message = Twist()
         self._commands[index] = message
         self._received[index] += 1
         if self.settings.synchronous and self._episode >= 0 and not self.done and self._received.all():
@@ -266,18 +282,24 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             self._start_episode()
         else:
             self.done = True
-            self._timer.cancel()
+            for timer in self.timers:
+                timer.cancel()
 
     def _actions(self) -> np.ndarray:
         """``(n, 2)`` the actions that give the agents' commands (:meth:`~sb3_formation.env.dynamics.DynamicsModel.action`)."""
         model = self.env.engine.model
         velocities, headings, speeds = self.env.engine.latest.velocities[self._rows], self._headings(), self._forward_speeds()
-        return np.array(
+        actions = np.array(
             [
                 model.action(twist_command(message, model, float(headings[i])), velocities[i], float(speeds[i]))
                 for i, message in enumerate(self._commands)
             ]
         )
+        for i in np.flatnonzero(~np.isfinite(actions).all(axis=1)):  # a command too large for its action (overflow)
+            self.get_logger().warning(f"the command of agent {i} gives no finite action: taken as a zero command")
+            zero = twist_command(Twist(), model, float(headings[i]))
+            actions[i] = model.action(zero, velocities[i], float(speeds[i]))
+        return actions
 
     def _headings(self) -> np.ndarray:
         """``(n,)`` the agents' headings (rad); 0 for holonomic agents."""
