@@ -9,8 +9,11 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 import pytest
@@ -199,6 +202,72 @@ def test_bad_input_to_evaluation_commands_is_one_line(
     assert message in error and error.count("\n") == 1 and "Traceback" not in error
 
 
+class Command:
+    """A command started as a terminal starts it (its own session, Ctrl-C's default action), its output read as it
+    comes, so that a test acts when the command has printed a line, never after a fixed sleep.
+
+    :param arguments: the command's arguments
+    :param cwd: its working folder
+    :param python: options of the interpreter (e.g. ``-X importtime``, which prints each import as it ends)
+    """
+
+    def __init__(self, arguments: list[str], cwd: Path, python: tuple[str, ...] = ()) -> None:
+        self.process = subprocess.Popen(
+            [sys.executable, *python, "-m", "sb3_formation.cli", *arguments],
+            cwd=cwd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            start_new_session=True,
+            preexec_fn=default_ctrl_c,
+        )
+        self.lines: dict[str, list[str]] = {"stdout": [], "stderr": []}
+        self.changed = threading.Condition()
+        self.readers = [
+            threading.Thread(target=self._read, args=(name, stream), daemon=True)
+            for name, stream in (("stdout", self.process.stdout), ("stderr", self.process.stderr))
+        ]
+        for reader in self.readers:
+            reader.start()
+
+    def _read(self, name: str, stream: IO[str]) -> None:
+        for line in stream:
+            with self.changed:
+                self.lines[name].append(line)
+                self.changed.notify_all()
+
+    def wait_for(self, stream: str, predicate: Callable[[str], bool], timeout: float = 240.0) -> None:
+        """Return once a line of ``stream`` fulfils ``predicate`` (a hang guard of ``timeout`` s)."""
+        deadline = time.monotonic() + timeout
+        with self.changed:
+            while not any(predicate(line) for line in self.lines[stream]):
+                assert self.process.poll() is None, f"it ended first: {''.join(self.lines['stderr'])[-2000:]}"
+                assert time.monotonic() < deadline, "timed out"
+                self.changed.wait(timeout=0.2)
+
+    def ctrl_c(self, timeout: float = 30.0) -> tuple[float, list[str]]:
+        """Ctrl-C (SIGINT to the whole process group, as a terminal sends it): the seconds to the exit, and the lines
+        it wrote to stderr from then on."""
+        with self.changed:
+            before = len(self.lines["stderr"])
+        os.killpg(self.process.pid, signal.SIGINT)
+        started = time.monotonic()
+        self.process.wait(timeout=timeout)
+        seconds = time.monotonic() - started
+        for reader in self.readers:
+            reader.join(timeout=timeout)
+        return seconds, self.lines["stderr"][before:]
+
+
+def shown_lines(lines: list[str]) -> list[str]:
+    """The lines a user reads: without progress bars and without ``-X importtime``'s report."""
+    return [
+        line.rstrip("\n")
+        for line in lines
+        if line.strip() and not re.match(r"\w+: +\d+%\|", line) and not line.startswith("import time:")
+    ]
+
+
 @pytest.mark.parametrize(
     "arguments",
     [
@@ -210,26 +279,44 @@ def test_bad_input_to_evaluation_commands_is_one_line(
     ids=["evaluate-workers", "evaluate", "render", "compare-workers"],
 )
 def test_ctrl_c_ends_evaluations_at_once_with_one_line(arguments: list[str], tmp_path: Path) -> None:
-    """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) ends ``evaluate``, ``render`` and
-    ``compare``, with or without workers, with exit code 130 and one line. The bound here is a hang guard for a loaded
-    machine; the promised 2 s is measured alone by ``benchmarks/interrupts.py``."""
-    process = subprocess.Popen(
-        [sys.executable, "-m", "sb3_formation.cli", *arguments],
-        cwd=tmp_path,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-        preexec_fn=default_ctrl_c,
-    )
-    time.sleep(5.0)  # imports, workers started, episodes under way
-    assert process.poll() is None, process.communicate()
-    os.killpg(process.pid, signal.SIGINT)
-    started = time.monotonic()
-    _, errors = process.communicate(timeout=30)
-    assert time.monotonic() - started < 30.0 and process.returncode == 130, errors
-    lines = [line for line in errors.splitlines() if line.strip() and not re.match(r"\w+: +\d+%\|", line)]
-    assert lines == [f"sb3-formation: {arguments[0]} interrupted"], errors  # beside the progress bar's
+    """Ctrl-C, once the command has said what it is about to do, ends ``evaluate``, ``render`` and ``compare``, with
+    or without workers, with exit code 130 and one line. The bound here is a hang guard for a loaded machine; the
+    promised 2 s is measured alone by ``benchmarks/interrupts.py``."""
+    command = Command(arguments, tmp_path)
+    command.wait_for("stdout", lambda line: line.startswith(("evaluating", "rendering", "comparing")))
+    seconds, errors = command.ctrl_c()
+    assert seconds < 30.0 and command.process.returncode == 130, errors
+    assert shown_lines(errors) == [f"sb3-formation: {arguments[0]} interrupted"], errors
+
+
+def imported(module: str) -> Callable[[str], bool]:
+    """Whether a line is ``-X importtime``'s report that the import of ``module`` ended."""
+    return lambda line: line.startswith("import time:") and line.rsplit("|", 1)[-1].strip() == module
+
+
+#: Moments of a command's start-up: the end of the import of numpy (the first heavy import), of torch, of
+#: Stable-Baselines3 and of Pymunk (``-X importtime`` reports each), then the line that says what it is about to do.
+START_UP_MOMENTS = {
+    "numpy imported": ("stderr", imported("numpy")),
+    "torch imported": ("stderr", imported("torch")),
+    "stable_baselines3 imported": ("stderr", imported("stable_baselines3")),
+    "pymunk imported": ("stderr", imported("pymunk")),
+    "said what it does": ("stdout", lambda line: line.startswith("evaluating")),
+}
+
+
+@pytest.mark.parametrize("moment", list(START_UP_MOMENTS))
+def test_ctrl_c_at_any_moment_of_start_up_is_one_line(moment: str, tmp_path: Path) -> None:
+    """Ctrl-C while the command still imports torch and the rest (the CLI takes Ctrl-C in hand before it imports
+    them), or as it starts its work: exit code 130 and one line, never a traceback."""
+    arguments = ["evaluate", "controller:classical", "--episodes", "2000", "--n-envs", "4", "--no-progress"]
+    command = Command(arguments, tmp_path, python=("-X", "importtime"))
+    stream, predicate = START_UP_MOMENTS[moment]
+    command.wait_for(stream, predicate)
+    _, errors = command.ctrl_c()
+    assert command.process.returncode == 130, errors
+    assert shown_lines(errors) == ["sb3-formation: evaluate interrupted"], errors
+    assert not (tmp_path / "evaluations").exists()  # nothing half written
 
 
 def test_scenes_option_evaluates_plots_and_renders_a_family(

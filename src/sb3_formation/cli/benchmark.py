@@ -9,14 +9,16 @@ from pathlib import Path
 from sb3_formation.cli.common import (
     add_recipe_option,
     add_trust_pickle_option,
+    agents_count,
+    episodes_count,
     model_trust,
-    positive_int,
-    seed_value,
     target_labels,
+    teams_count,
 )
 from sb3_formation.env.scenes import BENCHMARK_SCENES
 from sb3_formation.experiment.benchmark import BENCHMARK_EPISODES, BENCHMARK_SEED, TABLE_FILE, run_benchmark
 from sb3_formation.experiment.targets import Target
+from sb3_formation.utils.arguments import output_path, seed_value
 from sb3_formation.utils.checks import check_name
 from sb3_formation.utils.files import folder_lock, holds_files
 
@@ -32,21 +34,28 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("targets", nargs="+", help="run folders, model .zip files or <kind>:<name> targets")
     parser.add_argument(
-        "--episodes", type=positive_int, default=BENCHMARK_EPISODES, help=f"per family (default {BENCHMARK_EPISODES})"
+        "--episodes", type=episodes_count, default=BENCHMARK_EPISODES, help=f"per family (default {BENCHMARK_EPISODES})"
     )
     parser.add_argument(
         "--seed", type=seed_value, default=BENCHMARK_SEED, help=f"episode k plays seed + k (default {BENCHMARK_SEED})"
     )
-    parser.add_argument("--agents", type=positive_int, help="team size (default: each target's own)")
-    parser.add_argument("--n-envs", type=positive_int, default=16, help="teams played at once (default 16)")
-    parser.add_argument("--workers", type=positive_int, default=2, help="processes stepping the teams (default 2)")
+    parser.add_argument("--agents", type=agents_count, help="team size (default: each target's own)")
+    parser.add_argument("--n-envs", type=teams_count, default=16, help="teams played at once (default 16)")
+    parser.add_argument("--workers", type=teams_count, default=2, help="processes stepping the teams (default 2)")
     parser.add_argument("--labels", help="comma-separated label per target (default: the targets)")
-    parser.add_argument("--out", type=Path, default=Path("benchmark"), help="a new or empty folder (default benchmark/)")
+    parser.add_argument(
+        "--out", type=output_path, default=output_path("benchmark"), help="a new or empty folder (default benchmark/)"
+    )
     parser.add_argument("--device", default="auto", help="torch device (default auto)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_recipe_option(parser, "recipe of controller: targets (default ch5-bearing)")
     add_trust_pickle_option(parser)
     parser.set_defaults(run=run)
+
+
+def starting(args: argparse.Namespace) -> str:
+    """The line ``benchmark`` starts with."""
+    return f"benchmarking {', '.join(args.targets)} into {args.out} (Ctrl-C stops it)"
 
 
 def run(args: argparse.Namespace) -> int:

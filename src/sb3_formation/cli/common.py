@@ -8,31 +8,34 @@ from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any
 
+from sb3_formation.env.config import MAX_AGENTS, MAX_EPISODE_STEPS
 from sb3_formation.env.scenes import SCENES
 from sb3_formation.experiment.evaluation import EVALUATION_TEAMS, evaluate_target
-from sb3_formation.experiment.recipes import DEFAULT_RECIPE
-from sb3_formation.experiment.sections import MAX_SEED, EvaluationSection
+from sb3_formation.experiment.recipes import DEFAULT_RECIPE, MAX_TEAMS
+from sb3_formation.experiment.sections import MAX_RECORDED_EPISODES, EvaluationSection
 from sb3_formation.experiment.targets import Target
 from sb3_formation.sb3.model_files import trust_pickle
+from sb3_formation.utils.arguments import MAX_EPISODES, count, seed_value
+from sb3_formation.utils.checks import check_path
 from sb3_formation.utils.yaml_files import read_yaml
 
 # Command-line value types ---------------------------------------------------------------------------------------------
+# Every count option is bounded by a documented maximum (count): a larger one would overflow a C integer or allocate
+# without bound. Every path a command writes to is checked as it is read (output_path): before any work.
 
-
-def positive_int(text: str) -> int:
-    """An integer >= 1."""
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
-
-
-def seed_value(text: str) -> int:
-    """A seed: an integer in [0, 2**32 - 1]."""
-    value = int(text)
-    if not 0 <= value <= MAX_SEED:
-        raise argparse.ArgumentTypeError(f"must be an integer in [0, 2**32 - 1], got {value}")
-    return value
+#: ``--episodes`` at most :data:`~sb3_formation.utils.arguments.MAX_EPISODES`.
+episodes_count = count(MAX_EPISODES)
+#: ``--n-envs``, ``--workers`` (a worker steps whole teams) at most :data:`~sb3_formation.experiment.recipes.MAX_TEAMS`.
+teams_count = count(MAX_TEAMS)
+#: ``--agents`` at most :data:`~sb3_formation.env.config.MAX_AGENTS` (the task's own check names a team below 3).
+agents_count = count(MAX_AGENTS)
+#: ``--max-steps`` and counts of steps at most :data:`~sb3_formation.env.config.MAX_EPISODE_STEPS`.
+steps_count = count(MAX_EPISODE_STEPS)
+#: ``--fps`` of a video at most this many frames per second.
+MAX_FPS = 1000
+fps_count = count(MAX_FPS)
+#: ``--trajectories``: 0 to :data:`~sb3_formation.experiment.sections.MAX_RECORDED_EPISODES`.
+recorded_count = count(MAX_RECORDED_EPISODES, minimum=0)
 
 
 def assignment(text: str) -> tuple[str, object]:
@@ -99,14 +102,18 @@ def model_trust(args: argparse.Namespace) -> AbstractContextManager[None]:
 
 def add_protocol_arguments(parser: argparse.ArgumentParser) -> None:
     """The evaluation protocol's options, shared by ``evaluate`` and ``compare``."""
-    parser.add_argument("--episodes", type=positive_int, help="episodes (default: the recipe's; thesis: 500 ch. 4, 200 ch. 5)")
+    parser.add_argument(
+        "--episodes",
+        type=episodes_count,
+        help=f"episodes, at most {MAX_EPISODES:,} (default: the recipe's; thesis: 500 ch. 4, 200 ch. 5)",
+    )
     parser.add_argument("--stage", type=int, choices=(1, 2, 3), help="curriculum stage (default: the recipe's, 3)")
     parser.add_argument("--seed", type=seed_value, default=0, help="episode k plays the scenario of seed + k (default 0)")
     parser.add_argument(
-        "--n-envs", type=positive_int, default=EVALUATION_TEAMS, help=f"teams played at once (default {EVALUATION_TEAMS})"
+        "--n-envs", type=teams_count, default=EVALUATION_TEAMS, help=f"teams played at once (default {EVALUATION_TEAMS})"
     )
     parser.add_argument(
-        "--workers", type=positive_int, default=1, help="processes stepping the teams, this one included (default 1)"
+        "--workers", type=teams_count, default=1, help="processes stepping the teams, this one included (default 1)"
     )
     parser.add_argument("--stochastic", action="store_true", help="sample actions instead of using the mean")
     parser.add_argument("--device", default="auto", help="torch device (default auto)")
@@ -126,7 +133,7 @@ def print_summary(summary: dict) -> None:
     successful, everything = summary["successful_episodes"], summary["all_episodes"]
     print(f"  {'mean ± std over':<26}{'successful episodes':>24}{'all episodes':>24}")
     for name, statistics in everything.items():
-        mine = successful[name]
+        mine = successful.get(name, {"mean": None})  # (summaries written before 0.2 may lack a metric there)
         cell = "-" if mine["mean"] is None else f"{mine['mean']:.3f} ± {mine['std']:.3f}"
         print(f"  {name:<26}{cell:>24}{statistics['mean']:>15.3f} ± {statistics['std']:.3f}")
 
@@ -179,6 +186,7 @@ def target_labels(text: str | None, targets: Sequence[Target]) -> list[str]:
     (:attr:`~sb3_formation.experiment.targets.Target.label`)."""
     if text is None:
         return [target.label for target in targets]
+    check_path(text, "--labels")  # UTF-8: they are written into tables and file names
     labels = [label.strip() for label in text.split(",")]
     if len(labels) != len(targets):
         raise ValueError(f"--labels gives {len(labels)} labels for {len(targets)} runs")

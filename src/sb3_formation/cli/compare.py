@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from sb3_formation.cli.common import add_protocol_arguments, evaluate_with_protocol, model_trust, target_labels
 from sb3_formation.env.scenes import DEFAULT_SCENES
@@ -11,6 +10,7 @@ from sb3_formation.experiment.evaluation import SUMMARY_FILE, stored_summary
 from sb3_formation.experiment.reports import comparison_table
 from sb3_formation.experiment.sections import EvaluationSection
 from sb3_formation.experiment.targets import Target
+from sb3_formation.utils.arguments import output_path
 from sb3_formation.utils.files import atomic_write
 
 
@@ -26,10 +26,17 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     add_protocol_arguments(parser)
     parser.add_argument("--labels", help="comma-separated label per run (default: the run folder names)")
     parser.add_argument("--over", choices=("successful", "all"), default="successful", help="episodes for the means")
-    parser.add_argument("--out", type=Path, default=Path("compare.png"), help="bar chart file (default compare.png)")
-    parser.add_argument("--table", type=Path, help="also write the Markdown table to this file")
+    parser.add_argument(
+        "--out", type=output_path, default=output_path("compare.png"), help="bar chart file (default compare.png)"
+    )
+    parser.add_argument("--table", type=output_path, help="also write the Markdown table to this file")
     parser.add_argument("--force", action="store_true", help="evaluate again even if eval/ matches")
     parser.set_defaults(run=run)
+
+
+def starting(args: argparse.Namespace) -> str:
+    """The line ``compare`` starts with."""
+    return f"comparing {', '.join(args.targets)} on the same episodes (Ctrl-C stops it)"
 
 
 def run(args: argparse.Namespace) -> int:
@@ -44,6 +51,12 @@ def _compare(args: argparse.Namespace) -> int:
     labels = target_labels(args.labels, targets)
     if len(set(labels)) != len(labels):
         raise ValueError(f"labels must differ, got {labels}")
+    from sb3_formation.viz.plots import FIGURE_FORMATS  # matplotlib: only where a figure is drawn
+
+    if args.out.suffix[1:].lower() not in ("", *FIGURE_FORMATS):  # before any evaluation
+        raise ValueError(
+            f"cannot save a figure as {args.out.suffix[1:]!r} ({args.out}): use one of {', '.join(FIGURE_FORMATS)}"
+        )
     for target in targets:  # every target loads before any is evaluated (and written to)
         target.load(args.device)
     # the recipes' protocol (the larger one if they differ, e.g. chapter 4's 500 episodes and chapter 5's 200)

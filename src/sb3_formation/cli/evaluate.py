@@ -3,10 +3,18 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
-from sb3_formation.cli.common import TARGET_HELP, add_protocol_arguments, evaluate_with_protocol, model_trust, print_summary
+from sb3_formation.cli.common import (
+    TARGET_HELP,
+    add_protocol_arguments,
+    agents_count,
+    evaluate_with_protocol,
+    model_trust,
+    print_summary,
+    recorded_count,
+)
 from sb3_formation.experiment.targets import Target
+from sb3_formation.utils.arguments import output_path
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -20,12 +28,23 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("target", help=TARGET_HELP)
     add_protocol_arguments(parser)
-    parser.add_argument("--agents", type=int, help="team size (default: the model's; another only for one trained on several)")
     parser.add_argument(
-        "--trajectories", type=int, default=5, metavar="K", help="record every step of the first K episodes (default 5)"
+        "--agents", type=agents_count, help="team size (default: the model's; another only for one trained on several)"
     )
-    parser.add_argument("--out", type=Path, help="folder for the files (default: <run>/eval)")
+    parser.add_argument(
+        "--trajectories",
+        type=recorded_count,
+        default=5,
+        metavar="K",
+        help="record every step of the first K episodes (default 5)",
+    )
+    parser.add_argument("--out", type=output_path, help="folder for the files (default: <run>/eval)")
     parser.set_defaults(run=run)
+
+
+def starting(args: argparse.Namespace) -> str:
+    """The line ``evaluate`` starts with."""
+    return f"evaluating {args.target} (Ctrl-C stops it)"
 
 
 def run(args: argparse.Namespace) -> int:

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from sb3_formation.cli.common import TARGET_HELP, add_trust_pickle_option, model_trust
 from sb3_formation.experiment.targets import Target
 from sb3_formation.runtime import OnnxPolicy
 from sb3_formation.sb3.onnx_export import DEFAULT_OPSET, SUPPORTED_OPSETS, export_onnx
+from sb3_formation.utils.arguments import output_path
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -23,7 +23,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "sb3-formation evaluate out.onnx",
     )
     parser.add_argument("target", help=TARGET_HELP)
-    parser.add_argument("--onnx", type=Path, required=True, metavar="FILE", help="the .onnx file to write")
+    parser.add_argument("--onnx", type=output_path, required=True, metavar="FILE", help="the .onnx file to write")
     parser.add_argument(
         "--opset",
         type=int,

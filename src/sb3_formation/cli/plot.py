@@ -5,15 +5,18 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sb3_formation.cli.common import add_recipe_option, add_scenes_option, indices, positive_int, target_labels
+from sb3_formation.cli.common import add_recipe_option, add_scenes_option, indices, steps_count, target_labels
 from sb3_formation.env.scenes import DEFAULT_SCENES
 from sb3_formation.experiment.evaluation import TRAJECTORIES_FILE, load_summary, load_trajectories
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE, load_settings
 from sb3_formation.experiment.targets import Target
 from sb3_formation.experiment.trajectories import Trajectories
+from sb3_formation.utils.arguments import count, output_path
 
 #: The figures ``plot`` draws.
 FIGURES = ("trajectories", "errors", "bars", "training")
+#: The widest rolling mean of ``plot training`` (``--window``), in iterations.
+MAX_WINDOW = 1_000_000
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -27,11 +30,16 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("figure", help=f"one of {', '.join(FIGURES)}")
     parser.add_argument("targets", nargs="+", help="run folders, <kind>:<name> targets, or eval folders / files")
-    parser.add_argument("--out", type=Path, help="figure file; .png (default), .svg or .pdf")
+    parser.add_argument("--out", type=output_path, help="figure file; .png (default), .svg or .pdf")
     parser.add_argument("--episodes", type=indices, help="recorded episodes to draw, e.g. 0,2 (default: all recorded)")
-    parser.add_argument("--every", type=positive_int, default=25, help="steps between formation outlines (default 25)")
+    parser.add_argument("--every", type=steps_count, default=25, help="steps between formation outlines (default 25)")
     parser.add_argument("--labels", help="comma-separated label per run (runs with the same label are seeds of one curve)")
-    parser.add_argument("--window", type=positive_int, default=100, help="rolling-mean window in iterations (default 100)")
+    parser.add_argument(
+        "--window",
+        type=count(MAX_WINDOW),
+        default=100,
+        help=f"rolling-mean window in iterations, at most {MAX_WINDOW:,} (default 100)",
+    )
     parser.add_argument("--over", choices=("successful", "all"), default="successful", help="episodes for the bar means")
     add_recipe_option(parser, "recipe of controller: targets (default: " + DEFAULT_RECIPE + ")")
     add_scenes_option(parser)

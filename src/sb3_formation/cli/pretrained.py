@@ -9,6 +9,7 @@ from sb3_formation.cli.common import print_summary
 from sb3_formation.env.scenes import SCENES
 from sb3_formation.experiment.export import export_pretrained
 from sb3_formation.experiment.pretrained import pretrained_card, pretrained_names
+from sb3_formation.utils.arguments import path_value
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -22,7 +23,9 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--export", type=Path, metavar="RUN_DIR", help="a finished run folder to ship")
     parser.add_argument("--name", help="name of the exported policy (pretrained:<name>)")
-    parser.add_argument("--into", type=Path, help="folder of shipped policies to list or export into (default: the package's)")
+    parser.add_argument(
+        "--into", type=path_value, help="folder of shipped policies to list or export into (default: the package's)"
+    )
     parser.add_argument("--replace", action="store_true", help="with --export: replace a policy of that name")
     parser.set_defaults(run=run)
 

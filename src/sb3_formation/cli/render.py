@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from sb3_formation.cli.common import (
     RECIPE_HELP,
@@ -11,12 +10,15 @@ from sb3_formation.cli.common import (
     add_recipe_option,
     add_scenes_option,
     add_trust_pickle_option,
+    agents_count,
+    episodes_count,
+    fps_count,
     model_trust,
-    positive_int,
     scene_overrides,
-    seed_value,
+    steps_count,
 )
 from sb3_formation.experiment.targets import Target
+from sb3_formation.utils.arguments import output_path, seed_value
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -29,19 +31,26 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("target", help=TARGET_HELP)
     add_recipe_option(parser, RECIPE_HELP)
-    parser.add_argument("--episodes", type=positive_int, default=1, help="episodes (default 1)")
-    parser.add_argument("--out", type=Path, help="video file, .mp4 or .gif (default: <run>/eval/episodes.mp4)")
+    parser.add_argument("--episodes", type=episodes_count, default=1, help="episodes (default 1)")
+    parser.add_argument("--out", type=output_path, help="video file, .mp4 or .gif (default: <run>/eval/episodes.mp4)")
     parser.add_argument("--stage", type=int, choices=(1, 2, 3), default=3, help="curriculum stage (default 3)")
     parser.add_argument("--seed", type=seed_value, default=0, help="episode k plays the scenario of seed + k (default 0)")
-    parser.add_argument("--fps", type=positive_int, default=20, help="frames per second (default 20)")
-    parser.add_argument("--frame-every", type=positive_int, default=1, help="keep every k-th step as a frame")
-    parser.add_argument("--max-steps", type=positive_int, help="cut episodes at this many steps (default: the model's)")
-    parser.add_argument("--agents", type=int, help="team size (default: the model's; another only for one trained on several)")
+    parser.add_argument("--fps", type=fps_count, default=20, help="frames per second (default 20)")
+    parser.add_argument("--frame-every", type=steps_count, default=1, help="keep every k-th step as a frame")
+    parser.add_argument("--max-steps", type=steps_count, help="cut episodes at this many steps (default: the model's)")
+    parser.add_argument(
+        "--agents", type=agents_count, help="team size (default: the model's; another only for one trained on several)"
+    )
     parser.add_argument("--stochastic", action="store_true", help="sample actions instead of using the mean")
     parser.add_argument("--device", default="auto", help="torch device (default auto)")
     add_scenes_option(parser)
     add_trust_pickle_option(parser)
     parser.set_defaults(run=run)
+
+
+def starting(args: argparse.Namespace) -> str:
+    """The line ``render`` starts with."""
+    return f"rendering {args.episodes} episode(s) of {args.target} (Ctrl-C stops it)"
 
 
 def run(args: argparse.Namespace) -> int:

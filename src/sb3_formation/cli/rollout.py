@@ -4,16 +4,24 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 
 from PIL import Image
 
-from sb3_formation.cli.common import TARGET_HELP, add_recipe_option, add_trust_pickle_option, model_trust, positive_int
+from sb3_formation.cli.common import (
+    TARGET_HELP,
+    add_recipe_option,
+    add_trust_pickle_option,
+    agents_count,
+    episodes_count,
+    model_trust,
+    steps_count,
+)
 from sb3_formation.env.rendering import render_frame
 from sb3_formation.env.state import TeamState
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE
 from sb3_formation.experiment.rollouts import PlayJob, play_episodes, seed_policy
 from sb3_formation.experiment.targets import Target
+from sb3_formation.utils.arguments import output_path, seed_value
 from sb3_formation.utils.files import atomic_path
 
 
@@ -27,14 +35,16 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("target", nargs="?", default="controller:random", help=TARGET_HELP + " (default: %(default)s)")
     add_recipe_option(parser, f"recipe of a controller: target (default: {DEFAULT_RECIPE})")
-    parser.add_argument("--agents", type=int, default=None, help="team size n >= 3 (default: the recipe's)")
+    parser.add_argument("--agents", type=agents_count, default=None, help="team size n >= 3 (default: the recipe's)")
     parser.add_argument("--stage", type=int, choices=(1, 2, 3), default=3, help="curriculum stage (default: %(default)s)")
-    parser.add_argument("--episodes", type=positive_int, default=2, help="number of episodes (default: %(default)s)")
+    parser.add_argument("--episodes", type=episodes_count, default=2, help="number of episodes (default: %(default)s)")
     parser.add_argument(
-        "--max-steps", type=positive_int, default=None, help="episode length T_s in steps (default: the recipe's 2500)"
+        "--max-steps", type=steps_count, default=None, help="episode length T_s in steps (default: the recipe's 2500)"
     )
-    parser.add_argument("--seed", type=int, default=0, help="seed of the first episode; episode k uses seed + k")
-    parser.add_argument("--out", type=Path, default=Path("runs/rollout_final_frame.png"), help="PNG of the final frame")
+    parser.add_argument("--seed", type=seed_value, default=0, help="seed of the first episode; episode k uses seed + k")
+    parser.add_argument(
+        "--out", type=output_path, default=output_path("runs/rollout_final_frame.png"), help="PNG of the final frame"
+    )
     parser.add_argument("--json", action="store_true", help="print the summaries as JSON lines")
     parser.add_argument("--stochastic", action="store_true", help="sample a trained policy's actions")
     add_trust_pickle_option(parser)

@@ -6,7 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from sb3_formation.cli.common import indices, positive_int
+from sb3_formation.cli.common import indices, teams_count
+from sb3_formation.utils.arguments import output_path
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -21,8 +22,8 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("recipe", type=Path, help="recipe YAML with a run: section, e.g. recipes/quick-ch5-bearing.yaml")
     parser.add_argument("--seeds", type=indices, help="comma-separated seeds (default: the recipe file's)")
     parser.add_argument("--address", help="address of a running Ray cluster (default: start Ray on this machine)")
-    parser.add_argument("--max-concurrent", type=positive_int, help="trials at once (default: one per CPU)")
-    parser.add_argument("--logdir", help="folder for the sweep's folder (default: the recipe file's logdir)")
+    parser.add_argument("--max-concurrent", type=teams_count, help="trials at once (default: one per CPU)")
+    parser.add_argument("--logdir", type=output_path, help="folder for the sweep's folder (default: the recipe file's logdir)")
     parser.set_defaults(run=run)
 
 

@@ -27,6 +27,7 @@ from sb3_formation.experiment.recipes import (
 )
 from sb3_formation.experiment.runs import FINAL_MODEL
 from sb3_formation.experiment.training import resume, train
+from sb3_formation.utils.arguments import output_path
 
 #: Options of ``train`` that choose the recipe or change its task, beside the recipe's fields.
 RECIPE_CHOICE = ("recipe", "reward", "agents", "team_reward", "scenes")
@@ -48,10 +49,10 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     add_scenes_option(parser)
     for option in recipe_options():
         parser.add_argument(option.flag, dest=option.name, default=None, help=help_text(option.help), **value_kind(option))
-    parser.add_argument("--resume", type=Path, metavar="RUN_DIR", help="continue a run from its latest checkpoint")
+    parser.add_argument("--resume", type=output_path, metavar="RUN_DIR", help="continue a run from its latest checkpoint")
     add_trust_pickle_option(parser, "with --resume: load the checkpoint with SB3's load, unpickling what it holds")
     parser.add_argument(
-        "--run-dir", type=Path, help="write the run into this new or empty folder (default: a new one under --logdir)"
+        "--run-dir", type=output_path, help="write the run into this new or empty folder (default: a new one under --logdir)"
     )
     parser.set_defaults(run=run)
 

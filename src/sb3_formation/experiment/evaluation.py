@@ -15,7 +15,7 @@ import os
 from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import torch
 from tqdm.auto import tqdm
@@ -26,13 +26,13 @@ from sb3_formation.env.scenes import DEFAULT_SCENES
 from sb3_formation.experiment.rollouts import PlayJob, play_episodes, seed_policy
 from sb3_formation.experiment.sections import MAX_RECORDED_EPISODES as MAX_RECORDED_EPISODES
 from sb3_formation.experiment.sections import EvaluationSection, check_record
-from sb3_formation.experiment.statistics import mean_and_std, wilson_interval
+from sb3_formation.experiment.statistics import check_summary, mean_and_std, wilson_interval
 from sb3_formation.experiment.targets import Target
 from sb3_formation.experiment.trajectories import Trajectories, stack_recordings
 from sb3_formation.safety.policy import SafePolicy
 from sb3_formation.sb3.callbacks import threads_beside_workers, torch_threads
 from sb3_formation.sb3.metrics import EPISODE_METRICS, SAFETY_METRICS
-from sb3_formation.utils.files import atomic_files, check_writable, file_digest
+from sb3_formation.utils.files import atomic_files, check_writable, file_digest, read_json
 
 #: Columns of ``episodes.csv``, in order (``reward_<term>``: the term's mean per step and agent).
 EPISODE_COLUMNS = (
@@ -82,6 +82,9 @@ class EvaluationResult:
     def __post_init__(self) -> None:
         successes = [episode for episode in self.episodes if episode["success"]]
         low, high = wilson_interval(len(successes), len(self.episodes))
+        everything = mean_and_std(self.episodes)
+        # the same metrics over the successes, a filtered policy's too when none succeeded (their means then None)
+        successful = {name: {"mean": None, "std": None} for name in everything} | mean_and_std(successes)
         self.summary = {
             "episodes": len(self.episodes),
             "successes": len(successes),
@@ -93,8 +96,8 @@ class EvaluationResult:
             "deterministic": self.deterministic,
             "n_agents": self.n_agents,
             "model": self.model,
-            "successful_episodes": mean_and_std(successes),
-            "all_episodes": mean_and_std(self.episodes),
+            "successful_episodes": successful,
+            "all_episodes": everything,
             "episodes_with_contacts": {
                 kind: sum(episode[f"collisions_{kind}"] > 0 for episode in self.episodes) for kind in ("agent", "obstacle")
             },
@@ -266,15 +269,11 @@ def load_summary(target: Target | str | os.PathLike[str], scenes: str = DEFAULT_
 def read_summary(path: Path) -> dict[str, Any]:
     """The evaluation summary in the file ``path``.
 
-    :raises ValueError: the file is not an evaluation summary
+    :raises ValueError: the file is not an evaluation summary, or is damaged (naming it)
     """
-    try:
-        summary = json.loads(path.read_text())
-    except json.JSONDecodeError as error:
-        raise ValueError(f"{path} is not valid JSON: {error}") from error
-    if not isinstance(summary, dict) or "success_rate" not in summary:
-        raise ValueError(f"{path} is not an evaluation summary written by sb3-formation")
-    return summary
+    summary = read_json(path)
+    check_summary(summary, path)
+    return cast("dict[str, Any]", summary)
 
 
 def check_evaluation_set(folder: Path, summary: dict[str, Any], names: Collection[str] = ()) -> None:

@@ -22,9 +22,9 @@ from sb3_formation.experiment.recipes import load_settings
 from sb3_formation.experiment.runs import (
     FINAL_MODEL,
     FINAL_NORMALIZER,
-    STATE_FILE,
     latest_checkpoint,
     load_trained,
+    read_state,
 )
 from sb3_formation.sb3.model_files import load_model
 from sb3_formation.sb3.onnx_export import export_onnx
@@ -62,7 +62,7 @@ def export_pretrained(
     missing = [file for file in (FINAL_MODEL, FINAL_NORMALIZER) if not (run_dir / file).is_file()]
     if missing or checkpoint is None:
         raise ValueError(f"{run_dir} is not a finished run: it lacks {', '.join(missing) or 'a checkpoint'}")
-    state = json.loads((checkpoint / STATE_FILE).read_text())
+    state = read_state(checkpoint)
     protocol = settings.recipe.evaluation.replace(record=0)
     if (root / name).exists() and not replace:
         raise ValueError(f"pretrained:{name} exists in {root}: give another name, or --replace to replace it")

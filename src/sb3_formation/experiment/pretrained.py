@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import itertools
-import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +30,9 @@ from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.experiment.recipes import load_recipe
 from sb3_formation.experiment.runs import load_trained
+from sb3_formation.experiment.statistics import check_summary
+from sb3_formation.utils.checks import is_count, is_number
+from sb3_formation.utils.files import read_json
 
 #: Where the shipped policies live (package data).
 PRETRAINED_DIR = Path(__file__).resolve().parent.parent / "pretrained"
@@ -54,11 +57,36 @@ def pretrained_folder(name: str, root: Path = PRETRAINED_DIR) -> Path:
     return folder
 
 
+#: What every card records, and of what kind (the listing and ``--recipe`` read them).
+CARD_KEYS: dict[str, tuple[str, Callable[[Any], bool]]] = {
+    "recipe": ("a recipe name", lambda value: isinstance(value, str)),
+    "n_agents": ("an integer >= 1", lambda value: is_count(value) and value >= 1),
+    "training_seconds": ("a number of seconds >= 0", lambda value: is_number(value) and value >= 0),
+}
+
+
 def pretrained_card(name: str, root: Path = PRETRAINED_DIR) -> dict[str, Any]:
-    """What :func:`export_pretrained` recorded of a shipped policy, with its stored evaluation ``summary``."""
+    """What :func:`export_pretrained` recorded of a shipped policy, with its stored evaluation ``summary``.
+
+    :raises ValueError: an unknown name, or a ``card.json`` or ``eval/summary.json`` that is damaged (naming the file
+        and the entry)
+    """
     folder = pretrained_folder(name, root)
-    card = json.loads((folder / CARD_FILE).read_text())
-    card["summary"] = json.loads((folder / SUMMARY_PATH).read_text())
+    path = folder / CARD_FILE
+    card = read_json(path)
+    if not isinstance(card, dict):
+        raise ValueError(f"{path} is damaged: it must hold a JSON object, got {type(card).__name__}")
+    for key, (expected, valid) in CARD_KEYS.items():
+        if key not in card:
+            raise ValueError(f"{path} is damaged: it records no {key!r} ({expected}); export the policy again")
+        if not valid(card[key]):
+            raise ValueError(f"{path} is damaged: {key!r} must be {expected}, got {card[key]!r:.60}")
+    sizes = card.get("team_sizes", [card["n_agents"]])
+    if not (isinstance(sizes, list) and sizes and all(is_count(size) and size >= 1 for size in sizes)):
+        raise ValueError(f"{path} is damaged: 'team_sizes' must be a list of integers >= 1, got {sizes!r:.60}")
+    summary = read_json(folder / SUMMARY_PATH)
+    check_summary(summary, folder / SUMMARY_PATH)
+    card["summary"] = summary
     return card
 
 

@@ -54,6 +54,7 @@ from sb3_formation.experiment.sections import (
     schedule,
 )
 from sb3_formation.safety.filter import SafetyGains
+from sb3_formation.safety.qp import check_solver
 from sb3_formation.sb3.imitation import ImitationSettings
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy
@@ -378,10 +379,14 @@ def read_safety_gains(section: SafetySection | dict[str, Any] | None) -> SafetyG
     records it), or ``None`` for no section (no filter): the one reading of the gains, which training a shielded
     policy (:meth:`Recipe.safety_gains`) and loading it (:func:`~sb3_formation.experiment.runs.load_trained`) share.
 
-    :raises ValueError: an unknown or invalid gain
+    :raises ValueError: an unknown or invalid gain, or a solver not installed here
     """
     read: SafetySection | None = _read_section(SafetySection.key, section) if isinstance(section, dict) else section
-    return None if read is None else SafetyGains.from_dict(read.gains)
+    if read is None:
+        return None
+    gains = SafetyGains.from_dict(read.gains)
+    check_solver(gains.solver)  # (a section read from a model file was checked on another machine)
+    return gains
 
 
 @dataclass(frozen=True)

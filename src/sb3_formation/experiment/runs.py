@@ -11,6 +11,7 @@ reward normalisation ``reward_normalizer.npz``, and ``state.json``), at the end 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, cast
 
@@ -30,7 +31,8 @@ from sb3_formation.sb3.model_files import (
 )
 from sb3_formation.sb3.normalization import STATE_KEYS, ScaleNormalizeVecEnv
 from sb3_formation.sb3.trained import TrainedPolicy, normalizer_mismatch
-from sb3_formation.utils.files import atomic_path, read_arrays, restore_directory
+from sb3_formation.utils.checks import is_count, is_number
+from sb3_formation.utils.files import atomic_path, read_arrays, read_json, restore_directory
 
 MODEL_FILE, NORMALIZER_FILE, STATE_FILE = "model.zip", "normalizer.npz", "state.json"
 FINAL_MODEL, FINAL_NORMALIZER = "final_model.zip", "final_normalizer.npz"
@@ -100,6 +102,37 @@ def latest_checkpoint(run_dir: Path) -> Path | None:
     folders = sorted((run_dir / "checkpoints").glob("iteration_*"), key=lambda path: int(path.name.split("_")[1]))
     complete = [folder for folder in folders if (folder / STATE_FILE).exists()]
     return complete[-1] if complete else None
+
+
+#: What a checkpoint's ``state.json`` records, and of what kind (``recipe`` is compared with ``config.yaml`` on resume).
+STATE_KEYS_OF_CHECKPOINT: dict[str, tuple[str, Callable[[Any], bool]]] = {
+    "num_timesteps": ("an integer >= 0", is_count),
+    "curriculum": (
+        "a mapping of stage, iteration, stage_iteration and successes",
+        lambda value: isinstance(value, dict)
+        and all(is_count(value.get(key)) for key in ("stage", "iteration", "stage_iteration"))
+        and isinstance(value.get("successes"), list),
+    ),
+    "training_seconds": ("a number of seconds >= 0", lambda value: is_number(value) and value >= 0),
+}
+
+
+def read_state(checkpoint: Path) -> dict[str, Any]:
+    """The ``state.json`` of a checkpoint folder (counters, curriculum, training seconds, recipe).
+
+    :raises ValueError: the file is not JSON (a truncated copy, an edit) or lacks an entry, naming the file
+    """
+    path = checkpoint / STATE_FILE
+    state = read_json(path)
+    if not isinstance(state, dict):
+        raise ValueError(f"{path} is damaged: it must hold a JSON object")
+    for key, (expected, valid) in STATE_KEYS_OF_CHECKPOINT.items():
+        if (key in state or key != "training_seconds") and not valid(state.get(key)):  # (early runs recorded no time)
+            raise ValueError(
+                f"{path} is damaged: {key!r} must be {expected}, got {state.get(key)!r:.60}; delete {checkpoint} to "
+                "resume from the checkpoint before it"
+            )
+    return state
 
 
 def load_trained(path: str | os.PathLike[str], device: str = "auto", trusted: bool | None = None) -> TeamPolicy:

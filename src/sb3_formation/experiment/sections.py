@@ -30,6 +30,7 @@ from sb3_formation.controllers.residual import check_residual_scale
 from sb3_formation.env.config import TASKS, FormationConfig
 from sb3_formation.env.scenes import SCENES
 from sb3_formation.safety.filter import SafetyGains
+from sb3_formation.safety.qp import check_solver
 from sb3_formation.sb3.imitation import ImitationSettings
 from sb3_formation.sb3.recurrent import CELLS, MAX_MESSAGE_SIZE
 from sb3_formation.utils.checks import check_path, is_count, is_integer, is_number
@@ -564,7 +565,7 @@ class SafetySection(Section):
     def __post_init__(self) -> None:
         self._check("penalty", "a finite number >= 0", lambda value: is_number(value) and value >= 0)
         try:
-            SafetyGains.from_dict(self.gains)
+            check_solver(SafetyGains.from_dict(self.gains).solver)
         except ValueError as error:
             raise ValueError(f"safety: {error}") from None
 

@@ -42,6 +42,7 @@ from sb3_formation.experiment.runs import (
     STATE_FILE,
     latest_checkpoint,
     normalize_rewards,
+    read_state,
     reward_normalizer,
     reward_normalizer_file,
     save_model,
@@ -107,6 +108,7 @@ class RunCheckpointCallback(BaseCallback):
         self.keep = keep
         self.stop_signal: int | None = None  # the signal that asked training to stop
         self._start: dict[str, Any] = {}  # the state at the start of the iteration under way (:meth:`drop_iteration`)
+        self._update_announced = False  # the first update of a session says it started (an update may take minutes)
 
     def _on_step(self) -> bool:
         return self.stop_signal is None
@@ -127,6 +129,16 @@ class RunCheckpointCallback(BaseCallback):
                 "counters": {name: getattr(self.model, name) for name in ("_n_updates", "_episode_num")},
             }
         )
+
+    def _on_rollout_end(self) -> None:
+        # SB3 calls train() next: say once per session that the update is under way (later ones are in tensorboard/)
+        if not self._update_announced:
+            self._update_announced = True
+            log = self.run_dir / "tensorboard"
+            print(
+                f"rollout collected: PPO update under way ({self.model.n_epochs} epochs; every iteration is logged in {log})"
+            )
+            sys.stdout.flush()
 
     def drop_iteration(self) -> None:
         """Put the model, its optimiser, the curriculum, the reward statistics and the episode windows back as they
@@ -525,7 +537,7 @@ def _resume(settings: TrainSettings, run_dir: Path, trusted: bool = False) -> No
         return
     for leftover in (run_dir / "checkpoints").glob(".iteration_*"):  # folders of a write that was killed
         shutil.rmtree(leftover, ignore_errors=True)
-    state = json.loads((checkpoint / STATE_FILE).read_text())
+    state = read_state(checkpoint)
     _check_recipe_unchanged(state.get("recipe"), plain_recipe(settings), run_dir, checkpoint)
     clock = TrainingClock(settings.recipe.budget_seconds(), spent=state.get("training_seconds", 0.0))
     curriculum = make_curriculum(settings, clock)

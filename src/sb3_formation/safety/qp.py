@@ -174,3 +174,24 @@ def solve_with_library(target: np.ndarray, slack_weight: float, rows: np.ndarray
     if solution is None:
         raise ValueError(f"the QP solver {solver!r} found no solution of a safety filter problem")
     return np.asarray(solution, dtype=np.float64)
+
+
+def check_solver(solver: str) -> None:
+    """Refuse a ``qpsolvers`` solver that is not installed here (``qpsolvers.available_solvers``); ``"fast"``, the
+    compiled solver, always is. Recipes and model files are checked with it before anything is written.
+
+    :raises ValueError: naming the solver, the ones available and how to install it
+    """
+    if solver == "fast":
+        return
+    try:
+        import qpsolvers
+    except ImportError:
+        available: list[str] = []
+    else:
+        available = list(qpsolvers.available_solvers)
+    if solver not in available:
+        raise ValueError(
+            f"the QP solver {solver!r} is not installed here (available: {', '.join(['fast', *available])}): "
+            f"pip install 'qpsolvers[{solver}]', or use solver: fast"
+        )

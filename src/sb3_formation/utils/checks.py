@@ -39,14 +39,18 @@ MAX_NAME_BYTES = 255
 
 
 def check_path(path: str | os.PathLike[str], what: str) -> None:
-    """Refuse a path the package could not write its records under: a name that is not valid UTF-8 (from bytes the
-    shell passed through), or a part longer than :data:`MAX_NAME_BYTES`.
+    """Refuse a path the package could not write its records under: an empty one (it would stand for the working
+    folder), a name that is not valid UTF-8 (from bytes the shell passed through), or a part longer than
+    :data:`MAX_NAME_BYTES`. The one check of every path a command writes to (the command line's
+    :func:`~sb3_formation.utils.arguments.output_path` and the settings' folders).
 
     :param path: the path
     :param what: what it is (an option, a setting), for the message
     :raises ValueError: naming the problem
     """
     text = os.fspath(path)
+    if not text.strip():
+        raise ValueError(f"{what} is empty: name a file or folder (. for the working folder)")
     try:
         text.encode("utf-8")
     except UnicodeEncodeError:

@@ -10,6 +10,7 @@ import contextlib
 import contextvars
 import errno
 import hashlib
+import json
 import math
 import os
 import secrets
@@ -295,6 +296,18 @@ def fsync_directory(folder: Path, files: bool = True) -> None:
         os.fsync(handle)
     finally:
         os.close(handle)
+
+
+def read_json(path: str | os.PathLike[str]) -> object:
+    """The JSON value in the file ``path``.
+
+    :raises ValueError: the file is not UTF-8 JSON (a write cut short, an edit), naming the file
+    :raises FileNotFoundError: there is no such file
+    """
+    try:
+        return json.loads(Path(path).read_bytes())
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise ValueError(f"{path} is damaged (not JSON: {error})") from None
 
 
 def holds_files(folder: Path) -> bool:
