@@ -339,3 +339,70 @@ def test_scenes_option_evaluates_plots_and_renders_a_family(
     assert "--scenes corridor` first" in capsys.readouterr().err
     arguments = ["render", "controller:classical", "--scenes", "trap", "--max-steps", "5", "--out", "v.gif"]
     assert main(arguments) == 0 and (tmp_path / "v.gif").is_file()
+
+
+def test_a_filtered_evaluation_without_a_success_prints_its_summary(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``safe:controller:classical`` in 5-step episodes succeeds in none: its summary has the filter's metrics over
+    the (no) successful episodes as ``-``, in the file and on the screen."""
+    recipe = tmp_path / "short.yaml"
+    recipe.write_text(yaml.safe_dump({"base": "ch5-bearing", "env": {"max_steps": 5}}))
+    arguments = ["evaluate", "safe:controller:classical", "--recipe", str(recipe), "--episodes", "2", "--n-envs", "2"]
+    assert main([*arguments, "--no-progress", "--out", str(tmp_path / "eval")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert "success rate 0.0% (95% CI 0.0% - 65.8%)" in lines[2]
+    row = next(line for line in lines if line.strip().startswith("filter_changed_fraction"))
+    assert row.split()[1] == "-"
+    summary = json.loads((tmp_path / "eval" / "summary.json").read_text())
+    assert summary["successful_episodes"]["filter_changed_fraction"] == {"mean": None, "std": None}
+
+
+LONG_NAME = "a" * 300
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["evaluate", "controller:classical", "--episodes", str(10**30)], "--episodes: must be an integer in [1, 100,000]"),
+        (["evaluate", "controller:classical", "--n-envs", str(2**64)], "--n-envs: must be an integer in [1, 1,024]"),
+        (["evaluate", "controller:classical", "--workers", str(2**64)], "--workers: must be an integer in [1, 1,024]"),
+        (
+            ["evaluate", "controller:classical", "--trajectories", str(10**20)],
+            "--trajectories: must be an integer in [0, 100]",
+        ),
+        (["evaluate", "controller:classical", "--agents", str(10**20)], "--agents: must be an integer in [1, 64]"),
+        (["render", "controller:classical", "--max-steps", str(10**20)], "--max-steps: must be an integer in [1, 100,000]"),
+        (["render", "controller:classical", "--fps", str(10**20)], "--fps: must be an integer in [1, 1,000]"),
+        (["rollout", "--seed", str(2**64)], "--seed: must be an integer in [0, 4,294,967,295]"),
+        (["benchmark", "controller:classical", "--episodes", str(10**30)], "--episodes: must be an integer in [1, 100,000]"),
+        (["plot", "training", "x", "--window", str(10**30)], "--window: must be an integer in [1, 1,000,000]"),
+        (["evaluate", "controller:classical", "--out", ""], "--out: the path is empty"),
+        (["compare", "controller:classical", "controller:random", "--out", ""], "--out: the path is empty"),
+        (["compare", "controller:classical", "controller:random", "--table", ""], "--table: the path is empty"),
+        (["compare", "controller:classical", "controller:random", "--out", f"{LONG_NAME}.png"], "longer than 255 bytes"),
+        (["compare", "controller:classical", "controller:random", "--out", "bars.jpg"], "cannot save a figure as 'jpg'"),
+        (["render", "controller:classical", "--out", f"{LONG_NAME}.gif"], "longer than 255 bytes"),
+        (["benchmark", "controller:classical", "--out", ""], "--out: the path is empty"),
+        (["train", "--run-dir", "", "--iterations", "0,0,1"], "--run-dir: the path is empty"),
+        (["train", "--logdir", "", "--iterations", "0,0,1"], "logdir is empty"),
+        (["export", "controller:classical", "--onnx", ""], "--onnx: the path is empty"),
+        (["rollout", "--out", ""], "--out: the path is empty"),
+        (["plot", "bars", "controller:classical", "--out", ""], "--out: the path is empty"),
+    ],
+)
+def test_counts_and_output_paths_are_checked_before_any_work(
+    arguments: list[str], message: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Every count option has a documented maximum (a larger one overflowed a C integer) and every path a command
+    writes to is checked as it is read (an empty one was the working folder; a name too long failed after the work):
+    one line, exit code 2, nothing written."""
+    monkeypatch.chdir(tmp_path)
+    try:
+        code = main(arguments)  # refused by the command
+    except SystemExit as exit_info:  # or as the arguments are read
+        code = exit_info.code
+    assert code == 2
+    error = capsys.readouterr().err
+    assert error.startswith("sb3-formation: error: ") and error.count("\n") == 1 and message in error, error
+    assert list(tmp_path.iterdir()) == []

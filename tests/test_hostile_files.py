@@ -280,3 +280,30 @@ def test_an_onnx_file_with_flipped_weight_bytes_is_refused(tmp_path: Path, capsy
     flipped.write_bytes(bytes(data))
     error = refused_with_one_line(capsys, ["evaluate", str(flipped), "--episodes", "1", "--no-progress"])
     assert f"{flipped} was changed since its export: its graph's SHA-256 is not the one its metadata record" in error
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"success_rate": "96%"}, "success_rate must be a number in [0, 1]"),
+        ({"success_rate_ci95": [0.1]}, "success_rate_ci95 must be two numbers"),
+        ({"episodes": "200"}, "episodes must be an integer >= 0"),
+        ({"successful_episodes": {"length": {"mean": "long", "std": 0}}}, "successful_episodes must be a mapping"),
+    ],
+)
+def test_a_damaged_summary_is_named_in_one_line(
+    change: dict[str, Any], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An edited ``summary.json`` read by ``plot`` names the file and the entry (not "Unknown format code '%'")."""
+    folder = tmp_path / "eval"
+    assert (
+        main(["evaluate", "controller:classical", "--episodes", "2", "--n-envs", "2", "--out", str(folder), "--no-progress"])
+        == 0
+    )
+    summary = json.loads((folder / "summary.json").read_text())
+    (folder / "summary.json").write_text(json.dumps(summary | change))
+    capsys.readouterr()
+    assert main(["plot", "bars", str(folder), "--out", str(tmp_path / "bars.png")]) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and f"{folder / 'summary.json'} is damaged" in error and message in error, error
+    assert not (tmp_path / "bars.png").exists()

@@ -111,3 +111,15 @@ def test_a_recipe_name_that_leaves_the_logdir_is_refused(tmp_path: Path, capsys:
     error = one_line_error(capsys, ["train", "--recipe", str(tmp_path / "escape.yaml"), "--logdir", str(tmp_path / "a" / "b")])
     assert "recipe name '../../escaped' is not a single file name" in error
     assert sorted(path.name for path in tmp_path.iterdir()) == ["escape.yaml"]
+
+
+def test_benchmark_labels_that_are_not_utf8_are_refused_before_any_work(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Bytes the shell passed through that are not UTF-8 (``--labels $'\\xff'``) were played through every scene set,
+    then failed where the table is written, leaving a partial folder."""
+    out = tmp_path / "out"
+    label = os.fsdecode(b"caf\xe9")  # Latin-1, as a terminal of another encoding sends it
+    arguments = ["benchmark", "controller:classical", "--labels", label, "--out", str(out), "--episodes", "2"]
+    assert "is not valid UTF-8" in one_line_error(capsys, [*arguments, "--no-progress"])
+    assert not out.exists()

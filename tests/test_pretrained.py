@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path, PurePosixPath
@@ -20,8 +21,10 @@ from sb3_formation.cli import main
 from sb3_formation.experiment.evaluation import EPISODES_FILE, evaluate
 from sb3_formation.experiment.export import export_pretrained
 from sb3_formation.experiment.pretrained import (
+    CARD_FILE,
     ONNX_FILE,
     PRETRAINED_DIR,
+    SUMMARY_PATH,
     load_pretrained,
     numerics_fingerprint,
     pretrained_card,
@@ -253,3 +256,44 @@ def test_the_listing_shows_a_policy_that_never_succeeded(tiny_run: Path, tmp_pat
     assert summary["success_rate"] == 0 and summary["successful_episodes"]["length"]["mean"] is None
     assert main(["pretrained", "--into", str(tmp_path)]) == 0
     assert "| pretrained:tiny | tiny | 6 | stage 3 | 0.0% (0.0%-56.1%) | - | - | " in capsys.readouterr().out
+
+
+@pytest.fixture(scope="module")
+def exported(tiny_run: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``tiny_run`` exported as a shipped policy ``tiny`` (its folder)."""
+    return export_pretrained(tiny_run, "tiny", root=tmp_path_factory.mktemp("shipped"))
+
+
+@pytest.mark.parametrize(
+    ("damage", "message"),
+    [
+        ({"card": lambda card: {key: value for key, value in card.items() if key != "recipe"}}, "records no 'recipe'"),
+        ({"card": lambda card: card | {"training_seconds": "12 min"}}, "'training_seconds' must be a number of seconds"),
+        ({"card": lambda card: card | {"team_sizes": ["six"]}}, "'team_sizes' must be a list of integers"),
+        ({"card": lambda card: ["not", "a", "card"]}, "it must hold a JSON object"),
+        ({"summary": lambda summary: summary | {"success_rate": "96%"}}, "success_rate must be a number in [0, 1]"),
+        ({"summary": lambda summary: summary | {"scenes": "moon"}}, "scenes must be one of"),
+        ({"summary": lambda summary: summary | {"all_episodes": {}}}, "all_episodes must be a mapping of the metrics"),
+        ({"text": '{"recipe": "ch5-bearing", "n_agents": 6,'}, "is damaged (not JSON"),
+    ],
+)
+def test_a_damaged_card_or_summary_is_named_in_one_line(
+    damage: dict, message: str, exported: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``pretrained --into`` a folder whose ``card.json`` lacks a key or whose ``card.json`` / ``eval/summary.json``
+    holds values of another kind: one line naming the file (not a KeyError, "unsupported operand type(s) for /" or
+    "Unknown format code '%'")."""
+    folder = tmp_path / "tiny"
+    shutil.copytree(exported, folder)
+    card_file, summary_file = folder / CARD_FILE, folder / SUMMARY_PATH
+    if "card" in damage:
+        card_file.write_text(json.dumps(damage["card"](json.loads(card_file.read_text()))))
+    if "summary" in damage:
+        summary_file.write_text(json.dumps(damage["summary"](json.loads(summary_file.read_text()))))
+    if "text" in damage:
+        card_file.write_text(damage["text"])
+    capsys.readouterr()
+    assert main(["pretrained", "--into", str(tmp_path)]) == 2
+    error = capsys.readouterr().err
+    named = summary_file if "summary" in damage else card_file
+    assert error.count("\n") == 1 and f"{named}" in error and message in error and "Traceback" not in error, error

@@ -291,6 +291,25 @@ def test_a_recipes_safety_section_is_checked_and_turns_the_filter_on() -> None:
             load_recipe("fast-ch5-bearing").with_changes({"safety": section})
 
 
+def test_a_safety_solver_that_is_not_installed_is_refused_before_anything_is_written(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``safety: {solver: osqp}`` where qpsolvers has no osqp (``qpsolvers.available_solvers``) is refused as the
+    recipe is read, naming the solvers there are: no run folder, not qpsolvers' ``SolverNotFound`` after it."""
+    qpsolvers = pytest.importorskip("qpsolvers")
+    monkeypatch.setattr(qpsolvers, "available_solvers", ["daqp"])
+    recipe = tmp_path / "shielded.yaml"
+    recipe.write_text(yaml.safe_dump({"base": "ch4-individual", "safety": {"solver": "osqp"}}))
+    arguments = ["train", "--recipe", str(recipe), "--iterations", "0,0,1", "--n-envs", "1", "--no-progress"]
+    assert main([*arguments, "--logdir", str(tmp_path / "runs")]) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and "the QP solver 'osqp' is not installed here (available: fast, daqp)" in error
+    assert not (tmp_path / "runs").exists()
+    assert load_recipe("ch4-individual").with_changes({"safety": {"solver": "daqp"}}).safety_gains().solver == "daqp"
+    with pytest.raises(ValueError, match="the QP solver 'osqp' is not installed here"):
+        read_safety_gains({"solver": "osqp"})  # as a model file records its filter
+
+
 def test_a_base_chain_of_a_thousand_recipes_is_refused_at_once(tmp_path: Path) -> None:
     (tmp_path / "r0.yaml").write_text("base: ch5-bearing\n")
     for index in range(1, 1000):

@@ -8,9 +8,11 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 import pytest
@@ -323,6 +325,24 @@ def test_team_critic_run_trains_and_evaluates(tmp_path: Path) -> None:
     assert summary["episodes"] == 3 and summary["stage"] == 3
 
 
+def read_lines_until(stream: IO[str] | None, predicate: Callable[[str], bool], timeout: float = 240.0) -> bool:
+    """Read ``stream`` (in a thread) until a line fulfils ``predicate``: whether one did within ``timeout`` s (a hang
+    guard) before the stream ended. The rest of the stream is left to ``communicate``."""
+    assert stream is not None
+    ended, found = threading.Event(), []
+
+    def read() -> None:
+        for line in iter(stream.readline, ""):
+            if predicate(line):
+                found.append(line)
+                break
+        ended.set()
+
+    threading.Thread(target=read, daemon=True).start()
+    ended.wait(timeout)
+    return bool(found)
+
+
 def wait_for(predicate, timeout: float = 240.0) -> None:
     deadline = time.monotonic() + timeout
     while not predicate():
@@ -608,6 +628,26 @@ def test_resume_refuses_a_config_whose_recipe_was_edited_since_the_checkpoint(
     assert (run_dir / FINAL_MODEL).is_file()
 
 
+def test_a_damaged_state_json_is_named_on_resume(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A truncated or edited ``state.json`` of the checkpoint a resume starts from is a one-line error naming the file
+    (not json's "Expecting ',' delimiter"), and nothing is touched."""
+    run_dir = tmp_path / "run"
+    arguments = ["train", "--recipe", "ch4-individual", "--iterations", "1,1,0", "--n-envs", "2", "--no-progress"]
+    assert main([*arguments, "--env", "max_steps=20", "--run-dir", str(run_dir), "--checkpoint-every", "1"]) == 0
+    (run_dir / FINAL_MODEL).unlink()  # a run killed while its final model was written: there is work to resume
+    state_file = latest_checkpoint(run_dir) / STATE_FILE
+    original = state_file.read_text()
+    edited = json.loads(original) | {"curriculum": "stage 2"}
+    for damaged in (original[: len(original) // 2], json.dumps(edited), "[]"):
+        state_file.write_text(damaged)
+        files = {path: path.read_bytes() for path in run_dir.rglob("*") if path.is_file()}
+        capsys.readouterr()
+        assert main(["train", "--resume", str(run_dir), "--no-progress"]) == 2
+        error = capsys.readouterr().err
+        assert error.count("\n") == 1 and f"{state_file} is damaged" in error and "Traceback" not in error, error
+        assert {path: path.read_bytes() for path in run_dir.rglob("*") if path.is_file()} == files
+
+
 @pytest.mark.slow
 def test_sigterm_during_a_long_ppo_update_stops_before_the_next_mini_batch(tmp_path: Path) -> None:
     """The first iteration's update of 10^6 epochs would run for many minutes: SIGTERM inside it drops that iteration
@@ -615,8 +655,8 @@ def test_sigterm_during_a_long_ppo_update_stops_before_the_next_mini_batch(tmp_p
     long_update = {"base": "ch4-individual", "ppo": {"n_steps": 16, "batch_size": 16, "n_epochs": 1_000_000}}
     (tmp_path / "long.yaml").write_text(yaml.safe_dump(long_update))
     process = run_cli("train", "--recipe", "long.yaml", "--iterations", "0,0,2", "--run-dir", "run", *QUICK, cwd=tmp_path)
-    wait_for(lambda: (tmp_path / "run" / "tensorboard").exists())
-    time.sleep(10.0)  # the 16-step rollout is over: the update is under way
+    said = read_lines_until(process.stdout, lambda line: "PPO update under way" in line)  # the rollout is over
+    assert said, process.communicate(timeout=60)
     process.send_signal(signal.SIGTERM)
     _, stderr = process.communicate(timeout=120)  # a hang guard: the update itself would take far longer
     assert process.returncode == 143, stderr

@@ -421,13 +421,13 @@ def test_workers_end_quietly_when_their_parent_is_killed(tmp_path: Path) -> None
     body = """
 blocks = EngineBlocks([FormationConfig.task("ch5-bearing")] * 4, n_workers=2, auto_reset=True)
 blocks.reset([0, 1, 2, 3], [0, 1, 2, 3], [None] * 4)
-print("ready", flush=True)
-while True:
+for step in range(10**9):
     blocks.step(blocks.checked_actions([[0.1, 0.0]] * 24))
+    if step == 10:
+        print("stepping", flush=True)
 """
     process = run_script(tmp_path, body)
-    assert process.stdout.readline().strip() == "ready", process.stderr.read()
-    time.sleep(0.5)
+    assert process.stdout.readline().strip() == "stepping", process.stderr.read()  # the workers are mid-step
     started = time.monotonic()
     process.kill()  # the parent only: its workers must notice and end, without a word
     errors = process.stderr.read()  # returns once every process holding the pipe has ended

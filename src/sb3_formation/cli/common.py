@@ -16,7 +16,6 @@ from sb3_formation.experiment.sections import MAX_RECORDED_EPISODES, EvaluationS
 from sb3_formation.experiment.targets import Target
 from sb3_formation.sb3.model_files import trust_pickle
 from sb3_formation.utils.arguments import MAX_EPISODES, count, seed_value
-from sb3_formation.utils.checks import check_path
 from sb3_formation.utils.yaml_files import read_yaml
 
 # Command-line value types ---------------------------------------------------------------------------------------------
@@ -186,7 +185,10 @@ def target_labels(text: str | None, targets: Sequence[Target]) -> list[str]:
     (:attr:`~sb3_formation.experiment.targets.Target.label`)."""
     if text is None:
         return [target.label for target in targets]
-    check_path(text, "--labels")  # UTF-8: they are written into tables and file names
+    try:  # they are written into tables, figures and folder names: check before any work
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise ValueError(f"--labels {text!r} is not valid UTF-8: give labels of UTF-8 characters") from None
     labels = [label.strip() for label in text.split(",")]
     if len(labels) != len(targets):
         raise ValueError(f"--labels gives {len(labels)} labels for {len(targets)} runs")
