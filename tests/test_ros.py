@@ -6,6 +6,7 @@ Every test process keeps discovery on this machine and takes a ROS domain of its
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import re
@@ -583,3 +584,476 @@ def test_a_second_process_flying_the_same_agent_stops_the_simulator(context, pol
     with pytest.raises(RuntimeError, match="several publishers on /agent_0/cmd_vel"):
         spin_until(executor, lambda: False, timeout=30.0)
     executor.shutdown()
+
+
+# Reliability on the robot: every input checked, zero commands, the node alive (docs/guarantees.md, "On the robot") ----
+
+
+class Driven:
+    """Agent 0's node driven in process through its own subscriptions' and watchdog timer's callbacks (rclpy's objects,
+    as the executor calls them: the order of its inputs is the test's), its commands and its log lines received over
+    real topics by a listener on an executor of its own (the node's timer never fires by itself)."""
+
+    def __init__(self, context: rclpy.context.Context, policy: OnnxPolicy, **settings: Any) -> None:
+        from rcl_interfaces.msg import Log
+        from rclpy.qos import QoSProfile
+
+        self.node = AgentNode(policy, AgentSettings(agent=0, **settings), namespace="agent_0", context=context)
+        self.callbacks = {subscription.topic_name: subscription.callback for subscription in self.node.subscriptions}
+        (self.watchdog,) = [timer.callback for timer in self.node.timers]
+        self.n_agents = policy.config.n_agents
+        self.listener = Node("driven_listener", context=context)
+        self.commands: list[Twist] = []
+        self.lines: list[str] = []
+        everything = QoSProfile(depth=100_000)
+        self.listener.create_subscription(Twist, "/agent_0/cmd_vel", self.commands.append, everything)
+        logger = self.node.get_logger().name
+        self.listener.create_subscription(
+            Log, "/rosout", lambda line: self.lines.append(line.msg) if line.name == logger else None, everything
+        )
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.listener)
+        self.expected = 0  # commands the node has published so far
+        spin_until(self.executor, lambda: self.node.commands.get_subscription_count() > 0)
+
+    def now(self) -> float:
+        return self.node.get_clock().now().nanoseconds / 1e9
+
+    def odometry(self, index: int, position, seconds: float | None = None, velocity=(0.0, 0.0), yaw: float = 0.0):
+        stamp = stamp_of(self.now() if seconds is None else seconds)
+        return odometry_message(
+            stamp, ("map", f"agent_{index}/base_link"), np.asarray(position), yaw, np.asarray(velocity), 0.0
+        )
+
+    def scan(self, seconds: float | None = None, ranges: np.ndarray | None = None) -> LaserScan:
+        rays = 90
+        message = hand_scan(np.full(rays, np.inf) if ranges is None else ranges, 0.0, 2 * math.pi / rays)
+        message.header.stamp = stamp_of(self.now() if seconds is None else seconds)
+        return message
+
+    def send(self, topic: str, message: Any) -> None:
+        self.callbacks[topic](message)
+
+    def team(self, positions: np.ndarray = TEAM) -> None:
+        for index in range(self.n_agents):
+            self.send(f"/agent_{index}/odom", self.odometry(index, positions[index]))
+
+    def command(self, scan: LaserScan | None = None) -> Twist:
+        """The command the node publishes for a scan (a fresh empty one by default)."""
+        self.send("/agent_0/scan", self.scan() if scan is None else scan)
+        return self.next_command()
+
+    def next_command(self) -> Twist:
+        self.expected += 1
+        spin_until(self.executor, lambda: len(self.commands) >= self.expected)
+        return self.commands[self.expected - 1]
+
+
+def values(command: Twist) -> list[float]:
+    return [command.linear.x, command.linear.y, command.linear.z, command.angular.x, command.angular.y, command.angular.z]
+
+
+def is_zero(command: Twist) -> bool:
+    return all(value == 0.0 for value in values(command))
+
+
+def is_moving(command: Twist) -> bool:
+    return all(math.isfinite(value) for value in values(command)) and abs(command.linear.x) + abs(command.linear.y) > 0
+
+
+GOAL = np.array([12.0, 5.0])
+
+
+def turned_away(message: Odometry) -> Odometry:
+    """``message`` with an orientation that is no rotation (a quaternion of norm 2)."""
+    message.pose.pose.orientation.x, message.pose.pose.orientation.w = 2.0, 0.0
+    return message
+
+
+@pytest.mark.parametrize("safety_filter", [True, False], ids=["filter", "no-filter"])
+def test_nan_or_huge_poses_velocities_and_goals_give_zero_commands_and_the_node_lives(context, policy, safety_filter) -> None:
+    """A teammate's NaN position, the robot's own NaN velocity, a finite position of 1e9, an orientation that is not a
+    rotation, and a NaN goal (latched: it comes again on a restart): each gives a zero command and a warning naming
+    it, with the filter on and off, and the node acts again once the input is usable."""
+    driven = Driven(context, policy, safety_filter=safety_filter)
+    driven.send("/goal", goal_message(stamp_of(0.0), "map", GOAL))
+    driven.team()
+    assert is_moving(driven.command())
+    broken = {
+        "agent 1's position": lambda: driven.send("/agent_1/odom", driven.odometry(1, [math.nan, 1.0])),
+        "agent 0's velocity": lambda: driven.send("/agent_0/odom", driven.odometry(0, TEAM[0], velocity=(math.nan, 0.0))),
+        "agent 2's huge position": lambda: driven.send("/agent_2/odom", driven.odometry(2, [1e9, 1.0])),
+        "agent 3's orientation": lambda: driven.send("/agent_3/odom", turned_away(driven.odometry(3, TEAM[3]))),
+    }
+    for what, breaking in broken.items():
+        breaking()
+        assert is_zero(driven.command()), what
+        driven.team()
+        assert is_moving(driven.command()), f"{what} usable again: the agent must move"
+    driven.send("/goal", goal_message(stamp_of(1.0), "map", np.array([math.nan, 5.0])))
+    assert is_zero(driven.command()), "a NaN goal"
+    driven.send("/goal", goal_message(stamp_of(2.0), "map", GOAL))
+    assert is_moving(driven.command())
+    spin_until(driven.executor, lambda: bool(driven.lines))  # one a second: the first
+    assert "odometry of agent 1: agent 1's position [nan, 1.0] is not a finite point" in driven.lines[0], driven.lines
+    assert all("\n" not in line for line in driven.lines)
+    driven.executor.shutdown()
+
+
+def test_inputs_stamped_in_the_future_are_unusable(context, policy) -> None:
+    """A teammate's odometry and the scan stamped one hour ahead of the node's clock give zero commands at once, from
+    the scan and from the watchdog (before, they never grew stale and the last command stood); a stamp within
+    ``future_tolerance`` ahead is taken."""
+    driven = Driven(context, policy)
+    driven.send("/goal", goal_message(stamp_of(0.0), "map", GOAL))
+    driven.team()
+    assert is_moving(driven.command(driven.scan(driven.now() + 0.2)))  # within future_tolerance (0.5 s)
+    driven.send("/agent_3/odom", driven.odometry(3, TEAM[3], driven.now() + 3600.0))
+    assert is_zero(driven.command(driven.scan(driven.now() + 3600.0)))
+    driven.watchdog()
+    assert is_zero(driven.next_command()), "the watchdog must stop the robot too"
+    spin_until(driven.executor, lambda: bool(driven.lines))
+    assert "ahead of the clock (future_tolerance 0.5 s)" in driven.lines[0], driven.lines
+    driven.team()
+    assert is_moving(driven.command())
+    driven.executor.shutdown()
+
+
+def test_a_scan_of_a_million_ranges_is_refused_before_any_work(context, policy) -> None:
+    """A ``LaserScan`` of 10^6 ranges (once a MemoryError that ended the node) or 10^5 (1.9 s of work per scan) is
+    refused in one line, at once (a generous bound: nothing is resampled), with a zero command."""
+    from sb3_formation.ros.onboard import MAX_SCAN_RANGES
+
+    driven = Driven(context, policy)
+    driven.send("/goal", goal_message(stamp_of(0.0), "map", GOAL))
+    driven.team()
+    for count in (10**6, 10**5, MAX_SCAN_RANGES + 1):
+        scan = driven.scan(ranges=np.full(count, 3.0))
+        started = time.monotonic()
+        driven.send("/agent_0/scan", scan)
+        assert time.monotonic() - started < 0.5, count
+        assert is_zero(driven.next_command()), count
+    spin_until(driven.executor, lambda: bool(driven.lines))
+    assert driven.lines[0] == f"agent 0 stopped: a scan of 1000000 ranges (1 to {MAX_SCAN_RANGES} are taken)"
+    assert is_moving(driven.command(driven.scan(ranges=np.full(MAX_SCAN_RANGES, 3.0))))
+    driven.executor.shutdown()
+
+
+def test_parameters_of_another_type_are_one_line_errors(context, policy) -> None:
+    """``-p input_timeout:=2`` (an integer for a number) is taken as 2.0; ``-p agent:=1.5`` and
+    ``-p input_timeout:=abc`` are one-line ``ValueError`` s naming the parameter (once rclpy's
+    InvalidParameterTypeException), for the agent node and the simulator node alike; and so from the command line."""
+    from rclpy.parameter import Parameter
+
+    from sb3_formation.ros.sim_node import SimNode
+
+    node = AgentNode(policy, AgentSettings(), context=context, parameter_overrides=[Parameter("input_timeout", value=2)])
+    assert node.settings.input_timeout == 2.0 and isinstance(node.settings.input_timeout, float)
+    node.destroy_node()
+    for name, value, message in [
+        ("agent", 1.5, "parameter agent must be an integer, got 1.5"),
+        ("input_timeout", "abc", "parameter input_timeout must be a number, got 'abc'"),
+        ("synchronous", 1, "parameter synchronous must be true or false, got 1"),
+    ]:
+        with pytest.raises(ValueError, match=re.escape(message)):
+            AgentNode(policy, AgentSettings(), context=context, parameter_overrides=[Parameter(name, value=value)])
+    sim = SimNode(policy.config, context=context, parameter_overrides=[Parameter("rate", value=2)])
+    assert sim.settings.rate == 2.0
+    sim.destroy_node()
+    with pytest.raises(ValueError, match=re.escape("parameter episodes must be an integer, got 'two'")):
+        SimNode(policy.config, context=context, parameter_overrides=[Parameter("episodes", value="two")])
+    command = [sys.executable, "-m", "sb3_formation.ros", "agents", str(MODEL), "--agents", "0"]
+    done = subprocess.run(
+        [*command, "--domain-id", os.environ["ROS_DOMAIN_ID"], "--ros-args", "-p", "agent:=1.5"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert done.stderr.strip() == "sb3_formation.ros: error: parameter agent must be an integer, got 1.5", done.stderr
+
+
+#: The fuzz test's corrupted inputs.
+FUZZ_INPUTS = 10_000
+
+
+def test_ten_thousand_corrupted_inputs_give_finite_commands_zero_whenever_unusable(context, policy) -> None:
+    """A seeded stream of the team's odometry, the goal and the scan, 15 % of them corrupted (NaN, inf,
+    huge values, orientations that are no rotation, scans of no, many or a million ranges or of NaN angles or limits,
+    other frames, stamps far ahead or behind the clock, inputs missing), drives agent 0's node (filter on) through
+    its callbacks: after every scan and many watchdog ticks, each command it publishes is finite, and zero whenever
+    the newest input of any kind is unusable (a rule of the test's own: docs/guarantees.md); it never raises, and
+    acts again on usable inputs at the end."""
+    from sb3_formation.ros.onboard import MAX_SCAN_RANGES
+
+    driven = Driven(context, policy, input_timeout=5.0)  # stale inputs are 10 s old or more: no test stall counts
+    n_agents, rng = driven.n_agents, np.random.default_rng(2024)
+    bad_number = [math.nan, math.inf, -math.inf, 1e9, -1e300]
+    latest: dict[str, bool] = {}  # input -> usable (absent: never sent)
+    corrupted = scans = ticks = 0
+    zero_expected: list[bool] = []  # per command: the inputs were unusable
+
+    def stamp(usable: bool, judge_age: bool = True) -> tuple[float, bool]:
+        """A stamp near now, or (when not ``usable``) far ahead or, for inputs whose age counts, far behind."""
+        if usable:
+            return driven.now() - rng.uniform(0.0, 0.05) + (0.3 if rng.random() < 0.1 else 0.0), True
+        if not judge_age or rng.random() < 0.5:
+            return driven.now() + rng.uniform(10.0, 3600.0), False
+        return driven.now() - rng.uniform(10.0, 3600.0), False
+
+    def odometry(index: int, corrupt: bool) -> tuple[Odometry, bool]:
+        kind = rng.integers(5) if corrupt else -1
+        seconds, usable = stamp(kind != 0)
+        velocity = rng.uniform(-0.05, 0.05, 2)
+        position = TEAM[index] + rng.uniform(-0.5, 0.5, 2)
+        if kind == 1:
+            position[rng.integers(2)] = rng.choice(bad_number)
+        elif kind == 2:
+            velocity[rng.integers(2)] = rng.choice(bad_number)
+        message = driven.odometry(index, position, seconds, velocity, yaw=float(rng.uniform(-3, 3)))
+        if kind == 3:
+            turned_away(message)
+        elif kind == 4:
+            message.header.frame_id = "odom"
+        return message, kind in (-1, 0) and usable
+
+    def scan(corrupt: bool) -> tuple[LaserScan, bool]:
+        kind = rng.integers(7) if corrupt else -1
+        seconds, usable = stamp(kind != 0)
+        count = {1: 0, 2: int(rng.integers(MAX_SCAN_RANGES + 1, 4 * MAX_SCAN_RANGES))}.get(kind, int(rng.integers(3, 400)))
+        if kind == 2 and rng.random() < 0.002:
+            count = 10**6
+        ranges = rng.uniform(0.1, 5.0, count)
+        if count and rng.random() < 0.3:  # returns that are no returns (REP 117): usable
+            ranges[rng.integers(count, size=count // 3 + 1)] = rng.choice([math.nan, math.inf, -1.0, 1e30])
+        message = hand_scan(ranges, float(rng.uniform(-math.pi, math.pi)), 2 * math.pi / max(count, 1))
+        message.header.stamp = stamp_of(seconds)
+        if kind == 3:
+            message.angle_min = float(rng.choice([math.nan, math.inf]))
+        elif kind == 4:
+            message.angle_increment = float(rng.choice([math.nan, -math.inf]))
+        elif kind == 5:
+            message.range_min, message.range_max = float(rng.choice([math.nan, 40.0])), 30.0
+        elif kind == 6:
+            message.range_max = math.nan
+        return message, kind == -1 and usable
+
+    def goal(corrupt: bool) -> tuple[PointStamped, bool]:
+        kind = rng.integers(3) if corrupt else -1
+        seconds, usable = stamp(kind != 0, judge_age=False)
+        point = GOAL + rng.uniform(-1.0, 1.0, 2)
+        if kind == 1:
+            point[rng.integers(2)] = rng.choice(bad_number)
+        message = goal_message(stamp_of(max(seconds, 0.0)), "map", point)
+        if kind == 2:
+            message.header.frame_id = "odom"
+        return message, kind == -1 and usable
+
+    def unusable() -> bool:
+        names = ["scan", "goal", *(f"odometry {index}" for index in range(n_agents))]
+        return not all(latest.get(name, False) for name in names)
+
+    started = time.monotonic()
+    while corrupted < FUZZ_INPUTS:
+        for index in range(n_agents):
+            if rng.random() < 0.9:
+                corrupt = bool(rng.random() < 0.15)
+                message, latest[f"odometry {index}"] = odometry(index, corrupt)
+                corrupted += corrupt
+                driven.send(f"/agent_{index}/odom", message)
+        if rng.random() < 0.05 or "goal" not in latest:
+            corrupt = bool(rng.random() < 0.15)
+            message, latest["goal"] = goal(corrupt)
+            corrupted += corrupt
+            driven.send("/goal", message)
+        corrupt = bool(rng.random() < 0.15)
+        message, latest["scan"] = scan(corrupt)
+        corrupted += corrupt
+        scans += 1
+        zero_expected.append(unusable())
+        command = driven.command(message)
+        assert all(math.isfinite(value) for value in values(command)), (scans, command)
+        assert is_zero(command) or not zero_expected[-1], f"scan {scans}: a command on unusable inputs: {command}"
+        if rng.random() < 0.2:  # a watchdog tick: a zero command exactly when an input is unusable
+            ticks += 1
+            driven.watchdog()
+            if unusable():
+                assert is_zero(driven.next_command()), f"the watchdog after scan {scans}"
+    driven.team()
+    driven.send("/goal", goal_message(stamp_of(0.0), "map", GOAL))
+    last = driven.command()
+    assert is_moving(last), "usable inputs again: the agent must act"
+    spin_until(driven.executor, lambda: len(driven.commands) >= driven.expected)
+    elapsed = time.monotonic() - started
+    assert len(driven.commands) == driven.expected, "a command that was not expected (the watchdog on usable inputs?)"
+    acted = sum(not expected for expected in zero_expected)
+    print(f"{corrupted} corrupted inputs, {scans} scans ({acted} on usable inputs), {ticks} watchdog ticks, {elapsed:.1f} s")
+    assert acted > 0.1 * scans, "the stream must leave the node usable inputs often enough to act"
+    driven.executor.shutdown()
+
+
+@pytest.mark.parametrize("mode", ["sync", "free"])
+def test_a_simulator_that_stops_gives_zero_commands(context, policy, mode) -> None:
+    """The simulator stops mid-episode (its node spun no more: it publishes nothing, as a killed process): synchronous
+    agents (which once published nothing more) and free-running agents on its ``/clock`` (whose watchdog once never
+    fired, the clock having stopped) publish zero commands, within ``input_timeout`` of the wall clock."""
+    from rclpy.parameter import Parameter
+
+    from sb3_formation.ros.sim_node import SimNode, SimSettings
+
+    synchronous = mode == "sync"
+    config = policy.config.replace(stage=3)
+    sim = SimNode(config, SimSettings(synchronous=synchronous, rate=4.0, command_timeout=120.0), context=context)
+    on_sim_time = [Parameter("use_sim_time", value=not synchronous)]
+    agents = [
+        AgentNode(
+            policy,
+            AgentSettings(agent=i, synchronous=synchronous),
+            namespace=f"agent_{i}",
+            context=context,
+            parameter_overrides=on_sim_time,
+        )
+        for i in range(config.n_agents)
+    ]
+    listener = Node("listener", context=context)
+    commands: list[Twist] = []
+    listener.create_subscription(Twist, "/agent_0/cmd_vel", commands.append, 1000)
+    executor = SingleThreadedExecutor(context=context)
+    for node in [sim, *agents, listener]:
+        executor.add_node(node)
+    spin_until(executor, lambda: sim.env.step_count >= 10 and any(is_moving(command) for command in commands), 120.0)
+    executor.remove_node(sim)
+    stopped_at, seen = time.monotonic(), len(commands)
+    spin_until(executor, lambda: any(is_zero(command) for command in commands[seen:]), timeout=30.0)
+    waited = time.monotonic() - stopped_at
+    spin_until(executor, lambda: len(commands) >= seen + 5, timeout=30.0)  # and zero from then on
+    first_zero = next(k for k, command in enumerate(commands) if k >= seen and is_zero(command))
+    assert all(is_zero(command) for command in commands[first_zero:])
+    executor.shutdown()
+    assert waited < 10.0, waited  # input_timeout (1 s) plus a generous allowance for a loaded machine
+
+
+def test_a_second_node_flying_the_same_agent_is_noticed_in_free_mode(context, policy) -> None:
+    """Two free-running agent nodes of the same index (a process left running, a robot started twice): the free
+    simulator stops in one line, as the synchronous one does, and without a simulator each node stops the robot
+    (zero commands) and says why."""
+    from rcl_interfaces.msg import Log
+
+    from sb3_formation.ros.sim_node import SimNode, SimSettings
+
+    twins = [
+        AgentNode(policy, AgentSettings(agent=0), name=f"twin_{k}", namespace="agent_0", context=context) for k in range(2)
+    ]
+    listener = Node("listener", context=context)
+    commands: list[Twist] = []
+    lines: list[str] = []
+    listener.create_subscription(Twist, "/agent_0/cmd_vel", commands.append, 1000)
+    listener.create_subscription(Log, "/rosout", lambda line: lines.append(line.msg), 1000)
+    executor = SingleThreadedExecutor(context=context)
+    for node in [*twins, listener]:
+        executor.add_node(node)
+    spin_until(executor, lambda: any("another node publishes on /agent_0/cmd_vel" in line for line in lines))
+    spin_until(executor, lambda: len(commands) >= 4)
+    assert all(is_zero(command) for command in commands)
+    sim = SimNode(policy.config.replace(stage=3), SimSettings(synchronous=False), context=context)
+    executor.add_node(sim)
+    with pytest.raises(RuntimeError, match="several publishers on /agent_0/cmd_vel"):
+        spin_until(executor, lambda: False, timeout=30.0)
+    executor.shutdown()
+
+
+def test_a_command_that_is_not_finite_is_a_zero_command_for_the_simulator(context, policy) -> None:
+    """A ``Twist`` with ``linear.x = inf`` (once the end of the free-running simulator): the simulator warns, takes it
+    as a zero command and steps on."""
+    from rcl_interfaces.msg import Log
+
+    from sb3_formation.ros.sim_node import SimNode, SimSettings
+
+    sim = SimNode(policy.config.replace(stage=3), SimSettings(synchronous=False, rate=10.0), context=context)
+    pilot = Node("pilot", context=context)
+    publisher = pilot.create_publisher(Twist, "/agent_0/cmd_vel", 10)
+    lines: list[str] = []
+    pilot.create_subscription(Log, "/rosout", lambda line: lines.append(line.msg), 1000)
+    executor = SingleThreadedExecutor(context=context)
+    for node in [sim, pilot]:
+        executor.add_node(node)
+    spin_until(executor, lambda: publisher.get_subscription_count() > 0)
+    bad = Twist()
+    bad.linear.x = math.inf
+    publisher.publish(bad)
+    spin_until(executor, lambda: any("is not finite: taken as a zero command" in line for line in lines))
+    steps = sim.env.step_count
+    spin_until(executor, lambda: sim.env.step_count >= steps + 5)
+    executor.shutdown()
+
+
+def test_the_agents_processes_die_with_a_killed_parent(context) -> None:
+    """``--process-per-agent`` whose parent is killed with SIGKILL (it cannot pass anything on): its agents' processes
+    end too (PR_SET_PDEATHSIG), where they once flew on; their command topics lose their publishers."""
+    domain = os.environ["ROS_DOMAIN_ID"]  # the context's own
+    command = [sys.executable, "-m", "sb3_formation.ros", "agents", str(MODEL), "--agents", "0,1", "--process-per-agent"]
+    team = subprocess.Popen(
+        [*command, "--domain-id", domain],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )
+    listener = Node("listener", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(listener)
+    topics = ("/agent_0/cmd_vel", "/agent_1/cmd_vel")
+    try:
+        spin_until(executor, lambda: all(listener.count_publishers(topic) for topic in topics), timeout=120.0)
+        team.kill()
+        team.communicate(timeout=60)
+        spin_until(executor, lambda: not any(listener.count_publishers(topic) for topic in topics), timeout=60.0)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(team.pid, signal.SIGKILL)  # whatever is left of the group
+        executor.shutdown()
+
+
+def test_a_simulator_that_fails_keeps_the_episodes_it_played(context, tmp_path) -> None:
+    """``ros sim --out`` that stops on its command timeout after one of three episodes (its agents gone): it says so
+    in one line (exit 2) and the episode it played is in ``--out`` (written as each episode ends)."""
+    from test_messages import untrained
+
+    from sb3_formation.env.config import FormationConfig
+    from sb3_formation.sb3.onnx_export import export_onnx
+
+    model = export_onnx(untrained(FormationConfig.task("ch5-bearing", stage=3, max_steps=20), True, 3), tmp_path / "m.onnx")
+    out = tmp_path / "episodes.npz"
+    options = ["--episodes", "3", "--out", str(out), "--command-timeout", "3", "--domain-id", os.environ["ROS_DOMAIN_ID"]]
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "sb3_formation.ros", "sim", str(model), *options],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    policy = OnnxPolicy(model, threads=1)
+    agents = [
+        AgentNode(policy, AgentSettings(agent=i, synchronous=True), namespace=f"agent_{i}", context=context)
+        for i in range(policy.config.n_agents)
+    ]
+    executor = SingleThreadedExecutor(context=context)
+    for node in agents:
+        executor.add_node(node)
+    try:
+        spin_until(executor, lambda: out.exists(), timeout=300.0)  # the first episode is written as it ends
+        for node in agents:  # the agents go
+            executor.remove_node(node)
+            node.destroy_node()
+        stdout, stderr = sim.communicate(timeout=120)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(sim.pid, signal.SIGKILL)
+        executor.shutdown()
+    assert sim.returncode == 2, stderr[-2000:]
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith("sb3_formation.ros: error: no command from agents"), stderr[-2000:]
+    assert "seed 0: failure in 20 steps" in stdout, stdout
+    with np.load(out) as flown:
+        assert flown["seed"].tolist()[0] == 0 and int(flown["steps"][0]) == 20
+        assert flown["positions_0"].shape == (21, policy.config.n_agents, 2)
