@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import ast
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -135,3 +136,56 @@ def test_the_latency_benchmark_measures_the_module_the_node_runs() -> None:
     assert "Onboard(load_onnx_policy(MODEL, threads=1), AgentSettings(agent=AGENT))" in source
     for copied in ("resample_scan(", "split_scan(", "AgentObserver(", "SafetyFilter(", ".agent_step("):
         assert copied not in source, copied
+
+
+class Broken:
+    """A policy that answers every observation with a NaN action (the on-board checks must not rely on the policy's)."""
+
+    def __init__(self, config: FormationConfig) -> None:
+        self.config, self.message_size = config, 0
+
+    def agent_step(self, observation, agents, state, episode_start, received=None):
+        return np.full((len(agents), 2), np.nan, dtype=np.float32), state, np.zeros((len(agents), 0), dtype=np.float32)
+
+
+def test_unusable_inputs_and_non_finite_results_are_refused_before_and_after_the_policy() -> None:
+    """:meth:`Onboard.check` names, in one line, a NaN or huge position, a NaN velocity, a NaN goal, a scan of too
+    many ranges (before any work) and a scan with NaN angles; a policy's NaN action is refused after the step and the
+    robot's memory is as before (the next step is still the episode's first)."""
+    from sb3_formation.ros.onboard import MAX_SCAN_RANGES, UnusableInput, command_problem, typed_parameters
+
+    env = FormationEnv(STAGE_3)
+    env.reset(seed=1)
+    rows = env.engine.team_rows(env.team)
+    positions, velocities = env.engine.latest.positions[rows].copy(), env.engine.latest.velocities[rows].copy()
+    scan = Scan(merged_scan(env.engine.lidars[env.team], positions, False)[0], 0.0, 2 * math.pi / 90, 0.0, 3.0)
+    onboard = Onboard(ShrinkingController(STAGE_3), AgentSettings(agent=0, safety_filter=False))
+    team = TeamView(positions, velocities, np.zeros(6))
+    onboard.check(scan, team, 0.0, env.goal)
+    bad_positions, bad_velocities = positions.copy(), velocities.copy()
+    bad_positions[2, 0], bad_velocities[0, 1] = np.nan, np.nan
+    huge = positions.copy()
+    huge[4] = 1e9
+    cases = [
+        ((scan, TeamView(bad_positions, velocities, np.zeros(6)), 0.0, env.goal), "odometry of agent 2: agent 2's position"),
+        ((scan, TeamView(huge, velocities, np.zeros(6)), 0.0, env.goal), "is not a finite point within 100000 m"),
+        ((scan, TeamView(positions, bad_velocities, np.zeros(6)), 0.0, env.goal), "odometry of agent 0: velocity"),
+        ((scan, team, 0.0, np.array([np.nan, 1.0])), "the goal [nan, 1.0] is not a finite point"),
+        ((scan._replace(ranges=np.zeros(MAX_SCAN_RANGES + 1)), team, 0.0, env.goal), f"a scan of {MAX_SCAN_RANGES + 1}"),
+        ((scan._replace(angle_increment=math.nan), team, 0.0, env.goal), "the scan's angles are not finite"),
+        ((scan._replace(range_max=math.nan), team, 0.0, env.goal), "the scan's limits admit no range"),
+    ]
+    for arguments, message in cases:
+        with pytest.raises(UnusableInput, match=re.escape(message)):
+            onboard.step(*arguments)
+    assert onboard.starting and onboard.observer.step == 0
+    broken = Onboard(Broken(STAGE_3), AgentSettings(agent=0, safety_filter=False))
+    with pytest.raises(UnusableInput, match="the policy gave a non-finite action"):
+        broken.step(scan, team, 0.0, env.goal)
+    assert broken.starting and broken.observer.memory()[0] == 0 and not broken.observer.previous_action.any()
+    assert command_problem([0.0, math.inf, 0, 0, 0, 0]) and not command_problem([0.1] * 6)
+    defaults = AgentSettings()
+    values = {item: getattr(defaults, item) for item in AgentSettings.__dataclass_fields__}
+    assert typed_parameters(defaults, values | {"input_timeout": 2})["input_timeout"] == 2.0
+    with pytest.raises(ValueError, match=re.escape("parameter agent must be an integer, got 1.5")):
+        typed_parameters(defaults, values | {"agent": 1.5})
