@@ -28,6 +28,7 @@ from geometry_msgs.msg import PointStamped, Twist  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import JointState, LaserScan  # noqa: E402
 from std_msgs.msg import Float32MultiArray  # noqa: E402
 
@@ -589,6 +590,10 @@ def test_a_second_process_flying_the_same_agent_stops_the_simulator(context, pol
 # Reliability on the robot: every input checked, zero commands, the node alive (docs/guarantees.md, "On the robot") ----
 
 
+#: ``/rosout`` as its publishers offer it (transient local): a line logged before the subscription matched still comes.
+ROSOUT_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
 class Driven:
     """Agent 0's node driven in process through its own subscriptions' and watchdog timer's callbacks (rclpy's objects,
     as the executor calls them: the order of its inputs is the test's), its commands and its log lines received over
@@ -596,7 +601,6 @@ class Driven:
 
     def __init__(self, context: rclpy.context.Context, policy: OnnxPolicy, **settings: Any) -> None:
         from rcl_interfaces.msg import Log
-        from rclpy.qos import QoSProfile
 
         self.node = AgentNode(policy, AgentSettings(agent=0, **settings), namespace="agent_0", context=context)
         self.callbacks = {subscription.topic_name: subscription.callback for subscription in self.node.subscriptions}
@@ -609,7 +613,7 @@ class Driven:
         self.listener.create_subscription(Twist, "/agent_0/cmd_vel", self.commands.append, everything)
         logger = self.node.get_logger().name
         self.listener.create_subscription(
-            Log, "/rosout", lambda line: self.lines.append(line.msg) if line.name == logger else None, everything
+            Log, "/rosout", lambda line: self.lines.append(line.msg) if line.name == logger else None, ROSOUT_QOS
         )
         self.executor = SingleThreadedExecutor(context=context)
         self.executor.add_node(self.listener)
@@ -948,7 +952,7 @@ def test_a_second_node_flying_the_same_agent_is_noticed_in_free_mode(context, po
     commands: list[Twist] = []
     lines: list[str] = []
     listener.create_subscription(Twist, "/agent_0/cmd_vel", commands.append, 1000)
-    listener.create_subscription(Log, "/rosout", lambda line: lines.append(line.msg), 1000)
+    listener.create_subscription(Log, "/rosout", lambda line: lines.append(line.msg), ROSOUT_QOS)
     executor = SingleThreadedExecutor(context=context)
     for node in [*twins, listener]:
         executor.add_node(node)
@@ -973,7 +977,7 @@ def test_a_command_that_is_not_finite_is_a_zero_command_for_the_simulator(contex
     pilot = Node("pilot", context=context)
     publisher = pilot.create_publisher(Twist, "/agent_0/cmd_vel", 10)
     lines: list[str] = []
-    pilot.create_subscription(Log, "/rosout", lambda line: lines.append(line.msg), 1000)
+    pilot.create_subscription(Log, "/rosout", lambda line: lines.append(line.msg), ROSOUT_QOS)
     executor = SingleThreadedExecutor(context=context)
     for node in [sim, pilot]:
         executor.add_node(node)

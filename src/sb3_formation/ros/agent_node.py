@@ -13,13 +13,14 @@ subscriptions, when to act, and messages to arrays and back.
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import fields
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from geometry_msgs.msg import PointStamped, Twist
 from nav_msgs.msg import Odometry
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import ParameterDescriptor  # type: ignore[import-not-found, unused-ignore]
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -159,10 +160,11 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             self._act_when_complete()
 
     def _on_message(self, slot: int, message: JointState) -> None:
-        stamp, values = policy_message_of(message)
+        stamp, message_values = policy_message_of(message)
+        values: np.ndarray | None = message_values
         self._heard_input(f"message {slot}")
         size = self.onboard.message_size
-        if values.shape != (size,) or not np.isfinite(values).all():
+        if message_values.shape != (size,) or not np.isfinite(message_values).all():
             index = self.neighbours[slot]
             self.get_logger().warning(
                 f"agent {self.settings.agent}: a message of agent {index} is not {size} finite values: stopping until "
@@ -315,7 +317,7 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         forward_speed = float(team[self.settings.agent].twist.twist.linear.x)
         return scan_of(scan), view, forward_speed, np.array([goal.point.x, goal.point.y])
 
-    def _act(self, scan: LaserScan, received: list[np.ndarray] | None) -> None:
+    def _act(self, scan: LaserScan, received: Sequence[np.ndarray | None] | None) -> None:
         """Observe, act, filter and publish the command (and the message to the neighbours); an unusable input (the
         on-board checks) gives a zero command instead.
 
@@ -323,10 +325,10 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         """
         if self.onboard.starting:
             self._acted_at = self.get_clock().now().nanoseconds
-        heard = None if received is None or not self.neighbours else np.stack(received)
+        heard = None if received is None or not self.neighbours else np.stack(cast("list[np.ndarray]", received))
         try:
             inputs = self._arrays(scan)
-            step = self.onboard.step(*inputs, heard)
+            step = self.onboard.step(inputs[0], inputs[1], inputs[2], inputs[3], heard)
         except UnusableInput as unusable:
             self._stop(str(unusable))
             return
