@@ -369,7 +369,7 @@ LONG_NAME = "a" * 300
         (["evaluate", "controller:classical", "--workers", str(2**64)], "--workers: must be an integer in [1, 1,024]"),
         (
             ["evaluate", "controller:classical", "--trajectories", str(10**20)],
-            "--trajectories: must be an integer in [0, 100]",
+            "record (--trajectories) must be in [0, 100]",
         ),
         (["evaluate", "controller:classical", "--agents", str(10**20)], "--agents: must be an integer in [1, 64]"),
         (["render", "controller:classical", "--max-steps", str(10**20)], "--max-steps: must be an integer in [1, 100,000]"),

@@ -15,8 +15,13 @@ from sb3_formation.utils.files import PACKAGE_FOLDER, folder_lock
 
 
 def one_line_error(capsys: pytest.CaptureFixture[str], arguments: list[str]) -> str:
-    """Run the CLI with ``arguments``; it must fail with exit code 2 and one line. :return: the line"""
-    assert main(arguments) == 2
+    """Run the CLI with ``arguments``; it must fail with exit code 2 and one line (refused by the command, or as the
+    arguments are read). :return: the line"""
+    try:
+        code = main(arguments)
+    except SystemExit as exit_info:
+        code = exit_info.code
+    assert code == 2
     error = capsys.readouterr().err
     assert error.count("\n") == 1 and "Traceback" not in error, error
     return error

@@ -12,7 +12,7 @@ from sb3_formation.env.config import MAX_AGENTS, MAX_EPISODE_STEPS
 from sb3_formation.env.scenes import SCENES
 from sb3_formation.experiment.evaluation import EVALUATION_TEAMS, evaluate_target
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE, MAX_TEAMS
-from sb3_formation.experiment.sections import MAX_RECORDED_EPISODES, EvaluationSection
+from sb3_formation.experiment.sections import EvaluationSection
 from sb3_formation.experiment.targets import Target
 from sb3_formation.sb3.model_files import trust_pickle
 from sb3_formation.utils.arguments import MAX_EPISODES, count, seed_value
@@ -33,8 +33,6 @@ steps_count = count(MAX_EPISODE_STEPS)
 #: ``--fps`` of a video at most this many frames per second.
 MAX_FPS = 1000
 fps_count = count(MAX_FPS)
-#: ``--trajectories``: 0 to :data:`~sb3_formation.experiment.sections.MAX_RECORDED_EPISODES`.
-recorded_count = count(MAX_RECORDED_EPISODES, minimum=0)
 
 
 def assignment(text: str) -> tuple[str, object]:

@@ -11,7 +11,6 @@ from sb3_formation.cli.common import (
     evaluate_with_protocol,
     model_trust,
     print_summary,
-    recorded_count,
 )
 from sb3_formation.experiment.targets import Target
 from sb3_formation.utils.arguments import output_path
@@ -33,7 +32,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--trajectories",
-        type=recorded_count,
+        type=int,  # the protocol refuses more than 100, saying why (memory)
         default=5,
         metavar="K",
         help="record every step of the first K episodes (default 5)",
