@@ -55,14 +55,16 @@ def local_ros() -> None:
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
 
-DOMAINS = iter(range(20))
+#: Domains per pytest-xdist worker: one per test that takes a context, and the last for the command-line team.
+WORKER_DOMAINS = 40
+DOMAINS = iter(range(WORKER_DOMAINS - 1))
 
 
 @pytest.fixture
 def context() -> Iterator[rclpy.context.Context]:
     """A fresh rclpy context per test, in a domain of its own (no latched goal of another test reaches it)."""
     worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
-    os.environ["ROS_DOMAIN_ID"] = str(100 + 20 * worker + next(DOMAINS))
+    os.environ["ROS_DOMAIN_ID"] = str(100 + WORKER_DOMAINS * worker + next(DOMAINS))
     context = rclpy.context.Context()
     rclpy.init(context=context)
     yield context
@@ -450,7 +452,8 @@ def test_the_two_commands_fly_a_team_one_process_per_agent(tmp_path) -> None:
     """``sb3-formation ros sim`` and ``sb3-formation ros agents --process-per-agent``, as a user starts them: the
     episode flown is the evaluation's (scans that see through the agents: positions within 1e-6 m), and the agents'
     processes end cleanly when stopped."""
-    domain = str(100 + 20 * int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0) + 19)
+    worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
+    domain = str(100 + WORKER_DOMAINS * worker + WORKER_DOMAINS - 1)
     command = [sys.executable, "-m", "sb3_formation.cli", "ros"]
     out = tmp_path / "episodes.npz"
     agents = subprocess.Popen(
