@@ -178,8 +178,11 @@ def test_train_cli_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureF
     assert main(["train", "--trust-pickle", "--logdir", str(tmp_path / "runs")]) == 2
     assert "--trust-pickle applies to --resume" in capsys.readouterr().err
     undecodable = os.fsdecode(b"run-\xff")  # a name the shell passed as bytes: refused before anything is written
-    assert main(["train", "--run-dir", str(tmp_path / undecodable), "--logdir", str(tmp_path / "runs")]) == 2
-    assert "is not valid UTF-8" in capsys.readouterr().err and not (tmp_path / undecodable).exists()
+    with pytest.raises(SystemExit) as exit_info:  # as the arguments are read
+        main(["train", "--run-dir", str(tmp_path / undecodable), "--logdir", str(tmp_path / "runs")])
+    assert (
+        exit_info.value.code == 2 and "is not valid UTF-8" in capsys.readouterr().err and not (tmp_path / undecodable).exists()
+    )
     broken = tmp_path / "broken.yaml"
     broken.write_text("base: [unclosed")
     assert main(["train", "--recipe", str(broken)]) == 2
