@@ -26,6 +26,15 @@ AGENT_NAMESPACE = "agent_{index}"
 #: (s) how long ``--process-per-agent`` waits for an agent's process to end after SIGTERM before it kills it (ROS 2's
 #: ``ros2 launch`` waits 5 s; this leaves room for a loaded machine).
 STOP_TIMEOUT = 10.0
+#: The environment variable that tells an agent's process of ``--process-per-agent`` its parent's pid: the child ends
+#: (SIGTERM to itself) when that parent dies, however it dies.
+PARENT_VARIABLE = "SB3_FORMATION_ROS_PARENT"
+#: Linux's ``prctl`` option that sends the calling process a signal when its parent dies.
+PR_SET_PDEATHSIG = 1
+#: ``--rate``: the free-running simulator's speed, from a thousandth of real time to a thousand times it.
+MIN_RATE, MAX_RATE = 1e-3, 1e3
+#: (s) ``--command-timeout`` at most a day.
+MAX_COMMAND_TIMEOUT = 86_400.0
 
 
 def add_arguments(commands: Any, model_help: str) -> None:
@@ -107,6 +116,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``python -m sb3_formation.ros``."""
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
+    _die_with_parent()
     try:
         check_arguments(args)
         set_ros_environment(args.domain_id, args.discovery)
@@ -208,6 +218,8 @@ def _is_agents_option(arguments: list[str], position: int) -> bool:
 
 def run_sim(args: argparse.Namespace) -> int:
     """Run the simulator node until its episodes are played; print them, and write them to ``--out``."""
+    if args.out is not None:
+        check_out(args.out)
     from sb3_formation.ros.sim_node import SimNode, SimSettings
     from sb3_formation.runtime import OnnxPolicy
 
@@ -223,19 +235,40 @@ def run_sim(args: argparse.Namespace) -> int:
         see_through_agents=args.see_through_agents,
     )
     nodes: list[Any] = []
+    saved = [0]  # episodes written to --out
 
     def make_nodes() -> list[Any]:
         nodes.append(SimNode(config, settings))
         return nodes
 
-    code = _spin(make_nodes, args.ros_args, until=lambda: bool(nodes) and nodes[0].done)
-    if nodes:
-        node = nodes[0]
-        for result in node.results:
-            print(f"seed {result.seed}: {'success' if result.success else 'failure'} in {result.steps} steps")
-        if args.out is not None:
-            node.save(args.out)
+    def save() -> None:  # every episode as it ends: a simulator that fails later keeps those it played
+        if args.out is not None and nodes and len(nodes[0].results) > saved[0]:
+            nodes[0].save(args.out)
+            saved[0] = len(nodes[0].results)
+
+    def done() -> bool:
+        save()
+        return bool(nodes) and nodes[0].done
+
+    try:
+        code = _spin(make_nodes, args.ros_args, until=done)
+    finally:  # also on an error (a command timeout): the episodes played are printed and kept
+        if nodes:
+            save()
+            for result in nodes[0].results:
+                print(f"seed {result.seed}: {'success' if result.success else 'failure'} in {result.steps} steps")
     return code
+
+
+def check_out(out: Path) -> None:
+    """Refuse an ``--out`` that cannot be written (a read-only or missing folder that cannot be made) in one line,
+    before anything is flown: a temporary file is made beside it, as the writer will, and removed."""
+    from sb3_formation.utils.files import temporary_beside
+
+    try:
+        temporary_beside(out).unlink()
+    except OSError as error:
+        raise OSError(f"--out {out}: cannot write there ({error.strerror or error})") from None
 
 
 def _spin(make_nodes: Any, ros_arguments: list[str], until: Any = None) -> int:
@@ -286,7 +319,8 @@ def _run_children(commands: list[list[str]], stop_timeout: float = STOP_TIMEOUT)
     :param stop_timeout: (s) how long the children may take to end after SIGTERM
     """
     _stop_on_signals()
-    children = [subprocess.Popen(command) for command in commands]
+    environment = os.environ | {PARENT_VARIABLE: str(os.getpid())}
+    children = [subprocess.Popen(command, env=environment) for command in commands]
     try:
         codes = [child.wait() for child in children]
     except KeyboardInterrupt:
@@ -317,3 +351,30 @@ def _stop_children(children: list[subprocess.Popen], commands: list[list[str]], 
         child.wait()
         print(f"killed `{' '.join(command[1:])}`: it had not ended {stop_timeout:g} s after SIGTERM", file=sys.stderr)
     return bool(stuck)
+
+
+def _die_with_parent() -> None:
+    """In an agent's process of ``--process-per-agent`` (:data:`PARENT_VARIABLE` set): end with the parent, even if it
+    is killed with SIGKILL and cannot stop its children. On Linux the kernel sends SIGTERM (``prctl``'s
+    ``PR_SET_PDEATHSIG``, which shuts the node down cleanly); elsewhere a thread looks for a new parent every 0.5 s. A
+    parent that died before this ran is seen at once."""
+    parent = os.environ.pop(PARENT_VARIABLE, "")
+    if not parent.isdigit():
+        return
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0) != 0:
+            raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
+    else:
+        import threading
+
+        def watch() -> None:
+            while os.getppid() == int(parent):
+                time.sleep(0.5)
+            os.kill(os.getpid(), signal.SIGTERM)
+
+        threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+    if os.getppid() != int(parent):  # the parent died before the line above
+        os.kill(os.getpid(), signal.SIGTERM)
