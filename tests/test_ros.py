@@ -271,6 +271,12 @@ def test_a_silent_neighbour_stops_a_talking_agent(context, tmp_path) -> None:
     run.executor.shutdown()
 
 
+#: (s) the agents' input_timeout where a test holds the synchronous loop to evaluation: a simulator starved of the CPU for
+#: input_timeout (a loaded machine) gets the agents' watchdog zeros as commands (docs/deployment.md), which this test
+#: is not about; the watchdog has tests of its own
+LOCKSTEP_TIMEOUT = 60.0
+
+
 def fly(
     context: rclpy.context.Context,
     model: Path,
@@ -307,7 +313,12 @@ def fly(
     agents = [
         AgentNode(
             policy,
-            AgentSettings(agent=index, synchronous=True, observation_topic="observation" if observe else ""),
+            AgentSettings(
+                agent=index,
+                synchronous=True,
+                observation_topic="observation" if observe else "",
+                input_timeout=LOCKSTEP_TIMEOUT,
+            ),
             name=f"agent_{index}",
             namespace=f"agent_{index}",
             context=context,
@@ -457,7 +468,8 @@ def test_the_two_commands_fly_a_team_one_process_per_agent(tmp_path) -> None:
     command = [sys.executable, "-m", "sb3_formation.cli", "ros"]
     out = tmp_path / "episodes.npz"
     agents = subprocess.Popen(
-        [*command, "agents", "pretrained:ch5-bearing", "--process-per-agent", "--domain-id", domain],
+        [*command, "agents", "pretrained:ch5-bearing", "--process-per-agent", "--domain-id", domain]
+        + ["--ros-args", "-p", f"input_timeout:={LOCKSTEP_TIMEOUT}"],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
