@@ -467,9 +467,9 @@ def test_the_two_commands_fly_a_team_one_process_per_agent(tmp_path) -> None:
     domain = str(100 + WORKER_DOMAINS * worker + WORKER_DOMAINS - 1)
     command = [sys.executable, "-m", "sb3_formation.cli", "ros"]
     out = tmp_path / "episodes.npz"
+    lockstep = ["--ros-args", "-p", f"input_timeout:={LOCKSTEP_TIMEOUT}"]
     agents = subprocess.Popen(
-        [*command, "agents", "pretrained:ch5-bearing", "--process-per-agent", "--domain-id", domain]
-        + ["--ros-args", "-p", f"input_timeout:={LOCKSTEP_TIMEOUT}"],
+        [*command, "agents", "pretrained:ch5-bearing", "--process-per-agent", "--domain-id", domain, *lockstep],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
