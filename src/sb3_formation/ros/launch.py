@@ -19,6 +19,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from sb3_formation.utils.arguments import MAX_EPISODES, OneLineParser, bounded_float, count, output_path, seed_value
+
 #: ``--discovery`` choices -> ``ROS_AUTOMATIC_DISCOVERY_RANGE`` (``localhost``: no traffic leaves the machine).
 DISCOVERY_RANGES = {"localhost": "LOCALHOST", "subnet": "SUBNET", "off": "OFF", "system_default": "SYSTEM_DEFAULT"}
 #: The agents' namespaces, ``{index}`` standing for an agent's index in its team.
@@ -52,12 +54,25 @@ def add_arguments(commands: Any, model_help: str) -> None:
     sim.add_argument("model", help=model_help + " (whose task the simulator flies)")
     sim.add_argument("--scenes", default="", help="the scenes to draw (default: the policy's)")
     sim.add_argument("--stage", type=int, default=3, help="curriculum stage 1-3 (default 3)")
-    sim.add_argument("--seed", type=int, default=0, help="episode k is played from reset(seed=SEED + k) (default 0)")
-    sim.add_argument("--episodes", type=int, default=1, help="episodes to play, then stop (default 1)")
-    sim.add_argument("--mode", choices=("sync", "free"), default="sync", help="synchronous (default) or free-running")
-    sim.add_argument("--rate", type=float, default=1.0, help="free mode: simulated seconds per wall-clock second")
+    sim.add_argument("--seed", type=seed_value, default=0, help="episode k is played from reset(seed=SEED + k) (default 0)")
     sim.add_argument(
-        "--command-timeout", type=float, default=30.0, help="sync mode: wall-clock seconds to wait for a step's commands"
+        "--episodes",
+        type=count(MAX_EPISODES, minimum=0),
+        default=1,
+        help=f"episodes to play, then stop, at most {MAX_EPISODES:,} (default 1)",
+    )
+    sim.add_argument("--mode", choices=("sync", "free"), default="sync", help="synchronous (default) or free-running")
+    sim.add_argument(
+        "--rate",
+        type=bounded_float(0.0, MAX_RATE),
+        default=1.0,
+        help=f"free mode: simulated seconds per wall-clock second, {MIN_RATE:g} to {MAX_RATE:g} (default 1)",
+    )
+    sim.add_argument(
+        "--command-timeout",
+        type=bounded_float(0.0, MAX_COMMAND_TIMEOUT),
+        default=30.0,
+        help=f"sync mode: wall-clock seconds to wait for a step's commands, at most {MAX_COMMAND_TIMEOUT:g} (default 30)",
     )
     sim.add_argument(
         "--see-through-agents",
@@ -65,7 +80,7 @@ def add_arguments(commands: Any, model_help: str) -> None:
         help="scans see through the agents, as the simulator's lidar does (a check of the nodes; default: agents stop beams)",
     )
     sim.add_argument(
-        "--out", type=Path, default=None, help="write every episode (seed, success, steps, positions) to this .npz"
+        "--out", type=output_path, default=None, help="write every episode (seed, success, steps, positions) to this .npz"
     )
     _add_ros_options(sim)
     agents = commands.add_parser(
@@ -107,7 +122,7 @@ def _add_ros_options(parser: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The parser of ``python -m sb3_formation.ros``."""
-    parser = argparse.ArgumentParser(prog="python -m sb3_formation.ros", description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog="python -m sb3_formation.ros", description=__doc__.splitlines()[0])
     add_arguments(parser.add_subparsers(dest="command", required=True), "an exported policy (.onnx)")
     return parser
 
@@ -146,6 +161,8 @@ def check_arguments(args: argparse.Namespace) -> None:
             raise ValueError(f"--episodes must be at least 1, got {args.episodes}")
         if not args.rate > 0 or not args.command_timeout > 0:
             raise ValueError(f"--rate and --command-timeout must be > 0, got {args.rate} and {args.command_timeout}")
+        if args.rate < MIN_RATE:
+            raise ValueError(f"--rate {args.rate:g} is below {MIN_RATE:g}: a step would wait more than a thousand times dt")
         if args.out is not None and args.out.suffix != ".npz":
             raise ValueError(f"--out {args.out}: the episodes are written as an .npz file")
         if args.out is not None and args.out.exists():
