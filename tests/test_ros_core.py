@@ -508,6 +508,12 @@ def run_module(*arguments: str, cwd: Path | None = None) -> subprocess.Completed
         (["sim", str(SHIPPED_MODEL), "--out", "taken.npz"], "taken.npz exists"),
         (["agents", str(SHIPPED_MODEL), "--domain-id", "300"], "--domain-id 300 is not a ROS 2 domain id"),
         (["agents", str(SHIPPED_MODEL), "--agents", "0,6"], "--agents 0,6: indices must be distinct and within 0-5"),
+        (["sim", str(SHIPPED_MODEL), "--seed", str(2**64)], "--seed: must be an integer in [0, 4,294,967,295]"),
+        (["sim", str(SHIPPED_MODEL), "--episodes", str(10**20)], "--episodes: must be an integer in [0, 100,000]"),
+        (["sim", str(SHIPPED_MODEL), "--rate", "1e-300"], "--rate 1e-300 is below 0.001"),
+        (["sim", str(SHIPPED_MODEL), "--rate", "nan"], "--rate: must be a number in [0, 1000]"),
+        (["sim", str(SHIPPED_MODEL), "--command-timeout", "1e309"], "--command-timeout: must be a number in [0, 86400]"),
+        (["sim", str(SHIPPED_MODEL), "--out", ""], "--out: the path is empty"),
     ],
 )
 def test_bad_options_get_one_line_before_anything_starts(arguments: list[str], message: str, tmp_path: Path) -> None:
@@ -588,3 +594,22 @@ def test_a_process_per_agent_that_does_not_stop_is_killed_and_shows_where_it_hun
     reports = log.split("killed `")[1:]  # one per killed child, its command first
     assert len(reports) == 1 and "hung_in_shutdown" in reports[0], log
     assert reports[0].rstrip().endswith("`: it had not ended 2 s after SIGTERM"), log
+
+
+@pytest.mark.parametrize("where", ["read-only folder", "file as folder"])
+def test_an_out_that_cannot_be_written_is_refused_before_anything_is_flown(where: str, tmp_path: Path) -> None:
+    """``ros sim --out`` into a folder it cannot write (once found after every episode was flown) is a one-line error
+    before the simulator starts: here, where rclpy is not even installed, it is the error given."""
+    if where == "file as folder":
+        out = tmp_path / "a-file" / "episodes.npz"
+        (tmp_path / "a-file").write_text("")
+    elif os.geteuid() == 0:  # root writes into any folder but /proc's
+        out = Path("/proc/sb3-formation-episodes.npz")
+    else:
+        folder = tmp_path / "read-only"
+        folder.mkdir(mode=0o555)
+        out = folder / "episodes.npz"
+    done = run_module("sim", str(SHIPPED_MODEL), "--out", str(out))
+    assert done.returncode == 2
+    assert done.stderr.count("\n") == 1 and f"--out {out}: cannot write there" in done.stderr, done.stderr
+    assert not out.exists()
