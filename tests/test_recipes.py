@@ -274,13 +274,13 @@ def test_the_unicycle_recipe_changes_only_the_dynamics_of_its_base() -> None:
 
 def test_a_recipes_safety_section_is_checked_and_turns_the_filter_on() -> None:
     shielded = load_recipe("fast-ch5-bearing-shielded")
-    assert shielded.safety_gains() == SafetyGains() and shielded.safety_penalty == 0.5
-    assert load_recipe("fast-ch5-bearing").safety_gains() is None
-    assert shielded.with_changes({"safety": {"gamma": 0.2}}).safety_gains() == SafetyGains(gamma=0.2)
+    assert read_safety_gains(shielded.safety) == SafetyGains() and shielded.safety_penalty == 0.5
+    assert read_safety_gains(load_recipe("fast-ch5-bearing").safety) is None
+    assert read_safety_gains(shielded.with_changes({"safety": {"gamma": 0.2}}).safety) == SafetyGains(gamma=0.2)
     assert Recipe.from_dict(shielded.to_dict()).safety == shielded.safety  # written and read back
     # one reading of the gains: of the section, and of its mapping as a model file records it
     recorded = shielded.to_dict()["safety"]
-    assert read_safety_gains(recorded) == read_safety_gains(shielded.safety) == shielded.safety_gains()
+    assert read_safety_gains(recorded) == read_safety_gains(shielded.safety)
     assert read_safety_gains({}) is None and read_safety_gains(None) is None
     for section, message in (
         ({"gama": 0.2}, r"safety: unknown safety filter setting\(s\) \['gama'\]"),
@@ -305,7 +305,9 @@ def test_a_safety_solver_that_is_not_installed_is_refused_before_anything_is_wri
     error = capsys.readouterr().err
     assert error.count("\n") == 1 and "the QP solver 'osqp' is not installed here (available: fast, daqp)" in error
     assert not (tmp_path / "runs").exists()
-    assert load_recipe("ch4-individual").with_changes({"safety": {"solver": "daqp"}}).safety_gains().solver == "daqp"
+    assert (
+        read_safety_gains(load_recipe("ch4-individual").with_changes({"safety": {"solver": "daqp"}}).safety).solver == "daqp"
+    )
     with pytest.raises(ValueError, match="the QP solver 'osqp' is not installed here"):
         read_safety_gains({"solver": "osqp"})  # as a model file records its filter
 

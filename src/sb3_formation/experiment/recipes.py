@@ -345,10 +345,6 @@ class Recipe:
         minutes = self.training.minutes
         return None if minutes is None else 60.0 * minutes
 
-    def safety_gains(self) -> SafetyGains | None:
-        """The safety filter's gains of a shielded recipe, else ``None``: :func:`read_safety_gains` of its section."""
-        return read_safety_gains(self.safety)
-
     @property
     def safety_penalty(self) -> float:
         """The reward penalty per unit of the filter's change of an action (0 without a safety section)."""

@@ -27,6 +27,7 @@ from sb3_formation.experiment.evaluation import evaluate
 from sb3_formation.experiment.recipes import (
     TrainSettings,
     load_settings,
+    read_safety_gains,
     residual_base,
     residual_policy,
     with_schedules,
@@ -212,7 +213,7 @@ class PeriodicEvaluation(BaseCallback):
     ) -> None:
         super().__init__()
         self.run_dir, self.config, self.curriculum = run_dir, settings.recipe.config(), curriculum
-        self.safety = settings.recipe.safety_gains()  # a shielded run's policy acts behind its filter
+        self.safety = read_safety_gains(settings.recipe.safety)  # a shielded run's policy acts behind its filter
         self.every, self.episodes = every, episodes
         best = run_dir / BEST_EVALUATION
         self.best: dict[str, Any] | None = json.loads(best.read_text()) if best.is_file() else None
@@ -329,7 +330,7 @@ def make_training_env(settings: TrainSettings, stage: int, normalizer_path: Path
     )
     venv = cast(FormationVecEnv, teams)  # normalize=False: the teams themselves
     dim, mask = venv.agent_observation_dim, venv.binary_observation_mask
-    gains = recipe.safety_gains()
+    gains = read_safety_gains(recipe.safety)
     if gains is not None:  # the filter acts on the raw observations and the final actions, below all else
         teams = SafetyVecEnv(venv, gains, recipe.safety_penalty)
     if recipe.residual is not None:  # the controller acts on the raw observations, below the normaliser
