@@ -109,9 +109,11 @@ STATE_KEYS_OF_CHECKPOINT: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "num_timesteps": ("an integer >= 0", is_count),
     "curriculum": (
         "a mapping of stage, iteration, stage_iteration and successes",
-        lambda value: isinstance(value, dict)
-        and all(is_count(value.get(key)) for key in ("stage", "iteration", "stage_iteration"))
-        and isinstance(value.get("successes"), list),
+        lambda value: (
+            isinstance(value, dict)
+            and all(is_count(value.get(key)) for key in ("stage", "iteration", "stage_iteration"))
+            and isinstance(value.get("successes"), list)
+        ),
     ),
     "training_seconds": ("a number of seconds >= 0", lambda value: is_number(value) and value >= 0),
 }
