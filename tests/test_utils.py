@@ -365,9 +365,9 @@ def test_a_spinning_worker_polls_for_calls_then_sleeps() -> None:
         before = cpu_seconds(worker.process.pid)
         time.sleep(1.0)
         spun = cpu_seconds(worker.process.pid) - before
-        # it polled, busy, for 0.3 s of the 1 s: that much CPU time on an idle machine, less on a loaded one (where
-        # other processes share the cores), never more
-        assert 0.01 < spun < 0.45
+        # it polls, busy, for 0.3 s of the 1 s: at most that much CPU time (less on a loaded machine, where other
+        # processes share the cores: no lower bound is held, as none holds under load)
+        assert spun < 0.45
         before = cpu_seconds(worker.process.pid)
         time.sleep(1.0)
         assert cpu_seconds(worker.process.pid) - before < 0.05  # then it slept
