@@ -406,3 +406,15 @@ def test_counts_and_output_paths_are_checked_before_any_work(
     error = capsys.readouterr().err
     assert error.startswith("sb3-formation: error: ") and error.count("\n") == 1 and message in error, error
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_reader_that_leaves_early_ends_the_command_without_a_word(tmp_path: Path) -> None:
+    """``sb3-formation recipes | head -1``: the reader closes the pipe; the command stops with the shell's code for
+    SIGPIPE (141) and writes nothing to stderr (it wrote ``error: [Errno 32] Broken pipe``)."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "sb3_formation.cli", "recipes"], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
+    assert process.stdout is not None
+    process.stdout.close()  # the reader left before the first line
+    _, errors = process.communicate(timeout=300)
+    assert process.returncode == 141 and errors == b"", errors

@@ -12,6 +12,7 @@ that Ctrl-C at any moment of a command, its first seconds included, ends it with
 from __future__ import annotations
 
 import importlib
+import os
 import re
 import shlex
 import signal
@@ -105,6 +106,9 @@ def _run(argv: list[str], debug: bool) -> int:
     except TrainingStopped as stop:
         print(f"sb3-formation: {stop}", file=sys.stderr)
         return 128 + stop.signal_number
+    except BrokenPipeError:  # the reader of the output left (``| head``): stop without a word, as a Unix tool does
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # nothing left to flush at exit
+        return 128 + signal.SIGPIPE
     # bad input, files, a failed worker, a missing optional package: one line
     except (ValueError, TypeError, OSError, RuntimeError, ImportError) as error:
         if debug:
