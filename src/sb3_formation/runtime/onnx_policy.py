@@ -29,7 +29,16 @@ import numpy as np
 
 from sb3_formation import __version__
 from sb3_formation.controllers import ResidualAdapter, controller_from_spec
-from sb3_formation.controllers.base import AgentStep, Policy, TeamPolicy, cell_state, check_fit, no_messages, state_pair
+from sb3_formation.controllers.base import (
+    AgentStep,
+    Policy,
+    TeamPolicy,
+    cell_state,
+    check_fit,
+    no_messages,
+    observation_size,
+    state_pair,
+)
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.observations import observation_fields, observation_layout
 from sb3_formation.safety.filter import SafetyGains
@@ -84,7 +93,7 @@ class PolicyMetadata:
     @property
     def observation_dim(self) -> int:
         """Features of one agent's observation."""
-        return sum(field.size for field in observation_fields(self.config))
+        return observation_size(self.config)
 
     @property
     def state_parts(self) -> tuple[str, ...]:

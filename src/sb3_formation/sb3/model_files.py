@@ -41,8 +41,8 @@ from stable_baselines3.common.type_aliases import Schedule
 from stable_baselines3.common.utils import ConstantSchedule, FloatSchedule, LinearSchedule, get_device
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_formation.controllers.base import observation_size
 from sb3_formation.env.config import FormationConfig
-from sb3_formation.env.observations import observation_fields
 from sb3_formation.sb3.policies import FormationPolicy
 from sb3_formation.sb3.recurrent import RecurrentFormationPolicy, RecurrentFormationPPO
 from sb3_formation.utils.files import oversized_entry
@@ -226,7 +226,7 @@ def refusal(path: Path, problems: list[str]) -> str:
 def observation_space_of(config: FormationConfig, team_size: int | None) -> spaces.Box:
     """The observation space a model of ``config`` reads: each slot's observation (followed, with a team critic, by
     its team's), of the env's size; unbounded, since scaled observations have no bounds of their own."""
-    size = sum(field.size for field in observation_fields(config)) * (1 + (team_size or 0))
+    size = observation_size(config) * (1 + (team_size or 0))
     return spaces.Box(-np.inf, np.inf, (size,), dtype=np.float32)
 
 
