@@ -112,6 +112,8 @@ def stop_seconds(name: str, settle: float) -> tuple[float, int]:
         seconds = time.perf_counter() - started
         for reader in readers:
             reader.join(timeout=60)  # reads its output to the end, as a terminal would
+        if process.returncode not in (130, 143):  # not the conventional code: say what the command printed
+            print(f"{name}: exit code {process.returncode}; its stderr ends: {errors[-3:]}", file=sys.stderr)
         return seconds, process.returncode
 
 
