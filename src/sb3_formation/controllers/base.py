@@ -29,6 +29,7 @@ from typing import Any, NamedTuple, Protocol, TypeVar, runtime_checkable
 import numpy as np
 
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.disturbed import MessageChannel
 from sb3_formation.env.geometry import ring_rows
 from sb3_formation.env.observations import observation_fields, observation_layout
 from sb3_formation.env.state import TeamState
@@ -64,7 +65,13 @@ class TeamPolicy(Protocol):
         ...
 
     def predict(
-        self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
+        self,
+        observation: np.ndarray,
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = True,
+        *,
+        channel: MessageChannel | None = None,
     ) -> tuple[np.ndarray, Any]:
         """Actions ``(k, 2)`` for ``(k, obs_dim)`` raw observations of whole teams, and the policy's next state.
 
@@ -72,6 +79,8 @@ class TeamPolicy(Protocol):
         :param state: what the previous call returned (``None`` at the start)
         :param episode_start: ``(k,)`` flags: these rows start a new episode (reset their memory)
         :param deterministic: act without exploration noise
+        :param channel: the links that carry a talking policy's messages, when they lose or delay them (``None``:
+            every message arrives one step late)
         """
         ...
 
@@ -155,12 +164,18 @@ class Policy(ABC):
         return 0
 
     def predict(
-        self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
+        self,
+        observation: np.ndarray,
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = True,
+        *,
+        channel: MessageChannel | None = None,
     ) -> tuple[np.ndarray, Any]:
         """SB3's signature over raw observations of whole teams (row k: agent ``k % n`` of team ``k // n``):
         :meth:`agent_step` on every row. A talking policy's state is the pair (the agents' state, the ``(k, M)``
         messages they sent); each row receives, one step late, the messages of its ring neighbours in its team
-        (zeros where an episode starts)."""
+        (zeros where an episode starts), or what ``channel`` delivers of them."""
         shape = np.shape(observation)
         if len(shape) == 0:
             raise ValueError(f"observations must be rows of one agent's observation each, got an array of shape {shape}")
@@ -168,7 +183,9 @@ class Policy(ABC):
         n_agents, received = self.config.n_agents, None
         if self.message_size:
             state, sent = state_pair(self.describe(), state)
-            if sent is not None:
+            if channel is not None:
+                received = channel.deliver(np.zeros((len(rows), self.message_size), np.float32) if sent is None else sent)
+            elif sent is not None:
                 keep = 1.0 if episode_start is None else 1.0 - np.asarray(episode_start, np.float32).reshape(-1, 1)
                 received = (np.asarray(sent, np.float32) * keep)[ring_rows([n_agents] * (len(rows) // n_agents))]
         step = self.agent_step(rows, np.arange(len(rows)) % n_agents, state, episode_start, received, deterministic)

@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass
 from typing import Any, Literal
 
+from sb3_formation.env.disturbances import Disturbances, load_disturbances
 from sb3_formation.env.geometry import interior_angle_deg
 from sb3_formation.utils.checks import is_integer, is_number, is_real
 
@@ -135,6 +136,9 @@ class FormationConfig:
     :param observe_reference_bearings: append the agent's two reference bearings (Table 5.2, normalised) to its
         observation: a departure from Table 3.1 for policies that act in teams of several sizes, where an agent's
         reference depends on its index and n (the angle error already carries beta^ref)
+    :param disturbances: the errors of real sensors, motors, timing and radios
+        (:class:`~sb3_formation.env.disturbances.Disturbances`; a profile's name, a file or a mapping is read with
+        :func:`~sb3_formation.env.disturbances.load_disturbances`); the default, ``ideal``, is none
     """
 
     world_width: float = 15.0
@@ -188,8 +192,10 @@ class FormationConfig:
     max_placement_tries: int = 200
     placement_clearance: float = 0.05
     observe_reference_bearings: bool = False
+    disturbances: Disturbances = dataclasses.field(default_factory=Disturbances)
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "disturbances", load_disturbances(self.disturbances))
         positive = (
             "world_width world_height agent_radius agent_mass v_max max_turn_rate dt lidar_range d_ref d_comm eta_c "
             "eta_g m_ang_deg m_dist reward_clip"
@@ -247,11 +253,12 @@ class FormationConfig:
                 f"{OVERLAP_TOLERANCE:.0%} of agent_radius: give physics_substeps >= {self.substeps_needed}, or leave it "
                 "unset (chosen from v_max, dt and agent_radius)"
             )
-        if self.max_turn_rate * self.dt / self.physics_substeps >= math.pi:
+        turn_gain = self.disturbances.acting.turn_gain[1] if self.dynamics == "unicycle" else 1.0
+        if self.max_turn_rate * turn_gain * self.dt / self.physics_substeps >= math.pi:
             raise ValueError(
-                f"max_turn_rate={self.max_turn_rate:g} rad/s turns a unicycle by pi or more in one of the "
-                f"{self.physics_substeps} Pymunk sub-steps of dt={self.dt:g} s: lower it below "
-                f"{math.pi * self.physics_substeps / self.dt:.4g} rad/s"
+                f"max_turn_rate={self.max_turn_rate:g} rad/s (times the largest turn gain {turn_gain:g}) turns a unicycle "
+                f"by pi or more in one of the {self.physics_substeps} Pymunk sub-steps of dt={self.dt:g} s: lower it below "
+                f"{math.pi * self.physics_substeps / self.dt / turn_gain:.4g} rad/s"
             )
         side = self.start_side_length
         if side <= 2 * self.agent_radius:
@@ -352,9 +359,13 @@ class FormationConfig:
     def to_dict(self) -> dict[str, Any]:
         """Every field as plain YAML/JSON data: the one way a configuration is written (run folders, model files,
         trajectories). Sub-steps chosen from v_max, dt and agent_radius are written as ``None``, so that they are
-        chosen again when read (and when another field is overridden)."""
+        chosen again when read (and when another field is overridden); ideal disturbances are not written."""
         values = dataclasses.asdict(self)
         values["stage_disabled_terms"] = [list(terms) for terms in self.stage_disabled_terms]
+        if self.disturbances.is_ideal:  # the ideal world's configuration reads as it always did
+            del values["disturbances"]
+        else:
+            values["disturbances"] = self.disturbances.to_dict()
         if self.physics_substeps == self.substeps_needed:
             values["physics_substeps"] = None
         return values

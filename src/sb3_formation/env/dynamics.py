@@ -103,6 +103,17 @@ class PointProblem(NamedTuple):
     frames: np.ndarray  #: ``(k, 2, 2)`` each agent's frame of actions (identity; a unicycle's rows h, h_perp)
 
 
+class ActionSchedule(NamedTuple):
+    """How one team's actions apply over a step when they arrive during it (an action delay,
+    :class:`~sb3_formation.env.disturbed.Disturber`): the step cut into parts at the arrivals, and in each part the
+    action each agent applies."""
+
+    lengths: np.ndarray  #: ``(parts,)`` each part's share of the step (they sum to 1)
+    actions: np.ndarray  #: ``(parts, n, 2)`` the action each agent applies, motor gain and noise included (may leave [-1, 1])
+    begins: np.ndarray  #: ``(parts, n)`` bool: the agent's action begins with the part (its force acts from there on)
+    holds: np.ndarray  #: ``(parts, n)`` the share of the step for which an action that begins with the part holds
+
+
 class DynamicsModel(ABC):
     """What a task's dynamics mean (see the module docstring): stateless, one per task.
 
@@ -477,13 +488,21 @@ class Dynamics(ABC):
         self.observed = np.zeros((int(starts[-1]), sum(field[2] for field in model.observed_fields())))
 
     @abstractmethod
-    def move(self, actions: np.ndarray, velocities: np.ndarray, worlds: list[World], stepped: StepTeams) -> Moved:
+    def move(
+        self,
+        actions: np.ndarray,
+        velocities: np.ndarray,
+        worlds: list[World],
+        stepped: StepTeams,
+        schedules: dict[int, ActionSchedule] | None = None,
+    ) -> Moved:
         """Move the stepped teams' agents over a step.
 
-        :param actions: ``(agents, 2)`` actions within [-1, 1], a row for every agent
+        :param actions: ``(agents, 2)`` actions (within [-1, 1] unless a motor gain or noise acts), a row for every agent
         :param velocities: ``(agents, 2)`` velocities (m/s) before the step
         :param worlds: every team's world
         :param stepped: the teams to move
+        :param schedules: actions that arrive during the step, by team (instead of ``actions``)
         """
 
     @abstractmethod
@@ -507,10 +526,20 @@ class Dynamics(ABC):
 class HolonomicDynamics(Dynamics):
     """Points (:class:`HolonomicModel`): the world moves them at the commanded velocities."""
 
-    def move(self, actions: np.ndarray, velocities: np.ndarray, worlds: list[World], stepped: StepTeams) -> Moved:
-        v_max = self.config.v_max
-        commanded, starts = self.model.command(actions, velocities, 0.0), self.starts
-        touched = [worlds[team].advance(commanded[starts[team] : starts[team + 1]]) for team in stepped.teams]
+    def move(
+        self,
+        actions: np.ndarray,
+        velocities: np.ndarray,
+        worlds: list[World],
+        stepped: StepTeams,
+        schedules: dict[int, ActionSchedule] | None = None,
+    ) -> Moved:
+        v_max, starts = self.config.v_max, self.starts
+        if schedules is None:
+            commanded = self.model.command(actions, velocities, 0.0)
+            touched = [worlds[team].advance(commanded[starts[team] : starts[team + 1]]) for team in stepped.teams]
+        else:
+            touched = [worlds[team].advance_late(schedules[team]) for team in stepped.teams]
         positions, moved = split_state(np.concatenate([worlds[team].agent_states for team in stepped.teams]), v_max)
         return Moved(positions, moved, touched)
 
@@ -532,14 +561,24 @@ class UnicycleDynamics(Dynamics):
         #: every agent's heading (rad, anti-clockwise from +x) and forward speed (m/s)
         self.headings, self.forward_speeds = np.zeros(int(starts[-1])), np.zeros(int(starts[-1]))
 
-    def move(self, actions: np.ndarray, velocities: np.ndarray, worlds: list[World], stepped: StepTeams) -> Moved:
-        commands = self.model.command(actions, velocities, self.forward_speeds)
-        forward, turns = commands[:, 0], commands[:, 1]
+    def move(
+        self,
+        actions: np.ndarray,
+        velocities: np.ndarray,
+        worlds: list[World],
+        stepped: StepTeams,
+        schedules: dict[int, ActionSchedule] | None = None,
+    ) -> Moved:
         teams, starts = stepped.teams, self.starts
-        touched = [
-            worlds[team].drive(forward[starts[team] : starts[team + 1]], turns[starts[team] : starts[team + 1]])
-            for team in teams
-        ]
+        if schedules is None:
+            commands = self.model.command(actions, velocities, self.forward_speeds)
+            forward, turns = commands[:, 0], commands[:, 1]
+            touched = [
+                worlds[team].drive(forward[starts[team] : starts[team + 1]], turns[starts[team] : starts[team + 1]])
+                for team in teams
+            ]
+        else:
+            touched = [worlds[team].drive_late(schedules[team]) for team in teams]
         positions = np.concatenate([worlds[team].agent_states[:, :2] for team in teams])
         headings = np.concatenate([worlds[team].headings for team in teams])
         speeds = np.concatenate([worlds[team].forward_speeds for team in teams])

@@ -31,7 +31,8 @@ import numpy as np
 from gymnasium.utils import seeding
 
 from sb3_formation.env.config import INFO_KEYS, REWARD_TERMS, FormationConfig
-from sb3_formation.env.dynamics import Dynamics, DynamicsModel, dynamics_model
+from sb3_formation.env.disturbed import Disturber, SensedTeams
+from sb3_formation.env.dynamics import ActionSchedule, Dynamics, DynamicsModel, dynamics_model
 from sb3_formation.env.episodes import episode_summary
 from sb3_formation.env.geometry import FormationState, _measure_into, agent_errors, reference_bearings, ring_neighbours
 from sb3_formation.env.observations import _fill_observations, observation_fields
@@ -168,6 +169,16 @@ class FormationEngine:
         self._fixed_fields = tuple(self.constants), tuple(self.formations), tuple(self.episodes)
         self._reward_fields = tuple(reward_constants(config))
         self._shape_fields = tuple(self.shapes)  # again at each reset (_load_shapes)
+        #: the task's disturbances, drawn and applied (``None`` in the ideal world, which then runs as it always did)
+        self.disturber = None if config.disturbances.is_ideal else Disturber(config, starts, self.observation_dim)
+        #: the formations the agents measure from their position estimates (the true ones without localisation errors)
+        self._sensed_fields = self._fixed_fields[1]
+        if self.disturber is not None:
+            for team, seed in enumerate(self.generator_seeds):
+                self.disturber.seed(team, seed)
+            if self.disturber.localises:
+                self._sensed_fields = tuple(Formations.zeros(n_teams, n_slots))
+        self._no_errors = (np.zeros(0), np.zeros((0, 0)), np.zeros((0, 0), dtype=bool))
 
     @property
     def n_teams(self) -> int:
@@ -186,6 +197,8 @@ class FormationEngine:
     def seed(self, team: int, seed: int | None) -> None:
         """Give a team a new scenario generator, seeded with ``seed`` (``None``: from the operating system)."""
         self.generators[team], self.generator_seeds[team] = seeding.np_random(seed)
+        if self.disturber is not None:
+            self.disturber.seed(team, self.generator_seeds[team])
 
     # Reset --------------------------------------------------------------------------------------------------------
 
@@ -215,6 +228,8 @@ class FormationEngine:
         latest.contacts[rows] = 0
         latest.terms[_N_TERMS * rows.start : _N_TERMS * rows.stop] = 0.0  # the infos of a reset hold no reward terms
         self.dynamics.reset(rows, world)
+        if self.disturber is not None:
+            self.disturber.reset(team, rows)
         self._clear_episode(team, scenario.goal)
         active = np.array([team])
         self._measure(active, latest.positions)
@@ -302,10 +317,13 @@ class FormationEngine:
         )
 
     def _move(self, actions: np.ndarray, stepped: StepTeams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The :attr:`dynamics` moves the stepped teams' agents: every agent's positions, velocities and contacts
-        after the step (new arrays; the other teams' rows as they were)."""
-        previous = self.latest
-        moved = self.dynamics.move(actions, previous.velocities, cast("list[World]", self.worlds), stepped)
+        """The :attr:`dynamics` moves the stepped teams' agents under the actions their motors apply (those sent, or
+        what the :attr:`disturber` makes of them): every agent's positions, velocities and contacts after the step
+        (new arrays; the other teams' rows as they were)."""
+        previous, schedules = self.latest, cast("dict[int, ActionSchedule] | None", None)
+        if self.disturber is not None and self.disturber.acts:
+            actions, schedules = self.disturber.act(actions, stepped.teams, self.episodes.step_counts)
+        moved = self.dynamics.move(actions, previous.velocities, cast("list[World]", self.worlds), stepped, schedules)
         contacts = np.zeros(previous.contacts.shape, dtype=np.int64) if stepped.everyone else previous.contacts.copy()
         if stepped.rows is not None:
             contacts[stepped.rows] = 0
@@ -387,11 +405,37 @@ class FormationEngine:
 
     def _observe(self, active: np.ndarray, rows: slice | np.ndarray | None, team_means: np.ndarray, accumulate: bool) -> None:
         """Scan, observe and fill the info values of the ``active`` teams (their agents' ``rows``, ``None``: every
-        agent's); with ``accumulate``, add the step to their episodes' running sums."""
+        agent's); with ``accumulate``, add the step to their episodes' running sums. With disturbances the agents
+        observe what they sense (:meth:`~sb3_formation.env.disturbed.Disturber.sense`), late
+        (:meth:`~sb3_formation.env.disturbed.Disturber.delay_observations`)."""
         constants, formations, episodes = self._fixed_fields
-        observed = self.dynamics.observe(slice(None) if rows is None else rows)
-        latest = tuple(self.latest)
-        _observe_teams(active, constants, self._shape_fields, formations, latest, episodes, observed, team_means, accumulate)
+        picked = slice(None) if rows is None else rows
+        observed = self.dynamics.observe(picked)
+        latest = self.latest
+        sensing = (latest.positions, latest.velocities, formations, *self._no_errors)
+        disturber = self.disturber
+        if disturber is not None:
+            sensed = disturber.sense(latest.positions, latest.velocities, active.tolist(), drift=accumulate)
+            observed = self._sensed_extras(observed, picked, sensed)
+            if disturber.localises:
+                _store_formations(active, constants, sensed.positions, self._sensed_fields)
+            errors = (sensed.heading_errors, sensed.beam_noise, sensed.dropped)
+            sensing = (sensed.positions, sensed.velocities, self._sensed_fields, *errors)
+        shapes = self._shape_fields
+        _observe_teams(
+            active, constants, shapes, formations, tuple(latest), episodes, observed, team_means, accumulate, sensing
+        )
+        if disturber is not None:
+            disturber.delay_observations(latest.observations, active.tolist(), self.episodes.step_counts)
+
+    def _sensed_extras(self, observed: np.ndarray, rows: slice | np.ndarray, sensed: SensedTeams) -> np.ndarray:
+        """What the dynamics add to the observation (:meth:`Dynamics.observe`), read at the agents' heading estimates."""
+        headings = self.dynamics.headings_of(slice(None))
+        if not self.disturber or not self.disturber.localises or headings is None or observed.shape[1] == 0:
+            return observed
+        extras = observed.copy()
+        extras[rows] = self.model.observed_values((headings + sensed.heading_errors)[rows])
+        return extras
 
     def _combine(self, terms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every agent's reward (:func:`~sb3_formation.env.rewards.combine_rewards`, the teams of one size at once)
@@ -636,28 +680,64 @@ def _observe_teams(
     observed: np.ndarray,
     team_means: np.ndarray,
     accumulate: bool,
+    sensing: Fields,
 ) -> None:  # pragma: no cover - compiled
     """The ``active`` teams' lidar scans (into the episodes' lidar), observations and info values (into the latest
     step's) and, with ``accumulate``, the step added to their episodes' running sums (``team_means``: every team's
     mean reward of the step).
 
     :param observed: ``(agents, e)`` what every agent's dynamics add to its observation
+    :param sensing: what the agents observe from: positions and velocities ``(agents, 2)`` (m, m/s), the fields of
+        their formations, and their lidars' errors: heading errors ``(agents,)`` (rad) that turn the rays, range errors
+        ``(agents, rays)`` (shares of the range) and dropped beams ``(agents, rays)`` (empty arrays: none)
     """
     constants, shapes, formations = Constants(*constant_fields), Shapes(*shape_fields), Formations(*formation_fields)
     latest, episodes = StepArrays(*latest_fields), Episodes(*episode_fields)
+    positions, velocities, sensed_fields, heading_errors, beam_noise, dropped = sensing
+    sensed = Formations(*sensed_fields)
     for team in active:
-        _scan(team, constants, shapes, latest.positions, episodes.lidar)
-        _fill_observations(team, constants, formations, latest, episodes, observed)
+        _scan(team, constants, shapes, latest.positions, episodes.lidar, heading_errors)
+        if beam_noise.size or dropped.size:
+            _add_beam_errors(team, constants, episodes.lidar, beam_noise, dropped)
+        _fill_observations(team, constants, sensed, (positions, velocities), latest.observations, episodes, observed)
         _fill_info_values(team, constants, formations, latest)
         if accumulate:
             _add_step(team, constants, formations, latest, episodes, team_means[team])
 
 
 @numba.njit(cache=True)
-def _scan(
-    team: int, constants: Constants, shapes: Shapes, positions: np.ndarray, lidar: np.ndarray
+def _store_formations(
+    active: np.ndarray, constant_fields: Fields, positions: np.ndarray, formation_fields: Fields
 ) -> None:  # pragma: no cover - compiled
-    """A team's ``Lidar.scan`` into its rows of ``lidar``: its agents' circles (the last ones) take their positions."""
+    """The formations of the ``active`` teams at ``positions`` (every agent's rows) into ``formation_fields``."""
+    constants, formations = Constants(*constant_fields), Formations(*formation_fields)
+    for team in active:
+        _store_formation(team, constants, positions[constants.starts[team] : constants.starts[team + 1]], formations)
+
+
+@numba.njit(cache=True)
+def _add_beam_errors(
+    team: int, constants: Constants, lidar: np.ndarray, beam_noise: np.ndarray, dropped: np.ndarray
+) -> None:  # pragma: no cover - compiled
+    """A team's beams' errors on its rows of ``lidar`` (shares of the range): a dropped beam reads 1 (nothing seen)
+    on both channels; a beam that saw something reads its range plus its error, within [0, 1]."""
+    for row in range(constants.starts[team], constants.starts[team + 1]):
+        for ray in range(lidar.shape[2]):
+            if dropped.size and dropped[row, ray]:
+                lidar[0, row, ray] = lidar[1, row, ray] = 1.0
+            elif beam_noise.size:
+                for channel in range(2):
+                    if lidar[channel, row, ray] < 1.0:
+                        lidar[channel, row, ray] = min(max(lidar[channel, row, ray] + beam_noise[row, ray], 0.0), 1.0)
+
+
+@numba.njit(cache=True)
+def _scan(
+    team: int, constants: Constants, shapes: Shapes, positions: np.ndarray, lidar: np.ndarray, heading_errors: np.ndarray
+) -> None:  # pragma: no cover - compiled
+    """A team's ``Lidar.scan`` into its rows of ``lidar``: its agents' circles (the last ones) take their positions.
+    With ``heading_errors`` (``(agents,)`` rad, empty: none) an agent's ray k looks along direction k turned by minus
+    its error: what its lidar, read in the frame of its heading estimate, puts in reading k."""
     start, end = constants.starts[team], constants.starts[team + 1]
     n_circles = shapes.circle_counts[team]
     circles = shapes.circles[team, :n_circles]
@@ -669,16 +749,19 @@ def _scan(
         shapes.walls[team, : shapes.wall_counts[team]],
     )
     ranges = lidar[:, start:end]
-    lidar_ranges(
-        positions[start:end],
-        constants.directions,
-        layout,
-        constants.agent_radius,
-        constants.width,
-        constants.height,
-        constants.lidar_range,
-        ranges,
-    )
+    geometry = (constants.agent_radius, constants.width, constants.height, constants.lidar_range)
+    if heading_errors.size == 0:
+        lidar_ranges(positions[start:end], constants.directions, layout, *geometry, ranges)
+    else:
+        directions = np.empty_like(constants.directions)
+        for agent in range(end - start):
+            cos, sin = math.cos(-heading_errors[start + agent]), math.sin(-heading_errors[start + agent])
+            for ray in range(directions.shape[0]):
+                x, y = constants.directions[ray, 0], constants.directions[ray, 1]
+                directions[ray, 0], directions[ray, 1] = cos * x - sin * y, sin * x + cos * y
+            own = LidarLayout(layout.circles, layout.visible[agent : agent + 1], layout.channels, layout.walls)
+            origin, out = positions[start + agent : start + agent + 1], ranges[:, agent : agent + 1]
+            lidar_ranges(origin, directions, own, *geometry, out)
     ranges /= constants.lidar_range
 
 

@@ -25,7 +25,7 @@ from sb3_formation.env.geometry import FormationState
 from sb3_formation.env.stacked import team_formation
 
 if TYPE_CHECKING:
-    from sb3_formation.env.stacked import Constants, Episodes, Formations, StepArrays
+    from sb3_formation.env.stacked import Constants, Episodes, Formations
 
 #: Relative slack on velocity bounds: a clamped speed may exceed v_max by a rounding error.
 ROUNDING_SLACK = 1e-9
@@ -204,10 +204,19 @@ def observation_row(
 
 @numba.njit(cache=True)
 def _fill_observations(
-    team: int, constants: Constants, formations: Formations, latest: StepArrays, episodes: Episodes, observed: np.ndarray
+    team: int,
+    constants: Constants,
+    formations: Formations,
+    motion: tuple[np.ndarray, np.ndarray],
+    out: np.ndarray,
+    episodes: Episodes,
+    observed: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
-    """A team's agents' observations (:func:`observation_row`), written into their rows of ``latest.observations``.
+    """A team's agents' observations (:func:`observation_row`), written into their rows of ``out``.
 
+    :param formations: every team's formation as its agents measure it
+    :param motion: every agent's position (m) and velocity (m/s) as its agents know them, ``(agents, 2)`` each
+    :param out: ``(agents, dim)`` every agent's observation
     :param observed: ``(agents, e)`` what every agent's dynamics add to its row
     """
     start, end = constants.starts[team], constants.starts[team + 1]
@@ -219,7 +228,7 @@ def _fill_observations(
         constants.eta_c,
         constants.observe_reference,
     )
-    positions, velocities, out = latest.positions[start:end], latest.velocities[start:end], latest.observations
+    positions, velocities = motion[0][start:end], motion[1][start:end]
     goal, previous_offset, step = episodes.goals[team], episodes.previous_offsets[team], float(episodes.step_counts[team])
     for agent in range(end - start):
         row = start + agent

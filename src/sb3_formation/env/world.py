@@ -29,6 +29,7 @@ sub-step, which made a step 1.7x as long when agents press on walls (``benchmark
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import Any, cast
 
@@ -39,7 +40,7 @@ import pymunk.batch
 from pymunk._chipmunk import lib as chipmunk
 
 from sb3_formation.env.config import COLLISION_BIAS, FormationConfig
-from sb3_formation.env.dynamics import clamp_speed, dynamics_model, split_state
+from sb3_formation.env.dynamics import ActionSchedule, clamp_speed, dynamics_model, split_state
 from sb3_formation.env.scenarios import Scenario
 
 BORDER_THICKNESS = 1.0  #: m; the border's inner faces lie exactly on [0, W] x [0, H]
@@ -230,8 +231,37 @@ class World:
         self._write_velocities()
         self._arbiter_buffer._int_arr.num = 0
         for _ in range(cast(int, self.config.physics_substeps)):  # an int once the config is built
-            self._substep_once()
+            self._substep_once(self._substep)
         self._read_states()
+        return self._contacts()
+
+    def advance_late(self, schedule: ActionSchedule) -> tuple[np.ndarray, np.ndarray] | None:
+        """:meth:`advance` for actions that arrive during the step (:class:`~sb3_formation.env.dynamics.ActionSchedule`).
+
+        An agent whose action begins in a part of the step gets, there, the velocity change of that action's force over
+        the share of the step it holds (eq. 19 over that share, clamped to v_max). Pymunk's sub-steps keep their length
+        (a sub-step of another length rescales the solver's remembered impulses, which a very short one makes explode):
+        each sub-step moves an agent at the mean of the velocities it has within it, so that without contacts it ends
+        where the parts would take it; what the solver changes is carried on.
+
+        :return: as :meth:`advance`
+        """
+        config = self.config
+        push = config.force_max * config.dt / config.agent_mass
+        self._arbiter_buffer._int_arr.num = 0
+        own = clamp_speed(self.agent_states[:, 2:], config.v_max)  # the velocity each agent's own dynamics give it
+        for shares, starting in _substep_parts(schedule.lengths, cast(int, config.physics_substeps)):
+            mean = np.zeros_like(own)
+            for part in np.flatnonzero(shares):
+                if starting[part]:
+                    changed = clamp_speed(own + schedule.actions[part] * push * schedule.holds[part][:, None], config.v_max)
+                    own = np.where(schedule.begins[part][:, None], changed, own)
+                mean += shares[part] * own
+            self._body_velocities[self._agent_rows] = mean
+            self._write_velocities()
+            self._substep_once(self._substep)
+            self._read_states()
+            own = own + (self.agent_states[:, 2:] - mean)  # what contacts did
         return self._contacts()
 
     def drive(self, forward: np.ndarray, turn_rates: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -242,12 +272,49 @@ class World:
         :param turn_rates: ``(n,)`` turn rates (rad/s), held over the step
         :return: as :meth:`advance`
         """
-        config, substep = self.config, self._substep
+        self._arbiter_buffer._int_arr.num = 0
+        self.sideways_speed = 0.0
+        substeps = cast(int, self.config.physics_substeps)  # an int once the config is built
+        self._drive_part(np.asarray(forward, dtype=np.float64), turn_rates, substeps, self._substep)
+        return self._contacts()
+
+    def drive_late(self, schedule: ActionSchedule) -> tuple[np.ndarray, np.ndarray] | None:
+        """:meth:`drive` for actions that arrive during the step (:class:`~sb3_formation.env.dynamics.ActionSchedule`,
+        its actions a forward force and a turn rate as shares of F_max and ``max_turn_rate``): an agent whose action
+        begins in a part gets there the forward speed its force adds over the share of the step it holds (clipped to
+        +-v_max) and its turn rate. Each sub-step drives an agent at the means of its forward speeds and turn rates
+        within it (see :meth:`advance_late`).
+
+        :return: as :meth:`advance`
+        """
+        config = self.config
+        push = config.force_max * config.dt / config.agent_mass
+        self._arbiter_buffer._int_arr.num = 0
+        self.sideways_speed = 0.0
+        speeds, turn_rates = self.forward_speeds.copy(), np.zeros(config.n_agents)
+        for shares, starting in _substep_parts(schedule.lengths, cast(int, config.physics_substeps)):
+            mean_speeds, mean_turns = np.zeros_like(speeds), np.zeros_like(speeds)
+            for part in np.flatnonzero(shares):
+                if starting[part]:
+                    begins = schedule.begins[part]
+                    pushed = speeds + schedule.actions[part, :, 0] * push * schedule.holds[part]
+                    speeds = np.where(begins, np.clip(pushed, -config.v_max, config.v_max), speeds)
+                    turn_rates = np.where(begins, schedule.actions[part, :, 1] * config.max_turn_rate, turn_rates)
+                mean_speeds += shares[part] * speeds
+                mean_turns += shares[part] * turn_rates
+            self._drive_part(mean_speeds, mean_turns, 1, self._substep)
+            speeds = speeds + (self.forward_speeds - mean_speeds)  # what contacts did
+        return self._contacts()
+
+    def _drive_part(self, speeds: np.ndarray, turn_rates: np.ndarray, substeps: int, substep: float) -> None:
+        """Drive the agents at forward ``speeds`` and ``turn_rates`` over ``substeps`` sub-steps of ``substep`` seconds
+        (the body of :meth:`drive`); leaves the forward speeds in :attr:`forward_speeds` and raises
+        :attr:`sideways_speed` to the part's largest."""
+        config = self.config
         half_turns = 0.5 * turn_rates * substep
         chords = np.sinc(half_turns / math.pi)  # sin(w h / 2) / (w h / 2): the chord's share of the arc
-        speeds, sideways = np.asarray(forward, dtype=np.float64), 0.0
-        self._arbiter_buffer._int_arr.num = 0
-        for _ in range(cast(int, config.physics_substeps)):
+        sideways = self.sideways_speed
+        for _ in range(substeps):
             # Pymunk first moves the agents with the velocity its last solve left, along the arc that began at the
             # heading; then it solves the velocity of the next arc, which the force sets and the groove holds
             turned = self.headings + 2 * self._half_turns
@@ -260,7 +327,7 @@ class World:
             )
             for body, carrier, position, angle, force in moving:
                 carrier.position, carrier.angle, body.force = position, angle, force
-            self._substep_once()
+            self._substep_once(substep)
             self._read_states()
             self.headings, self._half_turns = wrap_angles(turned), half_turns
             velocities = self.agent_states[:, 2:]
@@ -269,16 +336,15 @@ class World:
             sideways = max(sideways, float(np.abs(across).max()))
             speeds = np.clip(along / chords, -config.v_max, config.v_max)
         self.forward_speeds, self.sideways_speed = speeds, sideways
-        return self._contacts()
 
     def _write_velocities(self) -> None:
         """Give every body the velocity of its row of ``_body_velocities`` (static bodies: 0)."""
         self._write_buffer._float_arr.num = 0  # the position Pymunk reads from
         chipmunk.cpSpaceEachBody(self.space._space, _SET_BODIES, self._write)
 
-    def _substep_once(self) -> None:
-        """One Pymunk sub-step, and the touching pairs after it appended to the arbiter buffer."""
-        chipmunk.cpSpaceStep(self.space._space, self._substep)  # Space.step without its Python bookkeeping (see place())
+    def _substep_once(self, substep: float) -> None:
+        """One Pymunk sub-step of ``substep`` seconds, and the touching pairs after it appended to the arbiter buffer."""
+        chipmunk.cpSpaceStep(self.space._space, substep)  # Space.step without its Python bookkeeping (see place())
         chipmunk.cpSpaceEachCachedArbiter(self.space._space, _GET_ARBITERS, self._arbiter_query)
 
     def _contacts(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -307,3 +373,16 @@ class World:
     def agent_states(self) -> np.ndarray:
         """``(n, 4)`` rows x, y, v_x, v_y (m, m/s) of the agents as Pymunk left them (speeds not clamped); a view."""
         return self._body_states[self._agent_rows]
+
+
+def _substep_parts(lengths: np.ndarray, substeps: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """For each of a step's ``substeps`` equal sub-steps: the share of it that each part of the step (``lengths``,
+    shares of the step, in order) takes, and which parts begin in it."""
+    ends = np.cumsum(lengths)
+    begins = ends - lengths
+    edges = np.arange(substeps + 1) / substeps
+    result = []
+    for low, high in itertools.pairwise(edges):
+        overlap = np.clip(np.minimum(ends, high) - np.maximum(begins, low), 0.0, None) * substeps
+        result.append((overlap, (begins >= low) & (begins < high)))
+    return result

@@ -19,6 +19,7 @@ import torch
 from sb3_formation.controllers.base import PrivilegedPolicy, TeamPolicy
 from sb3_formation.env.blocks import EngineBlocks
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.disturbed import MessageChannel
 from sb3_formation.env.engine import InfoColumn
 from sb3_formation.env.state import TeamState
 from sb3_formation.experiment.trajectories import EpisodeRecorder
@@ -77,6 +78,11 @@ def play_episodes(
     current: list[int | None] = [None] * n_teams
     recorders: list[EpisodeRecorder | None] = [None] * n_teams
     observations = np.zeros((n_teams * n_agents, blocks.local.engine.observation_dim), np.float32)
+    # a talking policy's messages cross the task's links (they lose and delay them unless the task is ideal)
+    communication = config.disturbances.communication
+    lossy = job.policy.message_size and not communication.is_ideal
+    channel = MessageChannel(communication, n_agents, n_teams) if lossy else None
+    links = {} if channel is None else {"channel": channel}
     episode_starts = np.ones(n_teams * n_agents, dtype=bool)
     rows: list[dict[str, Any]] = []
     recorded: list[tuple[int, EpisodeRecorder, bool]] = []
@@ -99,6 +105,8 @@ def play_episodes(
             cast(PrivilegedPolicy, job.policy).start_episodes(started, [states[team] for team in started])
         for team in started:
             observations[slots(team)] = reset[team]
+            if channel is not None:
+                channel.start(team, job.seed + cast(int, current[team]))
             episode_starts[slots(team)] = True
             recorders[team] = EpisodeRecorder(states[team]) if cast(int, current[team]) < job.record else None
             if on_step is not None:
@@ -111,7 +119,7 @@ def play_episodes(
             raise_if_interrupted()  # a Ctrl-C that landed in a finaliser was dropped there
             playing = [team for team, episode in enumerate(current) if episode is not None]
             actions, states = job.policy.predict(
-                observations, state=states, episode_start=episode_starts, deterministic=job.deterministic
+                observations, state=states, episode_start=episode_starts, deterministic=job.deterministic, **links
             )
             actions = blocks.checked_actions(np.asarray(actions).reshape(n_teams * n_agents, 2), playing)
             episode_starts[:] = False

@@ -11,6 +11,7 @@ import numpy as np
 
 from sb3_formation.controllers.base import AgentStep, Policy, TeamPolicy
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.disturbed import MessageChannel
 from sb3_formation.safety.filter import FilterReport, SafetyFilter, SafetyGains
 
 #: Keys of the per-episode safety metrics (:meth:`SafePolicy.episode_metrics`, evaluation rows, TensorBoard).
@@ -98,11 +99,17 @@ class SafePolicy(Policy):
         return self if fitted is self.policy else SafePolicy(fitted, self.filter.gains)
 
     def predict(
-        self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None, deterministic: bool = True
+        self,
+        observation: np.ndarray,
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = True,
+        *,
+        channel: MessageChannel | None = None,
     ) -> tuple[np.ndarray, Any]:
         """The wrapped policy's actions for raw team rows, filtered, and its next state; counts what the filter did
         (rows that start an episode start their counts afresh)."""
-        actions, state = self.policy.predict(observation, state, episode_start, deterministic)
+        actions, state = self.policy.predict(observation, state, episode_start, deterministic, channel=channel)
         rows = np.asarray(observation).reshape(-1, np.shape(observation)[-1])
         safe, report = self.filter.filter(rows, np.asarray(actions).reshape(len(rows), 2))
         if len(self.tally.steps) != len(rows):
