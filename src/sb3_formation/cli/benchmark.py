@@ -7,6 +7,7 @@ import re
 from pathlib import Path
 
 from sb3_formation.cli.common import (
+    add_disturbances_option,
     add_recipe_option,
     add_trust_pickle_option,
     agents_count,
@@ -48,6 +49,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--device", default="auto", help="torch device (default auto)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_disturbances_option(parser)
     add_recipe_option(parser, "recipe of controller: targets (default ch5-bearing)")
     add_trust_pickle_option(parser)
     parser.set_defaults(run=run)
@@ -87,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
                 device=args.device,
                 progress_bar=not args.no_progress,
                 command=args.command_line,
+                disturbances=args.disturbances or "ideal",
             )
             from sb3_formation.viz.plots import plot_trajectory, save_figures  # matplotlib: only where one is drawn
 

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from sb3_formation.env.config import MAX_AGENTS, MAX_EPISODE_STEPS
+from sb3_formation.env.disturbances import disturbance_label, load_disturbances
 from sb3_formation.env.scenes import SCENES
 from sb3_formation.experiment.evaluation import EVALUATION_TEAMS, evaluate_target
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE, MAX_TEAMS
@@ -76,6 +77,32 @@ def add_scenes_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
+DISTURBANCES_HELP = (
+    "the errors of real robots the episodes meet: a profile (ideal, realistic, harsh) or a YAML file of the same format "
+    "(docs/disturbances.md; default ideal)"
+)
+
+
+def add_disturbances_option(parser: argparse.ArgumentParser) -> None:
+    """``--disturbances NAME|FILE``: the disturbances the episodes meet (checked before any work)."""
+    parser.add_argument("--disturbances", type=disturbances_source, help=DISTURBANCES_HELP)
+
+
+def disturbances_source(text: str) -> str:
+    """``--disturbances``' value, once it reads as disturbances (a profile's name or a valid file)."""
+    try:
+        load_disturbances(text)
+    except (ValueError, FileNotFoundError) as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    return text
+
+
+def disturbances_label(args: argparse.Namespace) -> str:
+    """The label of ``--disturbances`` (``ideal`` when not given), for folders."""
+    source = getattr(args, "disturbances", None)
+    return "ideal" if source is None else disturbance_label(source)
+
+
 def add_recipe_option(parser: argparse.ArgumentParser, help: str = RECIPE_HELP, **options: Any) -> None:
     """``--recipe NAME``: a shipped recipe's name or a recipe file."""
     parser.add_argument("--recipe", help=help, **options)
@@ -116,6 +143,7 @@ def add_protocol_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="auto", help="torch device (default auto)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_scenes_option(parser)
+    add_disturbances_option(parser)
     add_recipe_option(parser)
     add_trust_pickle_option(parser)
 
@@ -167,8 +195,9 @@ def evaluate_with_protocol(
         device=args.device,
         progress_bar=not args.no_progress,
         out=out,
+        disturbances=args.disturbances,
     )
-    print(f"{target}: evaluation written to {out or target.evaluation_folder(result.scenes)}")
+    print(f"{target}: evaluation written to {out or target.evaluation_folder(result.scenes, disturbances_label(args))}")
     return result.summary
 
 

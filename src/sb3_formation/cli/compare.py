@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import argparse
 
-from sb3_formation.cli.common import add_protocol_arguments, evaluate_with_protocol, model_trust, target_labels
+from sb3_formation.cli.common import (
+    add_protocol_arguments,
+    disturbances_label,
+    evaluate_with_protocol,
+    model_trust,
+    target_labels,
+)
 from sb3_formation.env.scenes import DEFAULT_SCENES
 from sb3_formation.experiment.evaluation import SUMMARY_FILE, stored_summary
 from sb3_formation.experiment.reports import comparison_table
@@ -76,9 +82,10 @@ def _compare(args: argparse.Namespace) -> int:
     )
     summaries = {}
     for label, target in zip(labels, targets):
-        summary = None if args.force else stored_summary(target, protocol, args.scenes)
+        summary = None if args.force else stored_summary(target, protocol, args.scenes, args.disturbances)
         if summary is not None:
-            print(f"{target}: reusing {target.evaluation_file(SUMMARY_FILE, args.scenes or DEFAULT_SCENES)}")
+            stored = target.evaluation_file(SUMMARY_FILE, args.scenes or DEFAULT_SCENES, disturbances_label(args))
+            print(f"{target}: reusing {stored}")
         summaries[label] = summary or evaluate_with_protocol(args, target, protocol)
     table = comparison_table(summaries, over=args.over)
     print(table)

@@ -7,16 +7,19 @@ import argparse
 from sb3_formation.cli.common import (
     RECIPE_HELP,
     TARGET_HELP,
+    add_disturbances_option,
     add_recipe_option,
     add_scenes_option,
     add_trust_pickle_option,
     agents_count,
+    disturbances_label,
     episodes_count,
     fps_count,
     model_trust,
     scene_overrides,
     steps_count,
 )
+from sb3_formation.env.disturbances import load_disturbances
 from sb3_formation.experiment.targets import Target
 from sb3_formation.utils.arguments import output_path, seed_value
 
@@ -44,6 +47,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("--stochastic", action="store_true", help="sample actions instead of using the mean")
     parser.add_argument("--device", default="auto", help="torch device (default auto)")
     add_scenes_option(parser)
+    add_disturbances_option(parser)
     add_trust_pickle_option(parser)
     parser.set_defaults(run=run)
 
@@ -60,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     target = Target.parse(args.target, args.recipe)
     with model_trust(args):
         policy = target.load(device=args.device)
-    out = args.out or target.evaluation_folder(args.scenes or policy.config.scenes) / "episodes.mp4"
+    out = args.out or target.evaluation_folder(args.scenes or policy.config.scenes, disturbances_label(args)) / "episodes.mp4"
     frames = render_episodes(
         policy,
         out,
@@ -70,7 +74,11 @@ def run(args: argparse.Namespace) -> int:
         deterministic=not args.stochastic,
         fps=args.fps,
         frame_every=args.frame_every,
-        env_overrides={**scene_overrides(args), **({} if args.max_steps is None else {"max_steps": args.max_steps})},
+        env_overrides={
+            **scene_overrides(args),
+            **({} if args.disturbances is None else {"disturbances": load_disturbances(args.disturbances)}),
+            **({} if args.max_steps is None else {"max_steps": args.max_steps}),
+        },
         progress_bar=True,
     )
     print(f"{frames} frames written to {out}")

@@ -315,8 +315,12 @@ class Disturbances:
         if unknown:
             raise ValueError(f"disturbances: unknown key(s) {unknown}; valid: {['profile', *PARTS, 'randomise']}")
         base = profile(values["profile"]) if "profile" in values else cls()
-        parts = {name: _PART_CLASSES[name].from_dict(values[name], getattr(base, name)) for name in PARTS if name in values}
-        return dataclasses.replace(base, **parts, **({"randomise": values["randomise"]} if "randomise" in values else {}))
+        changes: dict[str, Any] = {
+            name: _PART_CLASSES[name].from_dict(values[name], getattr(base, name)) for name in PARTS if name in values
+        }
+        if "randomise" in values:
+            changes["randomise"] = values["randomise"]
+        return dataclasses.replace(base, **changes)
 
     def to_dict(self) -> dict[str, Any]:
         """Every part's fields as plain YAML data, and ``randomise``: what :meth:`from_dict` reads back."""
@@ -362,12 +366,11 @@ def load_disturbances(source: Any) -> Disturbances:
         raise ValueError(f"{path}: {error}") from None
 
 
+def disturbance_label(source: str | Path) -> str:
+    """The short name of disturbances given as a profile's name or a file (the file's stem), for folders and tables."""
+    return str(source) if str(source) in PROFILES else Path(source).stem
+
+
 def drift_correlation(drift_time: float, dt: float) -> float:
     """The correlation exp(-dt / drift_time) of a drifting bias over one step of ``dt`` seconds."""
     return math.exp(-dt / drift_time)
-
-
-def delay_steps(value: float) -> tuple[int, float]:
-    """A delay (steps) as whole steps and the part of a step: ``(floor, rest)``."""
-    whole = math.floor(value)
-    return int(whole), float(value - whole)

@@ -195,7 +195,7 @@ class Disturber:
         :return: the applied actions (rows of teams not stepped: as sent) and the schedules (``None`` without delays)
         """
         applied = np.array(actions, dtype=np.float64)
-        noises: dict[int, np.ndarray] = {}
+        noises: dict[int, np.ndarray | float] = {}
         for team in teams:
             rows, episode = slice(int(self.starts[team]), int(self.starts[team + 1])), self.episodes[team]
             noise = episode.acting.force_noise
@@ -343,6 +343,8 @@ class MessageChannel:
         team_steps = self.steps[np.arange(n_rows) // self.n_agents]
         sent_yet = delays < team_steps[:, None]  # sent in this episode (a message of a step before it never arrives)
         keep = lost | ~sent_yet
-        self.heard = np.where(keep[:, :, None], self.heard, arriving)
+        heard: np.ndarray = np.where(keep[:, :, None], self.heard, arriving)
+        self.heard = heard
         self.steps += 1
-        return self.heard.copy()
+        delivered: np.ndarray = heard.copy()
+        return delivered

@@ -433,7 +433,7 @@ class FormationEngine:
         headings = self.dynamics.headings_of(slice(None))
         if not self.disturber or not self.disturber.localises or headings is None or observed.shape[1] == 0:
             return observed
-        extras = observed.copy()
+        extras: np.ndarray = observed.copy()
         extras[rows] = self.model.observed_values((headings + sensed.heading_errors)[rows])
         return extras
 

@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from sb3_formation import __version__
+from sb3_formation.env.disturbances import disturbance_label, load_disturbances
 from sb3_formation.env.scenes import BENCHMARK_SCENES
 from sb3_formation.experiment.evaluation import EvaluationResult, evaluate_target
 from sb3_formation.experiment.sections import EvaluationSection
@@ -104,6 +105,7 @@ def run_benchmark(
     progress_bar: bool = False,
     scenes: Sequence[str] = BENCHMARK_SCENES,
     command: str = "",
+    disturbances: str = "ideal",
 ) -> list[BenchmarkRow]:
     """Evaluate every target on every scene set; write each evaluation under ``out/<label>/<scenes>/``, then the table
     (``benchmark.md``) and its figures as data (``benchmark.json``).
@@ -122,10 +124,13 @@ def run_benchmark(
     :param progress_bar: show each evaluation's progress bar
     :param scenes: the scene sets (default :data:`~sb3_formation.env.scenes.BENCHMARK_SCENES`)
     :param command: the command line that ran the benchmark, recorded with the table
+    :param disturbances: what the episodes meet: a profile's name or a file
+        (:func:`~sb3_formation.env.disturbances.load_disturbances`)
     """
     if len(labels) != len(targets) or len(set(labels)) != len(labels):
         raise ValueError(f"give one distinct label per target, got {list(labels)} for {len(targets)} targets")
     out = Path(out)
+    world = load_disturbances(disturbances)
     protocol = EvaluationSection(
         episodes=episodes, stage=3, seed=seed, n_envs=min(n_envs, episodes), deterministic=True, record=1
     )
@@ -135,7 +140,7 @@ def run_benchmark(
         if target.kind == "controller":  # others act in their own task
             target = target.with_recipe(recipe)
         for scene_set in scenes:
-            overrides: dict[str, Any] = {"scenes": scene_set}
+            overrides: dict[str, Any] = {"scenes": scene_set, "disturbances": world}
             if n_agents is not None:
                 overrides["n_agents"] = n_agents
             folder = out / label / scene_set
@@ -155,7 +160,8 @@ def run_benchmark(
         "version": __version__,
         "command": command,
         "protocol": f"{episodes} episodes per scene set from seed {seed}, stage 3, deterministic actions, "
-        f"{min(n_envs, episodes)} teams at once, {min(workers, n_envs, episodes)} worker(s)",
+        f"{min(n_envs, episodes)} teams at once, {min(workers, n_envs, episodes)} worker(s)"
+        + ("" if world.is_ideal else f", disturbances {disturbance_label(disturbances)}"),
     }
     atomic_write(out / TABLE_FILE, benchmark_header(run) + "\n\n" + benchmark_table(rows) + "\n")
     atomic_write(out / RESULTS_FILE, json.dumps({"run": run, "rows": [row.cells() for row in rows]}, indent=2) + "\n")

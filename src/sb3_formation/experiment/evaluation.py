@@ -22,8 +22,9 @@ from tqdm.auto import tqdm
 
 from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.env.config import REWARD_TERMS
+from sb3_formation.env.disturbances import disturbance_label, load_disturbances
 from sb3_formation.env.scenes import DEFAULT_SCENES
-from sb3_formation.experiment.rollouts import PlayJob, play_episodes, seed_policy
+from sb3_formation.experiment.rollouts import PlayJob, episode_config, play_episodes, seed_policy
 from sb3_formation.experiment.sections import MAX_RECORDED_EPISODES as MAX_RECORDED_EPISODES
 from sb3_formation.experiment.sections import EvaluationSection, check_record
 from sb3_formation.experiment.statistics import check_summary, mean_and_std, wilson_interval
@@ -67,6 +68,8 @@ class EvaluationResult:
     :param deterministic: whether the policy's mean actions were used
     :param model: where the model came from (``file`` and ``sha256``), if known
     :param scenes: where the episodes were placed (``FormationConfig.scenes``)
+    :param disturbances: the disturbances the episodes met (:meth:`~sb3_formation.env.disturbances.Disturbances.to_dict`;
+        ``None``: the ideal world), recorded in the summary when there are some
     """
 
     episodes: list[dict[str, Any]]
@@ -77,6 +80,7 @@ class EvaluationResult:
     n_agents: int
     model: dict[str, str] | None = None
     scenes: str = DEFAULT_SCENES
+    disturbances: dict[str, Any] | None = None
     summary: dict[str, Any] = field(init=False)
 
     def __post_init__(self) -> None:
@@ -92,6 +96,7 @@ class EvaluationResult:
             "success_rate_ci95": [low, high],
             "stage": self.stage,
             "scenes": self.scenes,
+            **({} if self.disturbances is None else {"disturbances": self.disturbances}),
             "seed": self.seed,
             "deterministic": self.deterministic,
             "n_agents": self.n_agents,
@@ -182,7 +187,8 @@ def evaluate(
     :param seed: seed of the scenarios
     :param n_envs: teams played at once (over all workers)
     :param deterministic: use the policy's mean action (else sample; the sampling is seeded from ``seed``)
-    :param env_overrides: :class:`FormationConfig` fields to change from the policy's configuration
+    :param env_overrides: :class:`FormationConfig` fields to change from the policy's configuration (the episodes
+        meet ideal disturbances unless ``disturbances`` is among them, whatever the policy was trained under)
     :param n_workers: processes playing the episodes
     :param record: record the step-by-step trajectories of the first ``record`` episodes (at most
         :data:`MAX_RECORDED_EPISODES`)
@@ -193,7 +199,7 @@ def evaluate(
     if not 1 <= n_workers <= n_envs:
         raise ValueError(f"n_workers must be in [1, n_envs={n_envs}], got {n_workers}")
     check_record(record)
-    config = policy.config.replace(**{**(env_overrides or {}), "stage": stage})
+    config = episode_config(policy.config, env_overrides, stage)
     policy = policy.fit(config)
     n_teams = min(n_envs, episodes)
     job = PlayJob(policy, config, seed, list(range(episodes)), n_teams, deterministic, record, min(n_workers, n_teams))
@@ -214,6 +220,7 @@ def evaluate(
         n_agents=config.n_agents,
         model=policy_identity(policy),
         scenes=config.scenes,
+        disturbances=None if config.disturbances.is_ideal else config.disturbances.to_dict(),
     )
 
 
@@ -227,6 +234,7 @@ def evaluate_target(
     device: str = "auto",
     progress_bar: bool = False,
     out: str | os.PathLike[str] | None = None,
+    disturbances: str | None = None,
 ) -> EvaluationResult:
     """Evaluate the policy a target names (:meth:`~sb3_formation.experiment.targets.Target.load`) and write its files.
 
@@ -240,27 +248,35 @@ def evaluate_target(
     :param device: torch device
     :param progress_bar: show a progress bar
     :param out: folder for the files (default: :meth:`Target.evaluation_folder`)
+    :param disturbances: the episodes meet these (a profile's name or a file,
+        :func:`~sb3_formation.env.disturbances.load_disturbances`; default: ideal)
     :raises ValueError: the folder is inside the installed package (:func:`~sb3_formation.utils.files.check_writable`),
-        or the protocol is incomplete or invalid
+        the protocol is incomplete or invalid, or the disturbances are neither a profile nor a valid file
     """
     target = Target.parse(target)
     check_writable(out or target.evaluation_folder())  # before the work (the scene suffix does not move it)
+    overrides = dict(env_overrides or {})
+    label = "ideal" if disturbances is None else disturbance_label(disturbances)
+    if disturbances is not None:
+        overrides["disturbances"] = load_disturbances(disturbances)
     policy = target.load(device)
     changes = {name: value for name, value in (changes or {}).items() if value is not None}
     protocol = target.protocol(**changes) if protocol is None else protocol.replace(**changes)
-    result = evaluate(policy, **protocol.kwargs(), env_overrides=env_overrides, n_workers=workers, progress_bar=progress_bar)
-    result.save(out or target.evaluation_folder(result.scenes))
+    result = evaluate(policy, **protocol.kwargs(), env_overrides=overrides, n_workers=workers, progress_bar=progress_bar)
+    result.save(out or target.evaluation_folder(result.scenes, label))
     return result
 
 
-def load_summary(target: Target | str | os.PathLike[str], scenes: str = DEFAULT_SCENES) -> dict[str, Any]:
+def load_summary(
+    target: Target | str | os.PathLike[str], scenes: str = DEFAULT_SCENES, disturbances: str = "ideal"
+) -> dict[str, Any]:
     """The stored evaluation summary of a target (see :meth:`~sb3_formation.experiment.targets.Target.evaluation_file`),
     checked against the other files of its evaluation (see :func:`check_evaluation_set`).
 
     :raises FileNotFoundError: none was written
     :raises ValueError: the file is not an evaluation summary, or the folder holds a mixed set
     """
-    path = Target.parse(target).evaluation_file(SUMMARY_FILE, scenes)
+    path = Target.parse(target).evaluation_file(SUMMARY_FILE, scenes, disturbances)
     summary = read_summary(path)
     check_evaluation_set(path.parent, summary)
     return summary
@@ -312,17 +328,24 @@ def load_trajectories(path: str | os.PathLike[str]) -> Trajectories:
 
 
 def stored_summary(
-    target: Target | str | os.PathLike[str], protocol: EvaluationSection, scenes: str | None = None
+    target: Target | str | os.PathLike[str],
+    protocol: EvaluationSection,
+    scenes: str | None = None,
+    disturbances: str | None = None,
 ) -> dict | None:
     """The target's stored evaluation summary if it is of the same policy (the model file's SHA-256, or the controller
     and its gains) under ``protocol`` (the fields a summary records, :data:`RECORDED_PROTOCOL`, that it sets) on
-    ``scenes`` (``None``: the default scenes' evaluation, whatever scenes it records), else ``None``."""
+    ``scenes`` (``None``: the default scenes' evaluation, whatever scenes it records) and under ``disturbances`` (a
+    profile's name or a file; ``None``: the ideal world), else ``None``."""
     target = Target.parse(target)
     wanted = {name: value for name, value in protocol.kwargs().items() if name in RECORDED_PROTOCOL}
     if scenes is not None:
         wanted["scenes"] = scenes
+    wanted["disturbances"] = None if disturbances is None else load_disturbances(disturbances).to_dict()
     try:
-        summary = load_summary(target, scenes or DEFAULT_SCENES)
+        summary = load_summary(
+            target, scenes or DEFAULT_SCENES, "ideal" if disturbances is None else disturbance_label(disturbances)
+        )
         identity = policy_identity(target.load(device="cpu"))
     except (FileNotFoundError, ValueError):
         return None

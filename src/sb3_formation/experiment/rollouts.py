@@ -19,6 +19,7 @@ import torch
 from sb3_formation.controllers.base import PrivilegedPolicy, TeamPolicy
 from sb3_formation.env.blocks import EngineBlocks
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.disturbances import Disturbances
 from sb3_formation.env.disturbed import MessageChannel
 from sb3_formation.env.engine import InfoColumn
 from sb3_formation.env.state import TeamState
@@ -48,6 +49,12 @@ class PlayJob:
     deterministic: bool
     record: int
     n_workers: int = 1
+
+
+def episode_config(config: FormationConfig, env_overrides: dict[str, Any] | None, stage: int) -> FormationConfig:
+    """The task episodes are played in: a policy's task ``config`` with ``env_overrides`` and ``stage``, in the ideal
+    world unless the overrides give disturbances (whatever the policy was trained under)."""
+    return config.replace(**{"disturbances": Disturbances(), **(env_overrides or {}), "stage": stage})
 
 
 def play_episodes(

@@ -239,26 +239,29 @@ class Target:
         ``None``."""
         return find_run_folder(self.path) if self.is_path else None
 
-    def evaluation_folder(self, scenes: str = DEFAULT_SCENES) -> Path:
+    def evaluation_folder(self, scenes: str = DEFAULT_SCENES, disturbances: str = "ideal") -> Path:
         """Where the evaluation files of the target go by default: ``eval/`` in its run folder (or beside a model file),
         ``eval_<stem>/`` beside an exported ``<stem>.onnx``, and ``evaluations/<kind>-<name>_<recipe>/`` in the working
         folder for a ``<kind>:<name>`` target; an evaluation on other scenes than the default (``scenes``) adds
-        ``-<scenes>`` to the folder's name, one behind the safety filter ``-safe``."""
-        suffix = ("" if scenes == DEFAULT_SCENES else f"-{scenes}") + ("-safe" if self.safe else "")
-        return TARGET_KINDS[self.kind].folder(self, suffix)
+        ``-<scenes>`` to the folder's name, one under disturbances (their label,
+        :func:`~sb3_formation.env.disturbances.disturbance_label`) ``-<label>``, one behind the safety filter ``-safe``."""
+        suffix = ("" if scenes == DEFAULT_SCENES else f"-{scenes}") + ("" if disturbances == "ideal" else f"-{disturbances}")
+        return TARGET_KINDS[self.kind].folder(self, suffix + ("-safe" if self.safe else ""))
 
-    def evaluation_file(self, name: str, scenes: str = DEFAULT_SCENES) -> Path:
+    def evaluation_file(self, name: str, scenes: str = DEFAULT_SCENES, disturbances: str = "ideal") -> Path:
         """The evaluation file ``name`` (e.g. ``summary.json``) of the target: the file itself, in an eval folder, in a
         run folder's ``eval/``, or in a ``<kind>:<name>`` target's :meth:`evaluation_folder`.
 
         :raises FileNotFoundError: there is none (the message says how to make it)
         """
-        default = self.evaluation_folder(scenes)
+        default = self.evaluation_folder(scenes, disturbances)
         folder = self.path if self.is_path else default
         for candidate in (folder, folder / name, default / name):
             if candidate.is_file() and candidate.name == name:
                 return candidate
-        option = "" if scenes == DEFAULT_SCENES else f" --scenes {scenes}"
+        option = ("" if scenes == DEFAULT_SCENES else f" --scenes {scenes}") + (
+            "" if disturbances == "ideal" else f" --disturbances {disturbances}"
+        )
         raise FileNotFoundError(f"no {name} in {self}: run `sb3-formation evaluate {self}{option}` first")
 
     @property

@@ -27,7 +27,7 @@ from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.rendering import render_frame
 from sb3_formation.env.state import TeamState
-from sb3_formation.experiment.rollouts import PlayJob, play_episodes, seed_policy
+from sb3_formation.experiment.rollouts import PlayJob, episode_config, play_episodes, seed_policy
 from sb3_formation.utils.files import replace_with, temporary_beside
 
 #: File suffixes :class:`VideoWriter` can write.
@@ -371,7 +371,7 @@ def render_episodes(
             raise ValueError(f"{name} must be >= 1, got {value}")
     path = Path(path)
     _check_suffix(path)
-    config = policy.config.replace(**{**(env_overrides or {}), "stage": stage})
+    config = episode_config(policy.config, env_overrides, stage)
     job = PlayJob(
         policy=policy.fit(config),
         config=config,
