@@ -87,7 +87,7 @@ def play_episodes(
     observations = np.zeros((n_teams * n_agents, blocks.local.engine.observation_dim), np.float32)
     # a talking policy's messages cross the task's links (they lose and delay them unless the task is ideal)
     communication = config.disturbances.communication
-    lossy = job.policy.message_size and not communication.is_ideal
+    lossy = getattr(job.policy, "message_size", 0) and not communication.is_ideal
     channel = MessageChannel(communication, n_agents, n_teams) if lossy else None
     links = {} if channel is None else {"channel": channel}
     episode_starts = np.ones(n_teams * n_agents, dtype=bool)
