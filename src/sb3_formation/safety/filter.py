@@ -32,7 +32,8 @@ import numba
 import numpy as np
 
 from sb3_formation.env.config import FormationConfig
-from sb3_formation.env.dynamics import dynamics_model
+from sb3_formation.env.disturbances import Disturbances
+from sb3_formation.env.dynamics import clip_speed, dynamics_model
 from sb3_formation.env.observations import observation_fields, observation_layout
 from sb3_formation.env.sensors import ray_directions
 from sb3_formation.safety.qp import solve_rows, solve_with_library
@@ -123,12 +124,104 @@ class FilterReport:
     separation: np.ndarray
 
 
+#: Standard deviations of a Gaussian error that the filter takes as its bound: 99.7 % of draws lie within 3 of a
+#: scalar error (:data:`TAIL_SIGMAS`), and within 3.44 per-axis deviations of a 2-D error of equal axes
+#: (:data:`TAIL_SIGMAS_2D`, sqrt(-2 ln 0.003)).
+TAIL_SIGMAS = 3.0
+TAIL_SIGMAS_2D = math.sqrt(-2.0 * math.log(0.003))
+
+
+@dataclass(frozen=True)
+class FilterBounds:
+    """What the filter assumes of the errors it cannot see (``docs/disturbances.md``, "A filter that stays safe").
+    Bounded errors within these are covered; a Gaussian error is bounded by :data:`TAIL_SIGMAS` standard deviations,
+    so its tails are measured, not guaranteed.
+
+    :param range_error: bound (m) on a lidar range's error
+    :param position_error: bound (m) on the distance between an agent's position estimate and the truth
+    :param heading_error: bound (rad) on an agent's heading error (it turns what the agent reads)
+    :param velocity_error: bound (m/s) on the error of an agent's velocity estimate
+    :param delay: ``(low, high)`` steps from the instant an observation was sensed to the arrival of the action
+        chosen from it (observation delay plus action delay and jitter)
+    :param gain: ``(low, high)`` motor gains
+    :param force_error: bound (share of F_max) on the force noise
+    :param fill_dropped: a beam that returns nothing between two that see something reads as the nearer of them
+    """
+
+    range_error: float = 0.0
+    position_error: float = 0.0
+    heading_error: float = 0.0
+    velocity_error: float = 0.0
+    delay: tuple[float, float] = (0.0, 0.0)
+    gain: tuple[float, float] = (1.0, 1.0)
+    force_error: float = 0.0
+    fill_dropped: bool = False
+
+    @classmethod
+    def declared(cls, disturbances: Disturbances, tail: float = 1.0) -> FilterBounds:
+        """The bounds of a task's disturbances (their largest level when randomised): :data:`TAIL_SIGMAS` standard
+        deviations of each scalar Gaussian error, :data:`TAIL_SIGMAS_2D` of each 2-D one (white and drifting parts
+        combined), both times ``tail``; the delays' and gains' intervals."""
+        sensing, acting, timing = disturbances.sensing, disturbances.acting, disturbances.timing
+        position = math.hypot(sensing.position_noise, sensing.position_drift)
+        heading = math.radians(math.hypot(sensing.heading_noise_deg, sensing.heading_drift_deg))
+        scalar, planar = tail * TAIL_SIGMAS, tail * TAIL_SIGMAS_2D
+        return cls(
+            range_error=scalar * sensing.lidar_noise,
+            position_error=planar * position,
+            heading_error=scalar * heading,
+            velocity_error=planar * sensing.velocity_noise,
+            delay=(
+                timing.observation_delay[0] + timing.action_delay[0],
+                timing.observation_delay[1] + timing.longest_action_delay,
+            ),
+            gain=(min(acting.gain[0], acting.turn_gain[0]), max(acting.gain[1], acting.turn_gain[1])),
+            force_error=planar * acting.force_noise,
+            fill_dropped=sensing.beam_dropout > 0,
+        )
+
+    @property
+    def is_exact(self) -> bool:
+        """No error: the filter of the ideal world."""
+        return self == FilterBounds()
+
+    @property
+    def horizon(self) -> int:
+        """Whole steps of sent actions the filter predicts over (the delay's upper bound, rounded up)."""
+        return math.ceil(self.delay[1] - 1e-9)
+
+
+class SentCommands:
+    """The last actions each row's agent sent (after the filter), newest last, for the filter's prediction over a delay.
+
+    :param horizon: how many are kept
+    """
+
+    def __init__(self, horizon: int) -> None:
+        self.horizon = horizon
+        self.actions = np.zeros((0, horizon, 2))
+
+    def rows(self, count: int, episode_start: np.ndarray | None) -> np.ndarray:
+        """The kept actions ``(count, horizon, 2)`` of ``count`` rows, forgotten where an episode starts (and for every
+        row when the number of rows changed)."""
+        if len(self.actions) != count:
+            self.actions = np.zeros((count, self.horizon, 2))
+        elif episode_start is not None:
+            self.actions[np.asarray(episode_start, dtype=bool).reshape(-1)] = 0.0
+        return self.actions
+
+    def add(self, actions: np.ndarray) -> None:
+        """Keep the actions ``(count, 2)`` just sent."""
+        if self.horizon:
+            self.actions = np.concatenate([self.actions[:, 1:], np.asarray(actions, dtype=np.float64)[:, None]], axis=1)
+
+
 class FilterConstants(NamedTuple):
     """What stays fixed for a filter's life, as its compiled constraint builder reads it."""
 
     directions: np.ndarray  #: ``(n_rays, 2)`` ray directions
     columns: np.ndarray  #: int64: the start columns of lidar_obstacles, lidar_agents and neighbour_offsets in a row
-    gains: np.ndarray  #: gamma, obstacle_margin, agent_margin, comm_margin, keep_comm_range (0/1)
+    gains: np.ndarray  #: gamma, obstacle_margin, agent_margin, comm_margin, keep_comm_range (0/1), neighbour_margin
     speed_normals: np.ndarray  #: ``(sides, 2)`` outward normals of the speed polygon (none for a unicycle)
     speed_limit: float  #: the polygon's apothem (units of v_max)
     lidar_range: float  #: l_s (m)
@@ -169,7 +262,12 @@ def _add_row(
 
 @numba.njit(cache=True)
 def _build_constraints(
-    observations: np.ndarray, projections: np.ndarray, bounds: np.ndarray, constants: FilterConstants, out: Constraints
+    observations: np.ndarray,
+    projections: np.ndarray,
+    bounds: np.ndarray,
+    constants: FilterConstants,
+    out: Constraints,
+    shifts: np.ndarray,
 ) -> None:  # pragma: no cover - compiled; tested through its results
     """Every agent's constraint rows (see the module docstring), in units of v_max (u) and v_max dt (h), into ``out``.
 
@@ -178,6 +276,8 @@ def _build_constraints(
         a holonomic agent, ``h h^T`` for a unicycle (its centre moves along its heading h with the forward speed h . u)
     :param bounds: ``(k, 4, 3)`` each agent's four action-bound rows (a_x, a_y, b) in units of v_max
     :param constants: the filter's constants
+    :param shifts: ``(k, s, 2)`` where each agent may be (m, from where it sensed its row) when its action arrives, one
+        row per delay of the window (none: where it is); each barrier is written for the nearest of them
     """
     directions, columns, gains, speed_normals = (
         constants.directions,
@@ -194,9 +294,11 @@ def _build_constraints(
     )
     speed_limit, rows, rhs, counts, separation = constants.speed_limit, out.rows, out.rhs, out.counts, out.separation
     gamma, obstacle_margin, agent_margin, comm_margin, keep_comm = gains[0], gains[1], gains[2], gains[3], gains[4]
+    neighbour_margin = gains[5]
     step = v_max * dt  # m: the unit of h
     reach = speed_limit * step  # m: the longest move of the controlled point in a step
     n_rays = directions.shape[0]
+    moved = np.empty(2)
     for agent in range(observations.shape[0]):
         row = observations[agent]
         projection = projections[agent]
@@ -211,24 +313,39 @@ def _build_constraints(
                     continue
                 gap = reading * lidar_range
                 nearest = min(nearest, gap)
+                direction = directions[ray]
+                for shift in range(shifts.shape[1]):  # the surface point q seen from where the agent may be
+                    qx = (radius + gap) * directions[ray, 0] - shifts[agent, shift, 0]
+                    qy = (radius + gap) * directions[ray, 1] - shifts[agent, shift, 1]
+                    distance = math.hypot(qx, qy)
+                    if shift == 0 or distance - radius < gap:
+                        gap, moved[0], moved[1] = distance - radius, qx / distance, qy / distance
+                        direction = moved
                 bound = share * gamma * (gap - margin)  # h = |q - p| - R_a - margin, |q - p| = R_a + gap
                 if bound < reach:  # else it cannot bind within a step's move
-                    count = _add_row(rows[agent], rhs[agent], count, projection, directions[ray], bound / step)
-        for side in range(2):  # the ring neighbours: exact offsets
+                    count = _add_row(rows[agent], rhs[agent], count, projection, direction, bound / step)
+        for side in range(2):  # the ring neighbours: their offsets (as estimated)
             offset = row[columns[2] + 2 * side : columns[2] + 2 * side + 2]
             centres = math.hypot(offset[0], offset[1])
             nearest = min(nearest, centres - 2 * radius)
-            if centres <= 0.0:
+            near, near_offset, far, far_offset = centres, offset, centres, offset
+            for shift in range(shifts.shape[1]):  # the nearest and the farthest the neighbour may be
+                moved = offset - shifts[agent, shift]
+                distance = math.hypot(moved[0], moved[1])
+                if shift == 0 or distance < near:
+                    near, near_offset = distance, moved
+                if shift == 0 or distance > far:
+                    far, far_offset = distance, moved
+            if near <= 0.0 or far <= 0.0:
                 continue
-            direction = offset / centres
-            bound = 0.5 * gamma * (centres - 2 * radius - agent_margin)
+            bound = 0.5 * gamma * (near - 2 * radius - neighbour_margin)
             if bound < reach:
-                count = _add_row(rows[agent], rhs[agent], count, projection, direction, bound / step)
+                count = _add_row(rows[agent], rhs[agent], count, projection, near_offset / near, bound / step)
             if keep_comm > 0.5:
-                curvature = (2 * reach) ** 2 / (2 * centres)  # the linearisation's largest error (m)
-                bound = 0.5 * (gamma * (d_comm - comm_margin - centres) - curvature)
+                curvature = (2 * reach) ** 2 / (2 * far)  # the linearisation's largest error (m)
+                bound = 0.5 * (gamma * (d_comm - comm_margin - far) - curvature)
                 if bound < reach:
-                    count = _add_row(rows[agent], rhs[agent], count, projection, -direction, bound / step)
+                    count = _add_row(rows[agent], rhs[agent], count, projection, -far_offset / far, bound / step)
         separation[agent] = nearest
         for bound in range(4):
             rows[agent, count, 0], rows[agent, count, 1], rows[agent, count, 2] = (
@@ -257,11 +374,14 @@ class SafetyFilter:
 
     :param config: the task (dynamics, sizes, lidar, v_max, dt, d_comm)
     :param gains: gains and margins (defaults: :class:`SafetyGains`)
+    :param bounds: the errors it stays safe under (default: those the task's disturbances declare,
+        :meth:`FilterBounds.declared`; none in the ideal world)
     """
 
-    def __init__(self, config: FormationConfig, gains: SafetyGains | None = None) -> None:
+    def __init__(self, config: FormationConfig, gains: SafetyGains | None = None, bounds: FilterBounds | None = None) -> None:
         self.config = config
         self.gains = gains if gains is not None else SafetyGains()
+        self.bounds = bounds if bounds is not None else FilterBounds.declared(config.disturbances)
         observed = observation_fields(config)
         layout = observation_layout(observed)
         #: observation field name -> slice of a row, and a row's width
@@ -279,10 +399,12 @@ class SafetyFilter:
         #: how far ahead of its centre the point an agent steers lies (m): a unicycle's l = v_max / w_max, else 0
         self.lookahead = self.model.look_ahead
         g = self.gains
+        obstacle, agent, neighbour = self._robust_margins(speed_limit)
+        margins = [g.obstacle_margin + obstacle, g.agent_margin + agent, g.comm_margin + neighbour]
         self._constants = FilterConstants(
             directions=ray_directions(config.lidar_rays),
             columns=np.array(columns, dtype=np.int64),
-            gains=np.array([g.gamma, g.obstacle_margin, g.agent_margin, g.comm_margin, float(g.keep_comm_range)]),
+            gains=np.array([g.gamma, *margins, float(g.keep_comm_range), g.agent_margin + neighbour]),
             speed_normals=speed_normals,
             speed_limit=float(speed_limit),
             lidar_range=float(config.lidar_range),
@@ -292,11 +414,40 @@ class SafetyFilter:
             d_comm=float(config.d_comm),
         )
         self._capacity = 2 * config.lidar_rays + _FIXED_CONSTRAINTS + sides
+        #: whole steps of delay the filter predicts over (a unicycle's prediction is the margin of its longest move)
+        predicts = self.bounds.horizon > 0 and not self.model.bounds_speed
+        self._delays = np.arange(math.floor(self.bounds.delay[0]), self.bounds.horizon + 1) if predicts else np.zeros(0, int)
 
-    def filter(self, observations: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, FilterReport]:
+    def _robust_margins(self, speed_limit: float) -> tuple[float, float, float]:
+        """The gaps (m) the declared :attr:`bounds` add to the margins from obstacles, from agents the lidar sees and
+        from ring neighbours (``docs/disturbances.md``): the range error; what the heading error turns a step's move
+        by; what the velocity error, the motor gains and the force noise add to the move of the step and of every step
+        of the delay; the longest delay's move of another agent (and of the agent itself where it is not predicted);
+        twice the position error between two agents' estimates."""
+        bounds, config = self.bounds, self.config
+        if bounds.is_exact:
+            return 0.0, 0.0, 0.0
+        step = config.v_max * config.dt  # m
+        push = config.force_max * config.dt / config.agent_mass  # m/s of a unit action over a step
+        reach = speed_limit * step
+        steps = bounds.horizon + 1  # the delay's whole steps and the step of the action itself
+        # the velocity error of each step: the estimate's, then each step's gain and force errors piled up
+        per_step = (max(bounds.gain[1] - 1.0, 1.0 - bounds.gain[0]) * math.sqrt(2.0) + bounds.force_error) * push
+        drift = sum(bounds.velocity_error + k * per_step for k in range(1, steps + 1)) * config.dt
+        turned = reach * 2.0 * math.sin(min(bounds.heading_error, math.pi) / 2.0) * steps
+        own = 0.0 if not self.model.bounds_speed else bounds.horizon * reach  # a unicycle's move over the delay
+        obstacle = bounds.range_error + turned + drift + own
+        other = bounds.delay[1] * reach  # another agent's move over the delay, unseen
+        return obstacle, obstacle + other, drift + turned + own + other + 2.0 * bounds.position_error
+
+    def filter(
+        self, observations: np.ndarray, actions: np.ndarray, sent: np.ndarray | None = None
+    ) -> tuple[np.ndarray, FilterReport]:
         """Safe actions ``(k, 2)`` for ``(k, obs_dim)`` raw rows and their proposed ``(k, 2)`` actions (float32 or
-        float64, kept; anything else becomes float64), and what the filter did. Each row is filtered from itself alone;
-        rows whose actions keep every constraint come back as they were (after clipping to [-1, 1]).
+        float64, kept; anything else becomes float64), and what the filter did. Each row is filtered from itself alone
+        (and, under a declared delay, the actions its agent sent before, ``sent`` ``(k, h, 2)`` newest last:
+        :class:`SentCommands`); rows whose actions keep every constraint come back as they were (after clipping to
+        [-1, 1]).
 
         :raises ValueError: rows or actions of the wrong shape, rows or actions that are not finite, or rows so far out of
             range that the safe actions would not be (the filter never returns a non-finite action)
@@ -315,13 +466,18 @@ class SafetyFilter:
         if not np.isfinite(observations).all():
             raise ValueError("the safety filter got observation rows that are not finite (NaN or inf)")
         proposed = np.clip(proposed, -1.0, 1.0)
+        count = len(observations)
+        shifts = np.zeros((count, 0, 2))
+        if self.bounds.fill_dropped:
+            observations = self._filled(observations)
+        if len(self._delays):
+            observations, shifts = self._predicted(observations, sent)
         velocity = observations[:, self.layout["velocity"]]
         targets, projections, bounds, frames = self.model.point_problem(
             observations, self.layout, proposed.astype(np.float64), self._push
         )
-        count = len(observations)
         constraints = Constraints.zeros(count, self._capacity)
-        _build_constraints(observations, projections, bounds, self._constants, constraints)
+        _build_constraints(observations, projections, bounds, self._constants, constraints, shifts)
         rows, rhs, counts, separation = constraints.rows, constraints.rhs, constraints.counts, constraints.separation
         if self.gains.solver == "fast":
             solutions = solve_rows(targets, self.gains.slack_weight, rows, rhs, counts)
@@ -344,3 +500,37 @@ class SafetyFilter:
         change = np.where(changed, np.linalg.norm(safe - proposed, axis=1), 0.0)
         infeasible = solutions[:, 2] > self.gains.infeasible_slack
         return safe, FilterReport(changed, change, infeasible, separation)
+
+    def _filled(self, observations: np.ndarray) -> np.ndarray:
+        """Rows whose dropped beams (a beam that sees nothing between two that see something) read as the nearer of
+        their neighbours, on both lidar channels."""
+        rows, rays = observations.copy(), self.config.lidar_rays
+        for name in ("lidar_obstacles", "lidar_agents"):
+            readings = rows[:, self.layout[name]]
+            before, after = np.roll(readings, 1, axis=1), np.roll(readings, -1, axis=1)
+            dropped = (readings >= 1.0) & (before < 1.0) & (after < 1.0) if rays > 2 else np.zeros_like(readings, bool)
+            rows[:, self.layout[name]] = np.where(dropped, np.minimum(before, after), readings)
+        return rows
+
+    def _predicted(self, observations: np.ndarray, sent: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Where each agent may be when the action chosen now arrives: for each whole delay d of the window, its move
+        (m) from where it sensed its row under the d actions it sent last (oldest first; eq. 19 from the row's
+        velocity), plus what its step under the new action moves otherwise than the filter reckons from the velocity of
+        the longest delay, which the rows returned carry (``(k, delays, 2)`` shifts)."""
+        config, horizon, count = self.config, self.bounds.horizon, len(observations)
+        history = np.zeros((count, horizon, 2)) if sent is None else np.asarray(sent, dtype=np.float64)
+        history = history[:, history.shape[1] - horizon :] if history.ndim == 3 else history
+        if history.shape != (count, horizon, 2):
+            raise ValueError(f"the safety filter takes ({count}, {horizon}, 2) sent actions, got shape {history.shape}")
+        start = observations[:, self.layout["velocity"]]
+        moves, velocities = np.zeros((count, len(self._delays), 2)), np.zeros((count, len(self._delays), 2))
+        for index, delay in enumerate(self._delays):
+            velocity, moved = start.copy(), np.zeros((count, 2))
+            for step in range(horizon - delay, horizon):
+                velocity = clip_speed(velocity + np.clip(history[:, step], -1.0, 1.0) * self._push, config.v_max)
+                moved += velocity * config.dt
+            moves[:, index], velocities[:, index] = moved, velocity
+        reckoned = velocities[:, -1]
+        rows = observations.copy()
+        rows[:, self.layout["velocity"]] = reckoned
+        return rows, moves + (velocities - reckoned[:, None]) * config.dt

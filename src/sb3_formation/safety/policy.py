@@ -12,7 +12,7 @@ import numpy as np
 from sb3_formation.controllers.base import AgentStep, Policy, TeamPolicy
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.disturbed import MessageChannel
-from sb3_formation.safety.filter import FilterReport, SafetyFilter, SafetyGains
+from sb3_formation.safety.filter import FilterReport, SafetyFilter, SafetyGains, SentCommands
 
 #: Keys of the per-episode safety metrics (:meth:`SafePolicy.episode_metrics`, evaluation rows, TensorBoard).
 SAFETY_METRIC_KEYS = ("filter_changed_fraction", "filter_change_mean", "filter_infeasible_steps", "min_separation")
@@ -81,11 +81,13 @@ class SafePolicy(Policy):
         self.config: FormationConfig = policy.config
         self.filter = SafetyFilter(policy.config, gains)
         self.tally = FilterTally()
+        #: the actions each row sent, for the filter's prediction over a declared delay
+        self.sent = SentCommands(self.filter.bounds.horizon)
         #: what the filter did at the last :meth:`agent_step` (``None`` before the first)
         self.report: FilterReport | None = None
 
     def __getattr__(self, name: str) -> Any:
-        if name in ("policy", "config", "filter", "tally", "report"):  # not yet set (unpickling): no recursion
+        if name in ("policy", "config", "filter", "tally", "report", "sent"):  # not yet set (unpickling): no recursion
             raise AttributeError(name)
         return getattr(self.policy, name)
 
@@ -111,7 +113,9 @@ class SafePolicy(Policy):
         (rows that start an episode start their counts afresh)."""
         actions, state = self.policy.predict(observation, state, episode_start, deterministic, channel=channel)
         rows = np.asarray(observation).reshape(-1, np.shape(observation)[-1])
-        safe, report = self.filter.filter(rows, np.asarray(actions).reshape(len(rows), 2))
+        sent = self.sent.rows(len(rows), episode_start)
+        safe, report = self.filter.filter(rows, np.asarray(actions).reshape(len(rows), 2), sent)
+        self.sent.add(safe)
         if len(self.tally.steps) != len(rows):
             self.tally.resize(len(rows))
         elif episode_start is not None:
@@ -132,7 +136,8 @@ class SafePolicy(Policy):
         filter did is kept in :attr:`report`."""
         step = self.policy.agent_step(observations, agents, state, episode_start, received, deterministic)
         rows = np.asarray(observations).reshape(len(step.action), -1)
-        safe, self.report = self.filter.filter(rows, step.action)
+        safe, self.report = self.filter.filter(rows, step.action, self.sent.rows(len(rows), episode_start))
+        self.sent.add(safe)
         return step._replace(action=safe)
 
     def episode_metrics(self, rows: slice) -> dict[str, float]:

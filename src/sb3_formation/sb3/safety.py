@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepReturn
 
-from sb3_formation.safety.filter import SafetyFilter, SafetyGains
+from sb3_formation.safety.filter import SafetyFilter, SafetyGains, SentCommands
 from sb3_formation.safety.policy import FilterTally
 from sb3_formation.sb3.action_wrapper import ActionVecEnvWrapper
 
@@ -36,6 +36,8 @@ class SafetyVecEnv(ActionVecEnvWrapper):
         #: each team task's filter and the slots of its teams
         self._filters = [(SafetyFilter(config, gains), slots) for config, slots in venv.slots_by_task().items()]
         self.tally = FilterTally(venv.num_envs)
+        #: the actions each slot sent, for the filters' prediction over a declared delay
+        self.sent = SentCommands(max(safety.bounds.horizon for safety, _ in self._filters))
         self._change = np.zeros(venv.num_envs)
 
     def reset(self) -> VecEnvObs:
@@ -45,10 +47,12 @@ class SafetyVecEnv(ActionVecEnvWrapper):
 
     def _env_actions(self, observations: np.ndarray, actions: np.ndarray) -> np.ndarray:
         safe = np.empty((len(observations), 2))
+        sent = self.sent.rows(len(observations), None)
         for safety, slots in self._filters:
-            safe[slots], report = safety.filter(observations[slots], actions[slots])
+            safe[slots], report = safety.filter(observations[slots], actions[slots], sent[slots])
             self._change[slots] = report.change
             self.tally.add(report, slots)
+        self.sent.add(safe)
         return safe
 
     def step_wait(self) -> VecEnvStepReturn:
@@ -60,4 +64,5 @@ class SafetyVecEnv(ActionVecEnvWrapper):
                 team = self.venv.team_slots(self.venv.slot_team(slot))
                 info["formation_episode"] = {**info["formation_episode"], **self.tally.metrics(team)}
                 self.tally.restart(team)
+                self.sent.actions[team] = 0.0
         return observations, rewards, dones, infos
