@@ -300,10 +300,10 @@ class Disturbances:
         return dataclasses.replace(self, randomise=True)
 
     @classmethod
-    def from_dict(cls, values: Any) -> Disturbances:
+    def from_dict(cls, values: Any, base: Disturbances | None = None) -> Disturbances:
         """Disturbances from a mapping as a file writes them: ``profile:`` (a name of :data:`PROFILES`, optional) to
-        start from, then any of the parts (each a mapping of its fields, the others from the profile) and
-        ``randomise``.
+        start from (else ``base``, else none), then any of the parts (each a mapping of its fields, the others from the
+        profile) and ``randomise``.
 
         :raises ValueError: not a mapping, unknown keys or fields, invalid values (one line naming the field)
         """
@@ -314,7 +314,7 @@ class Disturbances:
         unknown = sorted(set(values) - {*PARTS, "randomise", "profile"})
         if unknown:
             raise ValueError(f"disturbances: unknown key(s) {unknown}; valid: {['profile', *PARTS, 'randomise']}")
-        base = profile(values["profile"]) if "profile" in values else cls()
+        base = profile(values["profile"]) if "profile" in values else base or cls()
         changes: dict[str, Any] = {
             name: _PART_CLASSES[name].from_dict(values[name], getattr(base, name)) for name in PARTS if name in values
         }

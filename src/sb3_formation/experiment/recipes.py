@@ -38,6 +38,7 @@ from sb3_formation.experiment.sections import (
     OPTION,
     SECTIONS,
     CurriculumSection,
+    DisturbancesSection,
     EnvSection,
     EvaluationSection,
     ImitationSection,
@@ -70,7 +71,7 @@ DEFAULT_RECIPE = "ch5-bearing"
 #: The key of a recipe file that holds the run options, not the recipe.
 RUN_KEY = RunOptions.key
 #: The sections a recipe may leave out, written ``{}`` when off: null or ``{}`` in a derived file switches one off.
-OPTIONAL_SECTIONS = ("residual", "imitation", "safety")
+OPTIONAL_SECTIONS = ("residual", "imitation", "safety", "disturbances")
 #: The most teams a recipe may play at once (``n_envs``): 70 times the thesis's 14 (thesis 5.3).
 MAX_TEAMS = 1024
 #: The most bytes a PPO iteration's rollout may hold (SB3's buffer of float32 observations and the values below, for
@@ -103,6 +104,7 @@ class Recipe:
     :param residual: train a bounded correction of a controller (default: none)
     :param imitation: pretrain the actor on a controller's actions (default: none)
     :param safety: train behind the safety filter (default: none)
+    :param disturbances: train under randomised disturbances (default: the ideal world)
     :param team_sizes: teams of several sizes in one rollout, taken in turn (team j has team_sizes[j % len(team_sizes)]
         agents; unset: every team has the task's n_agents); a policy trained on several sizes acts in teams of any size
     :param source: the file it was read from
@@ -120,6 +122,7 @@ class Recipe:
     residual: ResidualSection | None = None
     imitation: ImitationSection | None = None
     safety: SafetySection | None = None
+    disturbances: DisturbancesSection | None = None
     team_sizes: tuple[int, ...] | None = option(None)
     source: Path | None = field(default=None, compare=False)
 
@@ -295,6 +298,12 @@ class Recipe:
     def config(self, **changes: Any) -> FormationConfig:
         """The recipe's task configuration, with ``changes`` (:class:`FormationConfig` fields) applied."""
         return self.env.config(**changes)
+
+    def training_config(self, **changes: Any) -> FormationConfig:
+        """The task its training episodes are played in: :meth:`config` under the ``disturbances`` section's randomised
+        disturbances, if any."""
+        world = {} if self.disturbances is None else {"disturbances": self.disturbances.disturbances()}
+        return self.config(**{**world, **changes})
 
     def ppo_kwargs(self) -> dict[str, Any]:
         """Keyword arguments of ``PPO`` (or, for a recurrent policy, :class:`RecurrentFormationPPO`), with the policy

@@ -28,6 +28,7 @@ from stable_baselines3.common.utils import LinearSchedule
 
 from sb3_formation.controllers.residual import check_residual_scale
 from sb3_formation.env.config import TASKS, FormationConfig
+from sb3_formation.env.disturbances import Disturbances, load_disturbances
 from sb3_formation.env.scenes import SCENES
 from sb3_formation.safety.filter import SafetyGains
 from sb3_formation.safety.qp import check_solver
@@ -570,6 +571,35 @@ class SafetySection(Section):
             raise ValueError(f"safety: {error}") from None
 
 
+@dataclass(frozen=True)
+class DisturbancesSection(Section):
+    """``disturbances:``: train under randomised disturbances (domain randomisation, ``docs/disturbances.md``): each
+    training episode draws its level uniformly between the ideal world and these. Evaluation stays ideal unless asked.
+
+    :param profile: train under randomised disturbances up to a profile (realistic, harsh) or a disturbances file:
+        each episode draws its level between ideal and it
+    :param overrides: parts of the disturbances replacing the profile's, written beside ``profile:`` as in a
+        disturbances file (e.g. ``timing: {action_delay: [0, 1]}``)
+    """
+
+    key: ClassVar[str] = "disturbances"
+    rest: ClassVar[str | None] = "overrides"
+
+    profile: str = option(name="disturbances")
+    overrides: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self._check("profile", "a profile's name or a disturbances file", lambda value: isinstance(value, str))
+        try:
+            self.disturbances()
+        except (ValueError, FileNotFoundError) as error:
+            raise ValueError(f"disturbances: {error}") from None
+
+    def disturbances(self) -> Disturbances:
+        """The disturbances training draws its levels up to, randomised."""
+        return Disturbances.from_dict(self.overrides, load_disturbances(self.profile)).randomised()
+
+
 #: The sections of a recipe by their keys, in the order a recipe file writes them.
 SECTIONS: dict[str, type[Section]] = {
     section.key: section
@@ -583,6 +613,7 @@ SECTIONS: dict[str, type[Section]] = {
         ResidualSection,
         ImitationSection,
         SafetySection,
+        DisturbancesSection,
     )
 }
 

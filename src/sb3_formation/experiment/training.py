@@ -319,7 +319,7 @@ def make_training_env(settings: TrainSettings, stage: int, normalizer_path: Path
     of the discounted return on top of it.
     """
     recipe = settings.recipe
-    config = recipe.config(stage=stage)
+    config = recipe.training_config(stage=stage)
     teams = make_formation_vec_env(
         config,
         n_envs=recipe.n_envs,
