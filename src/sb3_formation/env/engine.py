@@ -179,6 +179,8 @@ class FormationEngine:
             if self.disturber.localises:
                 self._sensed_fields = tuple(Formations.zeros(n_teams, n_slots))
         self._no_errors = (np.zeros(0), np.zeros((0, 0)), np.zeros((0, 0), dtype=bool))
+        #: what the agents sensed at the last reset or step (``None`` in the ideal world): what a simulator publishes
+        self.sensed: SensedTeams | None = None
 
     @property
     def n_teams(self) -> int:
@@ -415,7 +417,7 @@ class FormationEngine:
         sensing = (latest.positions, latest.velocities, formations, *self._no_errors)
         disturber = self.disturber
         if disturber is not None:
-            sensed = disturber.sense(latest.positions, latest.velocities, active.tolist(), drift=accumulate)
+            sensed = self.sensed = disturber.sense(latest.positions, latest.velocities, active.tolist(), drift=accumulate)
             observed = self._sensed_extras(observed, picked, sensed)
             if disturber.localises:
                 _store_formations(active, constants, sensed.positions, self._sensed_fields)
