@@ -255,10 +255,12 @@ def arrival_parts(
             if sent_steps[k, agent] > newest and arrivals[k, agent] <= now:
                 newest, slot = sent_steps[k, agent], k
         changes[agent, 0], slots[agent, 0], count = 0.0, slot, 1
-        while True:  # later arrivals within the step, earliest first, each newer than what holds
+        while True:  # later arrivals within the step, earliest first (of simultaneous ones the newest), each newer
             best, best_time = -1, now + 1.0
             for k in range(memory):
-                if sent_steps[k, agent] > newest and now < arrivals[k, agent] < best_time:
+                if sent_steps[k, agent] <= newest or not now < arrivals[k, agent] <= best_time:
+                    continue
+                if arrivals[k, agent] < best_time or (best >= 0 and sent_steps[k, agent] > sent_steps[best, agent]):
                     best, best_time = k, arrivals[k, agent]
             if best < 0:
                 break

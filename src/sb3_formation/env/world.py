@@ -262,6 +262,10 @@ class World:
             self._substep_once(self._substep)
             self._read_states()
             own = own + (self.agent_states[:, 2:] - mean)  # what contacts did
+        # the step ends at the velocity of its last part (a sub-step that a part begins in moved at a mean)
+        self._body_velocities[self._agent_rows] = own
+        self._write_velocities()
+        self._read_states()
         return self._contacts()
 
     def drive(self, forward: np.ndarray, turn_rates: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -304,6 +308,7 @@ class World:
                 mean_turns += shares[part] * turn_rates
             self._drive_part(mean_speeds, mean_turns, 1, self._substep)
             speeds = speeds + (self.forward_speeds - mean_speeds)  # what contacts did
+        self.forward_speeds = np.clip(speeds, -config.v_max, config.v_max)  # the last part's (not the sub-step's mean)
         return self._contacts()
 
     def _drive_part(self, speeds: np.ndarray, turn_rates: np.ndarray, substeps: int, substep: float) -> None:
