@@ -526,11 +526,6 @@ def test_with_localisation_noise_each_row_is_the_geometry_of_the_sensed_position
     assert 0.5 * math.hypot(0.05, 0.05) < spread < 1.5 * math.hypot(0.05, 0.05), spread
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="engine.py bug (not in this change's files): _measure_teams remembers the TRUE centroid's goal offset, so "
-    "centroid_goal_offset_change = (g - c_sensed,t) - (g - c_true,t-1) and offset - change leaks the true centroid",
-)
 def test_the_centroid_goal_offset_change_is_the_change_of_what_the_agent_observed() -> None:
     """With localisation noise, centroid_goal_offset_change (c_g,t - c_g,t-1) is the difference of the centroid goal
     offsets the row observed at t and at t - 1 (as an agent on board computes it), not one that needs the truth."""

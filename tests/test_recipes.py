@@ -20,6 +20,7 @@ from stable_baselines3 import PPO
 from sb3_formation.cli import build_parser, main
 from sb3_formation.cli.train import settings_of as train_settings
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.disturbances import profile
 from sb3_formation.experiment.pretrained import numerics_fingerprint
 from sb3_formation.experiment.recipes import (
     RECIPES_FOLDER,
@@ -27,6 +28,7 @@ from sb3_formation.experiment.recipes import (
     TrainSettings,
     layered_settings,
     load_recipe,
+    option_changes,
     read_safety_gains,
     recipe_names,
     recipe_options,
@@ -51,6 +53,7 @@ def test_the_four_thesis_recipes_are_shipped_with_their_citations() -> None:
         "residual-ch5-bearing-unicycle",
         "residual-scenes-ch5-bearing",
         "residual-talk-scenes-ch5-bearing",
+        "robust-scenes-ch5-bearing",
     ]
     thesis_ppo = {"n_steps": 128, "batch_size": 512, "n_epochs": 10, "learning_rate": 5e-5, "gamma": 0.995}
     thesis_ppo |= {"gae_lambda": 0.95, "clip_range": 0.2, "clip_range_vf": 20.0, "target_kl": 0.03}
@@ -347,7 +350,7 @@ def test_every_field_is_documented_and_each_option_is_declared_once_on_its_field
         "n_envs": None, "team_sizes": None, "env": "env", "recurrent": "policy", "cell": "policy",
         "iterations": "curriculum", "success_threshold": "curriculum", "normalize_reward": "training", "steps": "training",
         "minutes": "training", "eval_every": "training", "seed": "run", "device": "run", "workers": "run", "logdir": "run",
-        "checkpoint_every": "run", "progress_bar": "run", "evaluate": "run",
+        "checkpoint_every": "run", "progress_bar": "run", "evaluate": "run", "disturbances": "disturbances",
     }  # fmt: skip
     steps = next(option for option in options if option.name == "steps")
     assert steps.help == field_docs(SECTIONS["training"])["steps"]
@@ -399,3 +402,19 @@ def test_flags_made_from_the_fields_change_their_sections() -> None:
     assert settings.run.progress_bar is False and settings.run.seed == 0
     with pytest.raises(SystemExit):
         parser.parse_args(["train", "--iterations", "1,2"])  # three stages
+
+
+def test_a_disturbances_section_trains_under_randomised_levels_and_leaves_the_task_ideal() -> None:
+    robust, ideal = load_recipe("robust-scenes-ch5-bearing"), load_recipe("residual-scenes-ch5-bearing")
+    assert robust.config() == ideal.config() and robust.config().disturbances.is_ideal
+    trained = robust.training_config(stage=3).disturbances
+    assert trained == profile("harsh").randomised() and ideal.training_config(stage=3) == ideal.config(stage=3)
+    # a profile and parts over it, as a disturbances file writes them; the train option sets the profile
+    changed = ideal.with_changes({"disturbances": {"profile": "realistic", "timing": {"action_delay": [0.5, 0.5]}}})
+    assert changed.training_config().disturbances.timing.action_delay == (0.5, 0.5)
+    assert changed.training_config().disturbances.sensing == profile("realistic").sensing
+    assert option_changes({"disturbances": "harsh"}) == {"disturbances": {"profile": "harsh"}}
+    with pytest.raises(ValueError, match=r"disturbances: .*neither a profile"):
+        ideal.with_changes({"disturbances": {"profile": "no-such-profile"}})
+    with pytest.raises(ValueError, match=r"disturbances: sensing\.lidar_noise=-1"):
+        ideal.with_changes({"disturbances": {"profile": "ideal", "sensing": {"lidar_noise": -1}}})

@@ -419,8 +419,13 @@ class FormationEngine:
         if disturber is not None:
             sensed = self.sensed = disturber.sense(latest.positions, latest.velocities, active.tolist(), drift=accumulate)
             observed = self._sensed_extras(observed, picked, sensed)
-            if disturber.localises:
+            if disturber.localises:  # the formation the agents measure, and the centroid offset they compare with
+                goals, offsets, centroids = self.episodes.goals, self.episodes.previous_offsets, self._sensed_fields[0]
+                if accumulate:
+                    offsets[active] = goals[active] - centroids[active]
                 _store_formations(active, constants, sensed.positions, self._sensed_fields)
+                if not accumulate:
+                    offsets[active] = goals[active] - centroids[active]
             errors = (sensed.heading_errors, sensed.beam_noise, sensed.dropped)
             sensing = (sensed.positions, sensed.velocities, self._sensed_fields, *errors)
         shapes = self._shape_fields
