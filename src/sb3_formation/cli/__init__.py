@@ -29,7 +29,7 @@ if TYPE_CHECKING:
 #: The subcommands' modules (under ``sb3_formation.cli``), in the order ``--help`` lists them: each adds its parser,
 #: which names its ``run``.
 COMMANDS: tuple[str, ...] = ("train", "recipes", "pretrained", "evaluate", "plot", "render", "compare", "benchmark")
-COMMANDS += ("sweep", "rollout", "export", "ros")
+COMMANDS += ("robustness", "sweep", "rollout", "export", "ros")
 
 
 def command_modules() -> list[ModuleType]:

@@ -263,6 +263,69 @@ def plot_evaluation_bars(summaries: Mapping[str, dict], over: str = "successful"
     return figure
 
 
+# Robustness curves ---------------------------------------------------------------------------------------------------
+
+
+def plot_robustness(rows: Sequence[Mapping[str, Any]], scenes: str | None = None) -> Figure:
+    """Robustness curves of one scene set: success, the share of episodes with contacts and the shape error against
+    the disturbance level, a column each, a row of panels per factor (all parts, then each part alone), one line per
+    target with its 95 % interval as a band; a dotted line marks level 1, the profile itself.
+
+    :param rows: the sweep's rows (:meth:`~sb3_formation.experiment.robustness.RobustnessRow.cells`, or the ``rows``
+        of ``robustness.json``)
+    :param scenes: the scene set drawn (default: the one the rows have)
+    :raises ValueError: no rows of ``scenes``, or rows of several scene sets and no ``scenes``
+    """
+    sets = list(dict.fromkeys(row["scenes"] for row in rows))
+    if scenes is None:
+        if len(sets) != 1:
+            raise ValueError(f"the rows are of {len(sets)} scene sets {sets}: name the one to draw")
+        scenes = sets[0]
+    chosen = [row for row in rows if row["scenes"] == scenes]
+    if not chosen:
+        raise ValueError(f"no rows of the scene set {scenes!r} to plot; the rows have {sets}")
+    panels = (  # a row's value, its 95 % interval, the panel's title and its y-axis
+        ("success_rate", "success_rate_ci95", "success", "success rate"),
+        ("contact_rate", "contact_rate_ci95", "episodes with contacts", "share of episodes"),
+        ("shape_error", "shape_error_ci95", "shape error over successes", "bearing error"),
+    )
+    factors = list(dict.fromkeys(row["factor"] for row in chosen))
+    targets = list(dict.fromkeys(row["target"] for row in chosen))
+    figure = _new_figure((4.0 * len(panels) + 0.4, 2.7 * len(factors) + 1.0))
+    axes = figure.subplots(len(factors), len(panels), squeeze=False, sharex=True, sharey="col")
+    levels = sorted({float(row["level"]) for row in chosen})
+    for factor_axes, factor in zip(axes, factors):
+        for ax, (value, interval, title, ylabel) in zip(factor_axes, panels):
+            for index, target in enumerate(targets):
+                points = sorted(
+                    (row for row in chosen if row["factor"] == factor and row["target"] == target),
+                    key=lambda row: float(row["level"]),
+                )
+                x = np.array([float(row["level"]) for row in points])
+                y = np.array([np.nan if row[value] is None else float(row[value]) for row in points])
+                bounds = np.array([[np.nan, np.nan] if row[interval] is None else row[interval] for row in points])
+                colour = _colour(index)
+                ax.plot(x, y, color=colour, marker="o", markersize=3.5, linewidth=1.2, label=target)
+                if len(points):
+                    ax.fill_between(x, bounds[:, 0], bounds[:, 1], color=colour, alpha=0.2, linewidth=0)
+            if levels[0] <= 1.0 <= levels[-1]:
+                ax.axvline(1.0, color="dimgray", linestyle=":", linewidth=1.0)
+            if value != "shape_error":
+                ax.set_ylim(-0.02, 1.05)
+            ax.set_title(f"{'all parts' if factor == 'all' else factor}: {title}", fontsize="medium")
+            ax.set_ylabel(ylabel)
+            ax.grid(alpha=0.3)
+    axes[0][-1].set_ylim(bottom=0.0)  # once every factor's errors are drawn (the column shares its axis)
+    for ax in axes[-1]:
+        ax.set_xlabel("disturbance level (1: the profile)")
+        if len(levels) <= 10:
+            ax.set_xticks(levels, [f"{level:g}" for level in levels])
+    handles = [Line2D([], [], color=_colour(index), marker="o", label=target) for index, target in enumerate(targets)]
+    figure.legend(handles=handles, loc="outside lower center", ncols=min(len(targets), 4), frameon=False)
+    figure.suptitle(f"robustness on {scenes}: {chosen[0]['episodes']} episodes a point, bands 95 % intervals")
+    return figure
+
+
 # Training curves -----------------------------------------------------------------------------------------------------
 
 
