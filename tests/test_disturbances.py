@@ -31,7 +31,7 @@ from sb3_formation.env.disturbances import (
     load_disturbances,
     profile,
 )
-from sb3_formation.env.disturbed import Disturber, MessageChannel, arrival_parts
+from sb3_formation.env.disturbed import Disturber, MessageChannel, arrival_changes
 from sb3_formation.env.engine import EngineStep, FormationEngine
 from sb3_formation.env.observations import observation_fields, observation_layout
 from sb3_formation.env.scenarios import Scenario
@@ -417,40 +417,32 @@ def test_a_part_step_action_delay_carries_a_unicycles_last_forward_speed() -> No
     assert engine.worlds[0].headings == pytest.approx(headings, abs=1e-12)  # type: ignore[union-attr]
 
 
-def parts(now: float, sent: list[list[int]], arrivals: list[list[float]]) -> tuple[np.ndarray, ...]:
-    result: tuple[np.ndarray, ...] = arrival_parts(now, np.array(sent, dtype=np.int64), np.array(arrivals, dtype=np.float64))
-    return result
+def changes(now: float, sent: list[list[int]], arrivals: list[list[float]]) -> list[list[tuple[float, int]]]:
+    """Each agent's changes of action within the step from ``now``: (time, slot) pairs."""
+    sent_steps, arrival_times = np.array(sent, dtype=np.int64), np.array(arrivals, dtype=np.float64)
+    times, slots, counts = arrival_changes(np.full(sent_steps.shape[1], now), sent_steps, arrival_times)
+    return [[(round(float(times[a, c]), 12), int(slots[a, c])) for c in range(counts[a])] for a in range(len(counts))]
 
 
-def test_arrival_parts_cut_the_step_at_arrivals_and_the_newest_sent_holds() -> None:
+def test_arrival_changes_happen_at_arrivals_and_the_newest_sent_holds() -> None:
     """Hand-built rings of sent actions (rows: memory slots, columns: agents) at step 7."""
     inf = math.inf
     # agent 0: sent 5 has arrived; sent 7 arrives at 7.3, sent 6 (older) at 7.9 after it: 6 never applies.
-    # agent 1: sent 5 has arrived; sent 6 arrives at 7.2, sent 7 at 7.6. Cuts at 0.2, 0.3 and 0.6 of the step.
-    lengths, slots, begins, holds = parts(
-        7.0, [[5, 5], [6, 6], [7, 7], [-1, -1]], [[5.2, 6.5], [7.9, 7.2], [7.3, 7.6], [inf, inf]]
-    )
-    assert lengths == pytest.approx([0.2, 0.1, 0.3, 0.4], abs=1e-12)
-    assert slots.tolist() == [[0, 0], [0, 1], [2, 1], [2, 2]]
-    assert begins.tolist() == [[True, True], [False, True], [True, False], [False, True]]
-    assert holds == pytest.approx(np.array([[0.3, 0.2], [0.0, 0.4], [0.7, 0.0], [0.0, 0.4]]), abs=1e-12)
+    # agent 1: sent 5 has arrived; sent 6 arrives at 7.2, sent 7 at 7.6.
+    found = changes(7.0, [[5, 5], [6, 6], [7, 7], [-1, -1]], [[5.2, 6.5], [7.9, 7.2], [7.3, 7.6], [inf, inf]])
+    assert found == [[(0.0, 0), (0.3, 2)], [(0.0, 0), (0.2, 1), (0.6, 2)]]
     # arrived before the step out of order (sent 6 at 6.5, sent 5 at 6.9): the newest sent, 6, holds the whole step
-    lengths, slots, begins, holds = parts(7.0, [[6], [5], [-1]], [[6.5], [6.9], [inf]])
-    assert lengths.tolist() == [1.0] and slots.tolist() == [[0]] and begins.tolist() == [[True]] and holds.tolist() == [[1.0]]
-    # nothing arrived yet: no action (slot -1, zero force)
-    lengths, slots, _, _ = parts(0.0, [[0], [-1]], [[0.5], [inf]])
-    assert lengths == pytest.approx([0.5, 0.5]) and slots.tolist() == [[-1], [0]]
+    assert changes(7.0, [[6], [5], [-1]], [[6.5], [6.9], [inf]]) == [[(0.0, 0)]]
+    # nothing arrived yet: no action (slot -1, zero force) until sent 0 arrives at 0.5
+    assert changes(0.0, [[0], [-1]], [[0.5], [inf]]) == [[(0.0, -1), (0.5, 0)]]
     # an arrival at the step's end belongs to the next step
-    lengths, slots, _, _ = parts(7.0, [[6], [7]], [[6.0], [8.0]])
-    assert lengths.tolist() == [1.0] and slots.tolist() == [[0]]
-    lengths, slots, _, _ = parts(8.0, [[6], [7]], [[6.0], [8.0]])
-    assert lengths.tolist() == [1.0] and slots.tolist() == [[1]]
+    assert changes(7.0, [[6], [7]], [[6.0], [8.0]]) == [[(0.0, 0)]]
+    assert changes(8.0, [[6], [7]], [[6.0], [8.0]]) == [[(0.0, 1)]]
     # two arrivals at once (sent 6 and 7 both at 7.5), in either order of the slots: the newest, 7, holds from there
     for order in ([0, 1, 2], [2, 1, 0], [0, 2, 1]):
         sent, arrivals = np.array([[5], [6], [7]])[order], np.array([[5.2], [7.5], [7.5]])[order]
-        lengths, slots, begins, holds = parts(7.0, sent.tolist(), arrivals.tolist())
-        assert lengths == pytest.approx([0.5, 0.5]) and sent[slots[:, 0], 0].tolist() == [5, 7], order
-        assert begins.tolist() == [[True], [True]] and holds == pytest.approx(np.array([[0.5], [0.5]])), order
+        found = changes(7.0, sent.tolist(), arrivals.tolist())
+        assert [(time, int(sent[slot, 0])) for time, slot in found[0]] == [(0.0, 5), (0.5, 7)], order
 
 
 # 3. Observation consistency ---------------------------------------------------------------------------------------------

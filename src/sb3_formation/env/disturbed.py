@@ -8,7 +8,7 @@ Where each error enters a step (``docs/disturbances.md``):
 - **acting**: the action an agent sends is recorded with its arrival time (the agent's delay, drawn once per
   episode, plus jitter); the world applies, in each part of the step, the newest action that has arrived (none: zero
   force), times the agent's motor gain, plus the step's force noise
-  (:class:`~sb3_formation.env.dynamics.ActionSchedule`);
+  (:class:`~sb3_formation.env.dynamics.LateActions`);
 - **sensing**: after the physics, every agent's estimate of its own position, velocity and heading (white error plus a
   drifting bias) replaces the truth in what the agents observe, and the formation of Table 3.1 (offsets, distances,
   angles, flags, centroid) is measured again from those estimates, so a row is consistent with itself; the lidar
@@ -28,7 +28,7 @@ import numpy as np
 
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.disturbances import Communication, Disturbances, drift_correlation
-from sb3_formation.env.dynamics import ActionSchedule
+from sb3_formation.env.dynamics import LateActions
 
 #: The spawn key that gives the disturbances a stream of their own beside the scenario generator of the same seed.
 DISTURBANCE_STREAM = 1
@@ -64,6 +64,10 @@ class SensedTeams:
 class Disturber:
     """Draws and applies one engine's disturbances (see the module docstring), team by team.
 
+    Each team draws its episode (level, gains, delays, biases) at its reset, and its per-step errors as standard normal
+    and uniform draws for :data:`BANK_STEPS` steps at a time (at its reset, then whenever they are used up), scaled by
+    its agents' settings when used: the same seed gives the same draws, and a step applies every team's errors at once.
+
     :param config: the task (its ``disturbances``; teams may differ in ``n_agents`` only)
     :param starts: the first row of each team, then the number of rows
     :param observation_dim: the size of an observation
@@ -73,16 +77,21 @@ class Disturber:
         self.config, self.base = config, config.disturbances
         self.starts = starts
         n_teams, n_slots = len(starts) - 1, int(starts[-1])
+        #: each row's team, and every row (the rows of all teams)
+        self.team_of_row = np.repeat(np.arange(n_teams), np.diff(starts))
+        self._every_row = np.arange(n_slots)
         largest = self.base.scaled(1.0)  # a randomised level is at most 1
-        timing = largest.timing
+        timing, sensing, acting = largest.timing, largest.sensing, largest.acting
         #: each team's generator and the disturbances of its episode (the level drawn when randomised)
         self.generators: list[np.random.Generator] = [stream(0) for _ in range(n_teams)]
         self.episodes: list[Disturbances] = [self.base] * n_teams
         self.levels = np.ones(n_teams)
+        #: each agent's episode: motor gains, delays, the biases' current values, and the errors' scales
         self.gains, self.turn_gains = np.ones(n_slots), np.ones(n_slots)
         self.observation_delays = np.zeros(n_slots, dtype=np.int64)
         self.action_delays = np.zeros(n_slots)
         self.position_biases, self.heading_biases = np.zeros((n_slots, 2)), np.zeros(n_slots)
+        self.scales = {name: np.zeros(n_slots) for name in _SCALES}
         #: actions sent and not yet superseded, in a ring of the last ``memory`` steps: step sent, arrival time (steps)
         self.memory = math.floor(timing.longest_action_delay) + 3
         self.sent_steps = np.full((self.memory, n_slots), -1, dtype=np.int64)
@@ -91,12 +100,32 @@ class Disturber:
         self.late = timing.longest_action_delay > 0
         #: the observations of the last ``history`` steps, by step modulo ``history``
         self.history = np.zeros((timing.observation_delay[1] + 1, n_slots, observation_dim), dtype=np.float32)
-        sensing = largest.sensing
         #: the lidar's errors, and the estimates', are drawn (else the lidar and the truth are what the agents read)
         self.lidar_errors = bool(sensing.lidar_noise or sensing.beam_dropout)
         self.localises = sensing.localises
         #: the motors apply something else than the actions sent
-        self.acts = not largest.acting.is_ideal or self.late
+        self.acts = not acting.is_ideal or self.late
+        # the draws of the errors that some team may have, BANK_STEPS steps ahead: sensing's, then acting's
+        rays = config.lidar_rays
+        shapes = {
+            "position": (2,) if sensing.position_noise else None,
+            "position_drift": (2,) if sensing.position_drift else None,
+            "heading": () if sensing.heading_noise_deg else None,
+            "heading_drift": () if sensing.heading_drift_deg else None,
+            "velocity": (2,) if sensing.velocity_noise else None,
+            "beam": (rays,) if sensing.lidar_noise else None,
+            "dropout": (rays,) if sensing.beam_dropout else None,
+            "force": (2,) if acting.force_noise else None,
+            "jitter": () if timing.jitter else None,
+        }
+        self.banks = {
+            name: np.zeros((BANK_STEPS, n_slots, *shape), dtype=np.float32 if name in _SINGLE_BANKS else np.float64)
+            for name, shape in shapes.items()
+            if shape is not None
+        }
+        self._sensing_banks: list[str] = [name for name in _SENSING_BANKS if name in self.banks]
+        self._acting_banks: list[str] = [name for name in ("force", "jitter") if name in self.banks]
+        self.cursors = {"sensing": np.zeros(n_teams, dtype=np.int64), "acting": np.zeros(n_teams, dtype=np.int64)}
 
     def seed(self, team: int, seed: int) -> None:
         """Seed a team's generator from its scenario seed (:func:`stream`)."""
@@ -104,7 +133,7 @@ class Disturber:
 
     def reset(self, team: int, rows: slice) -> None:
         """Draw a team's episode: its level (when randomised), every agent's gains and delays, the biases' start (from
-        their stationary law); forget the actions sent."""
+        their stationary law), the next steps' draws; forget the actions sent."""
         generator, n = self.generators[team], rows.stop - rows.start
         level = float(generator.uniform(0.0, 1.0)) if self.base.randomise else 1.0
         episode = self.episodes[team] = self.base.scaled(level) if self.base.randomise else self.base
@@ -119,6 +148,44 @@ class Disturber:
         self.position_biases[rows] = generator.normal(0.0, position_drift, size=(n, 2)) if position_drift else 0.0
         self.heading_biases[rows] = generator.normal(0.0, heading_drift, size=n) if heading_drift else 0.0
         self.sent_steps[:, rows], self.arrivals[:, rows], self.sent[:, rows] = -1, np.inf, 0.0
+        for name, value in _scales(episode, self.config).items():
+            self.scales[name][rows] = value
+        for kind, names in (("sensing", self._sensing_banks), ("acting", self._acting_banks)):
+            self._draw(team, names)
+            self.cursors[kind][team] = 0
+
+    def _draw(self, team: int, names: list[str]) -> None:
+        """A team's next :data:`BANK_STEPS` steps of the draws ``names``, in their order."""
+        generator, rows = self.generators[team], self._rows(team)
+        for name in names:
+            bank = self.banks[name]
+            shape = (BANK_STEPS, rows.stop - rows.start, *bank.shape[2:])
+            if name in _UNIFORM_BANKS:
+                bank[:, rows] = generator.random(shape, dtype=bank.dtype)
+            else:
+                bank[:, rows] = generator.standard_normal(shape, dtype=bank.dtype)
+
+    def _take(self, kind: str, teams: list[int], rows: np.ndarray) -> dict[str, np.ndarray]:
+        """The draws of ``kind`` for this step of ``teams`` (their ``rows``): each bank's row of the team's cursor;
+        the cursors move on, and a team whose draws are used up draws the next."""
+        names = self._sensing_banks if kind == "sensing" else self._acting_banks
+        cursors = self.cursors[kind]
+        taken = {name: self.banks[name][cursors[self.team_of_row[rows]], rows] for name in names}
+        cursors[teams] += 1
+        for team in teams:
+            if cursors[team] == BANK_STEPS:
+                self._draw(team, names)
+                cursors[team] = 0
+        return taken
+
+    def _rows(self, team: int) -> slice:
+        return slice(int(self.starts[team]), int(self.starts[team + 1]))
+
+    def _rows_of(self, teams: list[int]) -> np.ndarray:
+        """The rows of ``teams``, in their order."""
+        if len(teams) == len(self.generators):
+            return self._every_row
+        return np.concatenate([np.arange(self.starts[team], self.starts[team + 1]) for team in teams])
 
     # Sensing --------------------------------------------------------------------------------------------------------
 
@@ -129,38 +196,38 @@ class Disturber:
 
         :param drift: move the drifting biases on by a step first (not at a reset, whose biases were just drawn)
         """
-        config, n_slots = self.config, len(positions)
+        config, n_slots, scales = self.config, len(positions), self.scales
+        rows = self._rows_of(teams)
+        draws = self._take("sensing", teams, rows)
         sensed_positions, sensed_velocities = positions.copy(), velocities.copy()
         heading_errors = np.zeros(n_slots if self.localises else 0)
         beam_noise = np.zeros((n_slots, config.lidar_rays) if self.lidar_errors else (0, 0))
         dropped = np.zeros(beam_noise.shape, dtype=bool)
-        for team in teams:
-            rows, generator, sensing = self._rows(team), self.generators[team], self.episodes[team].sensing
-            n = rows.stop - rows.start
-            if self.localises:
-                keep = drift_correlation(sensing.drift_time, config.dt)
-                fresh = math.sqrt(1.0 - keep * keep)
-                heading_drift, heading_noise = math.radians(sensing.heading_drift_deg), math.radians(sensing.heading_noise_deg)
-                if drift and sensing.position_drift:
-                    step = generator.normal(0.0, sensing.position_drift, size=(n, 2))
-                    self.position_biases[rows] = keep * self.position_biases[rows] + fresh * step
-                if drift and heading_drift:
-                    step = generator.normal(0.0, heading_drift, size=n)
-                    self.heading_biases[rows] = keep * self.heading_biases[rows] + fresh * step
-                white = generator.normal(0.0, sensing.position_noise, size=(n, 2)) if sensing.position_noise else 0.0
-                sensed_positions[rows] += self.position_biases[rows] + white
-                white = generator.normal(0.0, heading_noise, size=n) if heading_noise else 0.0
-                errors = heading_errors[rows] = self.heading_biases[rows] + white
-                cos, sin, v = np.cos(errors), np.sin(errors), velocities[rows]
-                turned = np.stack([cos * v[:, 0] - sin * v[:, 1], sin * v[:, 0] + cos * v[:, 1]], axis=1)
-                white = generator.normal(0.0, sensing.velocity_noise, size=(n, 2)) if sensing.velocity_noise else 0.0
-                sensed_velocities[rows] = turned + white
-            if self.lidar_errors:
-                if sensing.lidar_noise:
-                    share = sensing.lidar_noise / config.lidar_range
-                    beam_noise[rows] = generator.normal(0.0, share, size=(n, config.lidar_rays))
-                if sensing.beam_dropout:
-                    dropped[rows] = generator.random((n, config.lidar_rays)) < sensing.beam_dropout
+        if self.localises:
+            keep = drift_correlation(self.base.sensing.drift_time, config.dt)
+            fresh = math.sqrt(1.0 - keep * keep)
+            if drift and "position_drift" in draws:
+                step = scales["position_drift"][rows, None] * draws["position_drift"]
+                self.position_biases[rows] = keep * self.position_biases[rows] + fresh * step
+            if drift and "heading_drift" in draws:
+                step = scales["heading_drift"][rows] * draws["heading_drift"]
+                self.heading_biases[rows] = keep * self.heading_biases[rows] + fresh * step
+            sensed_positions[rows] += self.position_biases[rows]
+            if "position" in draws:
+                sensed_positions[rows] += scales["position"][rows, None] * draws["position"]
+            errors = self.heading_biases[rows]
+            if "heading" in draws:
+                errors = errors + scales["heading"][rows] * draws["heading"]
+            heading_errors[rows] = errors
+            cos, sin, v = np.cos(errors), np.sin(errors), velocities[rows]
+            turned = np.stack([cos * v[:, 0] - sin * v[:, 1], sin * v[:, 0] + cos * v[:, 1]], axis=1)
+            if "velocity" in draws:
+                turned += scales["velocity"][rows, None] * draws["velocity"]
+            sensed_velocities[rows] = turned
+        if "beam" in draws:
+            beam_noise[rows] = scales["beam"][rows, None] * draws["beam"]
+        if "dropout" in draws:
+            dropped[rows] = draws["dropout"] < scales["dropout"][rows, None]
         return SensedTeams(sensed_positions, sensed_velocities, heading_errors, beam_noise, dropped)
 
     def delay_observations(self, observations: np.ndarray, teams: list[int], step_counts: np.ndarray) -> None:
@@ -172,122 +239,162 @@ class Disturber:
         memory = len(self.history)
         if memory == 1:
             return
-        for team in teams:
-            rows, now = self._rows(team), int(step_counts[team])
-            if now == 0:
-                self.history[:, rows] = observations[rows]
-            else:
-                self.history[now % memory, rows] = observations[rows]
-            observations[rows] = self.history[(now - self.observation_delays[rows]) % memory, np.arange(rows.start, rows.stop)]
-
-    def _rows(self, team: int) -> slice:
-        return slice(int(self.starts[team]), int(self.starts[team + 1]))
+        rows = self._rows_of(teams)
+        now = step_counts[self.team_of_row[rows]]
+        starting = rows[now == 0]
+        self.history[:, starting] = observations[starting]
+        self.history[now % memory, rows] = observations[rows]
+        observations[rows] = self.history[(now - self.observation_delays[rows]) % memory, rows]
 
     # Acting ---------------------------------------------------------------------------------------------------------
 
-    def act(
-        self, actions: np.ndarray, teams: list[int], step_counts: np.ndarray
-    ) -> tuple[np.ndarray, dict[int, ActionSchedule] | None]:
-        """The actions the motors apply in the stepped ``teams``: sent ``actions`` (every agent's row) times the gains
-        plus the step's force noise, and with delays each team's :class:`ActionSchedule`.
+    def act(self, actions: np.ndarray, teams: list[int], step_counts: np.ndarray) -> tuple[np.ndarray, LateActions | None]:
+        """What the motors of the stepped ``teams`` apply: the sent ``actions`` (every agent's row) times the gains plus
+        the step's force noise, or, with delays, the changes of action within the step (:class:`LateActions`).
 
         :param step_counts: every team's steps since its reset, before this step (the time the actions are sent)
-        :return: the applied actions (rows of teams not stepped: as sent) and the schedules (``None`` without delays)
+        :return: the applied actions (rows of teams not stepped: as sent) and the late actions (``None`` without delays)
         """
+        rows = self._rows_of(teams)
+        draws = self._take("acting", teams, rows)
+        noise = self.scales["force"][rows, None] * draws["force"] if "force" in draws else np.zeros((len(rows), 2))
+        gains = np.stack(
+            [self.gains[rows], self.turn_gains[rows] if self.config.dynamics == "unicycle" else self.gains[rows]], 1
+        )
         applied = np.array(actions, dtype=np.float64)
-        noises: dict[int, np.ndarray | float] = {}
-        for team in teams:
-            rows, episode = slice(int(self.starts[team]), int(self.starts[team + 1])), self.episodes[team]
-            noise = episode.acting.force_noise
-            noises[team] = self.generators[team].normal(0.0, noise, size=(rows.stop - rows.start, 2)) if noise else 0.0
-            if self.late:
-                jitter = episode.timing.jitter
-                extra = self.generators[team].uniform(0.0, jitter, size=rows.stop - rows.start) if jitter else 0.0
-                now = int(step_counts[team])
-                slot = now % self.memory
-                self.sent_steps[slot, rows], self.sent[slot, rows] = now, actions[rows]
-                self.arrivals[slot, rows] = now + self.action_delays[rows] + extra
         if not self.late:
-            for team in teams:
-                rows = slice(int(self.starts[team]), int(self.starts[team + 1]))
-                applied[rows] = self._motor(applied[rows], rows, noises[team])
+            applied[rows] = applied[rows] * gains + noise
             return applied, None
-        schedules = {}
-        for team in teams:
-            rows = slice(int(self.starts[team]), int(self.starts[team + 1]))
-            lengths, slots, begins, holds = arrival_parts(
-                float(step_counts[team]), self.sent_steps[:, rows], self.arrivals[:, rows]
-            )
-            sent = np.concatenate([self.sent[:, rows], np.zeros((1, rows.stop - rows.start, 2))])  # slot -1: nothing yet
-            held = sent[slots, np.arange(rows.stop - rows.start)]
-            schedules[team] = ActionSchedule(lengths, self._motor(held, rows, noises[team]), begins, holds)
-        return applied, schedules
+        now = step_counts[self.team_of_row[rows]]
+        slots = now % self.memory
+        self.sent_steps[slots, rows], self.sent[slots, rows] = now, applied[rows]
+        jitter = self.scales["jitter"][rows] * draws["jitter"] if "jitter" in draws else 0.0
+        self.arrivals[slots, rows] = now + self.action_delays[rows] + jitter
+        times, held, counts = arrival_changes(now.astype(np.float64), self.sent_steps[:, rows], self.arrivals[:, rows])
+        sent = np.concatenate([self.sent[:, rows], np.zeros((1, len(rows), 2))])  # slot -1: nothing sent yet
+        motor = sent[held, np.arange(len(rows))[:, None]] * gains[:, None, :] + noise[:, None, :]
+        return applied, LateActions(times, motor, counts)
 
-    def _motor(self, actions: np.ndarray, rows: slice, noise: np.ndarray | float) -> np.ndarray:
-        """What the motors of agents ``rows`` make of ``actions`` (``(..., n, 2)``): the gains (a unicycle's turn gain
-        on the turn), plus ``noise``."""
-        turn_gains = self.turn_gains[rows] if self.config.dynamics == "unicycle" else self.gains[rows]
-        gains = np.stack([self.gains[rows], turn_gains], axis=-1)
-        motor: np.ndarray = actions * gains + noise
-        return motor
+
+#: Steps of draws a team makes at once (:class:`Disturber`).
+BANK_STEPS = 32
+#: The draws of the sensing errors, in the order a team makes them; the uniform ones (the others are standard normal).
+_SENSING_BANKS = ("position", "position_drift", "heading", "heading_drift", "velocity", "beam", "dropout")
+_UNIFORM_BANKS = ("dropout", "jitter")
+#: The draws kept in single precision: one per lidar beam, the most numerous (a range error of 1e-7 of a share)
+_SINGLE_BANKS = ("beam", "dropout")
+#: The per-agent scales of the draws (:func:`_scales`).
+_SCALES = (*_SENSING_BANKS, "force", "jitter")
+
+
+def _scales(episode: Disturbances, config: FormationConfig) -> dict[str, float]:
+    """What multiplies each standard draw of an episode's errors: standard deviations (m, rad, m/s, shares of the
+    lidar's range and of F_max), the jitter's width (steps); the dropout's probability (compared with a uniform draw)."""
+    sensing = episode.sensing
+    return {
+        "position": sensing.position_noise,
+        "position_drift": sensing.position_drift,
+        "heading": math.radians(sensing.heading_noise_deg),
+        "heading_drift": math.radians(sensing.heading_drift_deg),
+        "velocity": sensing.velocity_noise,
+        "beam": sensing.lidar_noise / config.lidar_range,
+        "dropout": sensing.beam_dropout,
+        "force": episode.acting.force_noise,
+        "jitter": episode.timing.jitter,
+    }
 
 
 @numba.njit(cache=True)
-def arrival_parts(
-    now: float, sent_steps: np.ndarray, arrivals: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """The parts of the step from ``now`` to ``now + 1`` (steps) that the arrivals of a team's actions cut, and the
-    action each agent applies in each: the newest sent of those arrived (``-1``: none yet).
+def arrival_changes(
+    now: np.ndarray, sent_steps: np.ndarray, arrivals: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """When, within the step from ``now`` to ``now + 1`` (steps, one per agent), each agent's action changes, and to
+    which: at 0 the newest sent of those arrived (slot ``-1``: none yet), then each later arrival of a newer one,
+    earliest first (of simultaneous ones the newest).
 
-    :param sent_steps: ``(memory, n)`` the step each remembered action was sent (-1: none)
-    :param arrivals: ``(memory, n)`` its arrival time (steps)
-    :return: the parts' lengths ``(parts,)`` (shares of the step), the slot of the action each agent applies in each
-        part ``(parts, n)`` (-1: none), whether it begins with the part ``(parts, n)``, and for how much of the step it
-        holds ``(parts, n)``
+    :param sent_steps: ``(memory, k)`` the step each remembered action was sent (-1: none)
+    :param arrivals: ``(memory, k)`` its arrival time (steps)
+    :return: the times of the changes ``(k, memory + 1)`` (shares of the step, the first 0), the slot of the action
+        from each change on ``(k, memory + 1)``, and each agent's number of changes ``(k,)``
     """
     memory, n = sent_steps.shape
-    changes = np.full((n, memory + 1), 2.0)  # the times (shares of the step) at which each agent's action changes
+    times = np.full((n, memory + 1), 1.0)
     slots = np.full((n, memory + 1), -1, dtype=np.int64)
     counts = np.zeros(n, dtype=np.int64)
     for agent in range(n):
+        start = now[agent]
         newest, slot = -1, -1
         for k in range(memory):
-            if sent_steps[k, agent] > newest and arrivals[k, agent] <= now:
+            if sent_steps[k, agent] > newest and arrivals[k, agent] <= start:
                 newest, slot = sent_steps[k, agent], k
-        changes[agent, 0], slots[agent, 0], count = 0.0, slot, 1
+        times[agent, 0], slots[agent, 0], count = 0.0, slot, 1
         while True:  # later arrivals within the step, earliest first (of simultaneous ones the newest), each newer
-            best, best_time = -1, now + 1.0
+            best, best_time = -1, start + 1.0
             for k in range(memory):
-                if sent_steps[k, agent] <= newest or not now < arrivals[k, agent] <= best_time:
+                if sent_steps[k, agent] <= newest or not start < arrivals[k, agent] <= best_time:
                     continue
                 if arrivals[k, agent] < best_time or (best >= 0 and sent_steps[k, agent] > sent_steps[best, agent]):
                     best, best_time = k, arrivals[k, agent]
-            if best < 0:
+            if best < 0 or best_time >= start + 1.0:
                 break
             newest = sent_steps[best, agent]
-            changes[agent, count], slots[agent, count] = best_time - now, best
+            times[agent, count], slots[agent, count] = best_time - start, best
             count += 1
         counts[agent] = count
-    flat = changes.ravel()
-    times = np.unique(flat[flat < 1.5])
-    parts = len(times)
-    lengths = np.empty(parts)
-    for part in range(parts):
-        lengths[part] = (times[part + 1] if part + 1 < parts else 1.0) - times[part]
-    applied = np.full((parts, n), -1, dtype=np.int64)
-    begins = np.zeros((parts, n), dtype=np.bool_)
-    holds = np.zeros((parts, n))
-    for agent in range(n):
-        change = 0
-        for part in range(parts):
-            if change + 1 < counts[agent] and changes[agent, change + 1] <= times[part]:
-                change += 1
-            applied[part, agent] = slots[agent, change]
-            if changes[agent, change] == times[part]:
-                begins[part, agent] = True
-                end = changes[agent, change + 1] if change + 1 < counts[agent] else 1.0
-                holds[part, agent] = end - times[part]
-    return lengths, applied, begins, holds
+    return times, slots, counts
+
+
+@numba.njit(cache=True)
+def substep_plan(
+    substeps: int, state: np.ndarray, late: LateActions, push: float, limits: tuple[float, float, bool]
+) -> np.ndarray:  # pragma: no cover - compiled
+    """Every agent's mean motion over each of a step's equal sub-steps under its changes of action
+    (:class:`LateActions`), ``state`` moved on in place to the end of the step.
+
+    A change gives an agent the velocity change of its action's force over the share of the step the action holds
+    (eq. 19 over that share): a point's velocity ``clamp(v + a push h, v_max)``; a unicycle's forward speed
+    ``clip(v + a_0 push h, +-v_max)`` and turn rate ``a_1 w_max``.
+
+    :param state: ``(k, 2)`` a point's velocity (m/s), or a unicycle's forward speed (m/s) and turn rate (rad/s)
+    :param push: the velocity change (m/s) of a unit force over a step
+    :param limits: v_max (m/s), the unicycle's turn-rate limit (rad/s), and whether the agents are unicycles
+    :return: ``(substeps, k, 2)`` the means of ``state`` over each sub-step
+    """
+    plan = np.zeros((substeps, state.shape[0], 2))
+    for substep in range(substeps):
+        plan[substep] = _substep_means(substep, substeps, state, late, push, limits)
+    return plan
+
+
+@numba.njit(cache=True)
+def _substep_means(
+    substep: int, substeps: int, state: np.ndarray, late: LateActions, push: float, limits: tuple[float, float, bool]
+) -> np.ndarray:  # pragma: no cover - compiled
+    """:func:`substep_plan`'s means over one sub-step, ``state`` moved on in place to its end."""
+    v_max, turn_max, unicycle = limits
+    low, high = substep / substeps, (substep + 1) / substeps
+    means = np.zeros_like(state)
+    for agent in range(state.shape[0]):
+        count = late.counts[agent]
+        for change in range(count):
+            begin = late.times[agent, change]
+            end = late.times[agent, change + 1] if change + 1 < count else 1.0
+            if end <= low or begin >= high:
+                continue
+            if begin >= low:  # the change happens in this sub-step
+                action, holds = late.actions[agent, change], end - begin
+                if unicycle:
+                    state[agent, 0] = min(max(state[agent, 0] + action[0] * push * holds, -v_max), v_max)
+                    state[agent, 1] = action[1] * turn_max
+                else:
+                    x, y = state[agent, 0] + action[0] * push * holds, state[agent, 1] + action[1] * push * holds
+                    speed = math.hypot(x, y)
+                    scale = v_max / speed if speed > v_max else 1.0
+                    state[agent, 0], state[agent, 1] = x * scale, y * scale
+            share = (min(end, high) - max(begin, low)) * substeps
+            means[agent, 0] += share * state[agent, 0]
+            means[agent, 1] += share * state[agent, 1]
+    return means
 
 
 class MessageChannel:

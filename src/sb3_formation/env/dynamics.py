@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from typing import TYPE_CHECKING, ClassVar, NamedTuple
+from typing import TYPE_CHECKING, ClassVar, NamedTuple, cast
 
 import numba
 import numpy as np
@@ -103,15 +103,13 @@ class PointProblem(NamedTuple):
     frames: np.ndarray  #: ``(k, 2, 2)`` each agent's frame of actions (identity; a unicycle's rows h, h_perp)
 
 
-class ActionSchedule(NamedTuple):
-    """How one team's actions apply over a step when they arrive during it (an action delay,
-    :class:`~sb3_formation.env.disturbed.Disturber`): the step cut into parts at the arrivals, and in each part the
-    action each agent applies."""
+class LateActions(NamedTuple):
+    """What the motors of the stepped agents (their rows in order) apply over a step when actions arrive during it (an
+    action delay, :class:`~sb3_formation.env.disturbed.Disturber`): each agent's changes of action within the step."""
 
-    lengths: np.ndarray  #: ``(parts,)`` each part's share of the step (they sum to 1)
-    actions: np.ndarray  #: ``(parts, n, 2)`` the action each agent applies, motor gain and noise included (may leave [-1, 1])
-    begins: np.ndarray  #: ``(parts, n)`` bool: the agent's action begins with the part (its force acts from there on)
-    holds: np.ndarray  #: ``(parts, n)`` the share of the step for which an action that begins with the part holds
+    times: np.ndarray  #: ``(k, c)`` when each change happens (shares of the step, the first at 0; unused ones 1)
+    actions: np.ndarray  #: ``(k, c, 2)`` the action from each change on, motor gain and noise included (may leave [-1, 1])
+    counts: np.ndarray  #: ``(k,)`` int64: each agent's number of changes
 
 
 class DynamicsModel(ABC):
@@ -494,7 +492,7 @@ class Dynamics(ABC):
         velocities: np.ndarray,
         worlds: list[World],
         stepped: StepTeams,
-        schedules: dict[int, ActionSchedule] | None = None,
+        late: LateActions | None = None,
     ) -> Moved:
         """Move the stepped teams' agents over a step.
 
@@ -502,8 +500,28 @@ class Dynamics(ABC):
         :param velocities: ``(agents, 2)`` velocities (m/s) before the step
         :param worlds: every team's world
         :param stepped: the teams to move
-        :param schedules: actions that arrive during the step, by team (instead of ``actions``)
+        :param late: actions that arrive during the step (instead of ``actions``)
         """
+
+    def _move_late(self, late: LateActions, state: np.ndarray, worlds: list[World]) -> list[Touched]:
+        """Move the agents of ``worlds`` (their rows one world after the other) over a step of late actions: in each of
+        the step's equal sub-steps, every agent moves at the mean of its motion within it
+        (:func:`~sb3_formation.env.disturbed.substep_plan`), so that without contacts it ends the sub-step where its
+        changes of action take it, and the step ends at the motion of its last change (:meth:`World.advance_plan`).
+
+        :param state: ``(k, 2)`` a point's velocity, or a unicycle's forward speed and turn rate, before the step
+        :return: each world's contacts
+        """
+        from sb3_formation.env.disturbed import substep_plan  # the env's disturbances build on the dynamics
+
+        config = self.config
+        push = config.force_max * config.dt / config.agent_mass
+        limits = (float(config.v_max), float(config.max_turn_rate), self.model.bounds_speed)
+        plan = substep_plan(cast(int, config.physics_substeps), state, late, push, limits)
+        rows = np.cumsum([0, *(world.config.n_agents for world in worlds)])
+        return [
+            world.advance_plan(plan[:, rows[k] : rows[k + 1]], state[rows[k] : rows[k + 1]]) for k, world in enumerate(worlds)
+        ]
 
     @abstractmethod
     def reset(self, rows: slice, world: World) -> None:
@@ -532,14 +550,15 @@ class HolonomicDynamics(Dynamics):
         velocities: np.ndarray,
         worlds: list[World],
         stepped: StepTeams,
-        schedules: dict[int, ActionSchedule] | None = None,
+        late: LateActions | None = None,
     ) -> Moved:
         v_max, starts = self.config.v_max, self.starts
-        if schedules is None:
+        if late is None:
             commanded = self.model.command(actions, velocities, 0.0)
             touched = [worlds[team].advance(commanded[starts[team] : starts[team + 1]]) for team in stepped.teams]
         else:
-            touched = [worlds[team].advance_late(schedules[team]) for team in stepped.teams]
+            own = velocities if stepped.rows is None else velocities[stepped.rows]
+            touched = self._move_late(late, own.copy(), [worlds[team] for team in stepped.teams])
         positions, moved = split_state(np.concatenate([worlds[team].agent_states for team in stepped.teams]), v_max)
         return Moved(positions, moved, touched)
 
@@ -567,10 +586,10 @@ class UnicycleDynamics(Dynamics):
         velocities: np.ndarray,
         worlds: list[World],
         stepped: StepTeams,
-        schedules: dict[int, ActionSchedule] | None = None,
+        late: LateActions | None = None,
     ) -> Moved:
         teams, starts = stepped.teams, self.starts
-        if schedules is None:
+        if late is None:
             commands = self.model.command(actions, velocities, self.forward_speeds)
             forward, turns = commands[:, 0], commands[:, 1]
             touched = [
@@ -578,7 +597,9 @@ class UnicycleDynamics(Dynamics):
                 for team in teams
             ]
         else:
-            touched = [worlds[team].drive_late(schedules[team]) for team in teams]
+            speeds = self.forward_speeds if stepped.rows is None else self.forward_speeds[stepped.rows]
+            state = np.stack([speeds, np.zeros(len(speeds))], axis=1)
+            touched = self._move_late(late, state, [worlds[team] for team in teams])
         positions = np.concatenate([worlds[team].agent_states[:, :2] for team in teams])
         headings = np.concatenate([worlds[team].headings for team in teams])
         speeds = np.concatenate([worlds[team].forward_speeds for team in teams])

@@ -32,7 +32,7 @@ from gymnasium.utils import seeding
 
 from sb3_formation.env.config import INFO_KEYS, REWARD_TERMS, FormationConfig
 from sb3_formation.env.disturbed import Disturber, SensedTeams
-from sb3_formation.env.dynamics import ActionSchedule, Dynamics, DynamicsModel, dynamics_model
+from sb3_formation.env.dynamics import Dynamics, DynamicsModel, LateActions, dynamics_model
 from sb3_formation.env.episodes import episode_summary
 from sb3_formation.env.geometry import FormationState, _measure_into, agent_errors, reference_bearings, ring_neighbours
 from sb3_formation.env.observations import _fill_observations, observation_fields
@@ -322,10 +322,10 @@ class FormationEngine:
         """The :attr:`dynamics` moves the stepped teams' agents under the actions their motors apply (those sent, or
         what the :attr:`disturber` makes of them): every agent's positions, velocities and contacts after the step
         (new arrays; the other teams' rows as they were)."""
-        previous, schedules = self.latest, cast("dict[int, ActionSchedule] | None", None)
+        previous, late = self.latest, cast("LateActions | None", None)
         if self.disturber is not None and self.disturber.acts:
-            actions, schedules = self.disturber.act(actions, stepped.teams, self.episodes.step_counts)
-        moved = self.dynamics.move(actions, previous.velocities, cast("list[World]", self.worlds), stepped, schedules)
+            actions, late = self.disturber.act(actions, stepped.teams, self.episodes.step_counts)
+        moved = self.dynamics.move(actions, previous.velocities, cast("list[World]", self.worlds), stepped, late)
         contacts = np.zeros(previous.contacts.shape, dtype=np.int64) if stepped.everyone else previous.contacts.copy()
         if stepped.rows is not None:
             contacts[stepped.rows] = 0

@@ -29,7 +29,6 @@ sub-step, which made a step 1.7x as long when agents press on walls (``benchmark
 
 from __future__ import annotations
 
-import itertools
 import math
 from typing import Any, cast
 
@@ -40,7 +39,7 @@ import pymunk.batch
 from pymunk._chipmunk import lib as chipmunk
 
 from sb3_formation.env.config import COLLISION_BIAS, FormationConfig
-from sb3_formation.env.dynamics import ActionSchedule, clamp_speed, dynamics_model, split_state
+from sb3_formation.env.dynamics import clamp_speed, dynamics_model, split_state
 from sb3_formation.env.scenarios import Scenario
 
 BORDER_THICKNESS = 1.0  #: m; the border's inner faces lie exactly on [0, W] x [0, H]
@@ -235,39 +234,6 @@ class World:
         self._read_states()
         return self._contacts()
 
-    def advance_late(self, schedule: ActionSchedule) -> tuple[np.ndarray, np.ndarray] | None:
-        """:meth:`advance` for actions that arrive during the step (:class:`~sb3_formation.env.dynamics.ActionSchedule`).
-
-        An agent whose action begins in a part of the step gets, there, the velocity change of that action's force over
-        the share of the step it holds (eq. 19 over that share, clamped to v_max). Pymunk's sub-steps keep their length
-        (a sub-step of another length rescales the solver's remembered impulses, which a very short one makes explode):
-        each sub-step moves an agent at the mean of the velocities it has within it, so that without contacts it ends
-        where the parts would take it; what the solver changes is carried on.
-
-        :return: as :meth:`advance`
-        """
-        config = self.config
-        push = config.force_max * config.dt / config.agent_mass
-        self._arbiter_buffer._int_arr.num = 0
-        own = clamp_speed(self.agent_states[:, 2:], config.v_max)  # the velocity each agent's own dynamics give it
-        for shares, starting in _substep_parts(schedule.lengths, cast(int, config.physics_substeps)):
-            mean = np.zeros_like(own)
-            for part in np.flatnonzero(shares):
-                if starting[part]:
-                    changed = clamp_speed(own + schedule.actions[part] * push * schedule.holds[part][:, None], config.v_max)
-                    own = np.where(schedule.begins[part][:, None], changed, own)
-                mean += shares[part] * own
-            self._body_velocities[self._agent_rows] = mean
-            self._write_velocities()
-            self._substep_once(self._substep)
-            self._read_states()
-            own = own + (self.agent_states[:, 2:] - mean)  # what contacts did
-        # the step ends at the velocity of its last part (a sub-step that a part begins in moved at a mean)
-        self._body_velocities[self._agent_rows] = own
-        self._write_velocities()
-        self._read_states()
-        return self._contacts()
-
     def drive(self, forward: np.ndarray, turn_rates: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """A unicycle step (see the module docstring): drive the agents at forward speeds ``forward`` while they turn
         at ``turn_rates``; updates :attr:`headings`, :attr:`forward_speeds` and :attr:`sideways_speed`.
@@ -282,33 +248,34 @@ class World:
         self._drive_part(np.asarray(forward, dtype=np.float64), turn_rates, substeps, self._substep)
         return self._contacts()
 
-    def drive_late(self, schedule: ActionSchedule) -> tuple[np.ndarray, np.ndarray] | None:
-        """:meth:`drive` for actions that arrive during the step (:class:`~sb3_formation.env.dynamics.ActionSchedule`,
-        its actions a forward force and a turn rate as shares of F_max and ``max_turn_rate``): an agent whose action
-        begins in a part gets there the forward speed its force adds over the share of the step it holds (clipped to
-        +-v_max) and its turn rate. Each sub-step drives an agent at the means of its forward speeds and turn rates
-        within it (see :meth:`advance_late`).
+    def advance_plan(self, plan: np.ndarray, last: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """A step whose actions arrive during it (:meth:`~sb3_formation.env.dynamics.Dynamics.move` with late actions):
+        each sub-step at its row of ``plan`` ``(substeps, n, 2)``, then the step ends at ``last`` ``(n, 2)``; motions
+        are points' velocities (m/s), or unicycles' forward speeds (m/s) and turn rates (rad/s). What the solver
+        changes in a sub-step is carried on to the next and to the end (a sub-step of another length would rescale the
+        solver's remembered impulses, which a very short one makes explode, so the plan keeps them equal).
 
         :return: as :meth:`advance`
         """
-        config = self.config
-        push = config.force_max * config.dt / config.agent_mass
         self._arbiter_buffer._int_arr.num = 0
         self.sideways_speed = 0.0
-        speeds, turn_rates = self.forward_speeds.copy(), np.zeros(config.n_agents)
-        for shares, starting in _substep_parts(schedule.lengths, cast(int, config.physics_substeps)):
-            mean_speeds, mean_turns = np.zeros_like(speeds), np.zeros_like(speeds)
-            for part in np.flatnonzero(shares):
-                if starting[part]:
-                    begins = schedule.begins[part]
-                    pushed = speeds + schedule.actions[part, :, 0] * push * schedule.holds[part]
-                    speeds = np.where(begins, np.clip(pushed, -config.v_max, config.v_max), speeds)
-                    turn_rates = np.where(begins, schedule.actions[part, :, 1] * config.max_turn_rate, turn_rates)
-                mean_speeds += shares[part] * speeds
-                mean_turns += shares[part] * turn_rates
-            self._drive_part(mean_speeds, mean_turns, 1, self._substep)
-            speeds = speeds + (self.forward_speeds - mean_speeds)  # what contacts did
-        self.forward_speeds = np.clip(speeds, -config.v_max, config.v_max)  # the last part's (not the sub-step's mean)
+        if self._carriers:
+            carried = np.zeros(len(last))
+            for speeds, turn_rates in zip(plan[:, :, 0], plan[:, :, 1]):
+                self._drive_part(speeds + carried, turn_rates, 1, self._substep)
+                carried = self.forward_speeds - speeds
+            self.forward_speeds = np.clip(last[:, 0] + carried, -self.config.v_max, self.config.v_max)
+            return self._contacts()
+        moved = np.zeros_like(last)
+        for velocities in plan:
+            self._body_velocities[self._agent_rows] = velocities + moved
+            self._write_velocities()
+            self._substep_once(self._substep)
+            self._read_states()
+            moved = self.agent_states[:, 2:] - velocities
+        self._body_velocities[self._agent_rows] = last + moved
+        self._write_velocities()
+        self._read_states()
         return self._contacts()
 
     def _drive_part(self, speeds: np.ndarray, turn_rates: np.ndarray, substeps: int, substep: float) -> None:
@@ -378,16 +345,3 @@ class World:
     def agent_states(self) -> np.ndarray:
         """``(n, 4)`` rows x, y, v_x, v_y (m, m/s) of the agents as Pymunk left them (speeds not clamped); a view."""
         return self._body_states[self._agent_rows]
-
-
-def _substep_parts(lengths: np.ndarray, substeps: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    """For each of a step's ``substeps`` equal sub-steps: the share of it that each part of the step (``lengths``,
-    shares of the step, in order) takes, and which parts begin in it."""
-    ends = np.cumsum(lengths)
-    begins = ends - lengths
-    edges = np.arange(substeps + 1) / substeps
-    result = []
-    for low, high in itertools.pairwise(edges):
-        overlap = np.clip(np.minimum(ends, high) - np.maximum(begins, low), 0.0, None) * substeps
-        result.append((overlap, (begins >= low) & (begins < high)))
-    return result
