@@ -104,7 +104,7 @@ class _Part:
     def scaled(self: PartT, level: float) -> PartT:
         """Every error multiplied by ``level`` (>= 0): standard deviations and delays times it, probabilities times it
         (at most 1), gain intervals stretched away from 1 (a gain g becomes 1 + level (g - 1), at least 0.01); whole
-        steps rounded to the nearest; time constants kept."""
+        steps rounded to the nearest (a half up); time constants kept."""
         changes: dict[str, Any] = {}
         for item in dataclasses.fields(self):
             name, value = item.name, getattr(self, item.name)
@@ -115,7 +115,7 @@ class _Part:
                 changes[name] = (min(changes[name][0], 1.0), max(changes[name][1], 1.0))
             elif name in self.intervals:
                 stretched = tuple(min(level * v, MAX_DELAY_STEPS) for v in value)
-                changes[name] = tuple(float(round(v)) for v in stretched) if name in self.whole else stretched
+                changes[name] = tuple(float(math.floor(v + 0.5)) for v in stretched) if name in self.whole else stretched
             elif name in self.probabilities:
                 changes[name] = min(1.0, level * value)
             else:
