@@ -261,6 +261,24 @@ def _add_row(
 
 
 @numba.njit(cache=True)
+def _tightest(candidates: np.ndarray, count: int, longest: float, out: np.ndarray) -> float:  # pragma: no cover
+    """One constraint ``g . x <= b`` (x the controlled point's move over the step, at most ``longest`` m long) that
+    implies every candidate ``(g_x, g_y, b)`` of ``candidates[:count]``: the direction of the one of smallest b, and
+    the smallest ``b_i - |g_i - g| longest`` (``g_i . x <= g . x + |g_i - g| |x|``). Writes the direction into ``out``
+    and returns the bound (m)."""
+    best = 0
+    for index in range(1, count):
+        if candidates[index, 2] < candidates[best, 2]:
+            best = index
+    out[0], out[1] = candidates[best, 0], candidates[best, 1]
+    bound = candidates[best, 2]
+    for index in range(count):
+        turn = math.hypot(candidates[index, 0] - out[0], candidates[index, 1] - out[1])
+        bound = min(bound, candidates[index, 2] - turn * longest)
+    return bound
+
+
+@numba.njit(cache=True)
 def _build_constraints(
     observations: np.ndarray,
     projections: np.ndarray,
@@ -268,6 +286,7 @@ def _build_constraints(
     constants: FilterConstants,
     out: Constraints,
     shifts: np.ndarray,
+    slips: np.ndarray,
 ) -> None:  # pragma: no cover - compiled; tested through its results
     """Every agent's constraint rows (see the module docstring), in units of v_max (u) and v_max dt (h), into ``out``.
 
@@ -277,7 +296,11 @@ def _build_constraints(
     :param bounds: ``(k, 4, 3)`` each agent's four action-bound rows (a_x, a_y, b) in units of v_max
     :param constants: the filter's constants
     :param shifts: ``(k, s, 2)`` where each agent may be (m, from where it sensed its row) when its action arrives, one
-        row per delay of the window (none: where it is); each barrier is written for the nearest of them
+        row per delay of the window (none: where it is)
+    :param slips: ``(k, s, 2)`` for each of those delays, what the agent's step under the new action moves (m) beyond
+        ``u dt``, u reckoned from the row's velocity (the velocity it will have then minus that one, times dt). Each
+        barrier is kept over the step from every one of those positions: linearised there (conservative: h(p + x) >=
+        h(p) - g . x), its move ``u dt + slip``; one constraint per barrier implies them all (:func:`_tightest`)
     """
     directions, columns, gains, speed_normals = (
         constants.directions,
@@ -298,6 +321,11 @@ def _build_constraints(
     step = v_max * dt  # m: the unit of h
     reach = speed_limit * step  # m: the longest move of the controlled point in a step
     n_rays = directions.shape[0]
+    # the longest u dt the hard constraints allow: the speed polygon's corners (a unicycle: the action box's)
+    sides = speed_normals.shape[0]
+    longest = reach / math.cos(math.pi / sides) if sides > 0 else reach
+    window = shifts.shape[1]
+    candidates = np.empty((max(window, 1), 3))
     moved = np.empty(2)
     for agent in range(observations.shape[0]):
         row = observations[agent]
@@ -313,39 +341,66 @@ def _build_constraints(
                     continue
                 gap = reading * lidar_range
                 nearest = min(nearest, gap)
-                direction = directions[ray]
-                for shift in range(shifts.shape[1]):  # the surface point q seen from where the agent may be
-                    qx = (radius + gap) * directions[ray, 0] - shifts[agent, shift, 0]
-                    qy = (radius + gap) * directions[ray, 1] - shifts[agent, shift, 1]
-                    distance = math.hypot(qx, qy)
-                    if shift == 0 or distance - radius < gap:
-                        gap, moved[0], moved[1] = distance - radius, qx / distance, qy / distance
-                        direction = moved
-                bound = share * gamma * (gap - margin)  # h = |q - p| - R_a - margin, |q - p| = R_a + gap
+                if window == 0:
+                    bound = share * gamma * (gap - margin)  # h = |q - p| - R_a - margin, |q - p| = R_a + gap
+                    direction = directions[ray]
+                else:
+                    for shift in range(window):  # the surface point q seen from where the agent may be
+                        qx = (radius + gap) * directions[ray, 0] - shifts[agent, shift, 0]
+                        qy = (radius + gap) * directions[ray, 1] - shifts[agent, shift, 1]
+                        distance = max(math.hypot(qx, qy), 1e-12)
+                        gx, gy = qx / distance, qy / distance
+                        candidates[shift, 0], candidates[shift, 1] = gx, gy
+                        slip = gx * slips[agent, shift, 0] + gy * slips[agent, shift, 1]
+                        candidates[shift, 2] = share * gamma * (distance - radius - margin) - slip
+                    bound = _tightest(candidates, window, longest, moved)
+                    direction = moved
                 if bound < reach:  # else it cannot bind within a step's move
                     count = _add_row(rows[agent], rhs[agent], count, projection, direction, bound / step)
         for side in range(2):  # the ring neighbours: their offsets (as estimated)
             offset = row[columns[2] + 2 * side : columns[2] + 2 * side + 2]
             centres = math.hypot(offset[0], offset[1])
             nearest = min(nearest, centres - 2 * radius)
-            near, near_offset, far, far_offset = centres, offset, centres, offset
-            for shift in range(shifts.shape[1]):  # the nearest and the farthest the neighbour may be
-                moved = offset - shifts[agent, shift]
-                distance = math.hypot(moved[0], moved[1])
-                if shift == 0 or distance < near:
-                    near, near_offset = distance, moved
-                if shift == 0 or distance > far:
-                    far, far_offset = distance, moved
-            if near <= 0.0 or far <= 0.0:
-                continue
-            bound = 0.5 * gamma * (near - 2 * radius - neighbour_margin)
-            if bound < reach:
-                count = _add_row(rows[agent], rhs[agent], count, projection, near_offset / near, bound / step)
-            if keep_comm > 0.5:
-                curvature = (2 * reach) ** 2 / (2 * far)  # the linearisation's largest error (m)
-                bound = 0.5 * (gamma * (d_comm - comm_margin - far) - curvature)
+            if window == 0:
+                if centres <= 0.0:
+                    continue
+                bound = 0.5 * gamma * (centres - 2 * radius - neighbour_margin)
                 if bound < reach:
-                    count = _add_row(rows[agent], rhs[agent], count, projection, -far_offset / far, bound / step)
+                    count = _add_row(rows[agent], rhs[agent], count, projection, offset / centres, bound / step)
+                if keep_comm > 0.5:
+                    curvature = (2 * reach) ** 2 / (2 * centres)  # the linearisation's largest error (m)
+                    bound = 0.5 * (gamma * (d_comm - comm_margin - centres) - curvature)
+                    if bound < reach:
+                        count = _add_row(rows[agent], rhs[agent], count, projection, -offset / centres, bound / step)
+                continue
+            closest = np.inf
+            for shift in range(window):  # the neighbour seen from where the agent may be
+                ox, oy = offset[0] - shifts[agent, shift, 0], offset[1] - shifts[agent, shift, 1]
+                closest = min(closest, math.hypot(ox, oy))
+            if closest <= 0.0:
+                continue
+            for shift in range(window):  # no collision: h = |d| - 2 R_a - margin, convex in d
+                ox, oy = offset[0] - shifts[agent, shift, 0], offset[1] - shifts[agent, shift, 1]
+                distance = math.hypot(ox, oy)
+                gx, gy = ox / distance, oy / distance
+                slip = gx * slips[agent, shift, 0] + gy * slips[agent, shift, 1]
+                candidates[shift, 0], candidates[shift, 1] = gx, gy
+                candidates[shift, 2] = 0.5 * gamma * (distance - 2 * radius - neighbour_margin) - slip
+            bound = _tightest(candidates, window, longest, moved)
+            if bound < reach:
+                count = _add_row(rows[agent], rhs[agent], count, projection, moved, bound / step)
+            if keep_comm > 0.5:
+                for shift in range(window):  # within range: h = d_comm - margin - |d|, concave: corrected
+                    ox, oy = offset[0] - shifts[agent, shift, 0], offset[1] - shifts[agent, shift, 1]
+                    distance = math.hypot(ox, oy)
+                    gx, gy = -ox / distance, -oy / distance
+                    slip = gx * slips[agent, shift, 0] + gy * slips[agent, shift, 1]
+                    curvature = (2 * reach) ** 2 / (2 * distance)  # the linearisation's largest error (m)
+                    candidates[shift, 0], candidates[shift, 1] = gx, gy
+                    candidates[shift, 2] = 0.5 * (gamma * (d_comm - comm_margin - distance) - curvature) - slip
+                bound = _tightest(candidates, window, longest, moved)
+                if bound < reach:
+                    count = _add_row(rows[agent], rhs[agent], count, projection, moved, bound / step)
         separation[agent] = nearest
         for bound in range(4):
             rows[agent, count, 0], rows[agent, count, 1], rows[agent, count, 2] = (
@@ -447,7 +502,9 @@ class SafetyFilter:
         float64, kept; anything else becomes float64), and what the filter did. Each row is filtered from itself alone
         (and, under a declared delay, the actions its agent sent before, ``sent`` ``(k, h, 2)`` newest last:
         :class:`SentCommands`); rows whose actions keep every constraint come back as they were (after clipping to
-        [-1, 1]).
+        [-1, 1]). Under a window of delays (more than one whole delay declared) an action the env's speed clamp would
+        shorten comes back as the one that commands its clamped velocity without the clamp: from the velocity of another
+        delay of the window the clamp would turn it into another move than the one the filter kept.
 
         :raises ValueError: rows or actions of the wrong shape, rows or actions that are not finite, or rows so far out of
             range that the safe actions would not be (the filter never returns a non-finite action)
@@ -467,17 +524,17 @@ class SafetyFilter:
             raise ValueError("the safety filter got observation rows that are not finite (NaN or inf)")
         proposed = np.clip(proposed, -1.0, 1.0)
         count = len(observations)
-        shifts = np.zeros((count, 0, 2))
+        shifts = slips = np.zeros((count, 0, 2))
         if self.bounds.fill_dropped:
             observations = self._filled(observations)
         if len(self._delays):
-            observations, shifts = self._predicted(observations, sent)
+            observations, shifts, slips = self._predicted(observations, sent)
         velocity = observations[:, self.layout["velocity"]]
         targets, projections, bounds, frames = self.model.point_problem(
             observations, self.layout, proposed.astype(np.float64), self._push
         )
         constraints = Constraints.zeros(count, self._capacity)
-        _build_constraints(observations, projections, bounds, self._constants, constraints, shifts)
+        _build_constraints(observations, projections, bounds, self._constants, constraints, shifts, slips)
         rows, rhs, counts, separation = constraints.rows, constraints.rhs, constraints.counts, constraints.separation
         if self.gains.solver == "fast":
             solutions = solve_rows(targets, self.gains.slack_weight, rows, rhs, counts)
@@ -492,9 +549,12 @@ class SafetyFilter:
             )
         changed = (solutions[:, 0] != targets[:, 0]) | (solutions[:, 1] != targets[:, 1])
         safe = proposed.copy()
-        if changed.any():
-            actions = self.model.point_actions(solutions[changed, :2], velocity[changed], frames[changed], self._push)
-            safe[changed] = actions.astype(safe.dtype)
+        exact = changed
+        if len(self._delays) > 1:  # an action the speed clamp shortens would command, at another delay, other than u
+            exact = changed | (np.linalg.norm(velocity + self._push * proposed, axis=1) > self.config.v_max)
+        if exact.any():
+            actions = self.model.point_actions(solutions[exact, :2], velocity[exact], frames[exact], self._push)
+            safe[exact] = actions.astype(safe.dtype)
         if not np.isfinite(safe).all():  # finite rows beyond any reachable state (e.g. 1e300 m) can overflow
             raise ValueError("the safety filter could not keep these rows' actions finite: their values are out of range")
         change = np.where(changed, np.linalg.norm(safe - proposed, axis=1), 0.0)
@@ -512,11 +572,11 @@ class SafetyFilter:
             rows[:, self.layout[name]] = np.where(dropped, np.minimum(before, after), readings)
         return rows
 
-    def _predicted(self, observations: np.ndarray, sent: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    def _predicted(self, observations: np.ndarray, sent: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Where each agent may be when the action chosen now arrives: for each whole delay d of the window, its move
         (m) from where it sensed its row under the d actions it sent last (oldest first; eq. 19 from the row's
-        velocity), plus what its step under the new action moves otherwise than the filter reckons from the velocity of
-        the longest delay, which the rows returned carry (``(k, delays, 2)`` shifts)."""
+        velocity), and what its step under the new action then moves otherwise than the filter reckons from the
+        velocity of the longest delay, which the rows returned carry (``(k, delays, 2)`` shifts and slips)."""
         config, horizon, count = self.config, self.bounds.horizon, len(observations)
         history = np.zeros((count, horizon, 2)) if sent is None else np.asarray(sent, dtype=np.float64)
         history = history[:, history.shape[1] - horizon :] if history.ndim == 3 else history
@@ -533,4 +593,4 @@ class SafetyFilter:
         reckoned = velocities[:, -1]
         rows = observations.copy()
         rows[:, self.layout["velocity"]] = reckoned
-        return rows, moves + (velocities - reckoned[:, None]) * config.dt
+        return rows, moves, (velocities - reckoned[:, None]) * config.dt
