@@ -12,7 +12,7 @@ import numpy as np
 from sb3_formation.controllers.base import AgentStep, Policy, TeamPolicy
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.disturbed import MessageChannel
-from sb3_formation.safety.filter import FilterReport, SafetyFilter, SafetyGains, SentCommands
+from sb3_formation.safety.filter import FilterBounds, FilterReport, SafetyFilter, SafetyGains, SentCommands
 
 #: Keys of the per-episode safety metrics (:meth:`SafePolicy.episode_metrics`, evaluation rows, TensorBoard).
 SAFETY_METRIC_KEYS = ("filter_changed_fraction", "filter_change_mean", "filter_infeasible_steps", "min_separation")
@@ -63,23 +63,29 @@ class FilterTally:
 class SafePolicy(Policy):
     """A policy whose actions pass through the safety filter; every other attribute is the wrapped policy's (so a
     privileged policy stays one, and ``seed`` reaches it). Wrapping a :class:`SafePolicy` filters once, with its gains
-    unless others are given.
+    unless others are given, and with its bounds unless others are given.
 
     :param policy: the policy that proposes actions
     :param gains: the filter's gains and margins (default :class:`SafetyGains`)
+    :param bounds: the errors the filter stays safe under (default: those the task's disturbances declare,
+        :meth:`FilterBounds.declared`, again for each task :meth:`fit` gives; a robot's own, e.g.
+        ``FilterBounds.declared(load_disturbances("realistic"))``, are kept whatever the task)
     """
 
     policy: TeamPolicy
     filter: SafetyFilter
 
-    def __init__(self, policy: TeamPolicy, gains: SafetyGains | None = None) -> None:
+    def __init__(self, policy: TeamPolicy, gains: SafetyGains | None = None, bounds: FilterBounds | None = None) -> None:
         if isinstance(policy, SafePolicy):  # one filter is enough
             gains = gains or policy.filter.gains
+            bounds = bounds if bounds is not None else getattr(policy, "bounds", None)
             policy = policy.policy
         self.policy = policy
         #: the task the wrapped policy acts in
         self.config: FormationConfig = policy.config
-        self.filter = SafetyFilter(policy.config, gains)
+        #: the bounds given (``None``: the task's disturbances declare them)
+        self.bounds = bounds
+        self.filter = SafetyFilter(policy.config, gains, bounds)
         self.tally = FilterTally()
         #: the actions each row sent, for the filter's prediction over a declared delay
         self.sent = SentCommands(self.filter.bounds.horizon)
@@ -87,7 +93,8 @@ class SafePolicy(Policy):
         self.report: FilterReport | None = None
 
     def __getattr__(self, name: str) -> Any:
-        if name in ("policy", "config", "filter", "tally", "report", "sent"):  # not yet set (unpickling): no recursion
+        # not yet set (unpickling): no recursion
+        if name in ("policy", "config", "filter", "tally", "report", "sent", "bounds"):
             raise AttributeError(name)
         return getattr(self.policy, name)
 
@@ -96,9 +103,15 @@ class SafePolicy(Policy):
         return self.policy.message_size
 
     def fit(self, config: FormationConfig) -> SafePolicy:
-        """The wrapped policy fitted to ``config`` behind a filter of the same gains."""
-        fitted = self.policy.fit(config)
-        return self if fitted is self.policy else SafePolicy(fitted, self.filter.gains)
+        """The wrapped policy fitted to ``config`` behind a filter of the same gains, and of the bounds given, else of
+        those ``config``'s disturbances declare (also where the wrapped policy fits as it is)."""
+        fitted, given = self.policy.fit(config), getattr(self, "bounds", None)
+        bounds = given if given is not None else FilterBounds.declared(config.disturbances)
+        if fitted is self.policy and bounds == self.filter.bounds:
+            return self
+        safe = SafePolicy(fitted, self.filter.gains, bounds)
+        safe.bounds = given  # bounds not given stay the task's: each fit declares them again
+        return safe
 
     def predict(
         self,
