@@ -8,11 +8,17 @@ command and a logged warning, and so does an unusable one (a value that is not f
 the future, a scan too large, a second publisher on the command topic): the node never stops on its inputs and never
 publishes a non-finite command. The node is a shell over :mod:`~sb3_formation.ros.onboard`, which holds every rule:
 subscriptions, when to act, and messages to arrays and back.
+
+Synchronous mode acts once per scan message, with its team's odometry of the scan's stamp (each teammate's last
+``qos_depth`` odometry messages are kept): a scan delivered late (the simulator's observation delay) is seen with the
+team as it was when the scan was taken, and acted on again when the same stamp comes again. Free mode acts on the
+newest of every input, as a robot must (``docs/guarantees.md``).
 """
 
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import fields
 from typing import Any, cast
@@ -87,15 +93,18 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             self.destroy_node()
             raise
         self.config = config = policy.config
+        #: every teammate's newest odometry (the last to arrive), and its last ``qos_depth`` by stamp (ns)
         self.team: list[Odometry | None] = [None] * config.n_agents
+        self.odometry: list[dict[int, Odometry]] = [{} for _ in range(config.n_agents)]
         self.scan: LaserScan | None = None
         self.goal: PointStamped | None = None
         self._goal_fresh = False
-        self._acted_stamp = -1
-        #: the ring neighbours (preceding, succeeding) whose messages the robot hears, and what each sent, by stamp (ns;
-        #: ``None``: an unusable message), and the newest each sent (free mode)
+        self._scan_fresh = False  # synchronous mode: the scan has not been acted on
+        #: the ring neighbours (preceding, succeeding) whose messages the robot hears; synchronous mode: each one's
+        #: messages of this episode not yet acted on, in order (stamp in ns, values; ``None``: an unusable message);
+        #: free mode: the newest each sent
         self.neighbours = self.onboard.neighbours
-        self._heard: list[dict[int, np.ndarray | None]] = [{} for _ in self.neighbours]
+        self._heard: list[deque[tuple[int, np.ndarray | None]]] = [deque(maxlen=settings.qos_depth) for _ in self.neighbours]
         self._latest: list[tuple[int, np.ndarray | None] | None] = [None for _ in self.neighbours]
         self._acted_at = 0  # the clock (ns) when the robot first acted in this episode
         #: wall-clock silence of each input; another publisher on the command topic (the watchdog looks)
@@ -130,7 +139,7 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         self._silence.heard(name, time.monotonic())
 
     def _on_scan(self, message: LaserScan) -> None:
-        self.scan = message
+        self.scan, self._scan_fresh = message, True
         self._heard_input("scan")
         if self.settings.synchronous:
             self._act_when_complete()
@@ -139,6 +148,10 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
 
     def _on_odometry(self, index: int, message: Odometry) -> None:
         self.team[index] = message
+        kept = self.odometry[index]
+        kept[nanoseconds_of(message.header.stamp)] = message
+        for old in sorted(kept)[: -self.settings.qos_depth]:
+            del kept[old]
         self._heard_input(f"odometry {index}")
         if self.settings.synchronous:
             self._act_when_complete()
@@ -150,10 +163,13 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             current.point.x,
             current.point.y,
             nanoseconds_of(current.header.stamp),
-        ):  # a new goal: a new episode
+        ):  # a new goal: a new episode, whose messages are stamped from its start on
             self.onboard.reset()
+            start = nanoseconds_of(message.header.stamp)
             for heard in self._heard:
+                kept = [item for item in heard if item[0] >= start]
                 heard.clear()
+                heard.extend(kept)
             self._latest = [None for _ in self.neighbours]
         self.goal, self._goal_fresh = message, True
         if self.settings.synchronous:
@@ -172,49 +188,48 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
                 throttle_duration_sec=1.0,
             )
             values = None
-        heard = self._heard[slot]
-        heard[stamp] = values
-        for old in sorted(heard)[: -self.settings.qos_depth]:
-            del heard[old]
         self._latest[slot] = stamp, values
         if self.settings.synchronous:
+            if self.goal is not None and stamp < nanoseconds_of(self.goal.header.stamp):
+                return  # the simulator's stamps: a message of an episode before the goal's
+            self._heard[slot].append((stamp, values))
             self._act_when_complete()
 
     # Acting -------------------------------------------------------------------------------------------------------
 
     def _act_when_complete(self) -> None:
-        """Synchronous mode: act once per stamp, when the scan, every teammate's odometry of its stamp and a goal
-        received since the last command are all in."""
+        """Synchronous mode: act once per scan message, when every teammate's odometry of its stamp, a goal received
+        since the last command and (a policy with messages, after the episode's first step) each ring neighbour's
+        message of the step before are all in."""
         scan = self.scan
-        if scan is None or not self._goal_fresh:
+        if scan is None or not self._scan_fresh or not self._goal_fresh:
             return
         stamp = nanoseconds_of(scan.header.stamp)
-        if stamp == self._acted_stamp or any(
-            odometry is None or nanoseconds_of(odometry.header.stamp) != stamp for odometry in self.team
-        ):
+        team = [kept.get(stamp) for kept in self.odometry]
+        if any(odometry is None for odometry in team):
             return
         starting = self.onboard.starting
-        if not starting and any(self._acted_stamp not in heard for heard in self._heard):
+        if not starting and not all(self._heard):
             return  # a neighbour's message of the last step is still on its way
-        received = None if starting else [heard[self._acted_stamp] for heard in self._heard]
-        self._acted_stamp, self._goal_fresh = stamp, False
-        problem = self._crowding() or self._frame_problem()
+        received = None if starting else [heard.popleft()[1] for heard in self._heard]
+        self._scan_fresh = self._goal_fresh = False
+        problem = self._crowding() or self._frame_problem(team)
         if problem:
             self._stop(problem)
         elif received is not None and any(values is None for values in received):
             self._stop("a neighbour's message of the last step is unusable")
         else:
-            self._act(scan, received)
+            self._act(scan, cast("list[Odometry]", team), received)
 
     def _act_if_fresh(self) -> None:
         """Free-running mode: act on every scan whose other inputs are within ``input_timeout`` of it."""
         problem = self._stale_input()
-        if problem:
+        if problem or self.scan is None:
             self._stop(problem)
         else:  # the newest message of each neighbour in this episode (none yet: zeros, as at an episode's start)
             size = self.onboard.message_size
             newest = [np.zeros(size) if latest is None else latest[1] for latest in self._latest]
-            self._act(self.scan, None if self.onboard.starting else newest)
+            self._act(self.scan, cast("list[Odometry]", self.team), None if self.onboard.starting else newest)
 
     def _stale_input(self) -> str:
         """Free-running mode: what is missing, stale (older than ``input_timeout`` by its stamp and the node's clock,
@@ -226,9 +241,10 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             return problem
         if self.goal is None:
             return "no goal yet"
+        scan, team = self.scan, self.team
         inputs = [
-            (self._scan_topic, "scan", self.scan),
-            *zip(self._odom_topics, (f"odometry {i}" for i in range(len(self.team))), self.team),
+            (self._scan_topic, "scan", scan),
+            *zip(self._odom_topics, (f"odometry {i}" for i in range(len(team))), team),
         ]
         for topic, name, message in inputs:
             if message is None or self._silence.silent_for(name) > timeout:
@@ -254,11 +270,11 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             problem = stamp_problem(f"the message of agent {index} on {topic}", latest[0], now, settings)
             if problem or self._silence.silent_for(f"message {slot}") > timeout:
                 return problem or f"no message of agent {index} on {topic} for {timeout:g} s"
-        problem = self._frame_problem()
-        if problem:
+        problem = self._frame_problem(team)
+        if problem or scan is None:
             return problem
         try:
-            self.onboard.check(*self._arrays(self.scan))
+            self.onboard.check(*self._arrays(scan, cast("list[Odometry]", team)))
         except UnusableInput as unusable:
             return str(unusable)
         return ""
@@ -271,8 +287,8 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             )
         return ""
 
-    def _frame_problem(self) -> str:
-        goal, team = self.goal, self.team
+    def _frame_problem(self, team: Sequence[Odometry | None]) -> str:
+        goal = self.goal
         frames = {message.header.frame_id for message in team if message is not None}
         frames |= {goal.header.frame_id} if goal is not None else set()
         if frames != {self.settings.world_frame}:
@@ -304,31 +320,33 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         self.commands.publish(Twist())
         self.get_logger().warning(f"agent {self.settings.agent} stopped: {problem}", throttle_duration_sec=1.0)
 
-    def _arrays(self, scan: LaserScan) -> tuple:
+    def _arrays(self, scan: LaserScan, team: Sequence[Odometry]) -> tuple:
         """The inputs of :meth:`Onboard.step` (scan, team, forward speed, goal) from the messages (all present)."""
         problem = scan_size_problem(len(scan.ranges))  # before anything is allocated for it
         if problem:
             raise UnusableInput(problem)
-        goal, team = self.goal, [message for message in self.team if message is not None]
-        if goal is None or len(team) < len(self.team):  # the callers act only with every input in
-            raise RuntimeError("the agent node acted without a goal or a teammate's odometry")
+        goal = self.goal
+        if goal is None or len(team) < len(self.team) or any(message is None for message in team):
+            raise RuntimeError("the agent node acted without a goal or a teammate's odometry")  # callers check first
         states = [odometry_state(message) for message in team]
         view = TeamView(*(np.array([state[part] for state in states]) for part in (0, 2, 1)))
         forward_speed = float(team[self.settings.agent].twist.twist.linear.x)
         return scan_of(scan), view, forward_speed, np.array([goal.point.x, goal.point.y])
 
-    def _act(self, scan: LaserScan, received: Sequence[np.ndarray | None] | None) -> None:
+    def _act(self, scan: LaserScan, team: Sequence[Odometry], received: Sequence[np.ndarray | None] | None) -> None:
         """Observe, act, filter and publish the command (and the message to the neighbours); an unusable input (the
         on-board checks) gives a zero command instead.
 
+        :param team: every teammate's odometry paired with the scan
         :param received: what the preceding and succeeding neighbours sent at the last step (``None``: nothing yet)
         """
         if self.onboard.starting:
             self._acted_at = self.get_clock().now().nanoseconds
         heard = None if received is None or not self.neighbours else np.stack(cast("list[np.ndarray]", received))
+        stamp = nanoseconds_of(scan.header.stamp)
         try:
-            inputs = self._arrays(scan)
-            step = self.onboard.step(inputs[0], inputs[1], inputs[2], inputs[3], heard)
+            inputs = self._arrays(scan, team)
+            step = self.onboard.step(inputs[0], inputs[1], inputs[2], inputs[3], heard, stamp)
         except UnusableInput as unusable:
             self._stop(str(unusable))
             return

@@ -80,6 +80,13 @@ def add_arguments(commands: Any, model_help: str) -> None:
         help="scans see through the agents, as the simulator's lidar does (a check of the nodes; default: agents stop beams)",
     )
     sim.add_argument(
+        "--disturbances",
+        default="ideal",
+        metavar="NAME|FILE",
+        help="the episodes' disturbances: a profile (ideal, realistic, harsh) or a YAML file; the scans and odometry "
+        "carry the sensing errors, late as the observation delay says (default ideal)",
+    )
+    sim.add_argument(
         "--out", type=output_path, default=None, help="write every episode (seed, success, steps, positions) to this .npz"
     )
     _add_ros_options(sim)
@@ -100,6 +107,13 @@ def add_arguments(commands: Any, model_help: str) -> None:
     )
     agents.add_argument("--sim-time", action="store_true", help="follow the simulator's /clock (use_sim_time), in free mode")
     agents.add_argument("--no-filter", action="store_true", help="send the policy's actions without the safety filter")
+    agents.add_argument(
+        "--filter-disturbances",
+        default="",
+        metavar="NAME|FILE",
+        help="the errors the safety filter stays safe under, declared by disturbances: a profile (ideal, realistic, "
+        "harsh) or a YAML file (default: the policy's task's)",
+    )
     _add_ros_options(agents)
 
 
@@ -154,6 +168,14 @@ def check_arguments(args: argparse.Namespace) -> None:
         )
     if args.domain_id is not None and not 0 <= args.domain_id <= 232:
         raise ValueError(f"--domain-id {args.domain_id} is not a ROS 2 domain id (0 to 232)")
+    from sb3_formation.ros.onboard import check_disturbances
+
+    for option, value in (
+        ("--disturbances", getattr(args, "disturbances", "")),
+        ("--filter-disturbances", getattr(args, "filter_disturbances", "")),
+    ):
+        if value:
+            check_disturbances(option, value)
     if args.command == "sim":
         if not 1 <= args.stage <= 3:
             raise ValueError(f"--stage {args.stage} is not a curriculum stage (1, 2 or 3)")
@@ -214,7 +236,12 @@ def run_agents(args: argparse.Namespace, argv: list[str]) -> int:
         return [
             AgentNode(
                 policy,
-                AgentSettings(agent=index, synchronous=args.mode == "sync", safety_filter=not args.no_filter),
+                AgentSettings(
+                    agent=index,
+                    synchronous=args.mode == "sync",
+                    safety_filter=not args.no_filter,
+                    filter_disturbances=args.filter_disturbances,
+                ),
                 name=f"formation_agent_{index}",
                 namespace=AGENT_NAMESPACE.format(index=index),
                 parameter_overrides=[Parameter("use_sim_time", value=args.sim_time)],
@@ -250,6 +277,7 @@ def run_sim(args: argparse.Namespace) -> int:
         rate=args.rate,
         command_timeout=args.command_timeout,
         see_through_agents=args.see_through_agents,
+        disturbances=args.disturbances,
     )
     nodes: list[Any] = []
     saved = [0]  # episodes written to --out

@@ -16,6 +16,7 @@ it on its map); a team reward (``team_reward``), which needs every teammate's ga
 from __future__ import annotations
 
 import math
+from collections import deque
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -34,6 +35,8 @@ from sb3_formation.env.rewards import combine_rewards, reward_constants, reward_
 
 #: The curriculum's last stage, whose reward coefficients a deployed agent observes (all terms on).
 FINAL_STAGE = 3
+#: The actions an observer keeps for rows that lag behind them (delayed inputs): far more steps than any delay.
+KEPT_ACTIONS = 256
 
 
 class TeamView(NamedTuple):
@@ -49,6 +52,11 @@ class AgentObserver:
 
     Call :meth:`reset` when a new goal arrives (an episode starts), then per step :meth:`observe` and, with the action
     the policy chose, :meth:`remember`.
+
+    Row k of an episode (its k-th call of :meth:`observe`) holds the action remembered k-th (the one taken at step
+    k - 1), as the engine's row of step k does: the last action when every row is acted on once, an older one when
+    rows lag behind the actions (inputs delivered late, whose row is acted on again while the episode is younger
+    than the delay).
 
     :param config: the policy's task (from its exported metadata)
     :param agent: the agent's index in its team (ring order, thesis Table 5.2)
@@ -84,6 +92,8 @@ class AgentObserver:
         self.step = 0
         self.previous_action = np.zeros(2)
         self.previous_reward = 0.0
+        self._actions: deque[np.ndarray] = deque(maxlen=KEPT_ACTIONS)  # the last actions remembered
+        self._remembered = 0  # actions remembered in this episode
         self._previous: tuple[np.ndarray, np.ndarray, float] | None = None  # velocities, goal offset, goal distance
 
     def observe(self, team: TeamView, lidar: np.ndarray, goal: np.ndarray) -> np.ndarray:
@@ -107,6 +117,9 @@ class AgentObserver:
             gap = float(lidar[0].min()) * config.lidar_range
             distances, moved = (previous_distance, goal_distance), (previous_velocities, velocities)
             self.previous_reward = self._reward(formation, positions, distances, moved, gap)
+            kept = self.step - 1 - (self._remembered - len(self._actions))  # the action of step k - 1, if still kept
+            if 0 <= kept < len(self._actions):
+                self.previous_action = self._actions[kept]
         self._previous = velocities.copy(), offset, goal_distance
         headings = np.asarray(team.headings, dtype=np.float64)[agent : agent + 1]
         observed = self._model.observed_values(headings)[0]
@@ -162,5 +175,8 @@ class AgentObserver:
         self.step, self.previous_action, self.previous_reward, self._previous = memory
 
     def remember(self, action: np.ndarray) -> None:
-        """Keep the action the agent took (after the safety filter) for the next observation."""
+        """Keep the action the agent took (after the safety filter) for the next observation (the row of the next
+        step)."""
         self.previous_action = np.asarray(action, dtype=np.float64).reshape(2).copy()
+        self._actions.append(self.previous_action)
+        self._remembered += 1

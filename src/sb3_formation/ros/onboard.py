@@ -9,7 +9,8 @@ into arrays and back) runs for every step it acts on, and what the latency bench
    (:class:`~sb3_formation.ros.observer.AgentObserver`);
 3. the policy's agent step (:meth:`~sb3_formation.controllers.base.Policy.agent_step`: the action, the next state and
    the message to the ring neighbours), behind the safety filter when ``safety_filter`` is on
-   (:func:`~sb3_formation.safety.policy.with_filter`: an export trained behind the filter keeps its own gains);
+   (:func:`~sb3_formation.safety.policy.with_filter`: an export trained behind the filter keeps its own gains; the
+   filter's bounds are those ``filter_disturbances`` declare, else the policy's task's);
 4. the action remembered for the next observation, and turned into the command the task's dynamics give it (eq. 19).
 
 Every input is checked before it reaches the policy (:meth:`Onboard.check`; ``docs/guarantees.md``, "On the robot"):
@@ -34,11 +35,13 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from sb3_formation.controllers.base import TeamPolicy
+from sb3_formation.env.disturbances import Disturbances, load_disturbances
 from sb3_formation.env.dynamics import dynamics_model
 from sb3_formation.env.geometry import ring_neighbours
 from sb3_formation.ros.observer import FINAL_STAGE, AgentObserver, TeamView
 from sb3_formation.ros.scans import Scan, ScanMount, resample_scan, split_scan
-from sb3_formation.safety.policy import with_filter
+from sb3_formation.safety.filter import FilterBounds
+from sb3_formation.safety.policy import SafePolicy, with_filter
 from sb3_formation.utils.checks import is_count, is_integer, is_number, is_real
 
 #: The most ranges a ``LaserScan`` may hold (a 0.05 deg scanner's 7200 fit): resampling costs rays x ranges, about
@@ -85,6 +88,10 @@ class AgentSettings:
         synchronous mode's watchdog listens to
     :param safety_filter: filter the actions (the policy's own gains if it was trained behind the filter, else the
         defaults)
+    :param filter_disturbances: the errors the robot's filter stays safe under, declared by disturbances
+        (:meth:`~sb3_formation.safety.filter.FilterBounds.declared`): a profile's name (``ideal``, ``realistic``,
+        ``harsh``) or a YAML file (:func:`~sb3_formation.env.disturbances.load_disturbances`); ``""``: those of the
+        policy's task (none for a policy of the ideal world)
     :param stage: the curriculum stage whose reward coefficients the observed previous reward uses
     :param qos_depth: the history depth of every subscription and publisher
     :param best_effort_sensors: subscribe to scans and odometry best effort (a scanner driver's sensor-data QoS)
@@ -113,8 +120,11 @@ class AgentSettings:
     qos_depth: int = 10
     best_effort_sensors: bool = False
     clock_topic: str = "/clock"
+    filter_disturbances: str = ""
 
     def __post_init__(self) -> None:
+        if self.filter_disturbances != "":
+            check_disturbances("filter_disturbances", self.filter_disturbances)
         positive = ("max_gap", "input_timeout", "watchdog_rate")
         for name in positive:
             if not (is_number(getattr(self, name)) and getattr(self, name) > 0):
@@ -144,6 +154,10 @@ class Onboard:
     """One robot's policy between its sensors and its command (see the module docstring).
 
     Call :meth:`reset` when a new goal arrives (an episode starts), then :meth:`step` for every step the robot acts on.
+    A row belongs to its inputs' sensing time (``stamp``): inputs of the stamp the last row was built from (a delayed
+    delivery that repeats them) give that row again, and the previous action a new row holds is the one taken at the
+    step before its stamp's (:class:`~sb3_formation.ros.observer.AgentObserver`), as the engine's delayed rows hold
+    them.
 
     :param policy: the policy (e.g. :func:`~sb3_formation.runtime.load_onnx_policy`'s); one may serve a whole team
     :param settings: the agent's settings (its index, scanner mount, scan tolerances, stage, filter on or off)
@@ -152,7 +166,12 @@ class Onboard:
 
     def __init__(self, policy: TeamPolicy, settings: AgentSettings) -> None:
         self.settings = settings
-        self.policy = with_filter(policy, settings.safety_filter)
+        #: the errors the filter stays safe under (``None``: those of the policy's task)
+        self.bounds = (
+            FilterBounds.declared(load_disturbances(settings.filter_disturbances)) if settings.filter_disturbances else None
+        )
+        filtered = settings.safety_filter and self.bounds is not None
+        self.policy = SafePolicy(policy, bounds=self.bounds) if filtered else with_filter(policy, settings.safety_filter)
         self.config = config = policy.config
         self.observer = AgentObserver(config, settings.agent, settings.stage)
         #: what the task's actions and commands mean
@@ -174,6 +193,8 @@ class Onboard:
         self.state: Any = None
         #: no step taken yet in this episode
         self.starting = True
+        self._stamp: int | None = None  # the sensing time of the last row, and that row
+        self._row = np.zeros((1, self.observer.dim), dtype=np.float32)
 
     def check(
         self, scan: Scan, team: TeamView, forward_speed: float, goal: np.ndarray, received: np.ndarray | None = None
@@ -195,7 +216,13 @@ class Onboard:
             raise UnusableInput(problem)
 
     def step(
-        self, scan: Scan, team: TeamView, forward_speed: float, goal: np.ndarray, received: np.ndarray | None = None
+        self,
+        scan: Scan,
+        team: TeamView,
+        forward_speed: float,
+        goal: np.ndarray,
+        received: np.ndarray | None = None,
+        stamp: int | None = None,
     ) -> OnboardStep:
         """Check the inputs (:meth:`check`), observe, act (filtered, if on), remember and command, for one step.
 
@@ -205,15 +232,20 @@ class Onboard:
         :param goal: ``(2,)`` the goal (m)
         :param received: ``(2, M)`` what the preceding and succeeding neighbours sent at their last step (``None``:
             zeros, as at an episode's start)
+        :param stamp: (ns) the inputs' sensing time: the stamp of the last row gives that row again (the same inputs,
+            delivered again); ``None``: a new row
         :raises UnusableInput: an input the robot must not act on, or a row, action or command that came out
             non-finite; the robot's memory (observer, policy state) is then as before the call
         """
         self.check(scan, team, forward_speed, goal, received)
         config, settings, agent = self.config, self.settings, self.settings.agent
-        readings = resample_scan(scan, self.mount, float(team.headings[agent]), config, settings.max_gap)
-        lidar = split_scan(readings, config, team.positions, agent, settings.agent_tolerance)
         memory = self.observer.memory()
-        row = self.observer.observe(team, lidar, np.asarray(goal, dtype=np.float64)).astype(np.float32)[None, :]
+        if stamp is not None and stamp == self._stamp:
+            row = self._row
+        else:
+            readings = resample_scan(scan, self.mount, float(team.headings[agent]), config, settings.max_gap)
+            lidar = split_scan(readings, config, team.positions, agent, settings.agent_tolerance)
+            row = self.observer.observe(team, lidar, np.asarray(goal, dtype=np.float64)).astype(np.float32)[None, :]
         if not np.isfinite(row).all():
             self.observer.restore(memory)
             raise UnusableInput("the observation row came out non-finite: not acted on")
@@ -225,8 +257,23 @@ class Onboard:
             self.observer.restore(memory)
             raise UnusableInput(f"the policy gave a non-finite action, command or message: {action[0].tolist()}")
         self.state, self.starting = state, False
+        self._stamp, self._row = stamp, row
         self.observer.remember(action[0])
         return OnboardStep(command, message[0], row[0], action[0])
+
+
+def check_disturbances(name: str, value: Any) -> Disturbances:
+    """The disturbances a parameter ``name`` names (a profile's name or a YAML file,
+    :func:`~sb3_formation.env.disturbances.load_disturbances`).
+
+    :raises ValueError: neither, in one line naming the parameter
+    """
+    if not isinstance(value, str):
+        raise ValueError(f"{name} must be a profile's name or a file, got {value!r}")
+    try:
+        return load_disturbances(value)
+    except (ValueError, OSError) as error:
+        raise ValueError(f"{name}: {error}") from None
 
 
 def scan_problem(scan: Scan) -> str:

@@ -9,7 +9,9 @@ arrays of their messages, and the tests call them on hand-made scans.
 - :func:`split_scan` separates agents from obstacles with the known poses of the team, as the observation's two
   channels require (thesis Table 3.1: obstacles and walls; agents other than the ring neighbours).
 - :func:`merged_scan` is what a real scanner on an agent of the simulator sees: both channels and the ring neighbours
-  in one, each ray stopped by the first body it meets, in metres from the agent's centre.
+  in one, each ray stopped by the first body it meets, in metres from the agent's centre (under a heading error, along
+  the rays the engine's disturbed lidar casts); :func:`with_beam_errors` adds the engine's range errors and dropped
+  beams.
 """
 
 from __future__ import annotations
@@ -186,7 +188,9 @@ def split_scan(
     return channels
 
 
-def merged_scan(lidar: Lidar, positions: np.ndarray, stopped_by_agents: bool = True) -> np.ndarray:
+def merged_scan(
+    lidar: Lidar, positions: np.ndarray, stopped_by_agents: bool = True, heading_errors: np.ndarray | None = None
+) -> np.ndarray:
     """What a real scanner at each agent's centre sees in the simulator: every body (obstacles, walls, the world's
     border, every other agent) stops a ray; ``(n, n_rays)`` ranges (m) from the agent's centre, ``inf`` where nothing
     lies within the lidar's range (REP 117).
@@ -195,6 +199,9 @@ def merged_scan(lidar: Lidar, positions: np.ndarray, stopped_by_agents: bool = T
     :param positions: ``(n, 2)`` the agents' centres (m)
     :param stopped_by_agents: the other agents stop rays; ``False``: the scan sees through them, as the simulator's
         obstacle channel does
+    :param heading_errors: ``(n,)`` each agent's heading error (rad): its beam k looks along the lidar's direction k
+        turned by minus its error, as the engine's disturbed lidar does (the agent reads it in the frame of its heading
+        estimate); ``None``: along the lidar's directions
     """
     n_agents = len(positions)
     circles, visible, channels, walls = lidar.layout
@@ -202,10 +209,45 @@ def merged_scan(lidar: Lidar, positions: np.ndarray, stopped_by_agents: bool = T
     circles[-n_agents:, :2] = positions
     everyone = np.ones_like(visible)
     everyone[:, -n_agents:] = ~np.eye(n_agents, dtype=bool) & stopped_by_agents
-    layout = LidarLayout(circles, everyone, np.full(len(channels), OBSTACLE_CHANNEL), walls)
+    obstacle_channels = np.full(len(channels), OBSTACLE_CHANNEL)
     ranges = np.empty((2, n_agents, len(lidar.directions)))
     origins = np.ascontiguousarray(positions, dtype=np.float64)
-    args = (lidar.agent_radius, lidar.width, lidar.height, lidar.max_range, ranges)
-    lidar_ranges(origins, lidar.directions, layout, *args)
+    geometry = (lidar.agent_radius, lidar.width, lidar.height, lidar.max_range)
+    if heading_errors is None:
+        lidar_ranges(origins, lidar.directions, LidarLayout(circles, everyone, obstacle_channels, walls), *geometry, ranges)
+    else:
+        for agent, error in enumerate(np.asarray(heading_errors, dtype=np.float64).tolist()):
+            own = LidarLayout(circles, np.ascontiguousarray(everyone[agent : agent + 1]), obstacle_channels, walls)
+            out = np.empty((2, 1, len(lidar.directions)))
+            lidar_ranges(origins[agent : agent + 1], turned_directions(lidar.directions, -error), own, *geometry, out)
+            ranges[:, agent] = out[:, 0]
     readings = ranges[OBSTACLE_CHANNEL]
     return np.where(readings < lidar.max_range, readings + lidar.agent_radius, np.inf)
+
+
+def turned_directions(directions: np.ndarray, angle: float) -> np.ndarray:
+    """``(n_rays, 2)`` unit directions turned anti-clockwise by ``angle`` (rad)."""
+    cos, sin = math.cos(angle), math.sin(angle)
+    x, y = directions[:, 0], directions[:, 1]
+    return np.ascontiguousarray(np.stack([cos * x - sin * y, sin * x + cos * y], axis=1))
+
+
+def with_beam_errors(
+    ranges: np.ndarray, beam_noise: np.ndarray, dropped: np.ndarray, agent_radius: float, lidar_range: float
+) -> np.ndarray:
+    """Scans (:func:`merged_scan`'s ``(n, n_rays)`` ranges, m from the centre) with the engine's lidar errors
+    (:class:`~sb3_formation.env.disturbed.SensedTeams`): a return's distance from the agent's surface plus its beam's
+    error (a share of ``lidar_range``), clipped to [0, ``lidar_range``]; a dropped beam returns nothing (``inf``).
+    Empty arrays: no such error.
+
+    :param beam_noise: ``(n, n_rays)`` each beam's range error as a share of ``lidar_range``, or empty
+    :param dropped: ``(n, n_rays)`` bool: the beam returned nothing, or empty
+    """
+    ranges = np.array(ranges, dtype=np.float64)
+    seen = np.isfinite(ranges)
+    if np.size(beam_noise):
+        reach = np.clip(np.where(seen, ranges, agent_radius) - agent_radius + beam_noise * lidar_range, 0.0, lidar_range)
+        ranges = np.where(seen, reach + agent_radius, np.inf)
+    if np.size(dropped):
+        ranges[np.asarray(dropped, dtype=bool)] = np.inf
+    return ranges

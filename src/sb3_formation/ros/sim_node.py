@@ -14,6 +14,16 @@ of each agent. The stamps are sim time: a node that judges its inputs' age by it
 runs with ``use_sim_time``. Episode k is played from ``reset(seed=seed + k)``, as ``sb3-formation evaluate`` plays its
 episodes, and recorded (:class:`EpisodeRecord`) for comparison with an evaluation.
 
+Under disturbances (:attr:`SimSettings.disturbances`, the task's ``disturbances`` section: a profile's name or a file)
+the engine applies the motors' errors and the action delays to the actions it recovers, as in process, and the node
+publishes what the agents sensed (:mod:`~sb3_formation.ros.sensing`): odometry of the position, heading and velocity
+estimates, scans with the heading error's turn, the range errors and the dropped beams. An agent's observation delay
+d (drawn per episode by the engine) delivers its scan of d steps before, with that step's stamp (the reset's while the
+episode is younger); the odometry is published at once, and an agent node pairs a scan with its team's odometry of
+the scan's stamp, so that everything the agent acts on is d steps old. A command is read back into an action
+(:meth:`~sb3_formation.env.dynamics.DynamicsModel.action`) from the velocity, heading and forward speed the agent's
+own odometry of that stamp gave it: the action is the one the agent chose.
+
 While it waits for a step's commands, the synchronous mode publishes the clock again every :data:`WATCH_PERIOD` (the
 same time): the agents' watchdogs hear the simulator alive, and stop their robots once it stops. In either mode a
 command topic with two publishers stops the node in one line, and a command that is not finite is taken as a zero
@@ -39,10 +49,12 @@ from rosgraph_msgs.msg import Clock as ClockMessage
 from sensor_msgs.msg import LaserScan
 
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.disturbances import load_disturbances
 from sb3_formation.env.formation_env import FormationEnv
 from sb3_formation.ros.agent_node import GOAL_QOS, declared_settings
 from sb3_formation.ros.messages import goal_message, odometry_message, scan_message, stamp_of, twist_command
-from sb3_formation.ros.scans import merged_scan
+from sb3_formation.ros.onboard import check_disturbances
+from sb3_formation.ros.sensing import Deliveries, PublishedTeam, published_team
 from sb3_formation.utils.checks import is_count, is_integer, is_number
 from sb3_formation.utils.files import atomic_path
 
@@ -75,6 +87,9 @@ class SimSettings:
     :param qos_depth: the history depth of every publisher and subscription but the goal's (1)
     :param see_through_agents: the scans see through the agents, as the simulator's own lidar does (a check of the
         nodes: their observations are then the simulator's); default off: agents stop the beams, as for a real scanner
+    :param disturbances: the episodes' disturbances: a profile's name (``ideal``, ``realistic``, ``harsh``) or a YAML
+        file (:func:`~sb3_formation.env.disturbances.load_disturbances`); they replace the task's own, as
+        ``sb3-formation evaluate --disturbances`` does
     """
 
     seed: int = 0
@@ -91,8 +106,10 @@ class SimSettings:
     clock_topic: str = "/clock"
     qos_depth: int = 10
     see_through_agents: bool = False
+    disturbances: str = "ideal"
 
     def __post_init__(self) -> None:
+        check_disturbances("disturbances", self.disturbances)
         if not is_count(self.seed):
             raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
         if not (is_integer(self.episodes) and self.episodes >= 1):
@@ -123,7 +140,8 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
     episodes played.
 
     :param config: the task of the episodes: an exported policy's ``config`` with the stage and scenes to play, e.g.
-        ``policy.config.replace(stage=3)`` (evaluations' stage)
+        ``policy.config.replace(stage=3)`` (evaluations' stage); its disturbances are the settings' (default ideal,
+        whatever ``config`` holds)
     :param settings: the defaults of the node's ROS parameters (``--ros-args -p name:=value`` overrides them)
     :param name: the node's name
     :param kwargs: further ``rclpy.node.Node`` arguments (``context``, ``namespace``, ``parameter_overrides``)
@@ -135,11 +153,16 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         self, config: FormationConfig, settings: SimSettings | None = None, name: str = "formation_sim", **kwargs: Any
     ):
         settings = SimSettings() if settings is None else settings
-        env = FormationEnv(config)  # unknown scenes, or scenes that cannot place the team, fail here
+        task = config
+        # unknown scenes, or scenes that cannot place the team, fail here
+        env = FormationEnv(task.replace(disturbances=load_disturbances(settings.disturbances)))
         super().__init__(name, **kwargs)
         try:
             values = declared_settings(self, settings)
-            settings = settings if values == asdict(settings) else SimSettings(**values)
+            changed = settings if values == asdict(settings) else SimSettings(**values)
+            if changed.disturbances != settings.disturbances:
+                env = FormationEnv(task.replace(disturbances=load_disturbances(changed.disturbances)))
+            settings = changed
         except ValueError:
             self.destroy_node()
             raise
@@ -159,6 +182,8 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         self._received = np.zeros(n_agents, dtype=np.int64)  # commands per agent since the last publication
         self._published_at = 0.0  # time.monotonic() of the last publication
         self._turn_rates = np.zeros(n_agents)  # a unicycle's turn rates (rad/s) of the last step
+        #: each step's publication in this episode: what each agent gets under its observation delay
+        self._deliveries: Deliveries[tuple[PublishedTeam, list[LaserScan]]] = Deliveries()
         self._frames = [settings.base_frame.format(index=index) for index in range(n_agents)]
         depth = settings.qos_depth
         self._clock = self.create_publisher(ClockMessage, settings.clock_topic, depth)
@@ -255,6 +280,9 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         """Reset for the next episode (its seed), forget the commands, publish."""
         self._episode += 1
         self.env.reset(seed=self.settings.seed + self._episode)
+        disturber = self.env.engine.disturber  # each agent's observation delay, drawn at the reset (none: ideal)
+        delays = np.zeros(self.config.n_agents) if disturber is None else disturber.observation_delays[self._rows]
+        self._deliveries.start(delays)
         self._episode_stamp = stamp_of(self._steps_played * self.config.dt)
         self._positions = [self.env.engine.latest.positions[self._rows].copy()]
         self._commands = [Twist() for _ in self._commands]
@@ -286,9 +314,14 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
                 timer.cancel()
 
     def _actions(self) -> np.ndarray:
-        """``(n, 2)`` the actions that give the agents' commands (:meth:`~sb3_formation.env.dynamics.DynamicsModel.action`)."""
+        """``(n, 2)`` the actions that give the agents' commands (:meth:`~sb3_formation.env.dynamics.DynamicsModel.action`),
+        each read from the velocity, heading and forward speed its agent's odometry gave it (delivered: in the ideal
+        world the truth of the last publication)."""
         model = self.env.engine.model
-        velocities, headings, speeds = self.env.engine.latest.velocities[self._rows], self._headings(), self._forward_speeds()
+        told = [self._deliveries.delivered(i)[0] for i in range(self.config.n_agents)]
+        velocities = np.array([team.velocities[i] for i, team in enumerate(told)])
+        headings = np.array([team.headings[i] for i, team in enumerate(told)])
+        speeds = np.array([team.forward_speeds[i] for i, team in enumerate(told)])
         actions = np.array(
             [
                 model.action(twist_command(message, model, float(headings[i])), velocities[i], float(speeds[i]))
@@ -301,38 +334,29 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             actions[i] = model.action(zero, velocities[i], float(speeds[i]))
         return actions
 
-    def _headings(self) -> np.ndarray:
-        """``(n,)`` the agents' headings (rad); 0 for holonomic agents."""
-        headings = self.env.engine.dynamics.headings_of(self._rows)
-        return np.zeros(self.config.n_agents) if headings is None else headings
-
-    def _forward_speeds(self) -> np.ndarray:
-        """``(n,)`` a unicycle's forward speeds (m/s); 0 for holonomic agents."""
-        speeds = self.env.engine.dynamics.forward_speeds_of(self._rows)
-        return np.zeros(self.config.n_agents) if speeds is None else speeds
-
     def _publish(self) -> None:
         """The clock, the goal, every odometry, then every scan, all of the step's sim time (the goal of its
-        episode's start: an agent sees a new episode's goal before its first scan); the sync mode's count of commands
-        starts afresh."""
+        episode's start: an agent sees a new episode's goal before its first scan; an agent's scan of its observation
+        delay before, with that step's stamp); the sync mode's count of commands starts afresh."""
         config, engine, settings = self.config, self.env.engine, self.settings
         stamp = stamp_of(self._steps_played * config.dt)
-        positions, velocities = engine.latest.positions[self._rows], engine.latest.velocities[self._rows]
-        headings, speeds = self._headings(), self._forward_speeds()
-        bodies = engine.model.body_velocities(velocities, speeds)  # a point's body frame is the world's
+        team = published_team(engine, self.env.team, stopped_by_agents=not settings.see_through_agents)
+        reach = (config.agent_radius, config.agent_radius + config.lidar_range)
+        scans = [  # beam k along world angle 2 pi k / n_rays, as the agent reads it (turned by its heading error)
+            scan_message(stamp, self._frames[i], team.ranges[i], float(team.scan_angles[i]), *reach)
+            for i in range(config.n_agents)
+        ]
+        self._deliveries.add((team, scans))
         self._received[:] = 0
         self._published_at = time.monotonic()
         self._clock.publish(ClockMessage(clock=stamp))
         self._goal.publish(goal_message(self._episode_stamp, settings.world_frame, engine.episodes.goals[self.env.team]))
         for i, publisher in enumerate(self._odometry):
             frames = (settings.world_frame, self._frames[i])
-            publisher.publish(
-                odometry_message(stamp, frames, positions[i], float(headings[i]), bodies[i], self._turn_rates[i])
-            )
-        ranges = merged_scan(engine.lidars[self.env.team], positions, stopped_by_agents=not settings.see_through_agents)
-        reach = (config.agent_radius, config.agent_radius + config.lidar_range)
-        for i, publisher in enumerate(self._scans):  # beam k along world angle 2 pi k / n_rays
-            publisher.publish(scan_message(stamp, self._frames[i], ranges[i], -float(headings[i]), *reach))
+            odometry = (team.positions[i], float(team.headings[i]), team.body_velocities[i], self._turn_rates[i])
+            publisher.publish(odometry_message(stamp, frames, *odometry))
+        for i, publisher in enumerate(self._scans):
+            publisher.publish(self._deliveries.delivered(i)[1][i])
 
     # Results ------------------------------------------------------------------------------------------------------
 
