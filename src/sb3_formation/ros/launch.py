@@ -103,7 +103,8 @@ def add_arguments(commands: Any, model_help: str) -> None:
         "--mode",
         choices=("sync", "free"),
         default="sync",
-        help="sync (default): act once per stamp, as the simulator's synchronous mode needs; free: on every scan (a robot)",
+        help="sync (default): one command per step, on the scan and the team's odometry of its stamp, as the simulator's "
+        "synchronous mode needs; free: on every scan (a robot)",
     )
     agents.add_argument("--sim-time", action="store_true", help="follow the simulator's /clock (use_sim_time), in free mode")
     agents.add_argument("--no-filter", action="store_true", help="send the policy's actions without the safety filter")

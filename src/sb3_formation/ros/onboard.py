@@ -80,10 +80,10 @@ class AgentSettings:
         long on the wall clock, is stale: the robot stops
     :param future_tolerance: (s) an input stamped further ahead of the node's clock than this is unusable (free mode)
     :param watchdog_rate: (Hz) how often stale inputs are looked for between scans (a wall-clock timer, in every mode)
-    :param synchronous: act only on a scan and every teammate's odometry of one stamp and a goal received since the
-        last command (the simulator's synchronous mode: one command per step, deterministic); stamps are matched, not
-        judged by the clock, and the watchdog stops the robot once nothing (inputs or ``clock_topic``) has been heard
-        for ``input_timeout`` (a simulator that stopped)
+    :param synchronous: act once per scan message, with every teammate's odometry of its stamp and a goal received
+        since the last command (the simulator's synchronous mode: one command per step, deterministic); stamps are
+        matched, not judged by the clock, and the watchdog stops the robot once nothing (inputs or ``clock_topic``) has
+        been heard for ``input_timeout`` (a simulator that stopped)
     :param clock_topic: the simulator's clock, which it also publishes while it waits for commands: a sign of life that
         synchronous mode's watchdog listens to
     :param safety_filter: filter the actions (the policy's own gains if it was trained behind the filter, else the
