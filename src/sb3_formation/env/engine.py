@@ -12,7 +12,10 @@ nearest gaps; the step's count, reward terms and episode ends; lidar, observatio
 running sums), with numpy between them for the weighted sum of the reward terms and the team means, Python's
 ``math.hypot`` for the goal distance, and the engine's :class:`~sb3_formation.env.progress.GoalProgress` for the way
 to the goal that the goal term rewards. A reset measures the new team with the same kernels. ``docs/design.md``
-follows one step through.
+follows one step through. Under the task's disturbances (``FormationConfig.disturbances``) the engine's
+:class:`~sb3_formation.env.disturbed.Disturber` turns the actions sent into what the motors apply, and what the world
+is into what the agents sense and, late, observe; rewards, infos and contacts stay the true world's. In the ideal
+world there is no disturber and the step is as described.
 
 The engine keeps its numbers in the few structures of :mod:`~sb3_formation.env.stacked`; a kernel takes each as the
 plain tuple of its fields. Arrays that the engine returns are never written again: the next step makes new ones, and a
