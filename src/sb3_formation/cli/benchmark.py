@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import re
 from pathlib import Path
 
 from sb3_formation.cli.common import (
@@ -12,6 +11,7 @@ from sb3_formation.cli.common import (
     add_trust_pickle_option,
     agents_count,
     episodes_count,
+    label_folders,
     model_trust,
     target_labels,
     teams_count,
@@ -20,7 +20,6 @@ from sb3_formation.env.scenes import BENCHMARK_SCENES
 from sb3_formation.experiment.benchmark import BENCHMARK_EPISODES, BENCHMARK_SEED, TABLE_FILE, run_benchmark
 from sb3_formation.experiment.targets import Target
 from sb3_formation.utils.arguments import output_path, seed_value
-from sb3_formation.utils.checks import check_name
 from sb3_formation.utils.files import folder_lock, holds_files
 
 
@@ -65,11 +64,7 @@ def run(args: argparse.Namespace) -> int:
     the check that it is new or empty to the last figure (a second benchmark into it is refused)."""
     targets = [Target.parse(target).with_recipe(args.recipe) for target in args.targets]
     labels = target_labels(args.labels, targets)
-    folders = [re.sub(r"[^A-Za-z0-9_.-]+", "-", label) for label in labels]
-    for folder in folders:
-        check_name(folder, "label")
-    if len(set(folders)) != len(folders):
-        raise ValueError(f"labels must differ, got {labels}")
+    folders = label_folders(labels)
     check_new_folder(args.out)
     with model_trust(args):
         for target in targets:  # every target loads before any is evaluated

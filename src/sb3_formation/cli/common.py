@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 from collections.abc import Sequence
 from contextlib import AbstractContextManager
 from pathlib import Path
@@ -17,6 +18,7 @@ from sb3_formation.experiment.sections import EvaluationSection
 from sb3_formation.experiment.targets import Target
 from sb3_formation.sb3.model_files import trust_pickle
 from sb3_formation.utils.arguments import MAX_EPISODES, count, seed_value
+from sb3_formation.utils.checks import check_name
 from sb3_formation.utils.yaml_files import read_yaml
 
 # Command-line value types ---------------------------------------------------------------------------------------------
@@ -205,6 +207,19 @@ def scene_overrides(args: argparse.Namespace) -> dict[str, Any]:
     """The :class:`FormationConfig` fields that ``--agents`` and ``--scenes`` change (those given)."""
     overrides = {"n_agents": getattr(args, "agents", None), "scenes": getattr(args, "scenes", None)}
     return {name: value for name, value in overrides.items() if value is not None}
+
+
+def label_folders(labels: Sequence[str]) -> list[str]:
+    """The folder name of each label (runs of other characters than letters, digits, ``_.-`` become ``-``).
+
+    :raises ValueError: a name that is no folder name, or two labels that give one folder
+    """
+    folders = [re.sub(r"[^A-Za-z0-9_.-]+", "-", label) for label in labels]
+    for folder in folders:
+        check_name(folder, "label")
+    if len(set(folders)) != len(folders):
+        raise ValueError(f"labels must differ, got {list(labels)}")
+    return folders
 
 
 def target_labels(text: str | None, targets: Sequence[Target]) -> list[str]:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import re
 
 from sb3_formation.cli.benchmark import check_new_folder
 from sb3_formation.cli.common import (
@@ -11,6 +10,7 @@ from sb3_formation.cli.common import (
     add_trust_pickle_option,
     disturbances_source,
     episodes_count,
+    label_folders,
     model_trust,
     target_labels,
     teams_count,
@@ -121,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
     the check that it is new or empty to the last figure (a second sweep into it is refused)."""
     targets = [Target.parse(target).with_recipe(args.recipe) for target in args.targets]
     labels = target_labels(args.labels, targets)
-    folders = [re.sub(r"[^A-Za-z0-9_.-]+", "-", label) for label in labels]  # as the benchmark's folders
+    folders = label_folders(labels)
     check_new_folder(args.out)
     check_robustness_inputs(targets, folders, args.out, args.disturbances, args.levels, not args.no_factors, args.scenes)
     with model_trust(args):
