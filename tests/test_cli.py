@@ -289,6 +289,25 @@ def test_ctrl_c_ends_evaluations_at_once_with_one_line(arguments: list[str], tmp
     assert shown_lines(errors) == [f"sb3-formation: {arguments[0]} interrupted"], errors
 
 
+def test_ctrl_c_again_while_the_command_ends_keeps_one_line_and_code_130(tmp_path: Path) -> None:
+    """Ctrl-C pressed again and again once the command has been interrupted (while it ends, Python's shutdown
+    included, where SIGINT's default action would kill it): still one line and exit code 130, never a death by
+    signal."""
+    command = Command(["evaluate", "controller:classical", "--episodes", "2000", "--no-progress"], tmp_path)
+    command.wait_for("stdout", lambda line: line.startswith("evaluating"))
+    try:
+        while command.process.poll() is None:  # a zombie still takes signals: this ends once it has been reaped
+            os.killpg(command.process.pid, signal.SIGINT)
+            time.sleep(0.002)
+    except ProcessLookupError:
+        pass
+    command.process.wait(timeout=30.0)
+    for reader in command.readers:
+        reader.join(timeout=30.0)
+    assert command.process.returncode == 130, command.lines["stderr"]
+    assert shown_lines(command.lines["stderr"]) == ["sb3-formation: evaluate interrupted"], command.lines["stderr"]
+
+
 def imported(module: str) -> Callable[[str], bool]:
     """Whether a line is ``-X importtime``'s report that the import of ``module`` ended."""
     return lambda line: line.startswith("import time:") and line.rsplit("|", 1)[-1].strip() == module

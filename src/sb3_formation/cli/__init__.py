@@ -73,6 +73,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     Ctrl-C is in hand before anything heavy is imported: at any moment it ends the command with one line,
     ``sb3-formation: <command> interrupted``, and exit code 130 (``--debug`` shows its traceback instead).
     """
+    whole_process = argv is None  # the console script, not a caller in Python
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv
     with remember_ctrl_c():
@@ -81,9 +82,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         except KeyboardInterrupt:  # Ctrl-C outside training (which checkpoints first): stop with the shell's code
             if debug:
                 raise
-            signal.signal(signal.SIGINT, signal.SIG_IGN)  # one line, even if Ctrl-C comes again (restored on leaving)
+            signal.signal(signal.SIGINT, signal.SIG_IGN)  # one line, even if Ctrl-C comes again
             print(f"sb3-formation: {_command_name(argv)} interrupted", file=sys.stderr)
-            return 128 + signal.SIGINT
+    if whole_process:  # the process ends: Ctrl-C now (Python's shutdown gives SIGINT back its default action, which
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # kills) must not turn exit code 130 into a death by signal
+    return 128 + signal.SIGINT
 
 
 def _command_name(argv: list[str]) -> str:
