@@ -82,7 +82,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         except KeyboardInterrupt:  # Ctrl-C outside training (which checkpoints first): stop with the shell's code
             if debug:
                 raise
-            signal.signal(signal.SIGINT, signal.SIG_IGN)  # one line, even if Ctrl-C comes again
             print(f"sb3-formation: {_command_name(argv)} interrupted", file=sys.stderr)
     if whole_process:  # the process ends: Ctrl-C now (Python's shutdown gives SIGINT back its default action, which
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # kills) must not turn exit code 130 into a death by signal

@@ -21,7 +21,8 @@ _interrupted = threading.Event()
 
 @contextlib.contextmanager
 def remember_ctrl_c() -> Iterator[None]:
-    """While the block runs, SIGINT raises ``KeyboardInterrupt`` and is remembered for :func:`raise_if_interrupted`.
+    """While the block runs, SIGINT raises ``KeyboardInterrupt`` and is remembered for :func:`raise_if_interrupted`;
+    from then until the block ends, SIGINT is ignored (the block is being left: a second Ctrl-C would break the clean-up).
 
     Nothing changes where SIGINT is ignored (a background job) or outside the main thread.
     """
@@ -30,6 +31,7 @@ def remember_ctrl_c() -> Iterator[None]:
         return
 
     def interrupt(signum: int, frame: Any) -> None:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # the block is stopping: Ctrl-C again must not break its unwinding
         _interrupted.set()
         raise KeyboardInterrupt
 
