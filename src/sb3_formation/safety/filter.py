@@ -125,7 +125,7 @@ class FilterReport:
 
 
 #: Standard deviations of a Gaussian error that the filter takes as its bound: 99.7 % of draws lie within 3 of a
-#: scalar error (:data:`TAIL_SIGMAS`), and within 3.44 per-axis deviations of a 2-D error of equal axes
+#: scalar error (:data:`TAIL_SIGMAS`), and within 3.41 per-axis deviations of a 2-D error of equal axes
 #: (:data:`TAIL_SIGMAS_2D`, sqrt(-2 ln 0.003)).
 TAIL_SIGMAS = 3.0
 TAIL_SIGMAS_2D = math.sqrt(-2.0 * math.log(0.003))
@@ -139,10 +139,14 @@ class FilterBounds:
 
     :param range_error: bound (m) on a lidar range's error
     :param position_error: bound (m) on the distance between an agent's position estimate and the truth
+    :param offset_error: bound (m) on the error of the offset between two agents' estimates (the difference of their
+        errors; default ``2 position_error``, both at their bound in opposite directions)
     :param heading_error: bound (rad) on an agent's heading error (it turns what the agent reads)
     :param velocity_error: bound (m/s) on the error of an agent's velocity estimate
     :param delay: ``(low, high)`` steps from the instant an observation was sensed to the arrival of the action
         chosen from it (observation delay plus action delay and jitter)
+    :param jitter: steps by which an action may arrive earlier or later than the whole delays the filter predicts over,
+        so that each sent action may hold that much longer or shorter than a step
     :param gain: ``(low, high)`` motor gains
     :param force_error: bound (share of F_max) on the force noise
     :param fill_dropped: a beam that returns nothing between two that see something reads as the nearer of them
@@ -150,9 +154,11 @@ class FilterBounds:
 
     range_error: float = 0.0
     position_error: float = 0.0
+    offset_error: float | None = None
     heading_error: float = 0.0
     velocity_error: float = 0.0
     delay: tuple[float, float] = (0.0, 0.0)
+    jitter: float = 0.0
     gain: tuple[float, float] = (1.0, 1.0)
     force_error: float = 0.0
     fill_dropped: bool = False
@@ -161,7 +167,8 @@ class FilterBounds:
     def declared(cls, disturbances: Disturbances, tail: float = 1.0) -> FilterBounds:
         """The bounds of a task's disturbances (their largest level when randomised): :data:`TAIL_SIGMAS` standard
         deviations of each scalar Gaussian error, :data:`TAIL_SIGMAS_2D` of each 2-D one (white and drifting parts
-        combined), both times ``tail``; the delays' and gains' intervals."""
+        combined), both times ``tail``; the delays' and gains' intervals. Two agents' position errors are drawn
+        independently, so the error of their offset has sqrt(2) times one's deviation."""
         sensing, acting, timing = disturbances.sensing, disturbances.acting, disturbances.timing
         position = math.hypot(sensing.position_noise, sensing.position_drift)
         heading = math.radians(math.hypot(sensing.heading_noise_deg, sensing.heading_drift_deg))
@@ -169,12 +176,14 @@ class FilterBounds:
         return cls(
             range_error=scalar * sensing.lidar_noise,
             position_error=planar * position,
+            offset_error=planar * math.sqrt(2.0) * position if position > 0 else None,
             heading_error=scalar * heading,
             velocity_error=planar * sensing.velocity_noise,
             delay=(
                 timing.observation_delay[0] + timing.action_delay[0],
                 timing.observation_delay[1] + timing.longest_action_delay,
             ),
+            jitter=timing.jitter,
             gain=(min(acting.gain[0], acting.turn_gain[0]), max(acting.gain[1], acting.turn_gain[1])),
             force_error=planar * acting.force_noise,
             fill_dropped=sensing.beam_dropout > 0,
@@ -184,6 +193,12 @@ class FilterBounds:
     def is_exact(self) -> bool:
         """No error: the filter of the ideal world."""
         return self == FilterBounds()
+
+    @property
+    def neighbour_offset_error(self) -> float:
+        """(m) the bound on the error of a ring neighbour's offset: :attr:`offset_error`, else twice
+        :attr:`position_error`."""
+        return 2.0 * self.position_error if self.offset_error is None else self.offset_error
 
     @property
     def horizon(self) -> int:
@@ -476,9 +491,10 @@ class SafetyFilter:
     def _robust_margins(self, speed_limit: float) -> tuple[float, float, float]:
         """The gaps (m) the declared :attr:`bounds` add to the margins from obstacles, from agents the lidar sees and
         from ring neighbours (``docs/disturbances.md``): the range error; what the heading error turns a step's move
-        by; what the velocity error, the motor gains and the force noise add to the move of the step and of every step
-        of the delay; the longest delay's move of another agent (and of the agent itself where it is not predicted);
-        twice the position error between two agents' estimates."""
+        by; what the velocity error, the motor gains, the force noise and the jitter add to the move of the step and
+        of every step of the delay (a velocity error of at most 2 v_max: the true and the predicted velocity are both
+        within v_max); the longest delay's move of another agent (and of the agent itself where it is not
+        predicted); the error of the offset between two agents' estimates."""
         bounds, config = self.bounds, self.config
         if bounds.is_exact:
             return 0.0, 0.0, 0.0
@@ -486,14 +502,16 @@ class SafetyFilter:
         push = config.force_max * config.dt / config.agent_mass  # m/s of a unit action over a step
         reach = speed_limit * step
         steps = bounds.horizon + 1  # the delay's whole steps and the step of the action itself
-        # the velocity error of each step: the estimate's, then each step's gain and force errors piled up
+        # the velocity error of each step: the estimate's, then each step's gain and force errors piled up, and the
+        # change between two sent actions (at most 2 sqrt 2) acting up to `jitter` of a step longer or shorter
         per_step = (max(bounds.gain[1] - 1.0, 1.0 - bounds.gain[0]) * math.sqrt(2.0) + bounds.force_error) * push
-        drift = sum(bounds.velocity_error + k * per_step for k in range(1, steps + 1)) * config.dt
+        per_step += bounds.jitter * 2.0 * math.sqrt(2.0) * push
+        drift = sum(min(bounds.velocity_error + k * per_step, 2.0 * config.v_max) for k in range(1, steps + 1)) * config.dt
         turned = reach * 2.0 * math.sin(min(bounds.heading_error, math.pi) / 2.0) * steps
         own = 0.0 if not self.model.bounds_speed else bounds.horizon * reach  # a unicycle's move over the delay
         obstacle = bounds.range_error + turned + drift + own
         other = bounds.delay[1] * reach  # another agent's move over the delay, unseen
-        return obstacle, obstacle + other, drift + turned + own + other + 2.0 * bounds.position_error
+        return obstacle, obstacle + other, drift + turned + own + other + bounds.neighbour_offset_error
 
     def filter(
         self, observations: np.ndarray, actions: np.ndarray, sent: np.ndarray | None = None
