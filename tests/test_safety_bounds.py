@@ -574,6 +574,23 @@ def test_a_jittered_delay_in_the_engine_keeps_the_margin() -> None:
     assert contacts == 0 and gaps.min() >= MARGIN
 
 
+def test_force_noise_over_a_delay_adds_as_independent_draws() -> None:
+    """Force noise of 2 % of F_max with two steps of action delay: each step's draw is new, so after k steps the
+    velocity error is bounded by sqrt(k) times one step's, 3.41 * 0.02 * 0.05 m/s = 3.41 mm/s; over the three steps of
+    the window (1 + sqrt 2 + sqrt 3) * 3.41 mm/s * 0.3 s = 4.240 mm (piled up as a bias: 6.14 mm). An agent at rest
+    with nothing sent, 3 cm from a wall, may approach at most 0.5 * (30 - 10 - 4.240) mm / 15 mm = 0.5253 v_max."""
+    noisy = Disturbances(acting=Acting(force_noise=0.02), timing=Timing(action_delay=(2.0, 2.0)))
+    bounds = FilterBounds.declared(noisy)
+    one = math.sqrt(-2.0 * math.log(0.003)) * 0.02 * PUSH
+    assert bounds.force_error * PUSH == pytest.approx(one, rel=1e-12) and bounds.horizon == 2
+    error = sum(math.sqrt(k) * one for k in (1, 2, 3)) * DT
+    assert error == pytest.approx(0.004240, abs=1e-6)
+    gap = 0.03
+    allowed = allowed_speed(SafetyFilter(CONFIG, bounds=bounds), wall_row(gap), np.zeros((2, 2)))
+    assert allowed == pytest.approx(GAMMA * (gap - MARGIN - error) / STEP, abs=1e-9)
+    assert allowed == pytest.approx(0.5253, abs=1e-4)
+
+
 def test_two_neighbours_position_errors_add_as_independent_draws() -> None:
     """Position noise 2 cm and drift 2 cm declared: one estimate's bound is 3.41 * 2.83 cm = 9.64 cm, the offset
     between two agents' estimates 3.41 * sqrt(2) * 2.83 cm = 13.63 cm (twice one's bound would be 19.28 cm). A ring

@@ -502,11 +502,12 @@ class SafetyFilter:
         push = config.force_max * config.dt / config.agent_mass  # m/s of a unit action over a step
         reach = speed_limit * step
         steps = bounds.horizon + 1  # the delay's whole steps and the step of the action itself
-        # the velocity error of each step: the estimate's, then each step's gain and force errors piled up, and the
-        # change between two sent actions (at most 2 sqrt 2) acting up to `jitter` of a step longer or shorter
-        per_step = (max(bounds.gain[1] - 1.0, 1.0 - bounds.gain[0]) * math.sqrt(2.0) + bounds.force_error) * push
-        per_step += bounds.jitter * 2.0 * math.sqrt(2.0) * push
-        drift = sum(min(bounds.velocity_error + k * per_step, 2.0 * config.v_max) for k in range(1, steps + 1)) * config.dt
+        # the velocity error after k steps: the estimate's; each step's gain error and the change between two sent
+        # actions (at most 2 sqrt 2) acting up to `jitter` of a step longer or shorter, piled up (k times); the force
+        # noise, drawn anew each step, as a sum of k independent draws (sqrt k times one's bound)
+        per_step = (max(bounds.gain[1] - 1.0, 1.0 - bounds.gain[0]) + 2.0 * bounds.jitter) * math.sqrt(2.0) * push
+        errors = [bounds.velocity_error + k * per_step + math.sqrt(k) * bounds.force_error * push for k in range(1, steps + 1)]
+        drift = sum(min(error, 2.0 * config.v_max) for error in errors) * config.dt
         turned = reach * 2.0 * math.sin(min(bounds.heading_error, math.pi) / 2.0) * steps
         own = 0.0 if not self.model.bounds_speed else bounds.horizon * reach  # a unicycle's move over the delay
         obstacle = bounds.range_error + turned + drift + own
