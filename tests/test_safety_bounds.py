@@ -520,7 +520,7 @@ def test_no_contact_but_on_steps_reported_infeasible(case: int) -> None:
 
     The barrier itself holds: until an agent's first infeasible report its true gap to every obstacle
     (:func:`obstacle_clearance`) stays at the 1 cm margin or beyond, to the 0.4 mm the lidar's ray spacing allows.
-    (Measured over the 24 cases: no contact at all, 198 infeasible agent-steps of 19,950; agents driven at the
+    (Measured over the 24 cases: no contact at all, 196 infeasible agent-steps of 19,950; agents driven at the
     obstacles come within a few mm of their grown margins, e.g. 10.2 mm where the declared bounds make it 10.6 mm.)"""
     result = run_case(case)
     bounds, realised = result["bounds"], result["realised"]
