@@ -285,7 +285,7 @@ def test_ctrl_c_ends_evaluations_at_once_with_one_line(arguments: list[str], tmp
     command = Command(arguments, tmp_path)
     command.wait_for("stdout", lambda line: line.startswith(("evaluating", "rendering", "comparing")))
     seconds, errors = command.ctrl_c()
-    assert seconds < 30.0 and command.process.returncode == 130, errors
+    assert seconds < 30.0 and command.process.returncode == 130, shown_lines(errors)
     assert shown_lines(errors) == [f"sb3-formation: {arguments[0]} interrupted"], errors
 
 
@@ -333,7 +333,7 @@ def test_ctrl_c_at_any_moment_of_start_up_is_one_line(moment: str, tmp_path: Pat
     stream, predicate = START_UP_MOMENTS[moment]
     command.wait_for(stream, predicate)
     _, errors = command.ctrl_c()
-    assert command.process.returncode == 130, errors
+    assert command.process.returncode == 130, shown_lines(errors)
     assert shown_lines(errors) == ["sb3-formation: evaluate interrupted"], errors
     assert not (tmp_path / "evaluations").exists()  # nothing half written
 

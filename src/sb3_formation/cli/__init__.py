@@ -83,8 +83,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             if debug:
                 raise
             print(f"sb3-formation: {_command_name(argv)} interrupted", file=sys.stderr)
-    if whole_process:  # the process ends: Ctrl-C now (Python's shutdown gives SIGINT back its default action, which
-        signal.signal(signal.SIGINT, signal.SIG_IGN)  # kills) must not turn exit code 130 into a death by signal
+    if whole_process:  # the command has unwound and said so: end the process with the shell's code at once, so that
+        sys.stdout.flush()  # nothing in Python's shutdown (which gives SIGINT back its default action) can turn it
+        sys.stderr.flush()  # into a death by signal
+        os._exit(128 + signal.SIGINT)
     return 128 + signal.SIGINT
 
 
