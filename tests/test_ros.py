@@ -486,7 +486,6 @@ def test_at_realistic_the_loop_ends_its_episodes_as_evaluation_does(context) -> 
         for record, row in zip(results, reference.episodes, strict=True)
     ]
     outcomes = [(r.success, r.steps, row["success"], row["length"]) for r, row in zip(results, reference.episodes)]
-    print(f"over ROS 2 and in process (success, steps): {outcomes}; alike in {sum(alike)}/{REALISTIC_EPISODES}")
     assert sum(alike) >= 0.9 * REALISTIC_EPISODES, outcomes
     assert any(row["success"] for row in reference.episodes), "the episodes must include successes"
 

@@ -539,6 +539,12 @@ def test_no_contact_but_on_steps_reported_infeasible(case: int) -> None:
         assert not len(kept) or kept.min() >= MARGIN - LIDAR_SPACING_ERROR, (case, agent, kept.min())
 
 
+def allowed_at_rest(bounds: FilterBounds, gap: float) -> float:
+    """:func:`allowed_speed` of an agent at rest ``gap`` (m) from the wall ahead that has sent nothing over its window
+    (zero actions), behind a filter of ``bounds``."""
+    return allowed_speed(SafetyFilter(CONFIG, bounds=bounds), wall_row(gap), np.zeros((bounds.horizon, 2)))
+
+
 #: one step of action delay with half a step of jitter (harsh's jitter): the window (1, 1.5), whole delays 1 and 2
 JITTERED = Disturbances(timing=Timing(action_delay=(1.0, 1.0), jitter=0.5))
 #: the velocity error (m/s) each step of a window piles up from jitter: two actions at most 2 sqrt 2 apart, one acting
@@ -557,7 +563,7 @@ def test_a_jittered_delay_moves_the_wall_closer_by_the_capped_errors_of_its_wind
     error = sum(min(k * JITTER_ERROR, 2 * V_MAX) for k in (1, 2, 3)) * DT
     assert error == pytest.approx(0.081213, abs=1e-6)
     gap = 0.1
-    allowed = allowed_speed(SafetyFilter(CONFIG, bounds=bounds), wall_row(gap), np.zeros((2, 2)))
+    allowed = allowed_at_rest(bounds, gap)
     assert allowed == pytest.approx(GAMMA * (gap - MARGIN - error) / STEP, abs=1e-9)
     assert allowed == pytest.approx(0.2929, abs=1e-4)
 
@@ -586,7 +592,7 @@ def test_force_noise_over_a_delay_adds_as_independent_draws() -> None:
     error = sum(math.sqrt(k) * one for k in (1, 2, 3)) * DT
     assert error == pytest.approx(0.004240, abs=1e-6)
     gap = 0.03
-    allowed = allowed_speed(SafetyFilter(CONFIG, bounds=bounds), wall_row(gap), np.zeros((2, 2)))
+    allowed = allowed_at_rest(bounds, gap)
     assert allowed == pytest.approx(GAMMA * (gap - MARGIN - error) / STEP, abs=1e-9)
     assert allowed == pytest.approx(0.5253, abs=1e-4)
 
