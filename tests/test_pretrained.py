@@ -153,7 +153,15 @@ def test_the_policy_trained_on_several_team_sizes_takes_any_size_but_no_other_ta
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    "name", [*THESIS_TASKS, "mixed-ch5-bearing", "ch5-bearing-unicycle", "scenes-ch5-bearing", "talk-scenes-ch5-bearing"]
+    "name",
+    [
+        *THESIS_TASKS,
+        "mixed-ch5-bearing",
+        "ch5-bearing-unicycle",
+        "scenes-ch5-bearing",
+        "talk-scenes-ch5-bearing",
+        "robust-scenes-ch5-bearing",
+    ],
 )
 def test_a_shipped_policy_reproduces_its_stored_episodes(name: str, tmp_path: Path) -> None:
     """Its first 20 stored evaluation episodes, replayed on this machine, give the same rows, digit for digit.

@@ -575,6 +575,8 @@ class SafetySection(Section):
 class DisturbancesSection(Section):
     """``disturbances:``: train under randomised disturbances (domain randomisation, ``docs/disturbances.md``): each
     training episode draws its level uniformly between the ideal world and these. Evaluation stays ideal unless asked.
+    A talking policy's messages arrive intact in training (its update replays them through whole teams' sequences);
+    the ``communication`` part acts in evaluation.
 
     :param profile: train under randomised disturbances up to a profile (realistic, harsh) or a disturbances file:
         each episode draws its level between ideal and it
