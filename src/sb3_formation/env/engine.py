@@ -255,7 +255,7 @@ class FormationEngine:
             world.place(scenario)
         self.scenarios[team] = scenario
         lidar = self.lidars[team]
-        lidar.set_obstacles(scenario.obstacles, scenario.walls)
+        lidar.set_obstacles(np.vstack([scenario.obstacles, world.movers.circles]), scenario.walls)
         self._load_shapes(team, lidar.layout)
         return world
 
@@ -328,7 +328,15 @@ class FormationEngine:
         previous, late = self.latest, cast("LateActions | None", None)
         if self.disturber is not None and self.disturber.acts:
             actions, late = self.disturber.act(actions, stepped.teams, self.episodes.step_counts)
-        moved = self.dynamics.move(actions, previous.velocities, cast("list[World]", self.worlds), stepped, late)
+        worlds = cast("list[World]", self.worlds)
+        moving = [team for team in stepped.teams if worlds[team].movers.movers]
+        for team in moving:
+            worlds[team].move_obstacles()
+        moved = self.dynamics.move(actions, previous.velocities, worlds, stepped, late)
+        for team in moving:  # the lidar's and the nearest gaps' circles: the static obstacles, the movers, the agents
+            movers = worlds[team].movers
+            first = len(cast(Scenario, self.scenarios[team]).obstacles)
+            self.shapes.circles[team, first : first + len(movers.positions), :2] = movers.positions
         contacts = np.zeros(previous.contacts.shape, dtype=np.int64) if stepped.everyone else previous.contacts.copy()
         if stepped.rows is not None:
             contacts[stepped.rows] = 0
@@ -479,12 +487,15 @@ class FormationEngine:
         rows, latest, episodes = self.team_rows(team), self.latest, self.episodes
         values = latest.info_values[rows]
         scenario = cast(Scenario, self.scenarios[team])  # placed with the team's world
+        movers = cast(World, self.worlds[team]).movers
+        still = np.zeros((len(scenario.obstacles), 2))
         return TeamState(
             step=int(episodes.step_counts[team]),
             positions=latest.positions[rows],
             velocities=latest.velocities[rows],
             goal=episodes.goals[team],
-            obstacles=cast(np.ndarray, scenario.obstacles),  # arrays once the scenario is built
+            obstacles=np.vstack([scenario.obstacles, movers.circles]),
+            obstacle_velocities=np.vstack([still, movers.velocities]) if scenario.movers else None,
             walls=cast(np.ndarray, scenario.walls),
             neighbours=self.constants.neighbours[rows],
             contacts_agent=latest.contacts[rows, ContactColumn.AGENTS],

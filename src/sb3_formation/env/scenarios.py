@@ -14,6 +14,7 @@ import numpy as np
 
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.geometry import reference_polygon
+from sb3_formation.env.movers import Mover
 from sb3_formation.env.shapes import as_walls, circle_gap, wall_gap
 
 
@@ -28,6 +29,8 @@ class Scenario:
         may be empty
     :param headings: ``(n,)`` unicycle agents' starting headings (rad, anti-clockwise from +x); empty: every agent
         faces the goal from the starting centroid (holonomic agents have none, and ignore them)
+    :param movers: the moving obstacles (:class:`~sb3_formation.env.movers.Mover`), each starting at its first waypoint;
+        may be empty
     """
 
     agent_positions: np.ndarray
@@ -35,8 +38,15 @@ class Scenario:
     obstacles: np.ndarray | tuple[Any, ...] = ()
     walls: np.ndarray | tuple[Any, ...] = ()
     headings: np.ndarray | tuple[Any, ...] = ()
+    movers: tuple[Mover, ...] = ()
 
     def __post_init__(self) -> None:
+        movers = tuple(self.movers)
+        if not all(isinstance(mover, Mover) for mover in movers):
+            raise TypeError("Scenario.movers must hold Mover objects")
+        if len({mover.reacts for mover in movers if mover.motion == "walk"}) > 1:
+            raise ValueError("Scenario.movers: the walkers of one scenario must all react to the agents or all not react")
+        object.__setattr__(self, "movers", movers)
         obstacles = _real_array("obstacles", self.obstacles)
         arrays = {
             "agent_positions": _real_array("agent_positions", self.agent_positions),
@@ -76,8 +86,8 @@ class Scenario:
         """Raise ``ValueError`` saying which agent is misplaced if the scenario does not fit ``config``.
 
         Checks: one position per agent, every agent inside the world, no two agents overlapping, no agent
-        overlapping an obstacle or a wall, every obstacle's centre, every wall's ends and the goal inside the world (an
-        obstacle may cross the border, as the curriculum's large ones may).
+        overlapping an obstacle, a wall or a mover's start, every obstacle's centre, every wall's ends, every mover's
+        waypoints and the goal inside the world (an obstacle may cross the border, as the curriculum's large ones may).
         """
         n_agents, radius = config.n_agents, config.agent_radius
         if len(self.agent_positions) != n_agents:
@@ -109,7 +119,13 @@ class Scenario:
                 gap = wall_gap(x, y, wall) - radius
                 if gap < 0:
                     raise ValueError(f"Scenario: agent_{index} overlaps wall {wall_index} by {-gap:.3f} m")
+            for mover_index, mover in enumerate(self.movers):
+                gap = circle_gap(x, y, np.array([*mover.start, mover.radius])) - radius
+                if gap < 0:
+                    raise ValueError(f"Scenario: agent_{index} overlaps mover {mover_index}'s start by {-gap:.3f} m")
         points = [(f"obstacle {index}", x, y) for index, (x, y, _) in enumerate(self.obstacles)]
+        for index, mover in enumerate(self.movers):
+            points += [(f"mover {index}'s waypoint", x, y) for x, y in mover.waypoints]
         for index, (x0, y0, x1, y1, _) in enumerate(self.walls):
             points += [(f"wall {index}'s end", x0, y0), (f"wall {index}'s end", x1, y1)]
         for name, x, y in points:

@@ -24,7 +24,7 @@ class TeamState:
     :param positions: ``(n, 2)`` agent centres (m)
     :param velocities: ``(n, 2)`` agent velocities (m/s)
     :param goal: ``(2,)`` goal centre (m)
-    :param obstacles: ``(m, 3)`` obstacle x, y, radius (m)
+    :param obstacles: ``(m, 3)`` obstacle x, y, radius (m) now: the static ones, then the moving ones
     :param neighbours: ``(n, 2)`` neighbour graph: agent i's preceding and succeeding neighbour
     :param contacts_agent: ``(n,)`` other agents each agent touched during the last step (0 after a reset)
     :param contacts_obstacle: ``(n,)`` obstacles or walls each agent touched during the last step (0 after a reset)
@@ -39,6 +39,8 @@ class TeamState:
     :param walls: ``(w, 5)`` walls x0, y0, x1, y1, thickness (m) (:mod:`~sb3_formation.env.shapes`); the world's
         border is not listed
     :param headings: ``(n,)`` unicycle agents' headings (rad, anti-clockwise from +x), or ``None`` for holonomic agents
+    :param obstacle_velocities: ``(m, 2)`` every obstacle's velocity (m/s) over the last step (0 for static ones and
+        before the first step), or ``None`` when no obstacle moves
     """
 
     step: int
@@ -58,6 +60,7 @@ class TeamState:
     lidar_agents: np.ndarray | None = None
     walls: np.ndarray = field(default_factory=lambda: np.zeros((0, len(WALL_COLUMNS))))
     headings: np.ndarray | None = None
+    obstacle_velocities: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         for name, value in vars(self).items():

@@ -40,6 +40,7 @@ from pymunk._chipmunk import lib as chipmunk
 
 from sb3_formation.env.config import COLLISION_BIAS, FormationConfig
 from sb3_formation.env.dynamics import clamp_speed, dynamics_model, split_state
+from sb3_formation.env.movers import MovingObstacles
 from sb3_formation.env.scenarios import Scenario
 
 BORDER_THICKNESS = 1.0  #: m; the border's inner faces lie exactly on [0, W] x [0, H]
@@ -143,6 +144,23 @@ class World:
             self._add_obstacle(pymunk.Circle(None, float(radius), (float(x), float(y))))
         for x0, y0, x1, y1, thickness in scenario.walls:  # capsules, as the scene's walls are
             self._add_obstacle(pymunk.Segment(None, (float(x0), float(y0)), (float(x1), float(y1)), float(thickness) / 2))
+        #: the scenario's moving obstacles, stepped by :meth:`move_obstacles` (kinematic bodies after the static ones)
+        self.movers = MovingObstacles(
+            scenario.movers,
+            config.dt,
+            config.world_width,
+            config.world_height,
+            np.asarray(scenario.obstacles),
+            np.asarray(scenario.walls),
+            config.agent_radius,
+        )
+        self._mover_bodies: list[pymunk.Body] = []
+        for mover in scenario.movers:
+            body = pymunk.Body(body_type=pymunk.Body.KINEMATIC)
+            body.position = tuple(mover.start.tolist())
+            self.space.add(body, pymunk.Circle(body, mover.radius))
+            self._obstacle_bodies.append(body)
+            self._mover_bodies.append(body)
         self.agent_bodies: list[pymunk.Body] = []
         goal_direction = scenario.goal - scenario.centroid
         facing = math.atan2(float(goal_direction[1]), float(goal_direction[0]))
@@ -172,7 +190,8 @@ class World:
         rows = [body_ids.index(body.id) for body in self.agent_bodies]
         contiguous = rows == list(range(rows[0], rows[0] + len(rows)))
         self._agent_rows = slice(rows[0], rows[0] + len(rows)) if contiguous else np.array(rows)
-        self._body_velocities = np.zeros((len(body_ids), 2))  # static bodies keep velocity 0
+        self._mover_rows = np.array([body_ids.index(body.id) for body in self._mover_bodies], dtype=np.int64)
+        self._body_velocities = np.zeros((len(body_ids), 2))  # static bodies keep velocity 0, movers their step's
         self._write_buffer.set_float_buf(self._body_velocities.ravel())  # Pymunk reads this array's memory
         # Pymunk writes x, y, v_x, v_y of every body into this array's memory; it would reallocate it (as if it were
         # its own) when fewer than 3 values are left free after a body's velocity, hence the spare room
@@ -204,6 +223,19 @@ class World:
         shape.body = body = pymunk.Body(body_type=pymunk.Body.STATIC)
         self.space.add(body, shape)
         self._obstacle_bodies.append(body)
+
+    def move_obstacles(self) -> None:
+        """Start a step of the moving obstacles (:class:`~sb3_formation.env.movers.MovingObstacles`): put each where it
+        is now, with the velocity that takes it where it is at the end of the step; the agents' sub-steps then move it.
+        Reacting walkers see the agents as they are now."""
+        if not self._mover_bodies:
+            return
+        positions = self.movers.positions
+        agents = self.agent_states
+        velocities = self.movers.step(agents[:, :2], agents[:, 2:])
+        for body, position, velocity in zip(self._mover_bodies, positions.tolist(), velocities.tolist()):
+            body.position, body.velocity = position, velocity
+        self._body_velocities[self._mover_rows] = velocities
 
     def step(self, forces: np.ndarray) -> tuple[list[int], list[int]]:
         """Advance one environment step of ``config.dt`` seconds under ``forces``.
