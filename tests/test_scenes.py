@@ -22,12 +22,19 @@ from sb3_formation.env.clearance import (
     shrunk_footprint,
     start_footprint,
 )
-from sb3_formation.env.families import SCENE_FAMILIES, WALL_THICKNESS, is_solvable
+from sb3_formation.env.families import (
+    MOVING_FAMILIES,
+    PLACEMENT_ROOM,
+    SCENE_FAMILIES,
+    TRAFFIC_CROSSINGS,
+    WALL_THICKNESS,
+    is_solvable,
+)
 from sb3_formation.env.scenarios import PlacementError, Scenario, start_formation
 from sb3_formation.env.scenes import BENCHMARK_SCENES, SCENES, check_scenes_fit, draw_scenario, scene_slots
 from sb3_formation.env.shapes import shape_gaps, wall_lengths
 
-FAMILIES = [*SCENE_FAMILIES, "mixed"]
+FAMILIES = [*SCENE_FAMILIES, "mixed", *MOVING_FAMILIES, "mixed-moving"]
 
 
 def config_of(scenes: str, n_agents: int = 6, **changes: float) -> FormationConfig:
@@ -51,6 +58,9 @@ def test_the_same_seed_draws_the_same_scene(scenes: str) -> None:
         first, second = (draw_scenario(config, 3, np.random.default_rng(seed)) for _ in range(2))
         for name in ("agent_positions", "goal", "obstacles", "walls"):
             np.testing.assert_array_equal(getattr(first, name), getattr(second, name))
+        for one, other in zip(first.movers, second.movers, strict=True):
+            np.testing.assert_array_equal(one.waypoints, other.waypoints)
+            assert (one.radius, one.speed, one.motion, one.reacts) == (other.radius, other.speed, other.motion, other.reacts)
     others = [draw_scenario(config, 3, np.random.default_rng(seed)).goal for seed in range(3)]
     assert len({tuple(goal) for goal in others}) == 3
 
@@ -103,6 +113,47 @@ def test_every_draw_keeps_the_documented_ranges_and_is_solvable(n_agents: int) -
                     np.hypot(*(centres[:, None] - centres[None]).transpose(2, 0, 1)) - circles[:, 2] - circles[:, 2, None]
                 )
                 assert between[np.triu_indices(len(circles), 1)].min() >= 1.1 * smallest - 1e-9
+
+
+def cross(first: np.ndarray, second: np.ndarray) -> float:
+    """The z component of the cross product of two plane vectors."""
+    return float(first[0] * second[1] - first[1] * second[0])
+
+
+@pytest.mark.parametrize("scenes", MOVING_FAMILIES)
+def test_moving_families_keep_their_documented_traffic(scenes: str) -> None:
+    """20 draws of each family with moving obstacles: its static part as the static family's (same walls and circles
+    counts), and movers of the documented count, radius, speed (shares of v_max) and motion, each on a line that
+    crosses the straight way between TRAFFIC_CROSSINGS of it, its start on that line, and the whole line clear of the
+    starting formation, the static shapes and the border by PLACEMENT_ROOM plus its radius (checked at 1 cm)."""
+    config = config_of(scenes)
+    family = MOVING_FAMILIES[scenes]
+    traffic = family.traffic
+    assert traffic is not None
+    rng = np.random.default_rng(5)
+    footprint = start_footprint(config)
+    for _ in range(20):
+        scene = draw_scenario(config, 3, rng)
+        scene.validate(config)
+        movers = scene.movers
+        assert traffic.count[0] <= len(movers) <= traffic.count[1]
+        assert len(scene.walls) <= family.max_walls and len(scene.obstacles) <= family.max_circles
+        start, goal = scene.centroid, scene.goal
+        for mover in movers:
+            assert mover.motion == traffic.motion and mover.reacts == traffic.reacts
+            assert traffic.radius[0] <= mover.radius <= traffic.radius[1]
+            assert traffic.speed[0] * config.v_max - 1e-12 <= mover.speed <= traffic.speed[1] * config.v_max + 1e-12
+            middle, second, first = mover.waypoints
+            along = second - first
+            assert abs(cross(along, middle - first)) < 1e-9 * np.dot(along, along)  # the start on the line
+            points = first + np.linspace(0, 1, int(np.linalg.norm(along) / 0.01) + 2)[:, None] * along
+            gaps = shape_gaps(points, scene.obstacles, scene.walls, config.world_width, config.world_height)
+            assert gaps.min() >= mover.radius + PLACEMENT_ROOM - 1e-6
+            assert np.hypot(*(points - start).T).min() >= footprint + mover.radius + PLACEMENT_ROOM - 1e-6
+            # where the line crosses the straight way, as a share of it
+            way = goal - start
+            share = cross(first - start, along) / cross(way, along)
+            assert TRAFFIC_CROSSINGS[0] - 1e-9 <= share <= TRAFFIC_CROSSINGS[1] + 1e-9
 
 
 def test_mixed_draws_every_family() -> None:
@@ -234,8 +285,9 @@ def test_the_geodesic_goal_term_rewards_going_round_the_wall() -> None:
 def test_one_registry_places_every_episode() -> None:
     """Every way of placing an episode is an entry of ``SCENES``: the curriculum beside the families and their
     mixture; the benchmark plays every entry but the mixture; an unknown name is refused in one line."""
-    assert list(SCENES) == ["curriculum", "passage", "corridor", "trap", "clutter", "mixed"]
-    assert BENCHMARK_SCENES == ("curriculum", "passage", "corridor", "trap", "clutter")
+    moving = ["crowd", "crowd-blind", "passage-moving", "corridor-moving", "trap-moving", "clutter-moving"]
+    assert list(SCENES) == ["curriculum", "passage", "corridor", "trap", "clutter", "mixed", *moving, "mixed-moving"]
+    assert BENCHMARK_SCENES == ("curriculum", "passage", "corridor", "trap", "clutter", *moving)
     assert [name for name, scenes in SCENES.items() if scenes.staged] == ["curriculum"]
     assert scene_slots(config_of("mixed")) == (12, 4)  # clutter's 12 circles, the corridor's 4 walls
     assert scene_slots(config_of("curriculum")) == (4, 0)  # stages 1-2: three large obstacles and a small one

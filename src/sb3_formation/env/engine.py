@@ -496,6 +496,7 @@ class FormationEngine:
             goal=episodes.goals[team],
             obstacles=np.vstack([scenario.obstacles, movers.circles]),
             obstacle_velocities=np.vstack([still, movers.velocities]) if scenario.movers else None,
+            moving=len(scenario.movers),
             walls=cast(np.ndarray, scenario.walls),
             neighbours=self.constants.neighbours[rows],
             contacts_agent=latest.contacts[rows, ContactColumn.AGENTS],

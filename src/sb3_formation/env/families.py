@@ -11,19 +11,27 @@ in its starting formation, agents in order; the reward stage is the task's (plac
 drawn scene is checked: a centroid path must exist along which the smallest formation clears every shape by
 :data:`SOLVABLE_MARGIN` (:func:`~sb3_formation.env.clearance.reachable`); a draw that fails is drawn again, at most
 ``max_placement_tries`` times.
+
+A family may add moving obstacles (:class:`Traffic`, :mod:`~sb3_formation.env.movers`): each goes back and forth on a
+line that crosses the straight way from the start to the goal. The moving families (:data:`MOVING_FAMILIES`) are a
+crowd of pedestrians in an empty world, walking across it (``crowd``: they react to the agents; ``crowd-blind``: they
+do not, and walk no faster than the agents), and each static family with 2-4 obstacles that slide to and fro across
+the way (``passage-moving``, ...). Solvability is judged on the static shapes only: a mover may block the way for a
+while, never for good (it keeps moving).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
 
 from sb3_formation.env.clearance import ClearanceMap, reachable, shrunk_footprint, start_footprint
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.movers import Mover
 from sb3_formation.env.scenarios import PlacementError, Scenario, Scenes, start_formation
 from sb3_formation.env.shapes import shape_gaps
 
@@ -64,6 +72,106 @@ class FormationWidths:
 
 
 @dataclass(frozen=True)
+class Traffic:
+    """The moving obstacles a family adds to its scenes: each goes back and forth on a line across the straight way
+    from the start to the goal, crossing it at a point drawn uniformly from :data:`TRAFFIC_CROSSINGS` of the way, at
+    an angle within 30 degrees of square to it, starting at a point of its line drawn uniformly. Its line keeps
+    :data:`PLACEMENT_ROOM` (plus its radius) from the starting formation, the static shapes and the border.
+
+    :param count: the fewest and most movers, drawn uniformly
+    :param speed: their speeds' range, in shares of the agents' v_max
+    :param radius: their radii's range (m)
+    :param reach: how far (m) a line reaches on each side of the way, drawn uniformly; a walker's line is cut at the
+        world's border (less the room), so a long reach crosses the whole world
+    :param motion: ``"path"`` or ``"walk"`` (:data:`~sb3_formation.env.movers.MOTIONS`)
+    :param reacts: walkers see and avoid the agents
+    """
+
+    count: tuple[int, int]
+    speed: tuple[float, float]
+    radius: tuple[float, float]
+    reach: tuple[float, float]
+    motion: str = "path"
+    reacts: bool = False
+
+    def draw(
+        self, config: FormationConfig, draft: SceneDraft, widths: FormationWidths, rng: np.random.Generator
+    ) -> tuple[Mover, ...]:
+        """The movers of one scene drawn for ``draft`` (+x frame).
+
+        :raises _NoRoom: no line clear of the shapes was found for one of them
+        """
+        start, goal = draft.start, draft.goal
+        way = (goal - start) / math.hypot(*(goal - start).tolist())
+        movers = []
+        for _ in range(int(rng.integers(self.count[0], self.count[1] + 1))):
+            radius = float(rng.uniform(*self.radius))
+            speed = float(rng.uniform(*self.speed)) * config.v_max
+            for _ in range(50):
+                line = self._line(config, draft, way, radius, rng)
+                if line is not None and _clear_line(config, draft, widths, line, radius):
+                    break
+            else:
+                raise _NoRoom
+            first, second = line
+            middle = first + float(rng.uniform(0.05, 0.95)) * (second - first)
+            waypoints = np.array([middle, second, first])
+            movers.append(Mover(radius, waypoints, speed, self.motion, reacts=self.reacts))
+        return tuple(movers)
+
+    def _line(
+        self, config: FormationConfig, draft: SceneDraft, way: np.ndarray, radius: float, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Both ends of one mover's line, or ``None`` when a drawn end lies outside the world."""
+        crossing = draft.start + float(rng.uniform(*TRAFFIC_CROSSINGS)) * (draft.goal - draft.start)
+        angle = math.atan2(way[1], way[0]) + math.pi / 2 + float(rng.uniform(-math.pi / 6, math.pi / 6))
+        direction = np.array([math.cos(angle), math.sin(angle)])
+        room = radius + PLACEMENT_ROOM
+        ends = []
+        for sign in (1.0, -1.0):
+            reach = float(rng.uniform(*self.reach))
+            if self.motion == "walk":  # walkers cross the whole world when the reach allows
+                reach = min(reach, _reach_inside(crossing, sign * direction, room, config))
+            ends.append(crossing + sign * reach * direction)
+        low, high = np.array([room, room]), np.array([config.world_width - room, config.world_height - room])
+        if any(np.any(end < low) or np.any(end > high) for end in ends):
+            return None
+        return ends[0], ends[1]
+
+
+#: The share of the straight way from the start to the goal at which a mover's line crosses it (drawn uniformly).
+TRAFFIC_CROSSINGS = (0.25, 0.85)
+
+
+def _reach_inside(point: np.ndarray, direction: np.ndarray, room: float, config: FormationConfig) -> float:
+    """How far (m) from ``point`` along the unit ``direction`` the world's border, less ``room``, is."""
+    reach = math.inf
+    for axis, size in ((0, config.world_width), (1, config.world_height)):
+        if direction[axis] > 1e-9:
+            reach = min(reach, (size - room - point[axis]) / direction[axis])
+        elif direction[axis] < -1e-9:
+            reach = min(reach, (room - point[axis]) / direction[axis])
+    return max(reach, 0.0)
+
+
+def _clear_line(
+    config: FormationConfig, draft: SceneDraft, widths: FormationWidths, line: tuple[np.ndarray, np.ndarray], radius: float
+) -> bool:
+    """Whether a mover of ``radius`` on ``line`` keeps :data:`PLACEMENT_ROOM` from the starting formation's footprint,
+    every static shape and the border (checked at points 5 cm apart)."""
+    first, second = line
+    points = first + np.linspace(0.0, 1.0, max(2, int(math.hypot(*(second - first).tolist()) / 0.05) + 1))[:, None] * (
+        second - first
+    )
+    room = radius + PLACEMENT_ROOM
+    to_start = np.hypot(*(points - draft.start).T)
+    if np.any(to_start < widths.footprint + room):
+        return False
+    gaps = shape_gaps(points, draft.circles, draft.walls, config.world_width, config.world_height)
+    return bool(np.all(gaps >= room - 1e-9))  # a walker's end lies on the border less the room, up to rounding
+
+
+@dataclass(frozen=True)
 class SceneFamily(Scenes):
     """A family of scenes: ranges of its parameters, and the function that builds a scene from one draw of them.
 
@@ -74,8 +182,9 @@ class SceneFamily(Scenes):
         world's width; ``"m"`` and ``""`` take them as they are, and with ``""`` and two integer ends an integer is drawn
     :param build: (drawn values in metres, world width, world height, the team's widths, rng) -> a
         :class:`SceneDraft` in the +x frame, or ``None`` when the values leave no room
-    :param max_circles: the most circles a scene of the family has (the size of ``state()``)
+    :param max_circles: the most static circles a scene of the family has
     :param max_walls: the most walls
+    :param traffic: the moving obstacles added to each scene, if any
     """
 
     name: str
@@ -84,6 +193,7 @@ class SceneFamily(Scenes):
     build: Callable[[dict[str, float], float, float, FormationWidths, np.random.Generator], SceneDraft | None]
     max_circles: int
     max_walls: int
+    traffic: Traffic | None = None
 
     def draw_values(self, widths: FormationWidths, width: float, rng: np.random.Generator) -> dict[str, float]:
         """One draw of the family's parameters, in metres (or counts)."""
@@ -105,18 +215,20 @@ class SceneFamily(Scenes):
         for _ in range(config.max_placement_tries):
             try:
                 draft = self.build(self.draw_values(widths, width, rng), width, height, widths, rng)
+                if draft is None:
+                    continue
+                movers = () if self.traffic is None else self.traffic.draw(config, draft, widths, rng)
             except _NoRoom:
-                continue
-            if draft is None:
                 continue
             start, goal, circles, walls = draft
             if rng.random() < 0.5:
                 start, goal = np.array([width - start[0], start[1]]), np.array([width - goal[0], goal[1]])
                 circles = circles * [-1.0, 1.0, 1.0] + [width, 0.0, 0.0]
                 walls = walls * [-1.0, 1.0, -1.0, 1.0, 1.0] + [width, 0.0, width, 0.0, 0.0]
+                movers = tuple(replace(mover, waypoints=mover.waypoints * [-1.0, 1.0] + [width, 0.0]) for mover in movers)
             positions = start_formation(config, start)
             if _fits(config, positions, goal, circles, walls) and is_solvable(config, start, goal, circles, walls):
-                return Scenario(positions, goal, circles, walls)
+                return Scenario(positions, goal, circles, walls, movers=movers)
         raise PlacementError(
             f"could not draw a solvable {self.name!r} scene in the {width:g} m x {height:g} m world for a team of "
             f"{config.n_agents} in {config.max_placement_tries} tries: enlarge the world or shrink the formation"
@@ -130,7 +242,7 @@ class SceneFamily(Scenes):
             raise ValueError(str(error)) from None
 
     def slots(self, config: FormationConfig) -> tuple[int, int]:
-        return self.max_circles, self.max_walls
+        return self.max_circles + (0 if self.traffic is None else self.traffic.count[1]), self.max_walls
 
 
 @dataclass(frozen=True)
@@ -153,7 +265,8 @@ class MixedScenes(Scenes):
             family.check_fits(config)
 
     def slots(self, config: FormationConfig) -> tuple[int, int]:
-        return max(family.max_circles for family in self.families), max(family.max_walls for family in self.families)
+        circles, walls = zip(*(family.slots(config) for family in self.families))
+        return max(circles), max(walls)
 
 
 class _NoRoom(Exception):
@@ -236,6 +349,15 @@ def _clutter(
     return SceneDraft(start, goal, np.array(circles).reshape(-1, 3), np.zeros((0, 5)))
 
 
+def _open(
+    values: dict[str, float], width: float, height: float, widths: FormationWidths, rng: np.random.Generator
+) -> SceneDraft:
+    """No static shape: the team starts near the left border, the goal lies in the right fifth of the world."""
+    start = np.array([_between(rng, widths.footprint + PLACEMENT_ROOM, 0.15 * width), _start_y(widths, height, rng)])
+    goal = np.array([_between(rng, 0.8 * width, width - 1.0), _between(rng, 1.0, height - 1.0)])
+    return SceneDraft(start, goal, np.zeros((0, 3)), np.zeros((0, 5)))
+
+
 def _start_y(widths: FormationWidths, height: float, rng: np.random.Generator) -> float:
     return _between(rng, widths.footprint + PLACEMENT_ROOM, height - widths.footprint - PLACEMENT_ROOM)
 
@@ -284,6 +406,44 @@ _FAMILIES = (
 )
 #: The scene families by name (ranges: see :class:`SceneFamily`).
 SCENE_FAMILIES: dict[str, SceneFamily] = {family.name: family for family in _FAMILIES}
+
+#: Pedestrians crossing the world (their reach lets every line run from border to border).
+_CROWD = Traffic(count=(5, 20), speed=(0.5, 1.5), radius=(0.2, 0.3), reach=(20.0, 20.0), motion="walk", reacts=True)
+#: Obstacles sliding to and fro across the way through a static family's scene.
+_SLIDERS = Traffic(count=(2, 4), speed=(0.5, 1.5), radius=(0.2, 0.4), reach=(1.0, 3.0))
+_MOVING = (
+    SceneFamily(
+        "crowd",
+        "5-20 pedestrians (navground's ORCA, radius 0.2-0.3 m) walking to and fro across an empty world at 0.5-1.5 "
+        "times v_max, avoiding the agents",
+        {},
+        _open,
+        max_circles=0,
+        max_walls=0,
+        traffic=_CROWD,
+    ),
+    SceneFamily(
+        "crowd-blind",
+        "the crowd's pedestrians at 0.5-1 times v_max, walking as if the agents were not there",
+        {},
+        _open,
+        max_circles=0,
+        max_walls=0,
+        traffic=replace(_CROWD, speed=(0.5, 1.0), reacts=False),
+    ),
+    *(
+        replace(
+            family,
+            name=f"{family.name}-moving",
+            description=f"{family.name}, with 2-4 obstacles (radius 0.2-0.4 m) sliding to and fro across the way at "
+            "0.5-1.5 times v_max",
+            traffic=_SLIDERS,
+        )
+        for family in _FAMILIES
+    ),
+)
+#: The scene families with moving obstacles by name.
+MOVING_FAMILIES: dict[str, SceneFamily] = {family.name: family for family in _MOVING}
 
 
 def _fits(config: FormationConfig, positions: np.ndarray, goal: np.ndarray, circles: np.ndarray, walls: np.ndarray) -> bool:

@@ -16,6 +16,7 @@ PIXELS_PER_METRE = 60
 BACKGROUND = (250, 250, 247)
 WALL = (60, 60, 60)
 OBSTACLE = (140, 140, 150)
+MOVER = (110, 80, 60)  #: moving obstacles, with a line along their last step's velocity
 GOAL = (40, 170, 70)
 LINK = (90, 90, 90)
 CENTROID = (200, 30, 30)
@@ -64,8 +65,15 @@ def render_frame(
         draw.ellipse((x - r, y - r, x + r, y + r), **style)
 
     positions = state.positions
-    for x, y, radius in state.obstacles:
-        circle(np.array([x, y]), radius, fill=OBSTACLE)
+    first_mover = len(state.obstacles) - state.moving
+    for index, (x, y, radius) in enumerate(state.obstacles):
+        circle(np.array([x, y]), radius, fill=OBSTACLE if index < first_mover else MOVER)
+    if state.obstacle_velocities is not None:  # where each mover heads: its radius along its velocity
+        for (x, y, radius), velocity in zip(state.obstacles[first_mover:], state.obstacle_velocities[first_mover:]):
+            speed = math.hypot(*velocity)
+            if speed > 0:
+                tip = np.array([x, y]) + 2 * radius * velocity / speed
+                draw.line([pixel(np.array([x, y])), pixel(tip)], fill=MOVER, width=max(1, pixels_per_metre // 20))
     for x0, y0, x1, y1, thickness in state.walls:  # a capsule: a thick line with round ends
         ends = np.array([[x0, y0], [x1, y1]])
         draw.line([pixel(ends[0]), pixel(ends[1])], fill=OBSTACLE, width=max(1, round(thickness * pixels_per_metre)))

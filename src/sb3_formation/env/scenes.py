@@ -3,8 +3,10 @@
 A task's ``scenes`` (:attr:`FormationConfig.scenes`) names an entry of :data:`SCENES`, a
 :class:`~sb3_formation.env.scenarios.Scenes` that draws one :class:`~sb3_formation.env.scenarios.Scenario` per
 episode: ``"curriculum"``, the thesis's stages (:mod:`~sb3_formation.env.curriculum`); ``"passage"``,
-``"corridor"``, ``"trap"`` and ``"clutter"``, the scene families (:mod:`~sb3_formation.env.families`); and
-``"mixed"``, one family drawn per episode. A new way of placing episodes is one more entry here; nothing else in the
+``"corridor"``, ``"trap"`` and ``"clutter"``, the scene families (:mod:`~sb3_formation.env.families`);
+``"mixed"``, one family drawn per episode; the families with moving obstacles, ``"crowd"``, ``"crowd-blind"`` and
+``"passage-moving"``, ``"corridor-moving"``, ``"trap-moving"``, ``"clutter-moving"``; and ``"mixed-moving"``, one of
+them drawn per episode. A new way of placing episodes is one more entry here; nothing else in the
 package names a scene.
 """
 
@@ -14,7 +16,7 @@ import numpy as np
 
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.curriculum import Curriculum
-from sb3_formation.env.families import SCENE_FAMILIES, MixedScenes
+from sb3_formation.env.families import MOVING_FAMILIES, SCENE_FAMILIES, MixedScenes
 from sb3_formation.env.scenarios import Scenario, Scenes
 
 #: Every value ``FormationConfig.scenes`` may take, and what it draws.
@@ -22,6 +24,10 @@ SCENES: dict[str, Scenes] = {
     "curriculum": Curriculum(),
     **SCENE_FAMILIES,
     "mixed": MixedScenes("one of the scene families, drawn uniformly per episode", tuple(SCENE_FAMILIES.values())),
+    **MOVING_FAMILIES,
+    "mixed-moving": MixedScenes(
+        "one of the scene families with moving obstacles, drawn uniformly per episode", tuple(MOVING_FAMILIES.values())
+    ),
 }
 #: The scenes a task has unless it names others (:attr:`FormationConfig.scenes`'s default).
 DEFAULT_SCENES: str = FormationConfig.scenes

@@ -41,6 +41,7 @@ class TeamState:
     :param headings: ``(n,)`` unicycle agents' headings (rad, anti-clockwise from +x), or ``None`` for holonomic agents
     :param obstacle_velocities: ``(m, 2)`` every obstacle's velocity (m/s) over the last step (0 for static ones and
         before the first step), or ``None`` when no obstacle moves
+    :param moving: how many of the obstacles (the last ones) move
     """
 
     step: int
@@ -61,6 +62,7 @@ class TeamState:
     walls: np.ndarray = field(default_factory=lambda: np.zeros((0, len(WALL_COLUMNS))))
     headings: np.ndarray | None = None
     obstacle_velocities: np.ndarray | None = None
+    moving: int = 0
 
     def __post_init__(self) -> None:
         for name, value in vars(self).items():
