@@ -12,7 +12,7 @@ import pytest
 
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.engine import FormationEngine
-from sb3_formation.env.movers import Mover, MovingObstacles
+from sb3_formation.env.movers import CROWD_SENSING_RANGE, Mover, MovingObstacles
 from sb3_formation.env.scenarios import Scenario, start_formation
 from sb3_formation.env.sensors import OBSTACLE_CHANNEL
 
@@ -44,9 +44,9 @@ def test_bounce_mirrors_at_the_border() -> None:
         assert movers.positions[0] == pytest.approx(position, abs=1e-12)
 
 
-def _library_velocity(position, velocity, goal, neighbours, width: float, height: float) -> np.ndarray:
+def _library_velocity(position, velocity, goal, neighbours) -> np.ndarray:
     """What navground's ORCA behaviour, asked on its own, commands a walker (radius 0.3 m, 1 m/s) that sees
-    ``neighbours`` and the world's border."""
+    ``neighbours`` and the world's border (navground's bounded sensing passes every wall, near or far)."""
     behavior = crowd_core.behaviors.ORCABehavior(
         kinematics=crowd_core.kinematics.OmnidirectionalKinematics(max_speed=1.0), radius=0.3
     )
@@ -54,7 +54,7 @@ def _library_velocity(position, velocity, goal, neighbours, width: float, height
     behavior.position, behavior.velocity = position, velocity
     behavior.target = crowd_core.Target.Point(np.asarray(goal, dtype=float), 0.25)
     behavior.environment_state.neighbors = neighbours
-    corners = [(0.0, 0.0), (width, 0.0), (width, height), (0.0, height)]
+    corners = [(0.0, 0.0), (W, 0.0), (W, H), (0.0, H)]
     behavior.environment_state.line_obstacles = [
         crowd_core.LineSegment(start, end) for start, end in zip(corners, corners[1:] + corners[:1])
     ]
@@ -65,12 +65,14 @@ def test_walker_velocities_are_the_crowd_model_s_own() -> None:
     """A reacting walker's velocity in every step is what navground's ORCA behaviour commands for the same state
     (the agent it sees as a neighbour with its position and velocity), to single precision; a walker that does not
     react walks as if the agent were not there."""
-    mover = Mover(0.3, [[3, 5], [12, 5]], 1.0, "walk", reacts=True)
+    mover = Mover(0.3, [[4, 5], [12, 5]], 1.0, "walk", reacts=True)
     movers = MovingObstacles((mover,), 0.3, W, H, agent_radius=0.2)
-    agent, agent_velocity = np.array([[6.0, 5.05]]), np.array([[-0.05, 0.0]])
+    agent, agent_velocity = np.array([[5.5, 5.05]]), np.array([[-0.05, 0.0]])
     for _ in range(8):
         neighbour = crowd_core.Neighbor(agent[0], 0.2, agent_velocity[0], 0)
-        expected = _library_velocity(movers.positions[0], movers.velocities[0], (12, 5), [neighbour], W, H)
+        position = movers.positions[0]
+        assert math.dist(position, agent[0]) < CROWD_SENSING_RANGE  # the walker sees the agent
+        expected = _library_velocity(position, movers.velocities[0], (12, 5), [neighbour])
         assert movers.step(agent, agent_velocity)[0] == pytest.approx(expected, abs=1e-4)
         agent = agent + 0.3 * agent_velocity
     assert abs(movers.positions[0, 1] - 5.0) > 0.05  # it stepped aside
@@ -78,7 +80,7 @@ def test_walker_velocities_are_the_crowd_model_s_own() -> None:
     alone, beside = (MovingObstacles((blind,), 0.3, W, H, agent_radius=0.2) for _ in range(2))
     for _ in range(8):
         alone.step(np.zeros((0, 2)), np.zeros((0, 2)))
-        beside.step(np.array([[6.0, 5.05]]), np.zeros((1, 2)))
+        beside.step(np.array([[5.5, 5.05]]), np.zeros((1, 2)))
     assert np.array_equal(alone.positions, beside.positions)
     assert alone.positions[0, 1] == pytest.approx(5.0, abs=1e-5)  # straight at the agent's place
 

@@ -142,6 +142,7 @@ class FormationEngine:
             for c in self.configs
         ]
         self.worlds: list[World | None] = [None] * n_teams
+        self._moving = np.zeros(n_teams, dtype=bool)  # teams whose scenario has moving obstacles
         self.scenarios: list[Scenario | None] = [None] * n_teams
         self.generators: list[np.random.Generator] = []
         self.generator_seeds: list[int] = []
@@ -254,6 +255,7 @@ class FormationEngine:
         else:
             world.place(scenario)
         self.scenarios[team] = scenario
+        self._moving[team] = bool(scenario.movers)
         lidar = self.lidars[team]
         lidar.set_obstacles(np.vstack([scenario.obstacles, world.movers.circles]), scenario.walls)
         self._load_shapes(team, lidar.layout)
@@ -329,7 +331,7 @@ class FormationEngine:
         if self.disturber is not None and self.disturber.acts:
             actions, late = self.disturber.act(actions, stepped.teams, self.episodes.step_counts)
         worlds = cast("list[World]", self.worlds)
-        moving = [team for team in stepped.teams if worlds[team].movers.movers]
+        moving = [team for team in stepped.teams if self._moving[team]] if self._moving.any() else []
         for team in moving:
             worlds[team].move_obstacles()
         moved = self.dynamics.move(actions, previous.velocities, worlds, stepped, late)

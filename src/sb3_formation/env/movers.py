@@ -38,8 +38,9 @@ MOTIONS = ("path", "bounce", "walk")
 CROWD_BEHAVIORS = ("ORCA", "HRVO", "HL", "SocialForce")
 #: How close (m) a walker comes to a waypoint before it walks to the next.
 WAYPOINT_TOLERANCE = 0.25
-#: How far (m) a walker sees other walkers, the agents and the static shapes.
-CROWD_SENSING_RANGE = 5.0
+#: How far (m) a walker sees other walkers, the agents and the static shapes: 20 times what the fastest walker of the
+#: families (1.5 v_max, 0.075 m/s) covers in a step of 0.3 s, and more than its ORCA time horizon covers.
+CROWD_SENSING_RANGE = 2.0
 
 
 @dataclass(frozen=True)
@@ -138,7 +139,11 @@ class MovingObstacles:
             raise ValueError("the walkers of one scenario must all react to the agents or all not react")
         self._walkers = np.array(walkers, dtype=np.int64)
         self.reacts = reacting == {True}
-        self._crowd, self._pedestrians, self._robots = self._crowd_world(walkers) if walkers else (None, [], [])
+        self._crowd: crowd_sim.World | None = None
+        self._pedestrians: list[crowd_sim.Agent] = []
+        self._robots: list[crowd_sim.Agent] = []  # the agents in the crowd model, for walkers that react to them
+        if walkers:
+            self._crowd, self._pedestrians = self._crowd_world(walkers)
 
     @property
     def circles(self) -> np.ndarray:
@@ -187,8 +192,9 @@ class MovingObstacles:
                 velocity[axis] = -velocity[axis]
         return position, velocity
 
-    def _crowd_world(self, walkers: list[int]) -> tuple[crowd_sim.World, list[crowd_sim.Agent], list[crowd_sim.Agent]]:
-        """navground's world of the walkers, the static shapes, the border and (for reacting walkers) the agents."""
+    def _crowd_world(self, walkers: list[int]) -> tuple[crowd_sim.World, list[crowd_sim.Agent]]:
+        """navground's world of the walkers, the static shapes and the border (the agents join at the first step when
+        the walkers react to them), and the walkers' agents in it."""
         world = crowd_sim.World()
         world.ignore_collisions = True  # contacts are Pymunk's: the crowd model only chooses the walkers' velocities
         for x, y, radius in self.obstacles.tolist():
@@ -201,6 +207,7 @@ class MovingObstacles:
         for index in walkers:
             mover = self.movers[index]
             behavior = crowd_core.Behavior.make_type(mover.behavior)
+            assert behavior is not None  # one of CROWD_BEHAVIORS, which navground registers
             behavior.optimal_speed = mover.speed
             pedestrian = crowd_sim.Agent(
                 radius=mover.radius,
@@ -216,7 +223,7 @@ class MovingObstacles:
             pedestrian.position = mover.start
             world.add_agent(pedestrian)
             pedestrians.append(pedestrian)
-        return world, pedestrians, []
+        return world, pedestrians
 
     def _walk(self, agent_positions: np.ndarray, agent_velocities: np.ndarray) -> np.ndarray:
         """The walkers' positions one step on: one update of the crowd model (the agents placed in it first when the

@@ -121,6 +121,7 @@ class World:
         # numpy arrays of this world (their memory is the buffers'); it reads the arbiters once per sub-step,
         # appending to one buffer over a step
         self._read_buffer, self._read = self._buffer_and_query(_STATE_FIELDS)
+        self._place_buffer, self._place = self._buffer_and_query(_STATE_FIELDS)  # movers' positions and velocities
         self._write_buffer, self._write = self._buffer_and_query(_VELOCITY_FIELD)
         self._arbiter_buffer, self._arbiter_query = self._buffer_and_query(_ARBITER_FIELDS)
         self._substep = config.dt / cast(int, config.physics_substeps)  # an int once the config is built
@@ -198,6 +199,8 @@ class World:
         states = np.zeros(4 * len(body_ids) + _SPARE_VALUES)
         self._read_buffer.set_float_buf(states)
         self._body_states = states[: 4 * len(body_ids)].reshape(-1, 4)
+        self._placed_states = np.zeros((len(body_ids), 4))  # what move_obstacles writes into every body
+        self._place_buffer.set_float_buf(self._placed_states.ravel())
         # Space.step's Python bookkeeping (new bodies' checks, removed shapes) runs here, once per episode: a step of 0 s
         # does only that (Chipmunk returns at once), and advance() then calls Chipmunk's step directly
         self.space.step(0.0)
@@ -230,12 +233,13 @@ class World:
         Reacting walkers see the agents as they are now."""
         if not self._mover_bodies:
             return
-        positions = self.movers.positions
+        placed, rows = self._placed_states, self._mover_rows
+        placed[:] = self._body_states  # every other body is given back the state it has
+        placed[rows, :2] = self.movers.positions
         agents = self.agent_states
-        velocities = self.movers.step(agents[:, :2], agents[:, 2:])
-        for body, position, velocity in zip(self._mover_bodies, positions.tolist(), velocities.tolist()):
-            body.position, body.velocity = position, velocity
-        self._body_velocities[self._mover_rows] = velocities
+        placed[rows, 2:] = self._body_velocities[rows] = self.movers.step(agents[:, :2], agents[:, 2:])
+        self._place_buffer._float_arr.num = 0  # the position Pymunk reads from
+        chipmunk.cpSpaceEachBody(self.space._space, _SET_BODIES, self._place)
 
     def step(self, forces: np.ndarray) -> tuple[list[int], list[int]]:
         """Advance one environment step of ``config.dt`` seconds under ``forces``.
