@@ -57,11 +57,15 @@ def test_benchmark_writes_the_table_evaluations_and_figures(tmp_path: Path, caps
 
 def test_benchmark_reports_what_the_filter_did_for_a_safe_target(tmp_path: Path) -> None:
     """A ``safe:`` target's rows give the filter's share of changed agent-steps, its mean change, infeasible steps and
-    the smallest separation, each the stored evaluation's; its contact episodes count the episodes with contacts."""
+    the smallest separation, each the stored evaluation's; its contact episodes count the episodes with contacts. On
+    the static scene sets (``--scenes`` picks them) the filter keeps every agent clear of every shape."""
     out = tmp_path / "bench"
-    arguments = ["benchmark", "safe:controller:random", "--episodes", "2", "--workers", "1", "--out", str(out)]
+    static = "curriculum,passage,corridor,trap,clutter"
+    arguments = ["benchmark", "safe:controller:random", "--episodes", "2", "--workers", "1", "--scenes", static]
+    arguments += ["--out", str(out)]
     assert main([*arguments, "--no-progress", "--labels", "random", "--agents", "3"]) == 0
     results = json.loads((out / "benchmark.json").read_text())
+    assert [row["scenes"] for row in results["rows"]] == static.split(",")
     for row in results["rows"]:
         summary = load_summary(out / "random" / row["scenes"])
         episodes = summary["all_episodes"]

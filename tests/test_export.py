@@ -20,6 +20,7 @@ from sb3_formation.controllers.residual import ResidualPolicy
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.engine import FormationEngine
 from sb3_formation.env.observations import observation_fields
+from sb3_formation.env.scenes import BENCHMARK_SCENES
 from sb3_formation.experiment.evaluation import evaluate
 from sb3_formation.experiment.pretrained import ONNX_FILE, PRETRAINED_DIR, load_pretrained, pretrained_names
 from sb3_formation.experiment.targets import Target, load_policy
@@ -269,7 +270,7 @@ def test_export_and_evaluate_from_the_command_line(
     benchmark = ["benchmark", f"onnx:{out}", "--episodes", "1", "--workers", "1", "--no-progress"]
     assert main([*benchmark, "--labels", "exported", "--out", str(tmp_path / "bench")]) == 0
     rows = json.loads((tmp_path / "bench" / "benchmark.json").read_text())["rows"]
-    assert [row["target"] for row in rows] == ["exported"] * 5 and rows[0]["n_agents"] == 3
+    assert [row["target"] for row in rows] == ["exported"] * len(BENCHMARK_SCENES) and rows[0]["n_agents"] == 3
 
 
 def bad_inputs(tmp_path: Path) -> dict[str, tuple[Path, str]]:

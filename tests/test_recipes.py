@@ -49,6 +49,7 @@ def test_the_four_thesis_recipes_are_shipped_with_their_citations() -> None:
         *(f"fast-{name}" for name in thesis),
         "fast-ch5-bearing-shielded",
         "mixed-ch5-bearing",
+        "moving-scenes-ch5-bearing",
         *(f"residual-{name}" for name in thesis),
         "residual-ch5-bearing-unicycle",
         "residual-scenes-ch5-bearing",

@@ -8,6 +8,7 @@ from pathlib import Path
 from sb3_formation.cli.common import (
     add_disturbances_option,
     add_recipe_option,
+    add_scene_sets_option,
     add_trust_pickle_option,
     agents_count,
     episodes_count,
@@ -48,6 +49,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--device", default="auto", help="torch device (default auto)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_scene_sets_option(parser)
     add_disturbances_option(parser)
     add_recipe_option(parser, "recipe of controller: targets (default ch5-bearing)")
     add_trust_pickle_option(parser)
@@ -85,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
                 progress_bar=not args.no_progress,
                 command=args.command_line,
                 disturbances=args.disturbances or "ideal",
+                scenes=args.scenes,
             )
             from sb3_formation.viz.plots import plot_trajectory, save_figures  # matplotlib: only where one is drawn
 

@@ -11,7 +11,7 @@ from typing import Any
 
 from sb3_formation.env.config import MAX_AGENTS, MAX_EPISODE_STEPS
 from sb3_formation.env.disturbances import disturbance_label, load_disturbances
-from sb3_formation.env.scenes import SCENES
+from sb3_formation.env.scenes import BENCHMARK_SCENES, SCENES
 from sb3_formation.experiment.evaluation import EVALUATION_TEAMS, evaluate_target
 from sb3_formation.experiment.recipes import DEFAULT_RECIPE, MAX_TEAMS
 from sb3_formation.experiment.sections import EvaluationSection
@@ -235,3 +235,24 @@ def target_labels(text: str | None, targets: Sequence[Target]) -> list[str]:
     if len(labels) != len(targets):
         raise ValueError(f"--labels gives {len(labels)} labels for {len(targets)} runs")
     return labels
+
+
+def scene_sets(text: str) -> tuple[str, ...]:
+    """``--scenes`` of the benchmark and the robustness curves: comma-separated scene sets of the benchmark, each once."""
+    names = tuple(name.strip() for name in text.split(","))
+    unknown = [name for name in names if name not in BENCHMARK_SCENES]
+    if unknown or len(set(names)) != len(names):
+        raise argparse.ArgumentTypeError(
+            f"expected distinct scene sets of {', '.join(BENCHMARK_SCENES)} separated by commas, got {text!r:.60}"
+        )
+    return names
+
+
+def add_scene_sets_option(parser: argparse.ArgumentParser) -> None:
+    """``--scenes``: the benchmark's scene sets to play (default all of them)."""
+    parser.add_argument(
+        "--scenes",
+        type=scene_sets,
+        default=",".join(BENCHMARK_SCENES),
+        help="comma-separated scene sets of the benchmark (default all of them)",
+    )

@@ -7,6 +7,7 @@ import argparse
 from sb3_formation.cli.benchmark import check_new_folder
 from sb3_formation.cli.common import (
     add_recipe_option,
+    add_scene_sets_option,
     add_trust_pickle_option,
     disturbances_source,
     episodes_count,
@@ -49,17 +50,6 @@ def levels_value(text: str) -> tuple[float, ...]:
         raise argparse.ArgumentTypeError(str(error)) from None
 
 
-def scene_sets(text: str) -> tuple[str, ...]:
-    """``--scenes``: comma-separated scene sets of the benchmark, each once."""
-    names = tuple(name.strip() for name in text.split(","))
-    unknown = [name for name in names if name not in BENCHMARK_SCENES]
-    if unknown or len(set(names)) != len(names):
-        raise argparse.ArgumentTypeError(
-            f"expected distinct scene sets of {', '.join(BENCHMARK_SCENES)} separated by commas, got {text!r:.60}"
-        )
-    return names
-
-
 def add_parser(commands: argparse._SubParsersAction) -> None:
     """Add the ``robustness`` subcommand to ``commands``."""
     parser = commands.add_parser(
@@ -92,12 +82,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--seed", type=seed_value, default=BENCHMARK_SEED, help=f"episode k plays seed + k (default {BENCHMARK_SEED})"
     )
-    parser.add_argument(
-        "--scenes",
-        type=scene_sets,
-        default=",".join(BENCHMARK_SCENES),
-        help="comma-separated scene sets of the benchmark (default all of them)",
-    )
+    add_scene_sets_option(parser)
     parser.add_argument("--n-envs", type=teams_count, default=16, help="teams played at once (default 16)")
     parser.add_argument("--workers", type=teams_count, default=2, help="processes stepping the teams (default 2)")
     parser.add_argument("--labels", help="comma-separated label per target (default: the targets)")
