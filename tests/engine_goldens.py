@@ -29,9 +29,14 @@ TASKS = ("ch4-individual", "ch4-team", "ch5-angle", "ch5-bearing")
 SIZES = tuple(range(3, 17))
 
 
+#: Info and summary keys added after the goldens' commit, all zero in their cases (no moving obstacle): checked to be
+#: zero, then left out of the digest, as the goldens were recorded without them.
+ADDED_ZERO_KEYS = ("collisions_rammed",)
+
+
 def digest(*parts: Any) -> str:
-    """A short SHA-256 of values: arrays by dtype, shape and bytes, dicts key by key (SB3's wall-clock ``t`` left out),
-    floats by ``repr`` (every bit)."""
+    """A short SHA-256 of values: arrays by dtype, shape and bytes, dicts key by key (SB3's wall-clock ``t`` left out,
+    and :data:`ADDED_ZERO_KEYS` once checked to be zero), floats by ``repr`` (every bit)."""
     hasher = hashlib.sha256()
 
     def feed(value: Any) -> None:
@@ -40,7 +45,9 @@ def digest(*parts: Any) -> str:
             hasher.update(np.ascontiguousarray(value).tobytes())
         elif isinstance(value, dict):
             for key, item in value.items():
-                if key != "t":
+                if key in ADDED_ZERO_KEYS:
+                    assert np.all(np.asarray(item) == 0), f"{key} is {item} where no obstacle moves"
+                elif key != "t":
                     hasher.update(repr(key).encode())
                     feed(item)
         elif isinstance(value, (list, tuple)):

@@ -222,17 +222,18 @@ def test_a_teams_formation_is_the_pure_geometry_of_its_positions() -> None:
 
 def test_each_info_column_lands_under_its_key() -> None:
     """The info values' first columns are the keys of ``INFO_KEYS`` that their ``InfoColumn`` names, the reward terms
-    follow in the order of ``REWARD_TERMS``, and the contacts' columns are the agent and the obstacle counts."""
+    follow in the order of ``REWARD_TERMS``, and the contacts' columns are the agent, the obstacle and the rammed
+    counts."""
     values = np.arange(2.0 * INFO_VALUES).reshape(2, INFO_VALUES) + 0.5  # row 1, column c holds INFO_VALUES + c + 0.5
-    contacts = np.zeros((2, 2), dtype=np.int64)
-    contacts[1, ContactColumn.AGENTS], contacts[1, ContactColumn.OBSTACLES] = 3, 4
+    contacts = np.zeros((2, 3), dtype=np.int64)
+    contacts[1, ContactColumn.AGENTS], contacts[1, ContactColumn.OBSTACLES], contacts[1, ContactColumn.RAMMED] = 3, 4, 2
     infos = agent_infos(values, contacts, np.array([True, False]))
-    assert INFO_VALUES == len(INFO_KEYS) - 3 == InfoColumn.FIRST_TERM + len(REWARD_TERMS)  # less contacts and success
+    assert INFO_VALUES == len(INFO_KEYS) - 4 == InfoColumn.FIRST_TERM + len(REWARD_TERMS)  # less contacts and success
     for column in list(InfoColumn)[:-1]:
         assert infos[1][column.name.lower()] == INFO_VALUES + column + 0.5
     for k, term in enumerate(REWARD_TERMS):
         assert infos[1][f"reward_{term}"] == INFO_VALUES + InfoColumn.FIRST_TERM + k + 0.5
-    assert (infos[1]["collisions_agent"], infos[1]["collisions_obstacle"]) == (3, 4)
+    assert (infos[1]["collisions_agent"], infos[1]["collisions_obstacle"], infos[1]["collisions_rammed"]) == (3, 4, 2)
     assert (infos[0]["success"], infos[1]["success"]) == (True, False)
 
 

@@ -75,7 +75,7 @@ def test_reset_observation_values_match_the_scenario() -> None:
         assert observation[layout["velocity"]].tolist() == [0.0, 0.0]
         assert observation[layout["previous_action"]].tolist() == [0.0, 0.0]
         info = infos[agent]
-        assert list(info) == list(INFO_KEYS) and len(INFO_KEYS) == 8 + len(REWARD_TERMS)
+        assert list(info) == list(INFO_KEYS) and len(INFO_KEYS) == 9 + len(REWARD_TERMS)
         assert info["goal_distance"] == pytest.approx(5.0)  # 3-4-5 triangle
         assert info["angle_error_deg"] == pytest.approx(0.0, abs=1e-9)
         assert info["bearing_error"] == pytest.approx(0.0, abs=1e-9)

@@ -8,6 +8,7 @@ from typing import Any
 
 from sb3_formation.controllers.base import Controller, TeamPolicy
 from sb3_formation.controllers.classical import ClassicalController, ClassicalGains
+from sb3_formation.controllers.crowd import CrowdController, CrowdGains
 from sb3_formation.controllers.planner import PlannerGains, PrivilegedPlanner
 from sb3_formation.controllers.random import RandomController
 from sb3_formation.controllers.residual import ResidualAdapter, ResidualPolicy
@@ -20,6 +21,7 @@ CONTROLLERS: dict[str, type[Controller]] = {
     "random": RandomController,
     "privileged-planner": PrivilegedPlanner,
     "shrinking": ShrinkingController,
+    "crowd": CrowdController,
 }
 
 
@@ -44,6 +46,8 @@ __all__ = [
     "ClassicalController",
     "ClassicalGains",
     "Controller",
+    "CrowdController",
+    "CrowdGains",
     "PlannerGains",
     "PrivilegedPlanner",
     "RandomController",

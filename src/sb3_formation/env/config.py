@@ -55,6 +55,7 @@ INFO_KEYS: tuple[str, ...] = (
     "goal_distance",
     "collisions_obstacle",
     "collisions_agent",
+    "collisions_rammed",
     "success",
     *REWARD_INFO_KEYS,
 )

@@ -33,8 +33,9 @@ if TYPE_CHECKING:
     from sb3_formation.env.state import TeamState
     from sb3_formation.env.world import World
 
-#: what a world's step returns: ``None`` when no agent touched anything, else the agent and obstacle contact counts
-Touched = tuple[np.ndarray, np.ndarray] | None
+#: what a world's step returns: ``None`` when no agent touched anything, else the agent and obstacle contact counts and
+#: the moving obstacles that ran into each agent (:meth:`World.advance`)
+Touched = tuple[np.ndarray, np.ndarray, np.ndarray] | None
 #: a field an agent observes beyond Table 3.1: name, symbol, size, low, high, unit
 #: (:class:`~sb3_formation.env.observations.ObservationField`)
 ObservedField = tuple[str, str, int, float, float, str]

@@ -85,6 +85,9 @@ class ContactColumn(IntEnum):
 
     AGENTS = 0  #: other agents
     OBSTACLES = 1  #: obstacles or walls
+    #: of those, moving obstacles that ran into the agent: it commanded no velocity towards them in the step (it was
+    #: braking, standing or moving away); every other contact is one the agent drove into
+    RAMMED = 2
 
 
 class EngineStep(NamedTuple):
@@ -96,7 +99,7 @@ class EngineStep(NamedTuple):
     terminated: np.ndarray  #: ``(teams,)``: the centroid reached the goal in this step
     truncated: np.ndarray  #: ``(teams,)``: the step limit T_s ended the episode
     info_values: np.ndarray  #: ``(agents, INFO_VALUES)`` (:class:`InfoColumn`)
-    contacts: np.ndarray  #: ``(agents, 2)`` (:class:`ContactColumn`) touched in the step
+    contacts: np.ndarray  #: ``(agents, 3)`` (:class:`ContactColumn`) touched in the step
     positions: np.ndarray  #: ``(agents, 2)`` (m)
     velocities: np.ndarray  #: ``(agents, 2)`` (m/s)
 
@@ -530,6 +533,7 @@ class FormationEngine:
             episodes.term_sums[team].tolist(),
             bool(self.success[team]),
             int(self.stages[team]),
+            moving=bool(self._moving[team]),
         )
 
 
@@ -537,7 +541,7 @@ def agent_infos(values: np.ndarray, contacts: np.ndarray, success: np.ndarray) -
     """Agents' info dicts, keys in the order of :data:`INFO_KEYS` (one team's, or many teams' stacked).
 
     :param values: ``(agents, INFO_VALUES)`` floats (:class:`InfoColumn`)
-    :param contacts: ``(agents, 2)`` ints (:class:`ContactColumn`)
+    :param contacts: ``(agents, 3)`` ints (:class:`ContactColumn`)
     :param success: ``(agents,)`` bools: the agent's team reached the goal
     """
     columns = values.T.tolist()
@@ -547,6 +551,7 @@ def agent_infos(values: np.ndarray, contacts: np.ndarray, success: np.ndarray) -
         *columns[:first_term],
         touched[ContactColumn.OBSTACLES],
         touched[ContactColumn.AGENTS],
+        touched[ContactColumn.RAMMED],
         success.tolist(),
         *columns[first_term:],
     ]
@@ -832,6 +837,7 @@ def _add_step(
         errors[team, 2] += values[row, InfoColumn.NEIGHBOUR_DISTANCE_ERROR] / n_agents
         collisions[team, 0] += contacts[row, ContactColumn.OBSTACLES]
         collisions[team, 1] += contacts[row, ContactColumn.AGENTS]
+        collisions[team, 2] += contacts[row, ContactColumn.RAMMED]
         for term in range(_N_TERMS):
             term_sums[team, term] += values[row, InfoColumn.FIRST_TERM + term] / n_agents
         for slot in range(neighbour_distances.shape[1]):

@@ -17,19 +17,24 @@ def episode_summary(
     terms: Sequence[float],
     success: bool,
     stage: int,
+    moving: bool = False,
 ) -> dict[str, Any]:
     """A team's episode summary from its running sums (the engine keeps them: ``FormationEngine.episode_summary``).
 
     :param length: steps of the episode
     :param mean_return: sum over steps of the team's mean agent reward
     :param errors: sums over steps of the agents' angle (deg), bearing and neighbour-distance (m) errors over n
-    :param collisions: obstacle and agent contacts summed over agents and steps (an agent pair counted by both)
+    :param collisions: obstacle and agent contacts summed over agents and steps (an agent pair counted by both), and
+        of the obstacle contacts those where a moving obstacle ran into the agent (``collisions_rammed``, in the
+        summary of an episode with moving obstacles only: summaries of still worlds are as they were before)
     :param terms: sums over steps of every reward term over n, in the order of ``REWARD_TERMS``
     :param success: the team reached the goal
     :param stage: curriculum stage
+    :param moving: the episode had moving obstacles
     """
     steps = max(length, 1)
     angle, bearing, distance = (error / steps for error in errors)
+    rammed = {"collisions_rammed": collisions[2]} if moving else {}
     return {
         "success": success,
         "length": length,
@@ -39,6 +44,7 @@ def episode_summary(
         "neighbour_distance_error": float(distance),
         "collisions_obstacle": collisions[0],
         "collisions_agent": collisions[1] // 2,  # each touching pair is reported by both agents
+        **rammed,
         "reward_terms": {name: value / steps for name, value in zip(REWARD_TERMS, terms)},
         "stage": stage,
     }

@@ -244,6 +244,9 @@ class SceneFamily(Scenes):
     def slots(self, config: FormationConfig) -> tuple[int, int]:
         return self.max_circles + (0 if self.traffic is None else self.traffic.count[1]), self.max_walls
 
+    def obstacle_speed(self, config: FormationConfig) -> float:
+        return 0.0 if self.traffic is None else self.traffic.speed[1] * config.v_max
+
 
 @dataclass(frozen=True)
 class MixedScenes(Scenes):
@@ -267,6 +270,9 @@ class MixedScenes(Scenes):
     def slots(self, config: FormationConfig) -> tuple[int, int]:
         circles, walls = zip(*(family.slots(config) for family in self.families))
         return max(circles), max(walls)
+
+    def obstacle_speed(self, config: FormationConfig) -> float:
+        return max(family.obstacle_speed(config) for family in self.families)
 
 
 class _NoRoom(Exception):

@@ -210,3 +210,8 @@ class Scenes(ABC):
     @abstractmethod
     def slots(self, config: FormationConfig) -> tuple[int, int]:
         """The most circles and walls a scenario of these scenes has: the room ``state()`` keeps for them."""
+
+    def obstacle_speed(self, config: FormationConfig) -> float:
+        """The most speed (m/s) an obstacle of these scenes has: the bound the safety filter keeps the agents safe
+        under by default (0: every obstacle stands still)."""
+        return 0.0

@@ -121,7 +121,9 @@ class StepArrays(NamedTuple):
     positions: np.ndarray  #: ``(agents, 2)`` (m)
     velocities: np.ndarray  #: ``(agents, 2)`` (m/s)
     previous_velocities: np.ndarray  #: ``(agents, 2)`` the velocities before the step (m/s)
-    contacts: np.ndarray  #: ``(agents, 2)`` int64: other agents, then obstacles or walls, touched in the step
+    contacts: (
+        np.ndarray
+    )  #: ``(agents, 3)`` int64: other agents, obstacles or walls, and the movers that ran into it (ContactColumn)
     observations: np.ndarray  #: ``(agents, dim)`` float32
     info_values: np.ndarray  #: ``(agents, INFO_VALUES)`` (:class:`~sb3_formation.env.engine.InfoColumn`)
     terms: np.ndarray  #: ``(terms * agents,)`` reward terms before coefficients: each team's ``(terms, n)`` block, flat
@@ -141,7 +143,7 @@ class StepArrays(NamedTuple):
             positions=np.zeros((n_slots, 2)),
             velocities=np.zeros((n_slots, 2)),
             previous_velocities=np.zeros((n_slots, 2)),
-            contacts=np.zeros((n_slots, 2), dtype=np.int64),
+            contacts=np.zeros((n_slots, 3), dtype=np.int64),
             observations=np.zeros((n_slots, dim), dtype=np.float32),
             info_values=np.zeros((n_slots, n_values)),
             terms=np.zeros(n_terms * n_slots),
@@ -163,7 +165,9 @@ class Episodes(NamedTuple):
     lidar: np.ndarray  #: ``(2, agents, rays)`` readings of the obstacle and agent channels, in [0, 1]
     returns: np.ndarray  #: ``(teams,)`` sum over steps of the team's mean reward
     errors: np.ndarray  #: ``(teams, 3)`` sums over steps of the angle, bearing and neighbour-distance errors over n
-    collisions: np.ndarray  #: ``(teams, 2)`` int64: obstacle, then agent contacts, summed over agents and steps
+    #: ``(teams, 3)`` int64: obstacle, then agent contacts, then the obstacle contacts where a moving obstacle ran into
+    #: the agent, summed over agents and steps
+    collisions: np.ndarray
     term_sums: np.ndarray  #: ``(teams, terms)`` sums over steps of every reward term over n
     comm_exceeded: np.ndarray  #: ``(teams,)`` int64: steps with a neighbour beyond d_comm
 
@@ -183,7 +187,7 @@ class Episodes(NamedTuple):
             lidar=np.zeros((2, n_slots, n_rays)),
             returns=np.zeros(n_teams),
             errors=np.zeros((n_teams, 3)),
-            collisions=np.zeros((n_teams, 2), dtype=np.int64),
+            collisions=np.zeros((n_teams, 3), dtype=np.int64),
             term_sums=np.zeros((n_teams, n_terms)),
             comm_exceeded=np.zeros(n_teams, dtype=np.int64),
         )

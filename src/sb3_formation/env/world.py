@@ -65,13 +65,13 @@ SIDEWAYS_TOLERANCE = 1e-3
 @numba.njit(cache=True)
 def count_contacts(
     arbiters: np.ndarray, body_ids: np.ndarray, body_roles: np.ndarray, n_agents: int, n_obstacles: int
-) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
     """How many other agents, and how many obstacles or walls, each agent touched, each pair counted once.
 
     :param arbiters: ``(k, 3)`` rows (body a id, body b id, contact points) read after each sub-step of a step
     :param body_ids: the space's body ids, sorted
     :param body_roles: for each of ``body_ids``: the agent's index, or ``-1 - i`` for obstacle or wall i
-    :return: two ``(n_agents,)`` int arrays
+    :return: two ``(n_agents,)`` int arrays, and the ``(n_agents, n_obstacles)`` bool pairs that touched
     """
     agent_pairs = np.zeros((n_agents, n_agents), dtype=np.bool_)
     obstacle_pairs = np.zeros((n_agents, n_obstacles), dtype=np.bool_)
@@ -95,7 +95,7 @@ def count_contacts(
     obstacles = np.zeros(n_agents, dtype=np.int64)
     for agent in range(n_agents):
         obstacles[agent] = obstacle_pairs[agent].sum()
-    return agents, obstacles
+    return agents, obstacles, obstacle_pairs
 
 
 def wrap_angles(angles: np.ndarray) -> np.ndarray:
@@ -156,6 +156,9 @@ class World:
             config.agent_radius,
         )
         self._mover_bodies: list[pymunk.Body] = []
+        self._intended = np.zeros((config.n_agents, 2))  # the agents' commanded velocities (m/s) in the last step
+        # where the agents and the movers were at the start of the last step of the movers (m)
+        self._step_start = (np.asarray(scenario.agent_positions), self.movers.positions)
         for mover in scenario.movers:
             body = pymunk.Body(body_type=pymunk.Body.KINEMATIC)
             body.position = tuple(mover.start.tolist())
@@ -237,6 +240,7 @@ class World:
         placed[:] = self._body_states  # every other body is given back the state it has
         placed[rows, :2] = self.movers.positions
         agents = self.agent_states
+        self._step_start = (agents[:, :2].copy(), self.movers.positions)  # the step's start, for _rammed
         placed[rows, 2:] = self._body_velocities[rows] = self.movers.step(agents[:, :2], agents[:, 2:])
         self._place_buffer._float_arr.num = 0  # the position Pymunk reads from
         chipmunk.cpSpaceEachBody(self.space._space, _SET_BODIES, self._place)
@@ -254,15 +258,17 @@ class World:
         contacts = self.advance(clamp_speed(self.velocities + forces * (config.dt / config.agent_mass), config.v_max))
         if contacts is None:
             return [0] * config.n_agents, [0] * config.n_agents
-        return contacts[0].tolist(), contacts[1].tolist()
+        return contacts[0].tolist(), contacts[1].tolist()  # the movers that ran into an agent: see advance
 
-    def advance(self, commanded: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    def advance(self, commanded: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The Pymunk part of :meth:`step`: set the agents' velocities and let Pymunk move them over the sub-steps.
 
         :param commanded: ``(n, 2)`` velocities (m/s) after the forces of the step, already clamped to v_max
-        :return: ``None`` when no agent touched anything, else the contact counts of :meth:`step` as two int arrays
+        :return: ``None`` when no agent touched anything, else three ``(n,)`` int arrays: the contact counts of
+            :meth:`step`, and how many of each agent's obstacle contacts were moving obstacles that ran into it
+            (:meth:`_rammed`)
         """
-        self._body_velocities[self._agent_rows] = commanded
+        self._body_velocities[self._agent_rows] = self._intended = commanded
         self._write_velocities()
         self._arbiter_buffer._int_arr.num = 0
         for _ in range(cast(int, self.config.physics_substeps)):  # an int once the config is built
@@ -270,7 +276,7 @@ class World:
         self._read_states()
         return self._contacts()
 
-    def drive(self, forward: np.ndarray, turn_rates: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    def drive(self, forward: np.ndarray, turn_rates: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """A unicycle step (see the module docstring): drive the agents at forward speeds ``forward`` while they turn
         at ``turn_rates``; updates :attr:`headings`, :attr:`forward_speeds` and :attr:`sideways_speed`.
 
@@ -280,11 +286,12 @@ class World:
         """
         self._arbiter_buffer._int_arr.num = 0
         self.sideways_speed = 0.0
+        self._intended = self._along_headings(forward)
         substeps = cast(int, self.config.physics_substeps)  # an int once the config is built
         self._drive_part(np.asarray(forward, dtype=np.float64), turn_rates, substeps, self._substep)
         return self._contacts()
 
-    def advance_plan(self, plan: np.ndarray, last: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    def advance_plan(self, plan: np.ndarray, last: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """A step whose actions arrive during it (:meth:`~sb3_formation.env.dynamics.Dynamics.move` with late actions):
         each sub-step at its row of ``plan`` ``(substeps, n, 2)``, then the step ends at ``last`` ``(n, 2)``; motions
         are points' velocities (m/s), or unicycles' forward speeds (m/s) and turn rates (rad/s). What the solver
@@ -295,6 +302,7 @@ class World:
         """
         self._arbiter_buffer._int_arr.num = 0
         self.sideways_speed = 0.0
+        self._intended = self._along_headings(last[:, 0]) if self._carriers else last
         if self._carriers:
             carried = np.zeros(len(last))
             for speeds, turn_rates in zip(plan[:, :, 0], plan[:, :, 1]):
@@ -355,12 +363,33 @@ class World:
         chipmunk.cpSpaceStep(self.space._space, substep)  # Space.step without its Python bookkeeping (see place())
         chipmunk.cpSpaceEachCachedArbiter(self.space._space, _GET_ARBITERS, self._arbiter_query)
 
-    def _contacts(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """The contact counts of the sub-steps since the arbiter buffer was emptied (see :meth:`advance`)."""
+    def _along_headings(self, speeds: np.ndarray) -> np.ndarray:
+        """``(n, 2)`` velocities (m/s) of forward ``speeds`` along the agents' headings now."""
+        velocities: np.ndarray = np.asarray(speeds)[:, None] * np.stack([np.cos(self.headings), np.sin(self.headings)], 1)
+        return velocities
+
+    def _contacts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The contact counts of the sub-steps since the arbiter buffer was emptied (see :meth:`advance`): agents,
+        obstacles or walls, and of those the moving obstacles that ran into the agent (:meth:`_rammed`)."""
         if self._arbiter_buffer._int_arr.num == 0:  # no pair of shapes near each other
             return None
         records = np.frombuffer(self._arbiter_buffer.int_buf(), dtype=np.uintp).reshape(-1, 3)
-        return count_contacts(records, self._body_ids, self._body_roles, self.config.n_agents, len(self._obstacle_bodies))
+        n_agents = self.config.n_agents
+        agents, obstacles, pairs = count_contacts(
+            records, self._body_ids, self._body_roles, n_agents, len(self._obstacle_bodies)
+        )
+        return agents, obstacles, self._rammed(pairs[:, len(pairs[0]) - len(self._mover_bodies) :])
+
+    def _rammed(self, touched: np.ndarray) -> np.ndarray:
+        """How many moving obstacles ran into each agent in the step: of the movers it touched (``touched``, ``(n, k)``
+        bool), those towards whose centre (at the start of the step) the velocity it commanded for the step had no
+        positive component: it was braking, standing or moving away. A touch of any other kind is one the agent drove
+        into."""
+        rammed = np.zeros(len(touched), dtype=np.int64)
+        for agent, mover in zip(*np.nonzero(touched)):
+            towards = self._step_start[1][mover] - self._step_start[0][agent]
+            rammed[agent] += float(np.dot(self._intended[agent], towards)) <= 0.0
+        return rammed
 
     def _read_states(self) -> None:
         """Read every body's position and velocity from Pymunk into :attr:`agent_states`' array."""

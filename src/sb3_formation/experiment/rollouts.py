@@ -79,6 +79,8 @@ def play_episodes(
         raise ValueError("on_step reads every team in this process: play with n_workers=1")
     blocks = EngineBlocks([config] * n_teams, job.n_workers, auto_reset=False)
     privileged = isinstance(job.policy, PrivilegedPolicy)  # it reads each team's map when its episode starts
+    # a privileged policy that reads every team's state before every step (controller:crowd)
+    observe: Callable[[list[int], list[TeamState]], None] | None = getattr(job.policy, "observe_states", None)
     # what a policy reports of an episode of its own (a filtered policy: what its filter did), by the team's rows
     metrics: Callable[[slice], dict[str, float]] | None = getattr(job.policy, "episode_metrics", None)
     queue = list(reversed(job.episodes))
@@ -125,6 +127,9 @@ def play_episodes(
         while any(episode is not None for episode in current):
             raise_if_interrupted()  # a Ctrl-C that landed in a finaliser was dropped there
             playing = [team for team, episode in enumerate(current) if episode is not None]
+            if observe is not None:
+                now = blocks.call_teams("team_states", playing)
+                observe(playing, [now[team] for team in playing])
             actions, states = job.policy.predict(
                 observations, state=states, episode_start=episode_starts, deterministic=job.deterministic, **links
             )

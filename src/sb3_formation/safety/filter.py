@@ -35,6 +35,7 @@ from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.disturbances import Disturbances
 from sb3_formation.env.dynamics import clip_speed, dynamics_model
 from sb3_formation.env.observations import observation_fields, observation_layout
+from sb3_formation.env.scenes import scenes_named
 from sb3_formation.env.sensors import ray_directions
 from sb3_formation.safety.qp import solve_rows, solve_with_library
 from sb3_formation.utils.checks import is_integer, is_number
@@ -60,6 +61,10 @@ class SafetyGains:
     :param infeasible_slack: a step is reported infeasible when its QP needed more slack than this (fraction of v_max dt)
     :param speed_sides: sides of the circumscribed polygon that stands for the speed limit
     :param solver: ``"fast"`` (compiled, exact) or a ``qpsolvers`` solver name (:data:`SOLVERS`)
+    :param obstacle_speed: the declared bound (m/s) on the speed of anything the lidar's obstacle channel sees (moving
+        obstacles, pedestrians): every obstacle return is kept as if it approached at this speed (worst case), over
+        the step and over the declared delay; ``None``: the bound the task's scenes declare
+        (:meth:`~sb3_formation.env.scenarios.Scenes.obstacle_speed`: 0 where obstacles stand still)
     """
 
     gamma: float = 0.5
@@ -71,6 +76,7 @@ class SafetyGains:
     infeasible_slack: float = 1e-3
     speed_sides: int = 16
     solver: str = "fast"
+    obstacle_speed: float | None = None
 
     def __post_init__(self) -> None:
         for item in fields(self):
@@ -85,6 +91,8 @@ class SafetyGains:
                 valid, allowed = is_number(value) and 0 < value <= 1, "a number in (0, 1]"
             elif item.name == "slack_weight":
                 valid, allowed = is_number(value) and 1.0 <= value <= 1e8, "a number from 1 to 1e8"
+            elif item.name == "obstacle_speed":
+                valid, allowed = value is None or (is_number(value) and value >= 0), "a finite number >= 0 or null"
             else:
                 valid, allowed = is_number(value) and value >= 0, "a finite number >= 0"
             if not valid:
@@ -236,7 +244,9 @@ class FilterConstants(NamedTuple):
 
     directions: np.ndarray  #: ``(n_rays, 2)`` ray directions
     columns: np.ndarray  #: int64: the start columns of lidar_obstacles, lidar_agents and neighbour_offsets in a row
-    gains: np.ndarray  #: gamma, obstacle_margin, agent_margin, comm_margin, keep_comm_range (0/1), neighbour_margin
+    #: gamma, obstacle_margin, agent_margin, comm_margin, keep_comm_range (0/1), neighbour_margin, and the approach (m)
+    #: of an obstacle at the declared speed over a step
+    gains: np.ndarray
     speed_normals: np.ndarray  #: ``(sides, 2)`` outward normals of the speed polygon (none for a unicycle)
     speed_limit: float  #: the polygon's apothem (units of v_max)
     lidar_range: float  #: l_s (m)
@@ -332,7 +342,7 @@ def _build_constraints(
     )
     speed_limit, rows, rhs, counts, separation = constants.speed_limit, out.rows, out.rhs, out.counts, out.separation
     gamma, obstacle_margin, agent_margin, comm_margin, keep_comm = gains[0], gains[1], gains[2], gains[3], gains[4]
-    neighbour_margin = gains[5]
+    neighbour_margin, approach = gains[5], gains[6]
     step = v_max * dt  # m: the unit of h
     reach = speed_limit * step  # m: the longest move of the controlled point in a step
     n_rays = directions.shape[0]
@@ -348,8 +358,9 @@ def _build_constraints(
         count = 0
         nearest = np.inf
         for channel in range(2):
-            share = 1.0 if channel == 0 else 0.5  # agents share a barrier; obstacles do not move
+            share = 1.0 if channel == 0 else 0.5  # agents share a barrier; an obstacle may approach at the bound
             margin = obstacle_margin if channel == 0 else agent_margin
+            closing = approach if channel == 0 else 0.0
             for ray in range(n_rays):
                 reading = row[columns[channel] + ray]
                 if reading >= 1.0:
@@ -357,7 +368,7 @@ def _build_constraints(
                 gap = reading * lidar_range
                 nearest = min(nearest, gap)
                 if window == 0:
-                    bound = share * gamma * (gap - margin)  # h = |q - p| - R_a - margin, |q - p| = R_a + gap
+                    bound = share * gamma * (gap - margin) - closing  # h = |q - p| - R_a - margin, |q - p| = R_a + gap
                     direction = directions[ray]
                 else:
                     for shift in range(window):  # the surface point q seen from where the agent may be
@@ -367,7 +378,7 @@ def _build_constraints(
                         gx, gy = qx / distance, qy / distance
                         candidates[shift, 0], candidates[shift, 1] = gx, gy
                         slip = gx * slips[agent, shift, 0] + gy * slips[agent, shift, 1]
-                        candidates[shift, 2] = share * gamma * (distance - radius - margin) - slip
+                        candidates[shift, 2] = share * gamma * (distance - radius - margin) - slip - closing
                     bound = _tightest(candidates, window, longest, moved)
                     direction = moved
                 if bound < reach:  # else it cannot bind within a step's move
@@ -470,11 +481,17 @@ class SafetyFilter:
         self.lookahead = self.model.look_ahead
         g = self.gains
         obstacle, agent, neighbour = self._robust_margins(speed_limit)
+        #: (m/s) the bound on the obstacles' speed the filter keeps the agents safe under
+        self.obstacle_speed = (
+            scenes_named(config.scenes).obstacle_speed(config) if g.obstacle_speed is None else g.obstacle_speed
+        )
+        obstacle += self.obstacle_speed * config.dt * self.bounds.delay[1]  # an obstacle's unseen move over the delay
         margins = [g.obstacle_margin + obstacle, g.agent_margin + agent, g.comm_margin + neighbour]
+        approach = self.obstacle_speed * config.dt  # m: how far an obstacle at the bound closes in over the step
         self._constants = FilterConstants(
             directions=ray_directions(config.lidar_rays),
             columns=np.array(columns, dtype=np.int64),
-            gains=np.array([g.gamma, *margins, float(g.keep_comm_range), g.agent_margin + neighbour]),
+            gains=np.array([g.gamma, *margins, float(g.keep_comm_range), g.agent_margin + neighbour, approach]),
             speed_normals=speed_normals,
             speed_limit=float(speed_limit),
             lidar_range=float(config.lidar_range),
