@@ -15,6 +15,7 @@ from sb3_formation.env.engine import FormationEngine
 from sb3_formation.env.movers import CROWD_SENSING_RANGE, Mover, MovingObstacles
 from sb3_formation.env.scenarios import Scenario, start_formation
 from sb3_formation.env.sensors import OBSTACLE_CHANNEL
+from sb3_formation.ros.scans import merged_scan
 
 CONFIG = FormationConfig()  # n = 6, 15 m x 10 m, R_a = 0.2 m, v_max = 0.05 m/s, dt = 0.3 s
 W, H = CONFIG.world_width, CONFIG.world_height
@@ -124,7 +125,8 @@ def test_a_mover_pushes_an_agent_and_counts_as_an_obstacle_contact() -> None:
 
 def test_the_lidar_sees_a_moving_obstacle_where_a_ray_cast_puts_it() -> None:
     """After every step, each agent's obstacle-channel readings equal Pymunk's own ray cast against the mover at the
-    model's position (and the border), from the agent's surface over the lidar range."""
+    model's position (and the border), from the agent's surface over the lidar range; the scans a ROS 2 simulator
+    publishes (:func:`merged_scan`, seeing through the agents) put it at the same place."""
     engine = _engine((Mover(0.5, [[5.9, 3.0], [5.9, 8.5]], 0.05, "path"),), centroid=(4.0, 5.0))
     space = pymunk.Space()
     mover = pymunk.Circle(space.static_body, 0.5, (0.0, 0.0))
@@ -139,6 +141,9 @@ def test_the_lidar_sees_a_moving_obstacle_where_a_ray_cast_puts_it() -> None:
         mover.unsafe_set_offset(tuple(world.movers.positions[0]))
         space.reindex_static()
         readings = engine.episodes.lidar[OBSTACLE_CHANNEL, : CONFIG.n_agents]
+        published = merged_scan(lidar, engine.latest.positions, stopped_by_agents=False)
+        seen_by_ros = np.where(readings < 1.0, readings * CONFIG.lidar_range + CONFIG.agent_radius, np.inf)
+        np.testing.assert_allclose(published, seen_by_ros, rtol=0, atol=1e-9)
         for agent, position in enumerate(engine.latest.positions):
             for ray, direction in enumerate(lidar.directions):
                 start = position + CONFIG.agent_radius * direction

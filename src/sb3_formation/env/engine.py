@@ -342,6 +342,7 @@ class FormationEngine:
             movers = worlds[team].movers
             first = len(cast(Scenario, self.scenarios[team]).obstacles)
             self.shapes.circles[team, first : first + len(movers.positions), :2] = movers.positions
+            self.lidars[team].layout.circles[first : first + len(movers.positions), :2] = movers.positions  # ROS scans
         contacts = np.zeros(previous.contacts.shape, dtype=np.int64) if stepped.everyone else previous.contacts.copy()
         if stepped.rows is not None:
             contacts[stepped.rows] = 0
