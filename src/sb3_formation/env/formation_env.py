@@ -101,10 +101,11 @@ class FormationEnv(ParallelEnv):  # type: ignore[misc]  # pettingzoo ships no ty
     After reset and after every step, ``infos[agent]`` has ``angle_error_deg`` (abs), ``bearing_error`` (mean over the
     two neighbours of norm(g_ref - g)), ``neighbour_distance_error`` (m, mean positive part), ``centroid_distance`` (m,
     agent to centroid), ``goal_distance`` (m, centroid to goal), ``collisions_obstacle`` and ``collisions_agent``
-    (obstacles or walls, and other agents, touched during this step; a pair is counted once per step), ``success``
-    and ``reward_<term>`` for every term below. Contacts are Pymunk's, over the step's sub-steps; the collision reward
-    reads the distances at the end of the step (eqs 24/39), so a touch that has already ended by then is counted but
-    not penalised.
+    (obstacles or walls, and other agents, touched during this step; a pair is counted once per step),
+    ``collisions_rammed`` (of the obstacle contacts, the moving obstacles that ran into the agent while it commanded no
+    velocity towards them: 0 where nothing moves), ``success`` and ``reward_<term>`` for every term below. Contacts
+    are Pymunk's, over the step's sub-steps; the collision reward reads the distances at the end of the step (eqs
+    24/39), so a touch that has already ended by then is counted but not penalised.
 
     ## Reset options
 
