@@ -286,7 +286,8 @@ class World:
         """
         self._arbiter_buffer._int_arr.num = 0
         self.sideways_speed = 0.0
-        self._intended = self._along_headings(forward)
+        if self._mover_bodies:  # what _rammed reads
+            self._intended = self._along_headings(forward)
         substeps = cast(int, self.config.physics_substeps)  # an int once the config is built
         self._drive_part(np.asarray(forward, dtype=np.float64), turn_rates, substeps, self._substep)
         return self._contacts()
@@ -302,7 +303,8 @@ class World:
         """
         self._arbiter_buffer._int_arr.num = 0
         self.sideways_speed = 0.0
-        self._intended = self._along_headings(last[:, 0]) if self._carriers else last
+        if self._mover_bodies:  # what _rammed reads
+            self._intended = self._along_headings(last[:, 0]) if self._carriers else last
         if self._carriers:
             carried = np.zeros(len(last))
             for speeds, turn_rates in zip(plan[:, :, 0], plan[:, :, 1]):
