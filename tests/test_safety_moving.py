@@ -97,8 +97,7 @@ def test_no_contacts_except_on_reported_infeasible_steps_among_movers_within_the
 ) -> None:
     """In random scenes of every family with moving obstacles (within the family's declared speed), agents heading
     for the goal, driving at whatever is nearest, or at random, behind the filter: no contact of any kind (the agents
-    drove into it or a mover ran into them) on a step the filter reported feasible. (Unfiltered, or with a bound of 0,
-    such teams touch the movers in thousands of feasible steps over a few dozen episodes.)"""
+    drove into it or a mover ran into them) on a step the filter reported feasible."""
     config = CONFIG.replace(scenes=scenes, n_agents=n_agents)
     env = FormationEnv(config)
     safety = SafetyFilter(config)
