@@ -26,6 +26,7 @@ from sb3_formation.env.disturbances import (
     Acting,
     Communication,
     Disturbances,
+    Failures,
     Sensing,
     Timing,
     load_disturbances,
@@ -612,7 +613,8 @@ def test_a_disturbed_config_round_trips_through_to_dict() -> None:
 def test_profiles_scaling_and_parts_by_hand() -> None:
     """The harsh profile's numbers (its file), scaled by 0.5 and by 2 and 5 by hand, and one part alone."""
     harsh = profile("harsh")
-    assert PROFILES == ("ideal", "realistic", "harsh")
+    assert PROFILES == ("ideal", "realistic", "harsh", "failures")
+    assert profile("failures") == Disturbances(failures=Failures(probability=0.5, steps=(0, 600)))
     assert harsh == load_disturbances(PROFILES_FOLDER / "harsh.yaml") == load_disturbances(str(PROFILES_FOLDER / "harsh.yaml"))
     assert harsh.sensing == Sensing(0.03, 0.05, 0.06, 0.05, 3.5, 3.5, 0.005, 30.0)
     assert harsh.acting == Acting(gain=(0.75, 1.25), turn_gain=(0.75, 1.25), force_noise=0.1)

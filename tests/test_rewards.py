@@ -25,6 +25,7 @@ from sb3_formation.env.rewards import (
 )
 
 PI = math.pi
+ALL_FLY = np.ones(8, dtype=bool)  # every agent flies
 NO_WALLS = np.zeros((0, 5))
 
 
@@ -137,7 +138,9 @@ def test_nearest_gaps() -> None:
     Agent 3 (14.9, 9): nearest agent agent 2, hypot(10.9, 4); wall 0.1 - 0.2 = -0.1 (sunk into the wall).
     """
     positions = np.array([[1.0, 1.0], [1.0, 2.0], [4.0, 5.0], [14.9, 9.0]])
-    nearest_agent, nearest_obstacle = nearest_gaps(positions, 0.2, np.array([[1.0, 3.2, 0.5]]), NO_WALLS, 15.0, 10.0)
+    nearest_agent, nearest_obstacle = nearest_gaps(
+        positions, 0.2, np.array([[1.0, 3.2, 0.5]]), NO_WALLS, 15.0, 10.0, np.ones(len(positions), bool)
+    )
     np.testing.assert_allclose(nearest_agent, [1.0, 1.0, math.hypot(3, 3), math.hypot(10.9, 4)], rtol=1e-12)
     np.testing.assert_allclose(nearest_obstacle, [0.8, 0.5, math.hypot(3, 1.8) - 0.7, -0.1], atol=1e-12)
     assert nearest_obstacle[2] == pytest.approx(2.798571, abs=1e-6)
@@ -146,11 +149,15 @@ def test_nearest_gaps() -> None:
 def test_nearest_gaps_without_obstacles_and_sunk_in() -> None:
     """No obstacles: the walls alone; an agent overlapping an obstacle has a negative gap (0.3 - 0.5 - 0.2 = -0.4)."""
     positions = np.array([[7.5, 0.5], [7.5, 9.7], [3.0, 5.0]])
-    nearest_agent, nearest_obstacle = nearest_gaps(positions, 0.2, np.zeros((0, 3)), NO_WALLS, 15.0, 10.0)
+    nearest_agent, nearest_obstacle = nearest_gaps(
+        positions, 0.2, np.zeros((0, 3)), NO_WALLS, 15.0, 10.0, np.ones(len(positions), bool)
+    )
     # walls: 0.5 - 0.2 = 0.3; 10 - 9.7 - 0.2 = 0.1; 3 - 0.2 = 2.8
     np.testing.assert_allclose(nearest_obstacle, [0.3, 0.1, 2.8], atol=1e-12)
     np.testing.assert_allclose(nearest_agent, [math.hypot(4.5, 4.5), math.hypot(4.5, 4.7), math.hypot(4.5, 4.5)])
-    _, nearest_obstacle = nearest_gaps(positions, 0.2, np.array([[3.3, 5.0, 0.5]]), NO_WALLS, 15.0, 10.0)
+    _, nearest_obstacle = nearest_gaps(
+        positions, 0.2, np.array([[3.3, 5.0, 0.5]]), NO_WALLS, 15.0, 10.0, np.ones(len(positions), bool)
+    )
     assert nearest_obstacle[2] == pytest.approx(-0.4, abs=1e-12)
 
 
@@ -160,7 +167,7 @@ def test_nearest_gaps_with_a_wall() -> None:
     not nearer): 0.6; agent (8, 8.5) is hypot(3, 0.5) - 0.4 = 2.6414 from the wall, 1.5 - 0.2 = 1.3 from the border."""
     positions = np.array([[4.0, 5.0], [5.0, 9.0], [8.0, 8.5]])
     wall = np.array([[5.0, 2.0, 5.0, 8.0, 0.4]])
-    _, nearest_obstacle = nearest_gaps(positions, 0.2, np.zeros((0, 3)), wall, 15.0, 10.0)
+    _, nearest_obstacle = nearest_gaps(positions, 0.2, np.zeros((0, 3)), wall, 15.0, 10.0, ALL_FLY[: len(positions)])
     np.testing.assert_allclose(nearest_obstacle, [0.6, 0.6, 1.3], atol=1e-12)
 
 

@@ -198,7 +198,8 @@ class FreeRun:
     """Agent 0 free-running (``input_timeout`` 1 s) beside a :class:`TeamFeed` that plays its inputs in real time."""
 
     def __init__(self, context: rclpy.context.Context, policy: OnnxPolicy) -> None:
-        settings = AgentSettings(agent=0, input_timeout=1.0, watchdog_rate=20.0)
+        # the one node of the team: its teammates, never heard, do not fail (failed_after has tests of its own)
+        settings = AgentSettings(agent=0, input_timeout=1.0, watchdog_rate=20.0, failed_after=0.0)
         self.node = AgentNode(policy, settings, namespace="agent_0", context=context)
         self.feed = TeamFeed(context, policy.config.n_agents)
         self.executor = SingleThreadedExecutor(context=context)
@@ -279,7 +280,7 @@ LOCKSTEP_TIMEOUT = 60.0
 
 def fly(
     context: rclpy.context.Context,
-    model: Path,
+    model: Path | Any,
     episodes: int,
     see_through: bool,
     observe: bool = False,
@@ -292,10 +293,10 @@ def fly(
     simulator's episode records, the env's observation rows of every step, and each agent's published observations
     (with ``observe``). After the last step it spins until ``heard(steps)`` holds too (what ``extra_nodes`` listen to
     may still be on its way). Under ``disturbances`` the simulator applies them and the agents' filters declare their
-    bounds from them."""
+    bounds from them. ``model``: an exported file, or a policy (the task its config's)."""
     from sb3_formation.ros.sim_node import SimNode, SimSettings
 
-    policy = OnnxPolicy(model, threads=1)
+    policy = OnnxPolicy(model, threads=1) if isinstance(model, Path) else model
     config = policy.config.replace(stage=stage)
     settings = SimSettings(
         seed=0, episodes=episodes, see_through_agents=see_through, command_timeout=120.0, disturbances=disturbances
@@ -363,14 +364,14 @@ def stopped_by_teammates(positions: np.ndarray, config) -> np.ndarray:
     return meets.any(axis=1)
 
 
-def evaluated(model: Path, episodes: int, disturbances: str = "ideal", stage: int = 3):
+def evaluated(model: Path | Any, episodes: int, disturbances: str = "ideal", stage: int = 3):
     """The same episodes evaluated in process (``sb3-formation evaluate safe:onnx:<model> --disturbances ...``'s
-    loop)."""
+    loop); ``model``: an exported file, or a policy."""
     from sb3_formation.env.disturbances import load_disturbances
     from sb3_formation.experiment.evaluation import evaluate
 
     overrides = {"disturbances": load_disturbances(disturbances)}
-    policy = SafePolicy(OnnxPolicy(model, threads=1))
+    policy = SafePolicy(OnnxPolicy(model, threads=1) if isinstance(model, Path) else model)
     return evaluate(policy, episodes, stage=stage, seed=0, n_envs=episodes, record=episodes, env_overrides=overrides)
 
 
@@ -390,6 +391,62 @@ def test_with_scans_that_see_through_agents_the_loop_is_evaluation(context, name
     reference = evaluated(model, 1)
     assert [(r.success, r.steps) for r in results] == [(row["success"], row["length"]) for row in reference.episodes]
     assert largest_difference(results[0], reference.trajectories, 0) <= tolerance
+
+
+def test_a_crowd_is_in_the_scans_and_the_loop_is_evaluation(context) -> None:
+    """In the crowd family (walkers that react to the agents, moved by the simulator's engine), the scans hold the
+    walkers, and with scans that see through agents a team of shrinking-controller nodes flies the evaluation's
+    episode: same outcome and steps, positions within 1e-6 m."""
+    from sb3_formation.controllers.shrinking import ShrinkingController
+    from sb3_formation.env.config import FormationConfig
+
+    policy = ShrinkingController(FormationConfig.task("ch5-bearing", stage=3).replace(scenes="crowd"))
+    results, _, _, _ = fly(context, policy, episodes=1, see_through=True)
+    reference = evaluated(policy, 1)
+    assert [(r.success, r.steps) for r in results] == [(row["success"], row["length"]) for row in reference.episodes]
+    assert largest_difference(results[0], reference.trajectories, 0) <= 1e-6
+
+
+def test_a_killed_agent_node_fails_and_its_teammates_re_form_and_reach_the_goal(context) -> None:
+    """Six shrinking-controller nodes fly a stage-3 episode; agent 2's node is destroyed after 30 steps. The simulator
+    hears no command from it for ``failed_after`` and stops its motors (the engine's failure: a passive body on the
+    others' obstacle channel); the others hear its messages stop and re-form the ring of 5 without it (0-1-3-4-5), and
+    the five reach the goal."""
+    from sb3_formation.controllers.shrinking import ShrinkingController
+    from sb3_formation.env.config import FormationConfig
+    from sb3_formation.ros.sim_node import SimNode, SimSettings
+
+    config = FormationConfig.task("ch5-bearing", stage=3)
+    policy = ShrinkingController(config)
+    settings = SimSettings(seed=0, episodes=1, command_timeout=120.0, failed_after=1.0)
+    sim = SimNode(config, settings, context=context)
+    agents = [
+        AgentNode(
+            policy,
+            AgentSettings(agent=index, synchronous=True, input_timeout=LOCKSTEP_TIMEOUT, failed_after=1.0),
+            name=f"agent_{index}",
+            namespace=f"agent_{index}",
+            context=context,
+        )
+        for index in range(config.n_agents)
+    ]
+    executor = SingleThreadedExecutor(context=context)
+    for node in [sim, *agents]:
+        executor.add_node(node)
+    spin_until(executor, lambda: sim.env.step_count >= 30, timeout=300.0)
+    executor.remove_node(agents[2])
+    agents[2].destroy_node()
+    spin_until(executor, lambda: sim.done, timeout=600.0)
+    executor.shutdown()
+    assert sim.failed.tolist() == [False, False, True, False, False, False]
+    (record,) = sim.results
+    assert record.success, "the five that fly must reach the goal"
+    kept = record.positions[32:, 2]
+    assert np.linalg.norm(kept - kept[-1], axis=1).max() < 0.05, "agent 2 stands where it stopped (pushed at most)"
+    for index in (0, 1, 3, 4, 5):
+        onboard = agents[index].onboard
+        assert onboard.flying.tolist() == [True, True, False, True, True, True]
+        assert onboard.observer.neighbours[1].tolist() == [0, 3] and onboard.observer.neighbours[3].tolist() == [1, 4]
 
 
 def test_a_real_scanner_splits_into_the_simulators_channels_and_flies_the_same_episodes(context) -> None:
@@ -752,6 +809,7 @@ class Driven:
     def __init__(self, context: rclpy.context.Context, policy: OnnxPolicy, **settings: Any) -> None:
         from rcl_interfaces.msg import Log
 
+        settings = {"failed_after": 0.0, **settings}  # the one node of the team: its teammates do not fail unless asked
         self.node = AgentNode(policy, AgentSettings(agent=0, **settings), namespace="agent_0", context=context)
         self.callbacks = {subscription.topic_name: subscription.callback for subscription in self.node.subscriptions}
         (self.watchdog,) = [timer.callback for timer in self.node.timers]

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from sb3_formation.controllers import CONTROLLERS, ShrinkingController, ShrinkingGains
+from sb3_formation.controllers.base import ring_shape
 from sb3_formation.controllers.classical import force_action, lidar_repulsion
 from sb3_formation.controllers.shrinking import MEMORY_FIELDS, close_neighbour_repulsion, rotate
 from sb3_formation.env.config import FormationConfig
@@ -45,36 +46,36 @@ def test_registered_and_gains_checked_and_recorded() -> None:
 
 def test_scale_agreement_by_hand() -> None:
     """s_i = clip(min(s_lidar, min_j |d_j| / L + delta, s_prev + rho), s_min, 1)."""
-    controller = ShrinkingController(CH5)
+    controller, ring = ShrinkingController(CH5), ring_shape(CH5, 6)
     gains, side = controller.settings, CH5.start_side_length
     free = np.ones((1, CH5.lidar_rays))
-    assert controller.min_scale == pytest.approx((0.4 + gains.min_side_gap) / side)
+    assert controller.min_scale(ring) == pytest.approx((0.4 + gains.min_side_gap) / side)
     # nothing seen, neighbours at the starting side: full scale
     offsets = np.array([[[side, 0.0], [0.0, side]]])
-    assert controller.agreed_scale(free, offsets, np.array([1.0]))[0] == 1.0
+    assert controller.agreed_scale(free, offsets, np.array([1.0]), ring)[0] == 1.0
     # a neighbour at 0.6 L: the agent follows it down to 0.6 + delta
     shrunk = np.array([[[0.6 * side, 0.0], [0.0, side]]])
-    assert controller.agreed_scale(free, shrunk, np.array([1.0]))[0] == pytest.approx(0.6 + gains.scale_slack)
+    assert controller.agreed_scale(free, shrunk, np.array([1.0]), ring)[0] == pytest.approx(0.6 + gains.scale_slack)
     # growing back by at most rho per step
-    assert controller.agreed_scale(free, offsets, np.array([0.5]))[0] == pytest.approx(0.5 + gains.scale_relax)
+    assert controller.agreed_scale(free, offsets, np.array([0.5]), ring)[0] == pytest.approx(0.5 + gains.scale_relax)
     # never below s_min
     touching = np.array([[[0.3, 0.0], [0.0, side]]])
-    assert controller.agreed_scale(free, touching, np.array([1.0]))[0] == pytest.approx(controller.min_scale)
+    assert controller.agreed_scale(free, touching, np.array([1.0]), ring)[0] == pytest.approx(controller.min_scale(ring))
 
 
 def test_lidar_scale_by_hand() -> None:
     """Proximity: a wall 0.5 m away (half-way between g_lo 0.2 and g_hi 0.8) gives s_min + (1 - s_min) / 2. Width:
     walls 0.6 m to either side (rays 0 and 45, opposite) give w = 1.6 m and s_w = (0.8 - 0.2 - m_w) / r_0."""
-    controller = ShrinkingController(CH5)
-    gains, s_min, l_s = controller.settings, controller.min_scale, CH5.lidar_range
+    controller, ring = ShrinkingController(CH5), ring_shape(CH5, 6)
+    gains, s_min, l_s = controller.settings, controller.min_scale(ring), CH5.lidar_range
     one_side = np.ones((1, CH5.lidar_rays))
     one_side[0, 10] = 0.5 / l_s
-    assert controller.lidar_scale(one_side)[0] == pytest.approx(s_min + (1 - s_min) * 0.5)
+    assert controller.lidar_scale(one_side, ring)[0] == pytest.approx(s_min + (1 - s_min) * 0.5)
     both = np.ones((1, CH5.lidar_rays))
     both[0, 0] = both[0, 45] = 0.6 / l_s
     width_scale = (1.6 / 2 - 0.2 - gains.width_margin) / CH5.start_circumradius
     proximity = s_min + (1 - s_min) * (0.6 - gains.gap_low) / (gains.gap_high - gains.gap_low)
-    assert controller.lidar_scale(both)[0] == pytest.approx(min(width_scale, proximity))
+    assert controller.lidar_scale(both, ring)[0] == pytest.approx(min(width_scale, proximity))
 
 
 def test_team_heading_free_blocked_flip_and_leave() -> None:

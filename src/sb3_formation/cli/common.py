@@ -80,8 +80,8 @@ def add_scenes_option(parser: argparse.ArgumentParser) -> None:
 
 
 DISTURBANCES_HELP = (
-    "the errors of real robots the episodes meet: a profile (ideal, realistic, harsh) or a YAML file of the same format "
-    "(docs/disturbances.md; default ideal)"
+    "the errors of real robots the episodes meet: a profile (ideal, realistic, harsh, failures) or a YAML file of the "
+    "same format (docs/disturbances.md; default ideal)"
 )
 
 

@@ -3,10 +3,12 @@
 - **One per team**, Stable-Baselines3's ``predict(observation, state, episode_start, deterministic) -> (actions,
   state)`` over the *raw* observations of whole teams: row k is agent ``k % n`` of team ``k // n`` (the slot order of
   :class:`~sb3_formation.sb3.vec_env.FormationVecEnv`), each row the env's own observation (thesis Table 3.1, SI
-  units). Evaluation, rendering and comparison call it.
+  units). Evaluation, rendering and comparison call it; where agents may fail it also takes ``flying``, the rows
+  whose agents still fly.
 - **One per agent**, ``agent_step(observations, agents, state, episode_start, received, deterministic) ->``
   :class:`AgentStep` ``(action, state, message)``, for rows of any agents (e.g. the one a robot hosts) with their
-  indices in their teams and the messages their ring neighbours sent them. The robot's on-board pipeline calls it.
+  places on their rings (:func:`ring_places`) and the messages their ring neighbours sent them. The robot's on-board
+  pipeline calls it.
 
 :class:`Policy` writes ``predict`` once over ``agent_step``: it routes the messages that a talking policy's agents
 send (``message_size`` M > 0) to their ring neighbours in the rows' teams, one step late, and its state is then the pair
@@ -30,7 +32,7 @@ import numpy as np
 
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.disturbed import MessageChannel
-from sb3_formation.env.geometry import ring_rows
+from sb3_formation.env.geometry import flying_rows, reference_bearings, reference_polygon, ring_rows
 from sb3_formation.env.observations import observation_fields, observation_layout
 from sb3_formation.env.state import TeamState
 from sb3_formation.utils.checks import is_number
@@ -72,6 +74,7 @@ class TeamPolicy(Protocol):
         deterministic: bool = True,
         *,
         channel: MessageChannel | None = None,
+        flying: np.ndarray | None = None,
     ) -> tuple[np.ndarray, Any]:
         """Actions ``(k, 2)`` for ``(k, obs_dim)`` raw observations of whole teams, and the policy's next state.
 
@@ -81,6 +84,8 @@ class TeamPolicy(Protocol):
         :param deterministic: act without exploration noise
         :param channel: the links that carry a talking policy's messages, when they lose or delay them (``None``:
             every message arrives one step late)
+        :param flying: ``(k,)`` bool: the rows whose agents fly (``None``: every one); the others failed, and the
+            flying agents of a team fly the ring of their number (:func:`~sb3_formation.env.geometry.flying_ring`)
         """
         ...
 
@@ -96,7 +101,8 @@ class TeamPolicy(Protocol):
         """Actions, next state and sent messages of rows of any agents.
 
         :param observations: ``(k, obs_dim)`` raw observations
-        :param agents: ``(k,)`` each row's agent index in its team
+        :param agents: ``(k,)`` each row's agent index in its team, or ``(k, 2)`` its place on its ring and the ring's
+            size (a team whose agents failed: :func:`ring_places`)
         :param state: what the previous call returned for these rows (``None`` at the start)
         :param episode_start: ``(k,)`` flags: these rows start an episode (their state is reset)
         :param received: ``(k, 2, M)`` (or ``(k, 2 M)``) what each row's preceding and succeeding neighbours sent at
@@ -171,24 +177,31 @@ class Policy(ABC):
         deterministic: bool = True,
         *,
         channel: MessageChannel | None = None,
+        flying: np.ndarray | None = None,
     ) -> tuple[np.ndarray, Any]:
         """SB3's signature over raw observations of whole teams (row k: agent ``k % n`` of team ``k // n``):
         :meth:`agent_step` on every row. A talking policy's state is the pair (the agents' state, the ``(k, M)``
         messages they sent); each row receives, one step late, the messages of its ring neighbours in its team
-        (zeros where an episode starts), or what ``channel`` delivers of them."""
+        (zeros where an episode starts), or what ``channel`` delivers of them. With ``flying``, the rows of a team
+        whose agents failed act at their places on the ring of the flying agents and hear their neighbours there."""
         shape = np.shape(observation)
         if len(shape) == 0:
             raise ValueError(f"observations must be rows of one agent's observation each, got an array of shape {shape}")
         rows = np.asarray(observation).reshape(-1, shape[-1])
         n_agents, received = self.config.n_agents, None
+        agents, neighbours = np.arange(len(rows)) % n_agents, None
+        if flying is not None and not np.all(flying):
+            agents, neighbours = flying_rows(np.asarray(flying, dtype=bool).reshape(-1), n_agents)
         if self.message_size:
             state, sent = state_pair(self.describe(), state)
             if channel is not None:
-                received = channel.deliver(np.zeros((len(rows), self.message_size), np.float32) if sent is None else sent)
+                silent = np.zeros((len(rows), self.message_size), np.float32)
+                received = channel.deliver(silent if sent is None else sent, neighbours)
             elif sent is not None:
                 keep = 1.0 if episode_start is None else 1.0 - np.asarray(episode_start, np.float32).reshape(-1, 1)
-                received = (np.asarray(sent, np.float32) * keep)[ring_rows([n_agents] * (len(rows) // n_agents))]
-        step = self.agent_step(rows, np.arange(len(rows)) % n_agents, state, episode_start, received, deterministic)
+                ring = ring_rows([n_agents] * (len(rows) // n_agents)) if neighbours is None else neighbours
+                received = (np.asarray(sent, np.float32) * keep)[ring]
+        step = self.agent_step(rows, agents, state, episode_start, received, deterministic)
         actions = step.action.reshape(*shape[:-1], 2)
         return actions, ((step.state, step.message) if self.message_size else step.state)
 
@@ -217,9 +230,13 @@ class Policy(ABC):
             )
         if not np.isfinite(rows).all():
             raise ValueError(f"{self.describe()}: the observations hold NaN or infinite values")
-        agents = np.asarray(agents).reshape(-1)
-        if len(agents) != len(rows):
-            raise ValueError(f"{self.describe()}: {len(agents)} agent indices for {len(rows)} observation rows")
+        agents = np.asarray(agents)
+        agents = agents.reshape(-1) if agents.ndim < 2 else agents
+        if len(agents) != len(rows) or (agents.ndim != 1 and agents.shape[1:] != (2,)):
+            raise ValueError(
+                f"{self.describe()}: agents of shape {np.shape(agents)} for {len(rows)} observation rows (one index, or "
+                "one row (place, ring size), per observation row)"
+            )
         check_state(self.describe(), state)
         heard = self.received_messages(received, len(rows))
         return self._agent_step(rows, agents, state, episode_start, heard, deterministic)
@@ -272,6 +289,52 @@ class Policy(ABC):
 def observation_size(config: FormationConfig) -> int:
     """Features of one agent's observation in envs of ``config``."""
     return sum(field.size for field in observation_fields(config))
+
+
+def ring_places(agents: np.ndarray, n_agents: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's place on its ring and the ring's size, from the agents of :meth:`Policy.agent_step`.
+
+    :param agents: ``(k,)`` agent indices (every agent of the team of ``n_agents`` flies), or ``(k, 2)`` rows (place,
+        ring size) of a team whose agents failed (:func:`~sb3_formation.env.geometry.flying_rows`)
+    :return: ``(k,)`` places and ``(k,)`` ring sizes
+    """
+    agents = np.asarray(agents, dtype=np.int64)
+    if agents.ndim == 1:
+        return agents, np.full(len(agents), n_agents)
+    return agents[:, 0], agents[:, 1]
+
+
+class RingShape(NamedTuple):
+    """The reference formation of a ring of some size in a task (:func:`ring_shape`)."""
+
+    bearings: np.ndarray  #: ``(size, 2, 2)`` reference bearings g_j^{i,ref} of each place (Table 5.2 for n = 6)
+    vertices: np.ndarray  #: ``(size, 2)`` each place on the reference polygon of circumradius 1 (place 0 at the bottom)
+    circumradius: float  #: the starting polygon's circumradius (m)
+    side_length: float  #: the starting polygon's side (m)
+    beta_ref_deg: float  #: the reference angle beta^ref (deg): the polygon's interior angle
+
+
+@functools.lru_cache(maxsize=64)
+def ring_shape(config: FormationConfig, size: int) -> RingShape:
+    """The reference formation of a ring of ``size`` agents in the task: the task's own for ``size`` = n, that of
+    the flying agents' number in a team whose agents failed."""
+    ring = config if size == config.n_agents else config.replace(n_agents=size)
+    return RingShape(
+        reference_bearings(size),
+        reference_polygon(size, 1.0),
+        ring.start_circumradius,
+        ring.start_side_length,
+        ring.beta_ref_deg,
+    )
+
+
+def ring_groups(agents: np.ndarray, n_agents: int) -> list[tuple[np.ndarray | slice, np.ndarray, int]]:
+    """The rows of :meth:`Policy.agent_step`'s ``agents`` grouped by the size of their ring: (rows, their places, the
+    size) for each size (rows ``slice(None)`` when every row's ring is the team's of ``n_agents``)."""
+    places, sizes = ring_places(agents, n_agents)
+    if (sizes == n_agents).all():
+        return [(slice(None), places, n_agents)]
+    return [(sizes == size, places[sizes == size], size) for size in np.unique(sizes).tolist()]
 
 
 def check_state(who: str, state: Any) -> None:

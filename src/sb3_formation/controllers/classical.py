@@ -33,10 +33,9 @@ from typing import Any
 
 import numpy as np
 
-from sb3_formation.controllers.base import Controller, check_gains
+from sb3_formation.controllers.base import Controller, check_gains, ring_groups, ring_shape
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.dynamics import HolonomicModel, dynamics_model
-from sb3_formation.env.geometry import reference_bearings
 from sb3_formation.env.sensors import ray_directions
 
 #: Smallest surface gap (m) used in a 1/s repulsion, so touching bodies push hard but finitely.
@@ -85,9 +84,7 @@ class ClassicalController(Controller):
 
     def _fit_task(self) -> None:
         config = self.config
-        self.side_length = config.start_side_length
         self.bearings = config.k_bearing > 0 and self.settings.use_bearings
-        self.reference = reference_bearings(config.n_agents)
         self.directions = ray_directions(config.lidar_rays)
 
     def act(self, observations: np.ndarray, agents: np.ndarray, deterministic: bool) -> np.ndarray:
@@ -126,14 +123,19 @@ class ClassicalController(Controller):
         bearings imply, or (angle law) towards the apex on the neighbours plus the side-length correction.
 
         :param offsets: ``(k, 2, 2)`` offsets to the preceding and succeeding neighbours (m)
-        :param agents: ``(k,)`` agent indices
+        :param agents: ``(k,)`` agent indices, or ``(k, 2)`` places and ring sizes
+            (:func:`~sb3_formation.controllers.base.ring_places`)
         """
-        gains = self.settings
-        if self.bearings:
-            implied = offsets - self.side_length * self.reference[agents]
-            return gains.k_formation * implied.mean(axis=1)
-        apex = apex_offset(offsets, self.config.beta_ref_deg)
-        return gains.k_formation * apex + gains.k_spacing * spacing_offset(offsets, self.side_length)
+        gains, velocity = self.settings, np.empty((len(offsets), 2))
+        for rows, places, size in ring_groups(agents, self.config.n_agents):
+            ring, own = ring_shape(self.config, size), offsets[rows]
+            if self.bearings:
+                implied = own - ring.side_length * ring.bearings[places]
+                velocity[rows] = gains.k_formation * implied.mean(axis=1)
+            else:
+                apex = apex_offset(own, ring.beta_ref_deg)
+                velocity[rows] = gains.k_formation * apex + gains.k_spacing * spacing_offset(own, ring.side_length)
+        return velocity
 
 
 def unit(vectors: np.ndarray) -> np.ndarray:

@@ -72,10 +72,17 @@ from typing import Any
 
 import numpy as np
 
-from sb3_formation.controllers.base import AgentStep, Controller, check_gains, no_messages
+from sb3_formation.controllers.base import (
+    AgentStep,
+    Controller,
+    RingShape,
+    check_gains,
+    no_messages,
+    ring_groups,
+    ring_shape,
+)
 from sb3_formation.controllers.classical import MIN_GAP, command_action, lidar_repulsion, unit
 from sb3_formation.env.config import FormationConfig
-from sb3_formation.env.geometry import reference_polygon
 from sb3_formation.env.sensors import ray_directions
 
 #: Columns of one agent's memory (a row of the ``state`` array of :meth:`ShrinkingController.predict`).
@@ -202,11 +209,7 @@ class ShrinkingController(Controller):
 
     def _fit_task(self) -> None:
         config = self.config
-        self.side_length = config.start_side_length
-        self.circumradius = config.start_circumradius
-        self.vertices = reference_polygon(config.n_agents, 1.0)
         self.directions = ray_directions(config.lidar_rays)
-        self.min_scale = min(1.0, (2 * config.agent_radius + self.settings.min_side_gap) / self.side_length)
 
     # Memory ------------------------------------------------------------------------------------------------------
 
@@ -252,7 +255,8 @@ class ShrinkingController(Controller):
         """Actions ``(k, 2)`` and the next memory for rows of agents with their memory (``(k, len(MEMORY_FIELDS))``).
 
         :param observations: ``(k, obs_dim)`` raw observations
-        :param agents: ``(k,)`` each row's agent index in its team
+        :param agents: ``(k,)`` each row's agent index in its team, or ``(k, 2)`` its place and ring size
+            (:func:`~sb3_formation.controllers.base.ring_places`): its place on the polygon of its ring
         :param memory: ``(k, len(MEMORY_FIELDS))`` each agent's memory (not changed)
         """
         layout, gains, config = self.layout, self.settings, self.config
@@ -262,9 +266,12 @@ class ShrinkingController(Controller):
         )
         obstacles = observations[:, layout["lidar_obstacles"]]
         offsets = observations[:, layout["neighbour_offsets"]].reshape(-1, 2, 2)
-        memory[:, _SCALE] = self.agreed_scale(obstacles, offsets, memory[:, _SCALE])
         own = observations[:, layout["centroid_goal_offset"]] - observations[:, layout["goal_offset"]]
-        places = memory[:, _SCALE, None] * self.circumradius * self.vertices[agents]
+        places = np.empty((len(observations), 2))
+        for rows, spots, size in ring_groups(agents, config.n_agents):  # each ring's polygon, of its size
+            ring = ring_shape(config, size)
+            memory[rows, _SCALE] = self.agreed_scale(obstacles[rows], offsets[rows], memory[rows, _SCALE], ring)
+            places[rows] = memory[rows, _SCALE, None] * ring.circumradius * ring.vertices[spots]
         velocity = gains.k_goal * config.v_max * heading + gains.k_place * (places - own)
         velocity += gains.k_obstacle * lidar_repulsion(obstacles, config, self.directions, gains.repulsion_range)
         velocity += gains.k_agent * lidar_repulsion(observations[:, layout["lidar_agents"]], config, self.directions)
@@ -361,35 +368,41 @@ class ShrinkingController(Controller):
         memory[:, _PROGRESS] = np.where(begins | flips, 1.0, memory[:, _PROGRESS])
         return flips
 
-    def agreed_scale(self, obstacles: np.ndarray, offsets: np.ndarray, previous: np.ndarray) -> np.ndarray:
+    def agreed_scale(self, obstacles: np.ndarray, offsets: np.ndarray, previous: np.ndarray, ring: RingShape) -> np.ndarray:
         """Each agent's formation scale: the least of what its obstacle lidar allows (:meth:`lidar_scale`), what its
         neighbours' distances show plus delta, and its last scale plus rho, within [s_min, 1].
 
         :param obstacles: ``(k, rays)`` obstacle lidar readings (fractions of the range)
         :param offsets: ``(k, 2, 2)`` neighbour offsets (m)
         :param previous: ``(k,)`` the agents' last scales
+        :param ring: the agents' ring (:func:`~sb3_formation.controllers.base.ring_shape`)
         """
         gains = self.settings
-        neighbours = np.linalg.norm(offsets, axis=-1).min(axis=1) / self.side_length + gains.scale_slack
-        scale = np.minimum(np.minimum(self.lidar_scale(obstacles), neighbours), previous + gains.scale_relax)
-        return np.clip(scale, self.min_scale, 1.0)
+        neighbours = np.linalg.norm(offsets, axis=-1).min(axis=1) / ring.side_length + gains.scale_slack
+        scale = np.minimum(np.minimum(self.lidar_scale(obstacles, ring), neighbours), previous + gains.scale_relax)
+        return np.clip(scale, self.min_scale(ring), 1.0)
 
-    def lidar_scale(self, obstacles: np.ndarray) -> np.ndarray:
+    def min_scale(self, ring: RingShape) -> float:
+        """s_min: the scale at which the ring's sides leave ``min_side_gap`` between neighbours (at most 1)."""
+        return min(1.0, (2 * self.config.agent_radius + self.settings.min_side_gap) / ring.side_length)
+
+    def lidar_scale(self, obstacles: np.ndarray, ring: RingShape) -> np.ndarray:
         """The scale the obstacle lidar allows: the least of the proximity scale s_p and the width scale s_w.
 
         :param obstacles: ``(k, rays)`` obstacle lidar readings (fractions of the range)
+        :param ring: the agents' ring
         """
-        gains, config = self.settings, self.config
+        gains, config, min_scale = self.settings, self.config, self.min_scale(ring)
         gaps = obstacles * config.lidar_range
         nearest = gaps.min(axis=1)
-        proximity = self.min_scale + (1 - self.min_scale) * np.clip(
+        proximity = min_scale + (1 - min_scale) * np.clip(
             (nearest - gains.gap_low) / (gains.gap_high - gains.gap_low), 0.0, 1.0
         )
         half = gaps.shape[1] // 2
         seen = obstacles < 1.0
         both = seen[:, :half] & seen[:, half : 2 * half]
         widths = np.where(both, gaps[:, :half] + gaps[:, half : 2 * half], np.inf).min(axis=1) + 2 * config.agent_radius
-        width = (widths / 2 - config.agent_radius - gains.width_margin) / self.circumradius
+        width = (widths / 2 - config.agent_radius - gains.width_margin) / ring.circumradius
         return np.minimum(proximity, width)
 
 

@@ -48,6 +48,7 @@ class BlockStep(NamedTuple):
     success: np.ndarray  #: per slot
     positions: np.ndarray
     velocities: np.ndarray
+    flying: np.ndarray  #: per slot: the agent's motors run (after the step's resets; see ``FormationEngine.fail``)
     episodes: list[TeamEpisode]
 
 
@@ -67,6 +68,7 @@ def step_layout(slots: int, observation_dim: int) -> dict[str, tuple[tuple[int, 
         "success": ((slots,), bool),
         "positions": ((slots, 2), np.float64),
         "velocities": ((slots, 2), np.float64),
+        "flying": ((slots,), bool),
     }
 
 
@@ -140,7 +142,7 @@ class EngineBlock:
                 observations[rows] = self._slot_observations(engine.reset(team), rows.stop - rows.start)
         dones, success = np.repeat(ended, engine.sizes), np.repeat(step.terminated, engine.sizes)
         arrays = (step.rewards, dones, step.info_values, step.contacts, success, step.positions, step.velocities)
-        return BlockStep(observations, *arrays, episodes)
+        return BlockStep(observations, *arrays, engine.constants.flying.copy(), episodes)
 
     def step_shared(self) -> list[TeamEpisode]:
         """:meth:`step` with the actions read from ``shared`` and the arrays written to it: only the ended episodes

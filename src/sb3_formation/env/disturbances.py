@@ -1,7 +1,7 @@
 """Disturbances as data: the errors of a real robot's sensors, motors, timing and radio, one typed section of the task
 (:attr:`~sb3_formation.env.config.FormationConfig.disturbances`).
 
-Four parts, each a frozen dataclass whose fields have units and a default of no error:
+Five parts, each a frozen dataclass whose fields have units and a default of no error:
 
 - :class:`Sensing`: lidar range noise and dropped beams; the error of every agent's estimate of its own position,
   heading and velocity (a white part and a slowly drifting bias). Neighbours know each other through what each
@@ -11,13 +11,14 @@ Four parts, each a frozen dataclass whose fields have units and a default of no 
 - :class:`Timing`: observation and action delays per robot, drawn once per episode, and jitter per step; an action
   delay may be a part of a step, for which the previous action holds;
 - :class:`Communication`: for policies whose agents send messages, the loss of a message on each link and an extra
-  delay; a lost message is received as the last one heard on that link.
+  delay; a lost message is received as the last one heard on that link;
+- :class:`Failures`: an agent whose motors stop at a random step; the others re-form without it.
 
 :data:`PROFILES` names the shipped ones: ``ideal`` (the default: no disturbance, the env unchanged bit for bit),
-``realistic`` and ``harsh``, files in ``disturbance_profiles/`` beside this module whose comments give the source of
-each number. :func:`load_disturbances` reads a profile's name or any file of the same format. :meth:`Disturbances.scaled`
-multiplies every error by a level (0: ideal, 1: the profile, 2: twice it), the robustness curves' axis; with
-``randomise`` each episode draws its level between 0 and 1 (domain randomisation, for training).
+``realistic``, ``harsh`` and ``failures``, files in ``disturbance_profiles/`` beside this module whose comments give
+the source of each number. :func:`load_disturbances` reads a profile's name or any file of the same format.
+:meth:`Disturbances.scaled` multiplies every error by a level (0: ideal, 1: the profile, 2: twice it), the robustness
+curves' axis; with ``randomise`` each episode draws its level between 0 and 1 (domain randomisation, for training).
 """
 
 from __future__ import annotations
@@ -34,12 +35,15 @@ from sb3_formation.utils.yaml_files import read_yaml_file
 
 #: The folder of the shipped profiles (``<name>.yaml``).
 PROFILES_FOLDER = Path(__file__).with_name("disturbance_profiles")
-#: The shipped profiles, mildest first: ``ideal`` is the default and has no file (every field at its default).
-PROFILES: tuple[str, ...] = ("ideal", "realistic", "harsh")
+#: The shipped profiles: ``ideal`` (the default, without a file: every field at its default), the signals' errors
+#: mildest first, then ``failures`` (agents that fail in an ideal world).
+PROFILES: tuple[str, ...] = ("ideal", "realistic", "harsh", "failures")
 #: The parts of a :class:`Disturbances`, as they are named in a file and by the robustness curves' factors.
-PARTS: tuple[str, ...] = ("sensing", "acting", "timing", "communication")
+PARTS: tuple[str, ...] = ("sensing", "acting", "timing", "communication", "failures")
 #: The longest delay (steps) of an observation, an action or a message: 100 times the harsh profile's.
 MAX_DELAY_STEPS = 200
+#: The latest step (steps) at which an agent may fail: far beyond any episode's T_s.
+MAX_EPISODE_STEPS = 100_000
 #: The longest drift correlation time (s): a day.
 MAX_DRIFT_TIME = 86_400.0
 
@@ -62,6 +66,8 @@ class _Part:
     whole: ClassVar[tuple[str, ...]] = ()
     #: fields kept as they are by scaling (time constants)
     fixed: ClassVar[tuple[str, ...]] = ()
+    #: interval fields kept as they are by scaling (when something happens, not how much)
+    kept: ClassVar[tuple[str, ...]] = ()
 
     def __post_init__(self) -> None:
         for item in dataclasses.fields(self):
@@ -85,8 +91,9 @@ class _Part:
         if name in self.gains:
             self._require(name, value, "a pair [low, high] with 0 < low <= 1 <= high", 0 < low <= 1 <= high)
         else:
-            valid = 0 <= low <= high <= MAX_DELAY_STEPS
-            self._require(name, value, f"a pair [low, high] of steps with 0 <= low <= high <= {MAX_DELAY_STEPS}", valid)
+            most = MAX_EPISODE_STEPS if name in self.kept else MAX_DELAY_STEPS
+            valid = 0 <= low <= high <= most
+            self._require(name, value, f"a pair [low, high] of steps with 0 <= low <= high <= {most}", valid)
             if name in self.whole:
                 self._require(name, value, "whole steps", float(low).is_integer() and float(high).is_integer())
                 low, high = int(low), int(high)
@@ -108,7 +115,7 @@ class _Part:
         changes: dict[str, Any] = {}
         for item in dataclasses.fields(self):
             name, value = item.name, getattr(self, item.name)
-            if name in self.fixed:
+            if name in self.fixed or name in self.kept:
                 continue
             if name in self.gains:
                 changes[name] = tuple(max(0.01, 1.0 + level * (v - 1.0)) for v in value)
@@ -249,7 +256,29 @@ class Communication(_Part):
     delay: tuple[int, int] = (0, 0)
 
 
-_PART_CLASSES: dict[str, type[_Part]] = {part.key: part for part in (Sensing, Acting, Timing, Communication)}
+@dataclass(frozen=True)
+class Failures(_Part):
+    """Agents that fail: at most one per team and episode, whose motors stop for good (``docs/disturbances.md``,
+    "Agents that fail"). The failed agent stays where it stopped, a passive body that the others see as an obstacle;
+    they close the ring without it and fly the formation of n - 1 (ring neighbours re-linked, the reference shape of
+    n - 1), and success is judged on the agents that still fly.
+
+    :param probability: probability that an agent of the team fails in an episode (which agent: uniform)
+    :param steps: interval ``[low, high]`` of whole steps, the step of the failure drawn uniformly in it: the agent's
+        motors stop at the end of that step (0: the episode starts with it failed); scaling keeps it
+    """
+
+    key: ClassVar[str] = "failures"
+    probabilities: ClassVar[tuple[str, ...]] = ("probability",)
+    intervals: ClassVar[tuple[str, ...]] = ("steps",)
+    whole: ClassVar[tuple[str, ...]] = ("steps",)
+    kept: ClassVar[tuple[str, ...]] = ("steps",)
+
+    probability: float = 0.0
+    steps: tuple[int, int] = (0, 0)
+
+
+_PART_CLASSES: dict[str, type[_Part]] = {part.key: part for part in (Sensing, Acting, Timing, Communication, Failures)}
 
 
 @dataclass(frozen=True)
@@ -261,6 +290,7 @@ class Disturbances:
     :param acting: actuator errors (:class:`Acting`)
     :param timing: delays (:class:`Timing`)
     :param communication: message loss and delay (:class:`Communication`)
+    :param failures: agents whose motors stop (:class:`Failures`)
     :param randomise: each episode draws a level uniformly from [0, 1] and meets the disturbances scaled by it
         (:meth:`scaled`): domain randomisation between ``ideal`` and these
     """
@@ -269,6 +299,7 @@ class Disturbances:
     acting: Acting = Acting()
     timing: Timing = Timing()
     communication: Communication = Communication()
+    failures: Failures = Failures()
     randomise: bool = False
 
     def __post_init__(self) -> None:
@@ -282,6 +313,11 @@ class Disturbances:
     def is_ideal(self) -> bool:
         """No disturbance: the env is the ideal one, bit for bit."""
         return all(getattr(self, name).is_ideal for name in PARTS)
+
+    @property
+    def signals(self) -> Disturbances:
+        """What disturbs the signals (every part but the failures): what the engine's disturber applies."""
+        return dataclasses.replace(self, failures=Failures())
 
     def scaled(self, level: float) -> Disturbances:
         """Every part's errors times ``level`` (>= 0; :meth:`_Part.scaled`), randomise kept."""

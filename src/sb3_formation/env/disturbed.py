@@ -27,16 +27,52 @@ import numba
 import numpy as np
 
 from sb3_formation.env.config import FormationConfig
-from sb3_formation.env.disturbances import Communication, Disturbances, drift_correlation
+from sb3_formation.env.disturbances import Communication, Disturbances, Failures, drift_correlation
 from sb3_formation.env.dynamics import LateActions
 
 #: The spawn key that gives the disturbances a stream of their own beside the scenario generator of the same seed.
 DISTURBANCE_STREAM = 1
+#: The spawn key of the failures' stream (the message links' is ``DISTURBANCE_STREAM + 1``).
+FAILURE_STREAM = DISTURBANCE_STREAM + 2
 
 
 def stream(seed: int, key: int = DISTURBANCE_STREAM) -> np.random.Generator:
     """The generator of the disturbances of seed ``seed``: independent of the scenario generator of that seed."""
     return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(key,)))
+
+
+class FailureSchedule:
+    """Which agent of each team fails in its episode, and at which step (:class:`~sb3_formation.env.disturbances.Failures`).
+
+    A team's episode draws, at its reset and from a stream of its own (:data:`FAILURE_STREAM` of the team's seed),
+    whether an agent fails, which (uniformly) and the step (uniformly in ``steps``), always all three, so the draws of
+    one episode never shift another's. ``randomise`` does not scale the failures: their probability is already one per
+    episode.
+
+    :param failures: the task's failures
+    :param sizes: ``(teams,)`` the teams' sizes n
+    """
+
+    def __init__(self, failures: Failures, sizes: np.ndarray) -> None:
+        self.failures, self.sizes = failures, sizes
+        self.generators = [stream(0, FAILURE_STREAM) for _ in sizes]
+        #: each team's failing agent this episode (-1: none) and the step at whose end its motors stop
+        self.agents, self.steps = np.full(len(sizes), -1), np.full(len(sizes), -1)
+
+    def seed(self, team: int, seed: int) -> None:
+        """Seed a team's generator from its scenario seed (:func:`stream`)."""
+        self.generators[team] = stream(seed, FAILURE_STREAM)
+
+    def reset(self, team: int) -> None:
+        """Draw a team's episode: whether an agent fails, which one, and when."""
+        generator, (low, high) = self.generators[team], self.failures.steps
+        fails = generator.random() < self.failures.probability
+        agent, step = int(generator.integers(self.sizes[team])), int(generator.integers(low, high + 1))
+        self.agents[team], self.steps[team] = (agent, step) if fails else (-1, -1)
+
+    def due(self, teams: list[int], step_counts: np.ndarray) -> list[tuple[int, int]]:
+        """(team, agent) of the ``teams`` whose agent fails at the end of step ``step_counts[team]``."""
+        return [(team, int(self.agents[team])) for team in teams if self.steps[team] == step_counts[team]]
 
 
 class SensedTeams:
@@ -432,9 +468,13 @@ class MessageChannel:
             self.past[:, rows] = 0.0
             self.heard[rows] = 0.0
 
-    def deliver(self, sent: np.ndarray) -> np.ndarray:
+    def deliver(self, sent: np.ndarray, senders: np.ndarray | None = None) -> np.ndarray:
         """What every row receives at this step from its ring neighbours, ``(rows, 2, M)``, given the messages
-        ``(rows, M)`` that every row sent at its last step."""
+        ``(rows, M)`` that every row sent at its last step.
+
+        :param senders: ``(rows, 2)`` the rows of each row's neighbours (``None``: the ring of n; a team with a failed
+            agent: its flying agents' ring, :func:`~sb3_formation.env.geometry.flying_rows`)
+        """
         sent = np.asarray(sent, dtype=np.float32)
         if self.past is None or self.heard is None or self.past.shape[2] != sent.shape[1]:
             self.past = np.zeros((self.communication.delay[1] + 1, *sent.shape), dtype=np.float32)
@@ -446,7 +486,7 @@ class MessageChannel:
             rows = slice(team * self.n_agents, (team + 1) * self.n_agents)
             if self.communication.loss:
                 lost[rows] = generator.random((self.n_agents, 2)) < self.communication.loss
-        senders = self.senders
+        senders = self.senders if senders is None else senders
         delays = self.delays[senders]  # (rows, 2): the sender's extra delay
         arriving = self.past[delays, senders]  # (rows, 2, M)
         team_steps = self.steps[np.arange(n_rows) // self.n_agents]

@@ -34,10 +34,18 @@ import numpy as np
 from gymnasium.utils import seeding
 
 from sb3_formation.env.config import INFO_KEYS, REWARD_TERMS, FormationConfig
-from sb3_formation.env.disturbed import Disturber, SensedTeams
+from sb3_formation.env.disturbed import Disturber, FailureSchedule, SensedTeams
 from sb3_formation.env.dynamics import Dynamics, DynamicsModel, LateActions, dynamics_model
 from sb3_formation.env.episodes import episode_summary
-from sb3_formation.env.geometry import FormationState, _measure_into, agent_errors, reference_bearings, ring_neighbours
+from sb3_formation.env.geometry import (
+    FormationState,
+    _measure_into,
+    agent_errors,
+    flying_ring,
+    interior_angle_deg,
+    reference_bearings,
+    ring_neighbours,
+)
 from sb3_formation.env.observations import _fill_observations, observation_fields
 from sb3_formation.env.progress import GOAL_PROGRESS_CLASSES, GoalProgress
 from sb3_formation.env.rewards import RewardConstants, _reward_terms, combine_rewards, nearest_gaps, reward_constants
@@ -176,13 +184,18 @@ class FormationEngine:
         self._fixed_fields = tuple(self.constants), tuple(self.formations), tuple(self.episodes)
         self._reward_fields = tuple(reward_constants(config))
         self._shape_fields = tuple(self.shapes)  # again at each reset (_load_shapes)
-        #: the task's disturbances, drawn and applied (``None`` in the ideal world, which then runs as it always did)
-        self.disturber = None if config.disturbances.is_ideal else Disturber(config, starts, self.observation_dim)
+        #: the task's disturbances of the signals, drawn and applied (``None`` in the ideal world, which then runs as it
+        #: always did), and its agents' failures (``None``: no agent fails)
+        signals = config.disturbances.signals
+        self.disturber = None if signals.is_ideal else Disturber(config, starts, self.observation_dim)
+        failures = config.disturbances.failures
+        self.failures = None if failures.is_ideal else FailureSchedule(failures, sizes)
+        self._failed_teams: set[int] = set()  # teams with an agent that failed in this episode
         #: the formations the agents measure from their position estimates (the true ones without localisation errors)
         self._sensed_fields = self._fixed_fields[1]
+        for team, seed in enumerate(self.generator_seeds):
+            self._seed_draws(team, seed)
         if self.disturber is not None:
-            for team, seed in enumerate(self.generator_seeds):
-                self.disturber.seed(team, seed)
             if self.disturber.localises:
                 self._sensed_fields = tuple(Formations.zeros(n_teams, n_slots))
         self._no_errors = (np.zeros(0), np.zeros((0, 0)), np.zeros((0, 0), dtype=bool))
@@ -206,8 +219,14 @@ class FormationEngine:
     def seed(self, team: int, seed: int | None) -> None:
         """Give a team a new scenario generator, seeded with ``seed`` (``None``: from the operating system)."""
         self.generators[team], self.generator_seeds[team] = seeding.np_random(seed)
+        self._seed_draws(team, self.generator_seeds[team])
+
+    def _seed_draws(self, team: int, seed: int) -> None:
+        """Seed the disturbances' and the failures' streams of a team from its scenario seed."""
         if self.disturber is not None:
-            self.disturber.seed(team, self.generator_seeds[team])
+            self.disturber.seed(team, seed)
+        if self.failures is not None:
+            self.failures.seed(team, seed)
 
     # Reset --------------------------------------------------------------------------------------------------------
 
@@ -240,6 +259,10 @@ class FormationEngine:
         if self.disturber is not None:
             self.disturber.reset(team, rows)
         self._clear_episode(team, scenario.goal)
+        if self.failures is not None:
+            self.failures.reset(team)
+            for failing, agent in self.failures.due([team], self.episodes.step_counts):  # at step 0: failed from the start
+                self.fail(failing, agent)
         active = np.array([team])
         self._measure(active, latest.positions)
         centroid = self.formations.centroids[team]
@@ -274,6 +297,45 @@ class FormationEngine:
         episodes.returns[team] = episodes.comm_exceeded[team] = 0
         episodes.errors[team] = episodes.term_sums[team] = episodes.collisions[team] = 0
         self.live[team], self.success[team] = True, False
+        if team in self._failed_teams:  # every agent flies again, on the ring of n
+            self._failed_teams.discard(team)
+            n_agents = rows.stop - rows.start
+            self._set_ring(team, np.ones(n_agents, dtype=bool), ring_neighbours(n_agents), reference_bearings(n_agents))
+
+    # Failures -----------------------------------------------------------------------------------------------------
+
+    def fail(self, team: int, agent: int) -> None:
+        """Stop an agent's motors for the rest of its team's episode (``docs/disturbances.md``, "Agents that fail"):
+        its world halts it, the others' lidars see it as an obstacle, and the flying agents close their ring without
+        it (:func:`~sb3_formation.env.geometry.flying_ring`: neighbours, the reference bearings and beta^ref of the
+        ring's size), from the measure that follows on. Its team's centroid, range flag, collision term, team averages
+        and episode sums are the flying agents'.
+
+        :param team: the team
+        :param agent: the agent's index in its team
+        :raises ValueError: the agent does not fly, or fewer than 3 agents would
+        """
+        rows = self.team_rows(team)
+        flying = self.constants.flying[rows].copy()
+        if not 0 <= agent < len(flying) or not flying[agent]:
+            raise ValueError(f"agent {agent} of team {team} does not fly (flying: {np.flatnonzero(flying).tolist()})")
+        flying[agent] = False
+        ring = flying_ring(flying)
+        references = self.constants.reference_bearings[rows].copy()
+        references[flying] = reference_bearings(ring.size)[ring.places[flying]]
+        self._set_ring(team, flying, ring.neighbours, references)
+        cast(World, self.worlds[team]).halt(agent)
+        self._failed_teams.add(team)
+
+    def _set_ring(self, team: int, flying: np.ndarray, neighbours: np.ndarray, references: np.ndarray) -> None:
+        """A team's flying agents, their ring neighbours and reference bearings (into :attr:`constants`), beta^ref of
+        the ring's size, and its lidar's view of them."""
+        rows, constants = self.team_rows(team), self.constants
+        constants.flying[rows], constants.neighbours[rows], constants.reference_bearings[rows] = flying, neighbours, references
+        constants.beta_ref[team] = interior_angle_deg(int(flying.sum()))
+        lidar = self.lidars[team]
+        lidar.set_flying(flying, neighbours)
+        self._load_shapes(team, lidar.layout)
 
     def _load_shapes(self, team: int, layout: LidarLayout) -> None:
         """Put a team's lidar layout (its obstacles and agents as circles, who sees which, their channels, its walls)
@@ -309,6 +371,9 @@ class FormationEngine:
             return self._unchanged(len(actions))
         previous, episodes, centroids = self.latest, self.episodes, self.formations.centroids
         positions, velocities, contacts = self._move(actions, stepped)  # forces, physics, state (steps 1-3 of design.md)
+        if self.failures is not None:  # motors that stop at the end of this step
+            for team, agent in self.failures.due(stepped.teams, self.episodes.step_counts + 1):
+                self.fail(team, agent)
         self._measure(stepped.active, positions)  # formation (4)
         goal_distances = self._goal_distances(stepped, previous.goal_distances)  # goal distance (5)
         ways = self.progress.ways(previous.ways, goal_distances, centroids, stepped)  # and the way the goal term rewards
@@ -466,17 +531,21 @@ class FormationEngine:
         and every team's mean reward.
 
         :param terms: every team's ``(terms, n)`` block, one after the other, flat
-        :return: rewards ``(agents,)`` and team means ``(teams,)``
+        :return: rewards ``(agents,)`` and team means ``(teams,)`` (over the flying agents)
         """
         clip = self.config.reward_clip
         if self._single_size:  # one reshape: each team's block is its (terms, n) matrix
-            rewards = combine_rewards(terms.reshape(self.n_teams, _N_TERMS, -1), self._coefficients, clip)
-            return rewards.reshape(-1), _row_means(rewards)
-        rewards, team_means = np.empty(int(self.starts[-1])), np.empty(self.n_teams)
-        for n_agents, (teams, rows) in self._groups.items():
-            blocks = np.stack([terms[_N_TERMS * self.starts[t] : _N_TERMS * self.starts[t + 1]] for t in teams])
-            group = combine_rewards(blocks.reshape(len(teams), _N_TERMS, n_agents), self._coefficients[teams], clip)
-            rewards[rows], team_means[teams] = group.reshape(-1), _row_means(group)
+            grouped = combine_rewards(terms.reshape(self.n_teams, _N_TERMS, -1), self._coefficients, clip)
+            rewards, team_means = grouped.reshape(-1), _row_means(grouped)
+        else:
+            rewards, team_means = np.empty(int(self.starts[-1])), np.empty(self.n_teams)
+            for n_agents, (teams, rows) in self._groups.items():
+                blocks = np.stack([terms[_N_TERMS * self.starts[t] : _N_TERMS * self.starts[t + 1]] for t in teams])
+                group = combine_rewards(blocks.reshape(len(teams), _N_TERMS, n_agents), self._coefficients[teams], clip)
+                rewards[rows], team_means[teams] = group.reshape(-1), _row_means(group)
+        for team in self._failed_teams:
+            flown = rewards[self.team_rows(team)][self.constants.flying[self.team_rows(team)]]
+            team_means[team] = np.add.reduce(flown) / len(flown)
         return rewards, team_means
 
     # Reading a team ------------------------------------------------------------------------------------------------
@@ -515,6 +584,7 @@ class FormationEngine:
             lidar_obstacles=episodes.lidar[OBSTACLE_CHANNEL, rows],
             lidar_agents=episodes.lidar[AGENT_CHANNEL, rows],
             headings=self.dynamics.headings_of(rows),
+            flying=self.constants.flying[rows] if team in self._failed_teams else None,
         )
 
     def infos(self, team: int) -> list[dict[str, Any]]:
@@ -535,6 +605,7 @@ class FormationEngine:
             bool(self.success[team]),
             int(self.stages[team]),
             moving=bool(self._moving[team]),
+            failed=None if self.failures is None else int((~self.constants.flying[self.team_rows(team)]).sum()),
         )
 
 
@@ -578,6 +649,7 @@ def _constants(configs: list[FormationConfig], starts: np.ndarray) -> Constants:
         neighbours=np.concatenate([ring_neighbours(n) for n in sizes]).astype(np.int64),
         reference_bearings=np.ascontiguousarray(np.concatenate([reference_bearings(n) for n in sizes])),
         beta_ref=np.array([team_config.beta_ref_deg for team_config in configs]),
+        flying=np.ones(int(starts[-1]), dtype=bool),
         directions=ray_directions(config.lidar_rays),
         d_ref=float(config.d_ref),
         d_comm=float(config.d_comm),
@@ -626,6 +698,7 @@ def _measure_teams(
             walls[team, : wall_counts[team]],
             constants.width,
             constants.height,
+            constants.flying[start:end],
         )
         formations.nearest_agent_distances[start:end] = agent_gap
         formations.nearest_obstacle_gaps[start:end] = obstacle_gap
@@ -639,7 +712,8 @@ def _store_formation(
     its rows of ``formations``."""
     start, end = constants.starts[team], constants.starts[team + 1]
     formation = team_formation(team, constants.starts, formations)
-    _measure_into(positions, constants.neighbours[start:end], constants.reference_bearings[start:end], formation)
+    flying = constants.flying[start:end]
+    _measure_into(positions, flying, constants.neighbours[start:end], constants.reference_bearings[start:end], formation)
     angles, angle_errors, orientation_flags = formation.angles_deg, formation.angle_errors_deg, formation.orientation_flags
     neighbour_distances, beta_ref, d_ref, in_range = (
         formation.neighbour_distances,
@@ -651,7 +725,7 @@ def _store_formation(
         angle_errors[agent] = beta_ref - angles[agent]
         orientation_flags[agent] = angles[agent] > 0.0 and angles[agent] < 180.0
         for slot in range(neighbour_distances.shape[1]):
-            in_range = in_range and neighbour_distances[agent, slot] <= d_ref
+            in_range = in_range and (neighbour_distances[agent, slot] <= d_ref or not flying[agent])
     formations.range_flags[team] = in_range
 
 
@@ -693,6 +767,7 @@ def _terms_and_ends(
             (nearest_agent[start:end], nearest_obstacle[start:end]),
             rewards,
             terms[_N_TERMS * start : _N_TERMS * end].reshape(_N_TERMS, end - start),
+            constants.flying[start:end],
         )
         terminated[team] = goal_distances[team] <= rewards.eta_g
         truncated[team] = not terminated[team] and step_counts[team] >= rewards.max_steps
@@ -824,15 +899,17 @@ def _fill_info_values(
 def _add_step(
     team: int, constants: Constants, formations: Formations, latest: StepArrays, episodes: Episodes, team_mean: float
 ) -> None:  # pragma: no cover - compiled
-    """Add a team's step to its episode's running sums: from its agents' info values, agent by agent, each over n (as
-    a team's infos would be summed)."""
+    """Add a team's step to its episode's running sums: from its flying agents' info values, agent by agent, each over
+    their number (as a team's infos would be summed)."""
     start, end = constants.starts[team], constants.starts[team + 1]
-    n_agents, values, contacts = end - start, latest.info_values, latest.contacts
+    values, contacts, flying = latest.info_values, latest.contacts, constants.flying
     errors, collisions, term_sums = episodes.errors, episodes.collisions, episodes.term_sums
     neighbour_distances, d_comm = formations.neighbour_distances, constants.d_comm
     episodes.returns[team] += team_mean
-    comm_exceeded = False
+    comm_exceeded, n_agents = False, flying[start:end].sum()
     for row in range(start, end):
+        if not flying[row]:  # a failed agent's errors and contacts are not the team's
+            continue
         errors[team, 0] += values[row, InfoColumn.ANGLE_ERROR_DEG] / n_agents
         errors[team, 1] += values[row, InfoColumn.BEARING_ERROR] / n_agents
         errors[team, 2] += values[row, InfoColumn.NEIGHBOUR_DISTANCE_ERROR] / n_agents

@@ -18,6 +18,7 @@ def episode_summary(
     success: bool,
     stage: int,
     moving: bool = False,
+    failed: int | None = None,
 ) -> dict[str, Any]:
     """A team's episode summary from its running sums (the engine keeps them: ``FormationEngine.episode_summary``).
 
@@ -31,10 +32,13 @@ def episode_summary(
     :param success: the team reached the goal
     :param stage: curriculum stage
     :param moving: the episode had moving obstacles
+    :param failed: the agents that failed in the episode (``failed_agents``, in the summary of a task whose agents may
+        fail only; ``None`` otherwise); its errors and contacts are then the flying agents'
     """
     steps = max(length, 1)
     angle, bearing, distance = (error / steps for error in errors)
     rammed = {"collisions_rammed": collisions[2]} if moving else {}
+    failures = {} if failed is None else {"failed_agents": failed}
     return {
         "success": success,
         "length": length,
@@ -45,6 +49,7 @@ def episode_summary(
         "collisions_obstacle": collisions[0],
         "collisions_agent": collisions[1] // 2,  # each touching pair is reported by both agents
         **rammed,
+        **failures,
         "reward_terms": {name: value / steps for name, value in zip(REWARD_TERMS, terms)},
         "stage": stage,
     }

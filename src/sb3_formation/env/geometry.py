@@ -39,6 +39,51 @@ def ring_rows(team_sizes: Sequence[int]) -> np.ndarray:
     return np.concatenate([ring_neighbours(int(n)) + first for n, first in zip(team_sizes, firsts)] or [np.zeros((0, 2), int)])
 
 
+class FlyingRing(NamedTuple):
+    """The ring that a team's agents that still fly close without the failed ones (``docs/disturbances.md``, "Agents
+    that fail"): the flying agents in their order, each linked to the flying agents before and after it."""
+
+    neighbours: (
+        np.ndarray
+    )  #: ``(n, 2)`` int: each agent's preceding and succeeding neighbour (a failed agent: its own old ones)
+    places: np.ndarray  #: ``(n,)`` int: each flying agent's place on the ring of the flying agents (a failed agent: 0)
+    size: int  #: the flying agents, the ring's size (>= 3)
+
+
+def flying_ring(flying: np.ndarray) -> FlyingRing:
+    """The ring of a team's flying agents: agent i that flies takes place k (its rank among the flying agents) on the
+    ring of ``size`` agents and is linked to the flying agents of places k - 1 and k + 1 (mod ``size``); with every
+    agent flying this is :func:`ring_neighbours`.
+
+    :param flying: ``(n,)`` bool: the agents whose motors run
+    :raises ValueError: fewer than 3 agents fly (no ring)
+    """
+    flying = np.asarray(flying, dtype=bool)
+    n_agents, order = len(flying), np.flatnonzero(flying)
+    size = len(order)
+    if size < 3:
+        raise ValueError(f"a ring needs at least 3 flying agents, {size} of {n_agents} fly")
+    neighbours, places = ring_neighbours(n_agents), np.zeros(n_agents, dtype=np.int64)
+    places[order] = np.arange(size)
+    neighbours[order] = order[ring_neighbours(size)]
+    return FlyingRing(neighbours, places, size)
+
+
+def flying_rows(flying: np.ndarray, n_agents: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`flying_ring` of rows of whole teams of ``n_agents`` (row k: agent ``k % n`` of team ``k // n``).
+
+    :param flying: ``(k,)`` bool: the rows whose agents fly
+    :return: ``(k, 2)`` each row's place on its team's ring and the ring's size, and ``(k, 2)`` the rows of its
+        preceding and succeeding neighbours
+    """
+    places, neighbours = np.empty((len(flying), 2), dtype=np.int64), np.empty((len(flying), 2), dtype=np.int64)
+    for first in range(0, len(flying), n_agents):
+        ring = flying_ring(flying[first : first + n_agents])
+        places[first : first + n_agents] = np.stack([ring.places, np.full(n_agents, ring.size)], axis=1)
+        neighbours[first : first + n_agents] = first + ring.neighbours
+    return places, neighbours
+
+
 def interior_angle_deg(n_agents: int) -> float:
     """Interior angle (deg) of the regular n-gon: the reference angle beta^ref."""
     return (n_agents - 2) * 180.0 / n_agents
@@ -98,14 +143,16 @@ def measure_formation(
     reference: np.ndarray,
     beta_ref_deg: float,
     d_ref: float,
+    flying: np.ndarray | None = None,
 ) -> FormationState:
     """Measure the team's formation.
 
     :param positions: ``(n, 2)`` agent positions (m)
-    :param neighbours: ``(n, 2)`` neighbour indices from :func:`ring_neighbours`
+    :param neighbours: ``(n, 2)`` neighbour indices from :func:`ring_neighbours` (or :func:`flying_ring`)
     :param reference: ``(n, 2, 2)`` reference bearings from :func:`reference_bearings`
     :param beta_ref_deg: reference angle beta^ref (deg)
     :param d_ref: reference neighbour distance d^ref (m)
+    :param flying: ``(n,)`` bool: the agents that fly, whose centroid and range flag count (``None``: every agent)
     """
     n_agents, n_neighbours = len(positions), neighbours.shape[1]
     measured = FormationState(
@@ -120,12 +167,13 @@ def measure_formation(
         orientation_flags=np.empty(n_agents, dtype=bool),
         range_flag=False,
     )
-    _measure_into(np.ascontiguousarray(positions, dtype=np.float64), neighbours, reference, measured)
+    flying = np.ones(n_agents, dtype=bool) if flying is None else np.asarray(flying, dtype=bool)
+    _measure_into(np.ascontiguousarray(positions, dtype=np.float64), flying, neighbours, reference, measured)
     angles, distances = measured.angles_deg, measured.neighbour_distances
     return measured._replace(
         angle_errors_deg=beta_ref_deg - angles,
         orientation_flags=(angles > 0.0) & (angles < 180.0),
-        range_flag=bool((distances <= d_ref).all()),
+        range_flag=bool((distances[flying] <= d_ref).all()),
     )
 
 
@@ -153,10 +201,11 @@ def agent_errors(
 
 @numba.njit(cache=True)
 def _measure_into(
-    positions: np.ndarray, neighbours: np.ndarray, reference: np.ndarray, out: FormationState
+    positions: np.ndarray, flying: np.ndarray, neighbours: np.ndarray, reference: np.ndarray, out: FormationState
 ) -> None:  # pragma: no cover - compiled
-    """Compiled core of :func:`measure_formation`: the centroid (eq. 20), distances, eq. 16 bearings, beta^i and the
-    bearing errors, in one loop, into ``out``'s arrays (its angle errors, flags and range flag are left as they are)."""
+    """Compiled core of :func:`measure_formation`: the centroid (eq. 20) of the ``flying`` agents, distances, eq. 16
+    bearings, beta^i and the bearing errors, in one loop, into ``out``'s arrays (its angle errors, flags and range flag
+    are left as they are). The centroid sums the flying agents in order: with every agent flying, numba's sum."""
     n_agents, n_neighbours = positions.shape[0], neighbours.shape[1]
     centroid, centroid_distances, offsets, distances = (
         out.centroid,
@@ -165,8 +214,11 @@ def _measure_into(
         out.neighbour_distances,
     )
     bearings, angles, bearing_errors = out.bearings, out.angles_deg, out.bearing_errors
-    centroid[0] = positions[:, 0].sum() / n_agents
-    centroid[1] = positions[:, 1].sum() / n_agents
+    x_sum, y_sum, count = 0.0, 0.0, 0
+    for agent in range(n_agents):
+        if flying[agent]:
+            x_sum, y_sum, count = x_sum + positions[agent, 0], y_sum + positions[agent, 1], count + 1
+    centroid[0], centroid[1] = x_sum / count, y_sum / count
     for agent in range(n_agents):
         centroid_distances[agent] = math.hypot(positions[agent, 0] - centroid[0], positions[agent, 1] - centroid[1])
         for slot in range(n_neighbours):

@@ -19,7 +19,7 @@ import numpy as np
 
 from sb3_formation.env.config import REWARD_TERMS, FormationConfig
 from sb3_formation.env.geometry import FormationState
-from sb3_formation.env.shapes import shape_gaps
+from sb3_formation.env.shapes import circle_gap, shape_gaps
 
 #: A velocity slower than this (m/s) has no direction: the move and velocity terms are 0 for it (``docs/design.md`` "Rewards").
 STILL_SPEED = 1e-6
@@ -101,9 +101,16 @@ def collision_term(agent_contact: bool, obstacle_near: bool, r_j: float, r_o: fl
 
 @numba.njit(cache=True)
 def nearest_gaps(
-    positions: np.ndarray, agent_radius: float, obstacles: np.ndarray, walls: np.ndarray, width: float, height: float
+    positions: np.ndarray,
+    agent_radius: float,
+    obstacles: np.ndarray,
+    walls: np.ndarray,
+    width: float,
+    height: float,
+    flying: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
     """Centre distance to the nearest other agent, and surface gap to the nearest circle, wall or border, of every agent.
+    An agent that no longer flies is an obstacle to the others (a circle of radius R_a), not an agent.
 
     :param positions: ``(n, 2)`` agent centres (m)
     :param agent_radius: R_a (m)
@@ -111,6 +118,7 @@ def nearest_gaps(
     :param walls: ``(w, 5)`` walls (x0, y0, x1, y1, thickness) in m
     :param width: world width (m)
     :param height: world height (m)
+    :param flying: ``(n,)`` bool: the agents that fly
     :return: ``(n,)`` nearest agent centre distance (m) and ``(n,)`` nearest obstacle gap (m, negative when sunk in)
     """
     n_agents = positions.shape[0]
@@ -119,8 +127,13 @@ def nearest_gaps(
     for agent in range(n_agents):
         x, y = positions[agent, 0], positions[agent, 1]
         for other in range(n_agents):
-            if other != agent:
+            if other == agent:
+                continue
+            if flying[other]:
                 nearest_agent[agent] = min(nearest_agent[agent], math.hypot(positions[other, 0] - x, positions[other, 1] - y))
+            else:  # as shape_gaps measures a circle, then less the agent's radius
+                gap = circle_gap(x, y, np.array((positions[other, 0], positions[other, 1], agent_radius))) - agent_radius
+                nearest_obstacle[agent] = min(nearest_obstacle[agent], gap)
     return nearest_agent, nearest_obstacle
 
 
@@ -162,6 +175,7 @@ def _reward_terms(
     gaps: tuple[np.ndarray, np.ndarray],
     constants: RewardConstants,
     terms: np.ndarray,
+    flying: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """Compiled core of :func:`reward_terms`: every term into ``terms``, ``(len(REWARD_TERMS), n)``.
 
@@ -174,6 +188,7 @@ def _reward_terms(
         obstacle or wall
     :param constants: :func:`reward_constants`
     :param terms: where the terms go, row ``TERM_ROW[name]`` for term ``name``
+    :param flying: ``(n,)`` bool: the agents that fly; the team's averages and collision term are theirs
     """
     previous_way, way, goal_distance = ways
     previous_velocities, now = velocities
@@ -184,7 +199,8 @@ def _reward_terms(
     for agent in range(n_agents):
         agent_contact = nearest_agent_distances[agent] <= 2.0 * c.agent_radius
         obstacle_near = nearest_obstacle_gaps[agent] < c.d_safe
-        touching, near = touching or agent_contact, near or obstacle_near
+        if flying[agent]:
+            touching, near = touching or agent_contact, near or obstacle_near
         terms[_ANGLE, agent] = angle_term(formation.angle_errors_deg[agent], c.m_ang_deg)
         terms[_BEARING, agent] = bearing_term(formation.bearing_errors[agent])
         terms[_DIST, agent] = distance_term(formation.neighbour_distances[agent], c.d_ref, c.m_dist)
@@ -197,10 +213,20 @@ def _reward_terms(
         terms[_COLL, agent] = collision_term(agent_contact, obstacle_near, c.r_j, c.r_o)
     if c.team_reward:  # eqs 28-31: per-agent terms become team averages; one team collision term
         for row in (_ANGLE, _BEARING, _DIST, _CENTROID, _MOVE, _VELOCITY):
-            terms[row, :] = terms[row].mean()
+            terms[row, :] = flying_mean(terms[row], flying)
         terms[_COLL, :] = collision_term(touching, near, c.r_j, c.r_o)
     terms[_GOAL, :] = goal_term(previous_way, way, goal_distance, c.eta_g, c.r_reached, c.k1, c.dt, c.v_max)
     terms[_TIME, :] = time_term(step, c.max_steps, c.r_late)
+
+
+@numba.njit(cache=True)
+def flying_mean(values: np.ndarray, flying: np.ndarray) -> float:  # pragma: no cover - compiled
+    """The mean of the flying agents' ``values``, summed in order (with every agent flying, numba's mean)."""
+    total, count = 0.0, 0
+    for agent in range(values.shape[0]):
+        if flying[agent]:
+            total, count = total + values[agent], count + 1
+    return total / count
 
 
 def reward_terms(
@@ -246,6 +272,7 @@ def reward_terms(
         (nearest_agent_distances, nearest_obstacle_gaps),
         reward_constants(config) if constants is None else constants,
         terms,
+        np.ones(len(velocities), dtype=np.bool_),
     )
     return terms
 

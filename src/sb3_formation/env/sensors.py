@@ -132,7 +132,7 @@ class Lidar:
 
     def set_obstacles(self, obstacles: np.ndarray | tuple[Any, ...], walls: np.ndarray | tuple[Any, ...] = ()) -> None:
         """Use ``obstacles`` (``(m, 3)``: x, y, radius in m) and ``walls`` (``(w, 5)``, see
-        :mod:`~sb3_formation.env.shapes`) from now on."""
+        :mod:`~sb3_formation.env.shapes`) from now on, every agent flying."""
         n_agents = len(self._agent_visibility)
         circles = np.vstack([np.asarray(obstacles, dtype=np.float64).reshape(-1, 3), np.zeros((n_agents, 3))])
         circles[-n_agents:, 2] = self.agent_radius
@@ -141,6 +141,19 @@ class Lidar:
         channels = np.r_[np.full(n_obstacles, OBSTACLE_CHANNEL), np.full(n_agents, AGENT_CHANNEL)]
         #: what a scan checks (the agents' circles take their centres at each scan)
         self.layout = LidarLayout(circles, visible, channels, as_walls(walls))
+
+    def set_flying(self, flying: np.ndarray, neighbours: np.ndarray) -> None:
+        """Agents that failed from now on (until :meth:`set_obstacles`): each is a circle of the obstacle channel, seen
+        by every other agent, and the flying agents' agent channels skip their ring neighbours ``neighbours``.
+
+        :param flying: ``(n,)`` bool: the agents that fly
+        :param neighbours: ``(n, 2)`` the ring of the flying agents (:func:`~sb3_formation.env.geometry.flying_ring`)
+        """
+        n_agents = len(flying)
+        visibility = agent_visibility(n_agents, neighbours)
+        visibility[:, ~flying] = ~np.eye(n_agents, dtype=bool)[:, ~flying]  # a failed agent: an obstacle to the others
+        self.layout.visible[:, -n_agents:] = visibility
+        self.layout.channels[-n_agents:] = np.where(flying, AGENT_CHANNEL, OBSTACLE_CHANNEL)
 
     def scan(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Readings of every agent's rays, ``(obstacles, agents)``, each ``(n, n_rays)`` in [0, 1] (1 = nothing in range).

@@ -4,7 +4,7 @@ Agents are stacked team after team (team t holds rows ``starts[t]:starts[t + 1]`
 ``NamedTuple`` of numpy arrays and numbers that compiled code reads by field name, so a kernel takes a handful of
 structures instead of dozens of arrays. The structures differ by when their arrays change:
 
-- :class:`Constants`: fixed for the engine's life;
+- :class:`Constants`: fixed for the engine's life, but for a team's ring while an agent of it has failed;
 - :class:`Shapes`: every team's obstacles and walls, loaded at the team's reset;
 - :class:`Formations`: every team's formation, measured in place after each step or reset;
 - :class:`StepArrays`: what a step makes anew (the arrays the engine returns among them) and what it compares with;
@@ -30,12 +30,15 @@ Fields = tuple[Any, ...]
 
 
 class Constants(NamedTuple):
-    """What stays fixed for an engine's life: the teams' rows, the agents' neighbours and the task's constants."""
+    """What stays fixed for an engine's life: the teams' rows, the agents' neighbours and the task's constants. The
+    ring of a team whose agent failed (:meth:`~sb3_formation.env.engine.FormationEngine.fail`) is that of its flying
+    agents until its next reset: their neighbours, reference bearings and beta^ref."""
 
     starts: np.ndarray  #: ``(teams + 1,)`` int64: the first row of each team, then the number of rows
     neighbours: np.ndarray  #: ``(agents, 2)`` int64: each agent's preceding and succeeding neighbour, within its team
     reference_bearings: np.ndarray  #: ``(agents, 2, 2)`` reference bearings g_j^{i,ref}
-    beta_ref: np.ndarray  #: ``(teams,)`` reference angle beta^ref (deg) of each team's size
+    beta_ref: np.ndarray  #: ``(teams,)`` reference angle beta^ref (deg) of each team's ring
+    flying: np.ndarray  #: ``(agents,)`` bool: the agent's motors run (it has not failed)
     directions: np.ndarray  #: ``(rays, 2)`` unit directions of the lidar's rays
     d_ref: float  #: reference neighbour distance d^ref (m)
     d_comm: float  #: communication range d_comm (m)

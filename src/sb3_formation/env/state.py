@@ -42,6 +42,8 @@ class TeamState:
     :param obstacle_velocities: ``(m, 2)`` every obstacle's velocity (m/s) over the last step (0 for static ones and
         before the first step), or ``None`` when no obstacle moves
     :param moving: how many of the obstacles (the last ones) move
+    :param flying: ``(n,)`` bool: the agents whose motors run, when some failed (their ring is in ``neighbours``); ``None``:
+        every agent flies
     """
 
     step: int
@@ -63,6 +65,7 @@ class TeamState:
     headings: np.ndarray | None = None
     obstacle_velocities: np.ndarray | None = None
     moving: int = 0
+    flying: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         for name, value in vars(self).items():

@@ -166,6 +166,8 @@ class World:
             self._obstacle_bodies.append(body)
             self._mover_bodies.append(body)
         self.agent_bodies: list[pymunk.Body] = []
+        #: agents whose motors stopped (:meth:`halt`): they command no motion and are obstacles to the others
+        self.halted = np.zeros(config.n_agents, dtype=bool)
         goal_direction = scenario.goal - scenario.centroid
         facing = math.atan2(float(goal_direction[1]), float(goal_direction[0]))
         #: unicycles' headings (rad, anti-clockwise from +x, in (-pi, pi]) and forward speeds (m/s)
@@ -188,6 +190,7 @@ class World:
         order = np.argsort(ids)
         self._body_ids = np.array(ids, dtype=np.uintp)[order]
         self._body_roles = np.array(roles, dtype=np.int64)[order]
+        self._agent_roles = np.searchsorted(self._body_ids, np.array(ids[: len(self.agent_bodies)], dtype=np.uintp))
         id_buffer = pymunk.batch.Buffer()
         pymunk.batch.get_space_bodies(self.space, pymunk.batch.BodyFields.BODY_ID, id_buffer)
         body_ids = list(np.frombuffer(id_buffer.int_buf(), dtype=np.uintp))  # in the space's order
@@ -245,6 +248,24 @@ class World:
         self._place_buffer._float_arr.num = 0  # the position Pymunk reads from
         chipmunk.cpSpaceEachBody(self.space._space, _SET_BODIES, self._place)
 
+    def halt(self, agent: int) -> None:
+        """Stop an agent's motors for the rest of the episode: from the next step on it commands no motion (it stands
+        where it stopped, moving only while something pushes it), and a contact with it is an obstacle contact of
+        the agent that touched it; its own contacts are no longer counted.
+
+        :param agent: the agent's index
+        """
+        self.halted[agent] = True
+        self._body_roles[self._agent_roles[agent]] = -1 - len(self._obstacle_bodies) - agent
+
+    def _halted_commands(self, commands: np.ndarray) -> np.ndarray:
+        """``commands`` ``(..., n, 2)`` with the halted agents' rows zero (a copy; ``commands`` when none is halted)."""
+        if not self.halted.any():
+            return commands
+        stopped: np.ndarray = np.array(commands, dtype=np.float64)
+        stopped[..., self.halted, :] = 0.0
+        return stopped
+
     def step(self, forces: np.ndarray) -> tuple[list[int], list[int]]:
         """Advance one environment step of ``config.dt`` seconds under ``forces``.
 
@@ -268,7 +289,7 @@ class World:
             :meth:`step`, and how many of each agent's obstacle contacts were moving obstacles that ran into it
             (:meth:`_rammed`)
         """
-        self._body_velocities[self._agent_rows] = self._intended = commanded
+        self._body_velocities[self._agent_rows] = self._intended = self._halted_commands(commanded)
         self._write_velocities()
         self._arbiter_buffer._int_arr.num = 0
         for _ in range(cast(int, self.config.physics_substeps)):  # an int once the config is built
@@ -286,6 +307,8 @@ class World:
         """
         self._arbiter_buffer._int_arr.num = 0
         self.sideways_speed = 0.0
+        if self.halted.any():
+            forward, turn_rates = np.where(self.halted, 0.0, forward), np.where(self.halted, 0.0, turn_rates)
         if self._mover_bodies:  # what _rammed reads
             self._intended = self._along_headings(forward)
         substeps = cast(int, self.config.physics_substeps)  # an int once the config is built
@@ -303,6 +326,7 @@ class World:
         """
         self._arbiter_buffer._int_arr.num = 0
         self.sideways_speed = 0.0
+        plan, last = self._halted_commands(plan), self._halted_commands(last)
         if self._mover_bodies:  # what _rammed reads
             self._intended = self._along_headings(last[:, 0]) if self._carriers else last
         if self._carriers:
@@ -376,11 +400,10 @@ class World:
         if self._arbiter_buffer._int_arr.num == 0:  # no pair of shapes near each other
             return None
         records = np.frombuffer(self._arbiter_buffer.int_buf(), dtype=np.uintp).reshape(-1, 3)
-        n_agents = self.config.n_agents
-        agents, obstacles, pairs = count_contacts(
-            records, self._body_ids, self._body_roles, n_agents, len(self._obstacle_bodies)
-        )
-        return agents, obstacles, self._rammed(pairs[:, len(pairs[0]) - len(self._mover_bodies) :])
+        n_agents, n_obstacles = self.config.n_agents, len(self._obstacle_bodies)
+        halted = n_agents if self.halted.any() else 0  # halted agents' roles follow the obstacles' (halt)
+        agents, obstacles, pairs = count_contacts(records, self._body_ids, self._body_roles, n_agents, n_obstacles + halted)
+        return agents, obstacles, self._rammed(pairs[:, n_obstacles - len(self._mover_bodies) : n_obstacles])
 
     def _rammed(self, touched: np.ndarray) -> np.ndarray:
         """How many moving obstacles ran into each agent in the step: of the movers it touched (``touched``, ``(n, k)``

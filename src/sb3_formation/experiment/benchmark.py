@@ -13,7 +13,9 @@ target's own size unless ``n_agents`` is given. A row reports:
 - agent and obstacle contacts per episode (over all episodes; a touching pair of agents counts once per step, an
   agent touching a shape or the border once per step), and of the obstacle contacts those where a moving obstacle
   ran into an agent that was braking, standing or moving away (``rammed``; every other contact is one the agent
-  drove into);
+  drove into); "-" in a still world;
+- failed: the agents that failed per episode, under a task whose agents may fail ("-" otherwise); the success, shape
+  error and contacts of such episodes are the flying agents';
 - contact episodes: the episodes with agent contacts plus the episodes with obstacle contacts (an episode with both
   counts twice), so that 0 reads "no contact of any kind in any episode";
 - steps per episode over the successful episodes;
@@ -84,6 +86,7 @@ class BenchmarkRow:
             "agent_contacts": everything["collisions_agent"]["mean"],
             "obstacle_contacts": everything["collisions_obstacle"]["mean"],
             "rammed_contacts": everything.get("collisions_rammed", {}).get("mean"),
+            "failed_agents": everything.get("failed_agents", {}).get("mean"),
             "contact_episodes": summary["episodes_with_contacts"]["agent"] + summary["episodes_with_contacts"]["obstacle"],
             "steps": successful["length"]["mean"],
             "seconds": self.seconds,
@@ -180,11 +183,12 @@ def benchmark_header(run: dict[str, str]) -> str:
 def benchmark_table(rows: Sequence[BenchmarkRow]) -> str:
     """The Markdown table of a benchmark: a line per target and scene set."""
     headings = ["target", "scenes", "n", "episodes", "success (95 % CI)", "shape error", "agent contacts"]
-    headings += ["obstacle contacts", "rammed", "contact episodes", "steps", "seconds", "filter changed", "mean change"]
+    headings += ["obstacle contacts", "rammed", "failed", "contact episodes", "steps", "seconds", "filter changed"]
+    headings += ["mean change"]
     headings += ["infeasible steps", "min separation (m)"]
     lines = ["| " + " | ".join(headings) + " |", "|" + "|".join(["---"] * 2 + ["---:"] * (len(headings) - 2)) + "|"]
     formats = {"shape_error": ".3f", "agent_contacts": ".2f", "obstacle_contacts": ".2f", "rammed_contacts": ".2f"}
-    formats |= {"contact_episodes": "d"}
+    formats |= {"failed_agents": ".2f", "contact_episodes": "d"}
     formats |= {"steps": ".0f", "seconds": ".0f", "filter_changed": ".2%", "filter_change": ".3f"}
     formats |= {"infeasible_steps": ".2f", "min_separation": ".3f"}
     for row in rows:

@@ -32,7 +32,7 @@ from sb3_formation.experiment.targets import Target
 from sb3_formation.experiment.trajectories import Trajectories, stack_recordings
 from sb3_formation.safety.policy import SafePolicy
 from sb3_formation.sb3.callbacks import threads_beside_workers, torch_threads
-from sb3_formation.sb3.metrics import EPISODE_METRICS, MOVER_METRICS, SAFETY_METRICS
+from sb3_formation.sb3.metrics import EPISODE_METRICS, SAFETY_METRICS, WORLD_METRICS
 from sb3_formation.utils.files import atomic_files, check_writable, file_digest, read_json
 
 #: Columns of ``episodes.csv``, in order (``reward_<term>``: the term's mean per step and agent).
@@ -137,7 +137,7 @@ class EvaluationResult:
         """The text of ``episodes.csv``: a header of :data:`EPISODE_COLUMNS` (and of the safety metrics, for a filtered
         policy, and the mover metrics, for episodes with moving obstacles), then one row per episode."""
         table = io.StringIO()
-        extra = [name for name in (*SAFETY_METRICS, *MOVER_METRICS) if self.episodes and name in self.episodes[0]]
+        extra = [name for name in (*SAFETY_METRICS, *WORLD_METRICS) if self.episodes and name in self.episodes[0]]
         writer = csv.DictWriter(table, fieldnames=[*EPISODE_COLUMNS, *extra], lineterminator="\n")
         writer.writeheader()
         writer.writerows(self.episodes)

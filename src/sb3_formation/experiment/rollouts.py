@@ -91,7 +91,11 @@ def play_episodes(
     communication = config.disturbances.communication
     lossy = getattr(job.policy, "message_size", 0) and not communication.is_ideal
     channel = MessageChannel(communication, n_agents, n_teams) if lossy else None
-    links = {} if channel is None else {"channel": channel}
+    links: dict[str, Any] = {} if channel is None else {"channel": channel}
+    failing = not config.disturbances.failures.is_ideal  # the policy is told which agents still fly
+    flying = np.ones(n_teams * n_agents, dtype=bool)
+    if failing:
+        links["flying"] = flying
     episode_starts = np.ones(n_teams * n_agents, dtype=bool)
     rows: list[dict[str, Any]] = []
     recorded: list[tuple[int, EpisodeRecorder, bool]] = []
@@ -108,12 +112,15 @@ def play_episodes(
             return
         # (the episodes of the started teams are ints; mypy does not narrow list items)
         reset = blocks.reset(started, [job.seed + cast(int, current[team]) for team in started], [None] * len(started))
-        watched = started if on_step is not None or privileged else [t for t in started if cast(int, current[t]) < job.record]
+        every = on_step is not None or privileged or failing
+        watched = started if every else [t for t in started if cast(int, current[t]) < job.record]
         states = blocks.call_teams("team_states", watched) if watched else {}
         if privileged:  # the map, for a policy that reads it
             cast(PrivilegedPolicy, job.policy).start_episodes(started, [states[team] for team in started])
         for team in started:
             observations[slots(team)] = reset[team]
+            if failing:  # an agent may fail at step 0
+                flying[slots(team)] = True if states[team].flying is None else states[team].flying
             if channel is not None:
                 channel.start(team, job.seed + cast(int, current[team]))
             episode_starts[slots(team)] = True
@@ -136,6 +143,7 @@ def play_episodes(
             actions = blocks.checked_actions(np.asarray(actions).reshape(n_teams * n_agents, 2), playing)
             episode_starts[:] = False
             step = blocks.step(actions)
+            flying[:] = step.flying
             for team in playing:
                 if recorders[team] is not None:
                     cast(EpisodeRecorder, recorders[team]).add(step, slots(team), actions)

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from sb3_formation.env.scenes import DEFAULT_SCENES, SCENES
-from sb3_formation.sb3.metrics import EPISODE_METRICS, MOVER_METRICS, SAFETY_METRICS
+from sb3_formation.sb3.metrics import EPISODE_METRICS, SAFETY_METRICS, WORLD_METRICS
 from sb3_formation.utils.checks import is_count, is_number
 
 
@@ -34,8 +34,8 @@ def wilson_interval(successes: int, trials: int, z: float = 1.959963984540054) -
 
 def mean_and_std(episodes: list[dict[str, Any]]) -> dict[str, dict[str, float | None]]:
     """Mean and population std of each of :data:`EPISODE_METRICS` over ``episodes`` (``None`` when there are none), and
-    of each of :data:`SAFETY_METRICS` (a filtered policy's) and :data:`MOVER_METRICS` that the episodes have."""
-    optional = [*SAFETY_METRICS, *MOVER_METRICS]
+    of each of :data:`SAFETY_METRICS` (a filtered policy's) and :data:`WORLD_METRICS` that the episodes have."""
+    optional = [*SAFETY_METRICS, *WORLD_METRICS]
     names = [*EPISODE_METRICS, *(name for name in optional if episodes and all(name in row for row in episodes))]
     return {
         name: {

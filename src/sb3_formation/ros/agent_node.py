@@ -2,8 +2,11 @@
 
 It reads its ``LaserScan``, every teammate's ``Odometry`` (its own among them) and the team's goal, hands their
 arrays to the on-board pipeline (:class:`~sb3_formation.ros.onboard.Onboard`: observation, policy, safety filter,
-command) when its inputs are in, and publishes the command as a ``Twist``. A policy whose agents send messages also
-hears its two ring neighbours' messages and sends its own (``JointState``). A stale or missing input gives a zero
+command) when its inputs are in, and publishes the command as a ``Twist``. Every step it also publishes its message
+(``JointState``: what a talking policy's agent sends its ring neighbours, empty for other policies), which is its
+teammates' sign of life: a teammate whose messages fall silent for ``failed_after`` seconds has failed, and the robot
+re-forms without it on the ring of the flying teammates (``docs/deployment.md``, "A teammate that fails"). A talking
+policy's agent hears its ring neighbours' messages. A stale or missing input gives a zero
 command and a logged warning, and so does an unusable one (a value that is not finite or out of bounds, a stamp from
 the future, a scan too large, a second publisher on the command topic): the node never stops on its inputs and never
 publishes a non-finite command. The node is a shell over :mod:`~sb3_formation.ros.onboard`, which holds every rule:
@@ -18,7 +21,6 @@ newest of every input, as a robot must (``docs/guarantees.md``).
 from __future__ import annotations
 
 import time
-from collections import deque
 from collections.abc import Sequence
 from dataclasses import fields
 from typing import Any, cast
@@ -100,13 +102,15 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         self.goal: PointStamped | None = None
         self._goal_fresh = False
         self._scan_fresh = False  # synchronous mode: the scan has not been acted on
-        #: the ring neighbours (preceding, succeeding) whose messages the robot hears; synchronous mode: each one's
-        #: messages of this episode not yet acted on, in order (stamp in ns, values; ``None``: an unusable message);
-        #: free mode: the newest each sent
-        self.neighbours = self.onboard.neighbours
-        self._heard: list[deque[tuple[int, np.ndarray | None]]] = [deque(maxlen=settings.qos_depth) for _ in self.neighbours]
-        self._latest: list[tuple[int, np.ndarray | None] | None] = [None for _ in self.neighbours]
+        #: every teammate's messages (their sign of life; a talking policy's agent reads its ring neighbours'):
+        #: synchronous mode: those of this episode, in order, one per step the teammate acted on (stamp in ns,
+        #: values; ``None``: an unusable message); free mode: the newest each sent
+        self.teammates = [index for index in range(config.n_agents) if index != settings.agent]
+        self._heard: dict[int, list[tuple[int, np.ndarray | None]]] = {index: [] for index in self.teammates}
+        self._latest: dict[int, tuple[int, np.ndarray | None] | None] = dict.fromkeys(self.teammates)
+        self._steps = 0  # synchronous mode: the steps the robot acted on in this episode
         self._acted_at = 0  # the clock (ns) when the robot first acted in this episode
+        self._listening_at = 0.0  # the wall-clock listening time (Silence) when it did
         #: wall-clock silence of each input; another publisher on the command topic (the watchdog looks)
         self._silence = Silence(2.0 / settings.watchdog_rate)
         self._crowded = False
@@ -120,13 +124,11 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         self.commands = self.create_publisher(Twist, settings.cmd_topic, settings.qos_depth)
         topic = settings.observation_topic
         self.observations = self.create_publisher(Float32MultiArray, topic, settings.qos_depth) if topic else None
-        self.messages = (
-            self.create_publisher(JointState, settings.message_topic, settings.qos_depth) if self.neighbours else None
-        )
-        for slot, index in enumerate(self.neighbours):
+        self.messages = self.create_publisher(JointState, settings.message_topic, settings.qos_depth)
+        for index in self.teammates:
             topic = settings.neighbour_message_topic.format(index=index)
             self.create_subscription(
-                JointState, topic, lambda message, slot=slot: self._on_message(slot, message), settings.qos_depth
+                JointState, topic, lambda message, index=index: self._on_message(index, message), settings.qos_depth
             )
         if settings.synchronous:  # the simulator's sign of life while it waits for a step's commands
             self.create_subscription(ClockMessage, settings.clock_topic, lambda _: self._heard_input("clock"), 1)
@@ -166,41 +168,72 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         ):  # a new goal: a new episode, whose messages are stamped from its start on
             self.onboard.reset()
             start = nanoseconds_of(message.header.stamp)
-            for heard in self._heard:
-                kept = [item for item in heard if item[0] >= start]
-                heard.clear()
-                heard.extend(kept)
-            self._latest = [None for _ in self.neighbours]
+            self._heard = {index: [item for item in heard if item[0] >= start] for index, heard in self._heard.items()}
+            self._latest, self._steps = dict.fromkeys(self.teammates), 0
         self.goal, self._goal_fresh = message, True
         if self.settings.synchronous:
             self._act_when_complete()
 
-    def _on_message(self, slot: int, message: JointState) -> None:
+    @property
+    def neighbours(self) -> tuple[int, ...]:
+        """The ring neighbours (preceding, succeeding) whose messages a talking policy's agent hears, on the ring of
+        the flying teammates (none for other policies)."""
+        return self.onboard.neighbours
+
+    def _on_message(self, index: int, message: JointState) -> None:
         stamp, message_values = policy_message_of(message)
         values: np.ndarray | None = message_values
-        self._heard_input(f"message {slot}")
+        self._heard_input(f"message {index}")
         size = self.onboard.message_size
         if message_values.shape != (size,) or not np.isfinite(message_values).all():
-            index = self.neighbours[slot]
             self.get_logger().warning(
                 f"agent {self.settings.agent}: a message of agent {index} is not {size} finite values: stopping until "
                 "a usable one",
                 throttle_duration_sec=1.0,
             )
             values = None
-        self._latest[slot] = stamp, values
+        self._latest[index] = stamp, values
         if self.settings.synchronous:
             if self.goal is not None and stamp < nanoseconds_of(self.goal.header.stamp):
                 return  # the simulator's stamps: a message of an episode before the goal's
-            self._heard[slot].append((stamp, values))
+            self._heard[index].append((stamp, values))
             self._act_when_complete()
+
+    # Teammates that fail -------------------------------------------------------------------------------------------
+
+    def _flying_teammates(self) -> list[int]:
+        return [index for index in self.teammates if self.onboard.flying[index]]
+
+    def _find_failures(self) -> str:
+        """Teammates whose messages have been silent for ``failed_after`` seconds of this episode have failed: re-form
+        without them (:meth:`~sb3_formation.ros.onboard.Onboard.fail`). Return why the robot must stop instead (too few
+        teammates left to fly a ring), or ``""``."""
+        limit = self.settings.failed_after
+        if not limit or self.onboard.starting:
+            return ""
+        episode = self._silence.listening - self._listening_at
+        for index in self._flying_teammates():
+            silent = min(self._silence.silent_for(f"message {index}"), episode)
+            if silent <= limit:
+                continue
+            try:
+                self.onboard.fail(index)
+            except ValueError as error:
+                return f"agent {index} silent for {silent:.1f} s and {error}"
+            self.get_logger().warning(
+                f"agent {self.settings.agent}: agent {index} silent for {silent:.1f} s has failed: flying on without it "
+                f"(teammates flying: {self._flying_teammates()})"
+            )
+        return ""
 
     # Acting -------------------------------------------------------------------------------------------------------
 
     def _act_when_complete(self) -> None:
         """Synchronous mode: act once per scan message, when every teammate's odometry of its stamp, a goal received
         since the last command and (a policy with messages, after the episode's first step) each ring neighbour's
-        message of the step before are all in."""
+        message of the step before are all in: a neighbour's k-th message of the episode is the one of the step
+        before the robot's (k + 1)-th (a neighbour silent for ``failed_after`` seconds has failed: the watchdog
+        looks, and the robot then waits for its new neighbour's)."""
         scan = self.scan
         if scan is None or not self._scan_fresh or not self._goal_fresh:
             return
@@ -208,11 +241,12 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         team = [kept.get(stamp) for kept in self.odometry]
         if any(odometry is None for odometry in team):
             return
-        starting = self.onboard.starting
-        if not starting and not all(self._heard):
+        starting, step = self.onboard.starting, self._steps
+        if not starting and any(len(self._heard[index]) < step for index in self.neighbours):
             return  # a neighbour's message of the last step is still on its way
-        received = None if starting else [heard.popleft()[1] for heard in self._heard]
+        received = None if starting else [self._heard[index][step - 1][1] for index in self.neighbours]
         self._scan_fresh = self._goal_fresh = False
+        self._steps += 1
         problem = self._crowding() or self._frame_problem(team)
         if problem:
             self._stop(problem)
@@ -223,12 +257,12 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
 
     def _act_if_fresh(self) -> None:
         """Free-running mode: act on every scan whose other inputs are within ``input_timeout`` of it."""
-        problem = self._stale_input()
+        problem = self._find_failures() or self._stale_input()
         if problem or self.scan is None:
             self._stop(problem)
         else:  # the newest message of each neighbour in this episode (none yet: zeros, as at an episode's start)
             size = self.onboard.message_size
-            newest = [np.zeros(size) if latest is None else latest[1] for latest in self._latest]
+            newest = [np.zeros(size) if latest is None else latest[1] for latest in map(self._latest.get, self.neighbours)]
             self._act(self.scan, cast("list[Odometry]", self.team), None if self.onboard.starting else newest)
 
     def _stale_input(self) -> str:
@@ -257,7 +291,8 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         )
         if problem:
             return problem
-        for slot, (index, latest) in enumerate(zip(self.neighbours, self._latest)):
+        for index in self.neighbours:
+            latest = self._latest[index]
             if self.onboard.starting:
                 break
             topic = settings.neighbour_message_topic.format(index=index)
@@ -268,7 +303,7 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             if latest[1] is None:
                 return f"the last message of agent {index} on {topic} is unusable"
             problem = stamp_problem(f"the message of agent {index} on {topic}", latest[0], now, settings)
-            if problem or self._silence.silent_for(f"message {slot}") > timeout:
+            if problem or self._silence.silent_for(f"message {index}") > timeout:
                 return problem or f"no message of agent {index} on {topic} for {timeout:g} s"
         problem = self._frame_problem(team)
         if problem or scan is None:
@@ -296,23 +331,24 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         return ""
 
     def _watch(self) -> None:
-        """The watchdog (a wall-clock timer, every mode): another publisher on the command topic; free mode: stale or
-        unusable inputs; synchronous mode: nothing heard from the simulator for ``input_timeout``."""
+        """The watchdog (a wall-clock timer, every mode): another publisher on the command topic, teammates that failed;
+        free mode: stale or unusable inputs; synchronous mode: nothing heard from the simulator for ``input_timeout``."""
         self._silence.tick(time.monotonic())
         self._crowded = self.count_publishers(self.commands.topic_name) > 1
-        if not self.settings.synchronous:
+        problem = self._find_failures()
+        if not problem and self.settings.synchronous:
+            self._act_when_complete()  # a teammate found failed may let the robot act on the scan it waits with
+            if self._silence.ever_heard() and min(self._silence_of_all()) > self.settings.input_timeout:
+                problem = f"nothing heard from the simulator for {self.settings.input_timeout:g} s"
+        elif not problem:
             problem = self._stale_input()
-        elif self._silence.ever_heard() and min(self._silence_of_all()) > self.settings.input_timeout:
-            problem = f"nothing heard from the simulator for {self.settings.input_timeout:g} s"
-        else:
-            problem = ""
         if problem:
             self._stop(problem)
 
     def _silence_of_all(self) -> list[float]:
         names = ["scan", "goal", "clock", *(f"odometry {i}" for i in range(len(self.team)))]
         return [self._silence.silent_for(name) for name in names] + [
-            self._silence.silent_for(f"message {slot}") for slot in range(len(self.neighbours))
+            self._silence.silent_for(f"message {index}") for index in self.teammates
         ]
 
     def _stop(self, problem: str) -> None:
@@ -341,7 +377,7 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         :param received: what the preceding and succeeding neighbours sent at the last step (``None``: nothing yet)
         """
         if self.onboard.starting:
-            self._acted_at = self.get_clock().now().nanoseconds
+            self._acted_at, self._listening_at = self.get_clock().now().nanoseconds, self._silence.listening
         heard = None if received is None or not self.neighbours else np.stack(cast("list[np.ndarray]", received))
         stamp = nanoseconds_of(scan.header.stamp)
         try:
@@ -351,8 +387,7 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             self._stop(str(unusable))
             return
         view = inputs[1]
-        if self.messages is not None:
-            self.messages.publish(policy_message(scan.header.stamp, step.message))
+        self.messages.publish(policy_message(scan.header.stamp, step.message))  # a sign of life, whatever the policy
         twist = twist_message(step.command, self.onboard.dynamics, float(view.headings[self.settings.agent]))
         problem = command_problem(
             (twist.linear.x, twist.linear.y, twist.linear.z, twist.angular.x, twist.angular.y, twist.angular.z)

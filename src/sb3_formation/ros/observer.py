@@ -25,10 +25,10 @@ from sb3_formation.env.config import REWARD_TERMS, FormationConfig
 from sb3_formation.env.dynamics import dynamics_model
 from sb3_formation.env.geometry import (
     FormationState,
+    flying_ring,
     interior_angle_deg,
     measure_formation,
     reference_bearings,
-    ring_neighbours,
 )
 from sb3_formation.env.observations import AgentInputs, RowTask, observation_fields, observation_layout, observation_row
 from sb3_formation.env.rewards import combine_rewards, reward_constants, reward_terms
@@ -73,22 +73,38 @@ class AgentObserver:
         if not 0 <= agent < config.n_agents:
             raise ValueError(f"agent index {agent} is outside a team of {config.n_agents} agents (0 to {config.n_agents - 1})")
         self.config, self.agent = config, agent
-        self.neighbours = ring_neighbours(config.n_agents)
-        self._reference = reference_bearings(config.n_agents)
-        self._beta_ref = interior_angle_deg(config.n_agents)
         self._rewards = reward_constants(config)
         coefficients = config.reward_coefficients(stage)
         self._coefficients = np.array([coefficients[term] for term in REWARD_TERMS])
         self.layout = observation_layout(observation_fields(config))
         self.dim = sum(part.stop - part.start for part in self.layout.values())
         self._model = dynamics_model(config)
-        self._task = RowTask(
-            self.neighbours, self._reference, float(config.d_ref), float(config.eta_c), bool(config.observe_reference_bearings)
-        )
         self.reset()
 
+    def set_flying(self, flying: np.ndarray) -> None:
+        """The teammates that fly (the others failed): from now on (until :meth:`reset`) the agent observes the ring
+        of the flying agents (:func:`~sb3_formation.env.geometry.flying_ring`), as the simulator's agents do after a
+        failure: its neighbours, reference bearings and beta^ref, and their centroid.
+
+        :param flying: ``(n,)`` bool, the agent's own entry true
+        :raises ValueError: the agent itself is not flying, or fewer than 3 agents fly
+        """
+        config, flying = self.config, np.asarray(flying, dtype=bool).copy()
+        if not flying[self.agent]:
+            raise ValueError(f"agent {self.agent} observes only while it flies")
+        ring = flying_ring(flying)
+        #: ``(n,)`` bool: the teammates that fly; their ring neighbours and reference bearings (Table 5.2 for n)
+        self.flying, self.neighbours = flying, ring.neighbours
+        self.reference = reference_bearings(config.n_agents)
+        self.reference[flying] = reference_bearings(ring.size)[ring.places[flying]]
+        self._beta_ref = interior_angle_deg(ring.size)
+        self._task = RowTask(
+            self.neighbours, self.reference, float(config.d_ref), float(config.eta_c), bool(config.observe_reference_bearings)
+        )
+
     def reset(self) -> None:
-        """Forget the last episode: no step, no previous action or reward."""
+        """Forget the last episode: no step, no previous action or reward; every teammate flies."""
+        self.set_flying(np.ones(self.config.n_agents, dtype=bool))
         self.step = 0
         self.previous_action = np.zeros(2)
         self.previous_reward = 0.0
@@ -107,7 +123,7 @@ class AgentObserver:
         config, agent, goal = self.config, self.agent, np.asarray(goal, dtype=np.float64)
         positions = np.ascontiguousarray(team.positions, dtype=np.float64)
         velocities = np.asarray(team.velocities, dtype=np.float64)
-        formation = measure_formation(positions, self.neighbours, self._reference, self._beta_ref, config.d_ref)
+        formation = measure_formation(positions, self.neighbours, self.reference, self._beta_ref, config.d_ref, self.flying)
         offset = goal - formation.centroid
         goal_distance = math.hypot(float(offset[0]), float(offset[1]))
         previous_offset = offset
@@ -146,10 +162,11 @@ class AgentObserver:
         :param velocities: the team's velocities (m/s) before and after the step
         :param gap: (m) the agent's distance to the nearest obstacle, from its obstacle channel
         """
-        agent, n_agents = self.agent, self.config.n_agents
+        agent, n_agents, flying = self.agent, self.config.n_agents, self.flying
         x, y = positions[agent]
         nearest_agents, gaps = np.full(n_agents, np.inf), np.full(n_agents, np.inf)
-        nearest_agents[agent] = min(math.hypot(px - x, py - y) for k, (px, py) in enumerate(positions.tolist()) if k != agent)
+        others = [(px, py) for k, (px, py) in enumerate(positions.tolist()) if k != agent and flying[k]]
+        nearest_agents[agent] = min(math.hypot(px - x, py - y) for px, py in others)
         gaps[agent] = gap
         terms = reward_terms(
             self.config,

@@ -37,7 +37,6 @@ import numpy as np
 from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.env.disturbances import Disturbances, load_disturbances
 from sb3_formation.env.dynamics import dynamics_model
-from sb3_formation.env.geometry import ring_neighbours
 from sb3_formation.ros.observer import FINAL_STAGE, AgentObserver, TeamView
 from sb3_formation.ros.scans import Scan, ScanMount, resample_scan, split_scan
 from sb3_formation.safety.filter import FilterBounds
@@ -78,6 +77,10 @@ class AgentSettings:
     :param agent_tolerance: (m) a return this close to a teammate's disc is that teammate (:func:`split_scan`)
     :param input_timeout: (s) an input older than this (by its stamp and the node's clock), or not heard for this
         long on the wall clock, is stale: the robot stops
+    :param failed_after: (s, wall clock) a teammate whose messages (every agent node sends one each step) have been
+        silent this long in an episode has failed: the robot re-forms without it on the ring of the flying teammates
+        (:meth:`Onboard.fail`) until the next goal, instead of waiting for it; 0: never (synchronous mode then waits
+        for it, and free mode stops on a silent ring neighbour of a talking policy)
     :param future_tolerance: (s) an input stamped further ahead of the node's clock than this is unusable (free mode)
     :param watchdog_rate: (Hz) how often stale inputs are looked for between scans (a wall-clock timer, in every mode)
     :param synchronous: act once per scan message, with every teammate's odometry of its stamp and a goal received
@@ -112,6 +115,7 @@ class AgentSettings:
     max_gap: float = 0.1
     agent_tolerance: float = 0.05
     input_timeout: float = 1.0
+    failed_after: float = 5.0
     future_tolerance: float = 0.5
     watchdog_rate: float = 10.0
     synchronous: bool = False
@@ -129,7 +133,7 @@ class AgentSettings:
         for name in positive:
             if not (is_number(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"{name} must be a number > 0, got {getattr(self, name)!r}")
-        for name in ("agent_tolerance", "future_tolerance"):
+        for name in ("agent_tolerance", "future_tolerance", "failed_after"):
             if not (is_number(getattr(self, name)) and getattr(self, name) >= 0):
                 raise ValueError(f"{name} must be a number >= 0, got {getattr(self, name)!r}")
         if not is_count(self.agent) or not (is_integer(self.qos_depth) and self.qos_depth >= 1):
@@ -177,9 +181,6 @@ class Onboard:
         #: what the task's actions and commands mean
         self.dynamics = dynamics_model(config)
         self.mount = ScanMount(settings.scan_x, settings.scan_y, settings.scan_yaw)
-        #: the ring neighbours (preceding, succeeding) whose messages the robot hears (none if its agents send none)
-        ring = ring_neighbours(config.n_agents)[settings.agent]
-        self.neighbours = tuple(int(index) for index in ring) if policy.message_size else ()
         self.reset()
 
     @property
@@ -187,14 +188,47 @@ class Onboard:
         """M, the values of each message (0: the agents send none)."""
         return self.policy.message_size
 
+    @property
+    def neighbours(self) -> tuple[int, ...]:
+        """The ring neighbours (preceding, succeeding) whose messages the robot hears, on the ring of the flying
+        teammates (none if its agents send none)."""
+        if not self.message_size:
+            return ()
+        return tuple(int(index) for index in self.observer.neighbours[self.settings.agent])
+
+    @property
+    def flying(self) -> np.ndarray:
+        """``(n,)`` bool: the teammates that fly (:meth:`fail`)."""
+        return self.observer.flying
+
+    def fail(self, teammate: int) -> None:
+        """A teammate failed (its node fell silent): the robot re-forms without it until the next goal, on the ring of
+        the flying teammates (:meth:`~sb3_formation.ros.observer.AgentObserver.set_flying`); the policy acts at its
+        place on that ring.
+
+        :raises ValueError: the teammate is the robot itself or failed already, or fewer than 3 agents would fly
+        """
+        flying = self.flying.copy()
+        if teammate == self.settings.agent or not 0 <= teammate < len(flying) or not flying[teammate]:
+            raise ValueError(f"agent {self.settings.agent}: teammate {teammate} is not a flying teammate")
+        flying[teammate] = False
+        self.observer.set_flying(flying)
+
     def reset(self) -> None:
-        """A new goal: forget the last episode (the observer's memory, the policy's state)."""
+        """A new goal: forget the last episode (the observer's memory, the policy's state); every teammate flies."""
         self.observer.reset()
         self.state: Any = None
         #: no step taken yet in this episode
         self.starting = True
         self._stamp: int | None = None  # the sensing time of the last row, and that row
         self._row = np.zeros((1, self.observer.dim), dtype=np.float32)
+
+    def _place(self) -> np.ndarray:
+        """The robot's row of ``agents`` for the policy: its index, or its place and ring size once a teammate failed."""
+        flying, agent = self.flying, self.settings.agent
+        if flying.all():
+            return np.array([agent])
+        return np.array([[int(flying[:agent].sum()), int(flying.sum())]])
 
     def check(
         self, scan: Scan, team: TeamView, forward_speed: float, goal: np.ndarray, received: np.ndarray | None = None
@@ -244,14 +278,14 @@ class Onboard:
             row = self._row
         else:
             readings = resample_scan(scan, self.mount, float(team.headings[agent]), config, settings.max_gap)
-            lidar = split_scan(readings, config, team.positions, agent, settings.agent_tolerance)
+            lidar = split_scan(readings, config, team.positions, agent, settings.agent_tolerance, self.flying)
             row = self.observer.observe(team, lidar, np.asarray(goal, dtype=np.float64)).astype(np.float32)[None, :]
         if not np.isfinite(row).all():
             self.observer.restore(memory)
             raise UnusableInput("the observation row came out non-finite: not acted on")
         heard = None if received is None or not self.message_size else np.asarray(received)[None]
         start = np.array([self.starting])
-        action, state, message = self.policy.agent_step(row, np.array([agent]), self.state, start, heard)
+        action, state, message = self.policy.agent_step(row, self._place(), self.state, start, heard)
         command = self.dynamics.command(action[0], team.velocities[agent], forward_speed)
         if not (np.isfinite(action).all() and np.isfinite(command).all() and np.isfinite(message).all()):
             self.observer.restore(memory)

@@ -22,7 +22,7 @@ from typing import NamedTuple
 import numpy as np
 
 from sb3_formation.env.config import FormationConfig
-from sb3_formation.env.geometry import ring_neighbours
+from sb3_formation.env.geometry import flying_ring
 from sb3_formation.env.sensors import AGENT_CHANNEL, OBSTACLE_CHANNEL, Lidar, LidarLayout, lidar_ranges, ray_directions
 
 #: Angle (rad) within which a scanner's beam counts as the task's ray itself (its reading is taken as it is): a
@@ -129,24 +129,31 @@ def _ray_segment_distances(directions: np.ndarray, start: np.ndarray, end: np.nd
     return distances
 
 
-def team_layout(config: FormationConfig, positions: np.ndarray, agent: int, neighbours_too: bool) -> LidarLayout:
-    """The team's agents as the lidar's circles, seen by ``agent`` on the agent channel: all but itself, and but its
-    ring neighbours unless ``neighbours_too``."""
+def team_layout(
+    config: FormationConfig, positions: np.ndarray, agent: int, neighbours_too: bool, flying: np.ndarray | None = None
+) -> LidarLayout:
+    """The team's flying agents as the lidar's circles, seen by ``agent`` on the agent channel: all but itself, and but
+    its ring neighbours (on the ring of the flying agents, :func:`~sb3_formation.env.geometry.flying_ring`) unless
+    ``neighbours_too``; a failed teammate is no agent (the simulator's obstacle channel sees it)."""
     n_agents = len(positions)
+    flying = np.ones(n_agents, dtype=bool) if flying is None else np.asarray(flying, dtype=bool)
     circles = np.column_stack([positions, np.full(n_agents, config.agent_radius)])
-    visible = np.ones((1, n_agents), dtype=bool)
+    visible = flying[None].copy()
     visible[0, agent] = False
     if not neighbours_too:
-        visible[0, ring_neighbours(n_agents)[agent]] = False
+        visible[0, flying_ring(flying).neighbours[agent]] = False
     return LidarLayout(circles, visible, np.full(n_agents, AGENT_CHANNEL), np.zeros((0, 5)))
 
 
-def teammate_distances(config: FormationConfig, positions: np.ndarray, agent: int, neighbours_too: bool) -> np.ndarray:
-    """Distances (m) from ``agent``'s surface to its teammates along each task ray, as the simulator's agent channel
-    computes them (its own ray cast), in [0, ``lidar_range``]; with ``neighbours_too`` the ring neighbours count."""
+def teammate_distances(
+    config: FormationConfig, positions: np.ndarray, agent: int, neighbours_too: bool, flying: np.ndarray | None = None
+) -> np.ndarray:
+    """Distances (m) from ``agent``'s surface to its flying teammates along each task ray, as the simulator's agent
+    channel computes them (its own ray cast), in [0, ``lidar_range``]; with ``neighbours_too`` the ring neighbours
+    count."""
     ranges = np.empty((2, 1, config.lidar_rays))
     origin = np.ascontiguousarray(positions[agent : agent + 1], dtype=np.float64)
-    layout = team_layout(config, np.asarray(positions, dtype=np.float64), agent, neighbours_too)
+    layout = team_layout(config, np.asarray(positions, dtype=np.float64), agent, neighbours_too, flying)
     lidar_ranges(
         origin,
         ray_directions(config.lidar_rays),
@@ -161,7 +168,12 @@ def teammate_distances(config: FormationConfig, positions: np.ndarray, agent: in
 
 
 def split_scan(
-    readings: np.ndarray, config: FormationConfig, positions: np.ndarray, agent: int, tolerance: float = 0.05
+    readings: np.ndarray,
+    config: FormationConfig,
+    positions: np.ndarray,
+    agent: int,
+    tolerance: float = 0.05,
+    flying: np.ndarray | None = None,
 ) -> np.ndarray:
     """The observation's two lidar channels, ``(2, n_rays)`` fractions of the range (1: nothing), from the task's rays
     read off a real scan (:func:`resample_scan`) and the team's positions.
@@ -177,13 +189,15 @@ def split_scan(
     :param positions: ``(n, 2)`` the team's positions (m) in the world frame, row ``agent`` the agent's
     :param agent: the agent's index in its team
     :param tolerance: (m) how far a return may lie from a teammate's disc and still be that teammate
+    :param flying: ``(n,)`` bool: the teammates that fly (``None``: every one); a failed one's returns are an
+        obstacle's, and the ring neighbours are those of the flying agents' ring
     """
-    teammates = teammate_distances(config, positions, agent, neighbours_too=True)
+    teammates = teammate_distances(config, positions, agent, neighbours_too=True, flying=flying)
     readings = np.asarray(readings, dtype=np.float64)
     seen = readings < config.lidar_range
     by_teammate = seen & (teammates < config.lidar_range) & (np.abs(readings - teammates) <= tolerance)
     obstacles = np.where(seen & ~by_teammate, readings, config.lidar_range)
-    agents = teammate_distances(config, positions, agent, neighbours_too=False)
+    agents = teammate_distances(config, positions, agent, neighbours_too=False, flying=flying)
     channels: np.ndarray = np.stack([obstacles, agents]) / config.lidar_range
     return channels
 
@@ -198,7 +212,7 @@ def merged_scan(
     :param lidar: the team's lidar (its obstacles, walls and directions)
     :param positions: ``(n, 2)`` the agents' centres (m)
     :param stopped_by_agents: the other agents stop rays; ``False``: the scan sees through them, as the simulator's
-        obstacle channel does
+        obstacle channel does (but for an agent that failed: an obstacle there)
     :param heading_errors: ``(n,)`` each agent's heading error (rad): its beam k looks along the lidar's direction k
         turned by minus its error, as the engine's disturbed lidar does (the agent reads it in the frame of its heading
         estimate); ``None``: along the lidar's directions
@@ -208,7 +222,8 @@ def merged_scan(
     circles = circles.copy()
     circles[-n_agents:, :2] = positions
     everyone = np.ones_like(visible)
-    everyone[:, -n_agents:] = ~np.eye(n_agents, dtype=bool) & stopped_by_agents
+    failed = channels[-n_agents:] == OBSTACLE_CHANNEL  # an agent that failed is an obstacle, seen through or not
+    everyone[:, -n_agents:] = ~np.eye(n_agents, dtype=bool) & (stopped_by_agents | failed)
     obstacle_channels = np.full(len(channels), OBSTACLE_CHANNEL)
     ranges = np.empty((2, n_agents, len(lidar.directions)))
     origins = np.ascontiguousarray(positions, dtype=np.float64)

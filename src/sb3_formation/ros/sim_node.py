@@ -77,6 +77,11 @@ class SimSettings:
     :param rate: free-running mode's speed, in times real time: a step every dt / rate wall-clock seconds
     :param command_timeout: (s, wall clock) synchronous mode fails when an agent sends no command for this long after
         a publication
+    :param failed_after: (s, wall clock) synchronous mode: an agent that has sent commands before and then none for
+        this long after a publication has failed (its node died): its motors stop for the rest of the episode
+        (:meth:`~sb3_formation.env.engine.FormationEngine.fail`: a passive body, an obstacle to the others' lidars)
+        and the simulator steps on without it, as its teammates re-form without it; in the next episode it fails
+        again once silent this long; 0: never (``command_timeout`` then fails the simulator)
     :param world_frame: the frame of every pose and of the goal (REP 105's ``map``)
     :param base_frame: each agent's body frame, of its scan and the child frame of its odometry
     :param odom_topic: each agent's ``Odometry``
@@ -97,6 +102,7 @@ class SimSettings:
     synchronous: bool = True
     rate: float = 1.0
     command_timeout: float = 30.0
+    failed_after: float = 5.0
     world_frame: str = "map"
     base_frame: str = "agent_{index}/base_link"
     odom_topic: str = "/agent_{index}/odom"
@@ -118,6 +124,8 @@ class SimSettings:
             value = getattr(self, name)
             if not (is_number(value) and value > 0):
                 raise ValueError(f"{name} must be a number > 0, got {value!r}")
+        if not (is_number(self.failed_after) and self.failed_after >= 0):
+            raise ValueError(f"failed_after must be a number >= 0, got {self.failed_after!r}")
         if not (is_integer(self.qos_depth) and self.qos_depth >= 1):
             raise ValueError(f"qos_depth must be an integer >= 1, got {self.qos_depth!r}")
         for name in ("base_frame", "odom_topic", "scan_topic", "cmd_topic"):
@@ -180,6 +188,8 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         self._positions: list[np.ndarray] = []
         self._commands = [Twist() for _ in range(n_agents)]
         self._received = np.zeros(n_agents, dtype=np.int64)  # commands per agent since the last publication
+        self._commanded = np.zeros(n_agents, dtype=bool)  # agents that ever sent a command
+        self.failed = np.zeros(n_agents, dtype=bool)  #: agents that failed in this episode (``failed_after``)
         self._published_at = 0.0  # time.monotonic() of the last publication
         self._turn_rates = np.zeros(n_agents)  # a unicycle's turn rates (rad/s) of the last step
         #: each step's publication in this episode: what each agent gets under its observation delay
@@ -241,8 +251,11 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
                 self._start_episode()
             return
         self._clock.publish(ClockMessage(clock=stamp_of(self._steps_played * self.config.dt)))
-        if time.monotonic() - self._published_at > self.settings.command_timeout:
-            silent = np.flatnonzero(self._received == 0).tolist()
+        waited = time.monotonic() - self._published_at
+        if self.settings.failed_after and waited > self.settings.failed_after:
+            self._fail_silent_agents(waited)
+        if waited > self.settings.command_timeout:
+            silent = np.flatnonzero((self._received == 0) & ~self.failed).tolist()
             raise TimeoutError(
                 f"no command from agents {silent} (on {', '.join(self._command_topics[i] for i in silent)}) within "
                 f"{self.settings.command_timeout} s of step {self.env.step_count} of episode {self._episode}"
@@ -271,7 +284,28 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             message = Twist()
         self._commands[index] = message
         self._received[index] += 1
-        if self.settings.synchronous and self._episode >= 0 and not self.done and self._received.all():
+        self._commanded[index] = True
+        if self.settings.synchronous and self._episode >= 0 and not self.done and self._all_commanded():
+            self._advance()
+
+    def _all_commanded(self) -> bool:
+        """Every agent that flies has sent a command since the last publication."""
+        return bool(((self._received > 0) | self.failed).all())
+
+    def _fail_silent_agents(self, waited: float) -> None:
+        """Agents that commanded before and have been silent for ``waited`` s since the publication have failed:
+        stop their motors, and step on if every other command is in."""
+        silent = np.flatnonzero((self._received == 0) & self._commanded & ~self.failed).tolist()
+        for agent in silent:
+            try:
+                self.env.engine.fail(self.env.team, agent)
+            except ValueError as error:  # too few agents left to fly
+                raise RuntimeError(f"agent {agent} sent no command for {waited:.1f} s and {error}") from None
+            self.failed[agent] = True
+            self.get_logger().warning(
+                f"agent {agent} sent no command for {waited:.1f} s: its motors stop (failed) in episode {self._episode}"
+            )
+        if silent and self._all_commanded():
             self._advance()
 
     # Stepping -----------------------------------------------------------------------------------------------------
@@ -286,6 +320,7 @@ class SimNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         self._episode_stamp = stamp_of(self._steps_played * self.config.dt)
         self._positions = [self.env.engine.latest.positions[self._rows].copy()]
         self._commands = [Twist() for _ in self._commands]
+        self.failed[:] = False
         self._turn_rates[:] = 0.0
         self._publish()
 

@@ -121,10 +121,11 @@ class SafePolicy(Policy):
         deterministic: bool = True,
         *,
         channel: MessageChannel | None = None,
+        flying: np.ndarray | None = None,
     ) -> tuple[np.ndarray, Any]:
         """The wrapped policy's actions for raw team rows, filtered, and its next state; counts what the filter did
         (rows that start an episode start their counts afresh)."""
-        actions, state = self.policy.predict(observation, state, episode_start, deterministic, channel=channel)
+        actions, state = self.policy.predict(observation, state, episode_start, deterministic, channel=channel, flying=flying)
         rows = np.asarray(observation).reshape(-1, np.shape(observation)[-1])
         sent = self.sent.rows(len(rows), episode_start)
         safe, report = self.filter.filter(rows, np.asarray(actions).reshape(len(rows), 2), sent)

@@ -47,14 +47,16 @@ EPISODE_METRICS: dict[str, Metric] = {
         "beyond communication range", "beyond communication range", "fraction of steps", None, in_table=False
     ),
 }
-#: Of the obstacle collisions, those where a moving obstacle ran into an agent that was braking, standing or moving
-#: away (:class:`~sb3_formation.env.engine.ContactColumn`): the summary of an episode with moving obstacles has it, so
-#: it is summarised where the episodes have it (a still world's evaluation files are as they were before obstacles
-#: moved).
-MOVER_METRICS: dict[str, Metric] = {
+#: What only some worlds' episodes have, summarised where the episodes have it (the evaluation files of a still world
+#: whose agents never fail are as they were before obstacles moved and agents failed): of the obstacle collisions,
+#: those where a moving obstacle ran into an agent that was braking, standing or moving away
+#: (:class:`~sb3_formation.env.engine.ContactColumn`; episodes with moving obstacles), and the agents that failed
+#: (episodes of a task whose agents may fail).
+WORLD_METRICS: dict[str, Metric] = {
     "collisions_rammed": Metric(
         "rammed by movers", "obstacle collisions a mover ran into", "collisions per episode", "episode/collisions_rammed"
     ),
+    "failed_agents": Metric("failed agents", "agents that failed", "agents per episode", "episode/failed_agents"),
 }
 #: TensorBoard tag of the rolling success rate during training.
 SUCCESS_RATE_TAG = "episode/success_rate"
