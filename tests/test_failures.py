@@ -133,3 +133,16 @@ def test_failures_are_drawn_from_their_own_stream_and_validated() -> None:
         Failures(probability=0.5, steps=(0.5, 3))
     with pytest.raises(ValueError, match=r"failures.probability=1.5 is invalid"):
         Failures(probability=1.5)
+
+
+def test_evaluation_tells_every_kind_of_policy_which_agents_fly() -> None:
+    """Episodes of a task whose agents fail at step 0 through the episode loop: each reports one failed agent, and a
+    shipped residual policy (its controller at the places of the ring of 5) and the filter play them."""
+    from sb3_formation.experiment.evaluation import evaluate
+    from sb3_formation.experiment.targets import load_policy
+
+    overrides = {"disturbances": FAILS_AT_START.disturbances}
+    for target in ("controller:shrinking", "safe:pretrained:scenes-ch5-bearing"):
+        result = evaluate(load_policy(target), 4, n_envs=4, env_overrides=overrides, record=0)
+        assert [row["failed_agents"] for row in result.episodes] == [1, 1, 1, 1]
+        assert result.summary["all_episodes"]["failed_agents"]["mean"] == 1.0

@@ -85,12 +85,14 @@ class ResidualAdapter:
         :param correction: ``(k, 2)`` the learned corrections of these rows
         :param memory: what the previous call returned for these rows (``None`` at the start)
         :param episode_start: ``(k,)`` flags: these rows start an episode (their memory is reset)
-        :param agents: ``(k,)`` each row's agent index in its team; ``None``: the rows are whole teams, row k is agent
+        :param agents: ``(k,)`` each row's agent index in its team, or ``(k, 2)`` its place and ring size
+            (:func:`~sb3_formation.controllers.base.ring_places`); ``None``: the rows are whole teams, row k is agent
             ``k % n`` (the policy seam's order)
         :param deterministic: the controller acts without noise
         """
         rows = np.asarray(observations, dtype=np.float64).reshape(-1, np.shape(observations)[-1])
-        agents = np.arange(len(rows)) % self.controller.config.n_agents if agents is None else np.asarray(agents).reshape(-1)
+        agents = np.arange(len(rows)) % self.controller.config.n_agents if agents is None else np.asarray(agents)
+        agents = agents.reshape(-1) if agents.ndim < 2 else agents
         base, memory, _ = self.controller.agent_step(rows, agents, memory, episode_start, deterministic=deterministic)
         return add_correction(base.astype(np.float64), correction, self.scale), memory
 

@@ -57,6 +57,8 @@ from sb3_formation.ros.onboard import (
     typed_parameters,
 )
 
+#: Synchronous mode: a teammate without a message in this many steps the robot acted on has failed (``failed_after``).
+MISSED_STEPS = 3
 #: The goal's QoS: reliable and latched, so that a robot that starts late still gets the goal given before.
 GOAL_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
@@ -109,6 +111,7 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         self._heard: dict[int, list[tuple[int, np.ndarray | None]]] = {index: [] for index in self.teammates}
         self._latest: dict[int, tuple[int, np.ndarray | None] | None] = dict.fromkeys(self.teammates)
         self._steps = 0  # synchronous mode: the steps the robot acted on in this episode
+        self._heard_at: dict[int, int] = dict.fromkeys(self.teammates, 0)  # synchronous mode: the step of each one's last
         self._acted_at = 0  # the clock (ns) when the robot first acted in this episode
         self._listening_at = 0.0  # the wall-clock listening time (Silence) when it did
         #: wall-clock silence of each input; another publisher on the command topic (the watchdog looks)
@@ -170,6 +173,7 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             start = nanoseconds_of(message.header.stamp)
             self._heard = {index: [item for item in heard if item[0] >= start] for index, heard in self._heard.items()}
             self._latest, self._steps = dict.fromkeys(self.teammates), 0
+            self._heard_at = dict.fromkeys(self.teammates, 0)
         self.goal, self._goal_fresh = message, True
         if self.settings.synchronous:
             self._act_when_complete()
@@ -197,6 +201,7 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
             if self.goal is not None and stamp < nanoseconds_of(self.goal.header.stamp):
                 return  # the simulator's stamps: a message of an episode before the goal's
             self._heard[index].append((stamp, values))
+            self._heard_at[index] = self._steps
             self._act_when_complete()
 
     # Teammates that fail -------------------------------------------------------------------------------------------
@@ -205,24 +210,33 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         return [index for index in self.teammates if self.onboard.flying[index]]
 
     def _find_failures(self) -> str:
-        """Teammates whose messages have been silent for ``failed_after`` seconds of this episode have failed: re-form
-        without them (:meth:`~sb3_formation.ros.onboard.Onboard.fail`). Return why the robot must stop instead (too few
-        teammates left to fly a ring), or ``""``."""
-        limit = self.settings.failed_after
-        if not limit or self.onboard.starting:
+        """Teammates that fell silent have failed: re-form without them (:meth:`~sb3_formation.ros.onboard.Onboard.fail`).
+        Free mode: silent for ``failed_after`` seconds of this episode; synchronous mode: without a message in
+        :data:`MISSED_STEPS` steps the robot acted on (the simulator steps only once every agent that flies has
+        commanded, and each sends its message before its command, so steps without one are the simulator's failure:
+        a pause of the whole loop is no one's). Return why the robot must stop instead (too few teammates left to fly a
+        ring), or ``""``."""
+        if not self.settings.failed_after or self.onboard.starting:
             return ""
         episode = self._silence.listening - self._listening_at
         for index in self._flying_teammates():
-            silent = min(self._silence.silent_for(f"message {index}"), episode)
-            if silent <= limit:
-                continue
+            if self.settings.synchronous:
+                missed = self._steps - self._heard_at[index]
+                silence = f"without a message in {missed} steps"
+                if missed < MISSED_STEPS:
+                    continue
+            else:
+                seconds = min(self._silence.silent_for(f"message {index}"), episode)
+                silence = f"silent for {seconds:.1f} s"
+                if seconds <= self.settings.failed_after:
+                    continue
             try:
                 self.onboard.fail(index)
             except ValueError as error:
-                return f"agent {index} silent for {silent:.1f} s and {error}"
+                return f"agent {index} {silence} and {error}"
             self.get_logger().warning(
-                f"agent {self.settings.agent}: agent {index} silent for {silent:.1f} s has failed: flying on without it "
-                f"(teammates flying: {self._flying_teammates()})"
+                f"agent {self.settings.agent}: agent {index} {silence} has failed: flying on without it (teammates "
+                f"flying: {self._flying_teammates()})"
             )
         return ""
 
@@ -240,6 +254,11 @@ class AgentNode(Node):  # type: ignore[misc]  # rclpy's Node is untyped here
         stamp = nanoseconds_of(scan.header.stamp)
         team = [kept.get(stamp) for kept in self.odometry]
         if any(odometry is None for odometry in team):
+            return
+        problem = self._find_failures()
+        if problem:
+            self._scan_fresh = False
+            self._stop(problem)
             return
         starting, step = self.onboard.starting, self._steps
         if not starting and any(len(self._heard[index]) < step for index in self.neighbours):

@@ -78,9 +78,10 @@ class AgentSettings:
     :param input_timeout: (s) an input older than this (by its stamp and the node's clock), or not heard for this
         long on the wall clock, is stale: the robot stops
     :param failed_after: (s, wall clock) a teammate whose messages (every agent node sends one each step) have been
-        silent this long in an episode has failed: the robot re-forms without it on the ring of the flying teammates
-        (:meth:`Onboard.fail`) until the next goal, instead of waiting for it; 0: never (synchronous mode then waits
-        for it, and free mode stops on a silent ring neighbour of a talking policy)
+        silent this long in an episode has failed (synchronous mode: one without a message in 3 steps the robot acted
+        on, which the simulator steps only once it failed it): the robot re-forms without it on the ring of the flying
+        teammates (:meth:`Onboard.fail`) until the next goal, instead of waiting for it; 0: never (synchronous mode
+        then waits for a talking policy's silent neighbour, and free mode stops on it)
     :param future_tolerance: (s) an input stamped further ahead of the node's clock than this is unusable (free mode)
     :param watchdog_rate: (Hz) how often stale inputs are looked for between scans (a wall-clock timer, in every mode)
     :param synchronous: act once per scan message, with every teammate's odometry of its stamp and a goal received

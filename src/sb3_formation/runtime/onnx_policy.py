@@ -359,7 +359,8 @@ class OnnxPolicy(Policy):
         the messages they send.
 
         :param observations: ``(k, obs_dim)`` (or one ``(obs_dim,)``) raw observations
-        :param agents: ``(k,)`` each row's agent index in its team (a residual policy's controller needs it)
+        :param agents: ``(k,)`` each row's agent index in its team, or ``(k, 2)`` its place and ring size once agents
+            failed (a residual policy's controller needs it)
         :param state: what the previous call returned for these rows (``None`` at the start): a recurrent graph's
             state; for a residual policy the pair (the graph's state, the controller's memory)
         :param episode_start: ``(k,)`` flags: reset these rows' state first

@@ -125,7 +125,8 @@ class SafePolicy(Policy):
     ) -> tuple[np.ndarray, Any]:
         """The wrapped policy's actions for raw team rows, filtered, and its next state; counts what the filter did
         (rows that start an episode start their counts afresh)."""
-        actions, state = self.policy.predict(observation, state, episode_start, deterministic, channel=channel, flying=flying)
+        told = {} if flying is None else {"flying": flying}  # a policy of a world without failures need not take it
+        actions, state = self.policy.predict(observation, state, episode_start, deterministic, channel=channel, **told)
         rows = np.asarray(observation).reshape(-1, np.shape(observation)[-1])
         sent = self.sent.rows(len(rows), episode_start)
         safe, report = self.filter.filter(rows, np.asarray(actions).reshape(len(rows), 2), sent)
