@@ -55,7 +55,7 @@ figures: setup
 # Rebuild the shipped policies (docs/pretrained.md): train recipes/pretrained-<task>.yaml (seed 0) into
 # runs/pretrained-<task>/ (replacing an earlier one) and export it into src/sb3_formation/pretrained/<task>/.
 PRETRAINED := ch5-bearing ch5-angle ch4-individual ch4-team mixed-ch5-bearing ch5-bearing-unicycle scenes-ch5-bearing \
-  talk-scenes-ch5-bearing robust-scenes-ch5-bearing
+  talk-scenes-ch5-bearing robust-scenes-ch5-bearing moving-scenes-ch5-bearing
 
 pretrained: setup
 	for task in $(PRETRAINED); do \

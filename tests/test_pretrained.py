@@ -161,6 +161,7 @@ def test_the_policy_trained_on_several_team_sizes_takes_any_size_but_no_other_ta
         "scenes-ch5-bearing",
         "talk-scenes-ch5-bearing",
         "robust-scenes-ch5-bearing",
+        "moving-scenes-ch5-bearing",
     ],
 )
 def test_a_shipped_policy_reproduces_its_stored_episodes(name: str, tmp_path: Path) -> None:

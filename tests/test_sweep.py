@@ -42,6 +42,7 @@ def test_every_thesis_recipe_file_has_a_quick_twin_and_the_thesis_budget() -> No
         "pretrained-scenes-ch5-bearing",
         "pretrained-talk-scenes-ch5-bearing",
         "pretrained-robust-scenes-ch5-bearing",
+        "pretrained-moving-scenes-ch5-bearing",
     ]
     pretrained = [name.replace("thesis-", "pretrained-") for name in THESIS] + shipped
     assert names == sorted([*THESIS, *(name.replace("thesis-", "quick-") for name in THESIS), *pretrained])
