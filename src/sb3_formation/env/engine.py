@@ -15,7 +15,9 @@ to the goal that the goal term rewards. A reset measures the new team with the s
 follows one step through. Under the task's disturbances (``FormationConfig.disturbances``) the engine's
 :class:`~sb3_formation.env.disturbed.Disturber` turns the actions sent into what the motors apply, and what the world
 is into what the agents sense and, late, observe; rewards, infos and contacts stay the true world's. In the ideal
-world there is no disturber and the step is as described.
+world there is no disturber and the step is as described. Under the task's failures an agent's motors may stop at the
+end of a step (:meth:`FormationEngine.fail`): from the measure of that step on, its team is the ring of its flying
+agents.
 
 The engine keeps its numbers in the few structures of :mod:`~sb3_formation.env.stacked`; a kernel takes each as the
 plain tuple of its fields. Arrays that the engine returns are never written again: the next step makes new ones, and a
