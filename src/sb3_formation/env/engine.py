@@ -546,8 +546,8 @@ class FormationEngine:
                 group = combine_rewards(blocks.reshape(len(teams), _N_TERMS, n_agents), self._coefficients[teams], clip)
                 rewards[rows], team_means[teams] = group.reshape(-1), _row_means(group)
         for team in self._failed_teams:
-            rows = self.team_rows(team)
-            flown = rewards[rows][self.constants.flying[rows]]
+            team_rows = self.team_rows(team)
+            flown = rewards[team_rows][self.constants.flying[team_rows]]
             team_means[team] = np.add.reduce(flown) / len(flown)
         return rewards, team_means
 
