@@ -16,7 +16,7 @@ from sb3_formation.experiment.evaluation import load_summary
 
 
 def test_benchmark_writes_the_table_evaluations_and_figures(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """Two episodes per scene set: a row per scene set in the printed table and in benchmark.md, figures of each,
+    """Two episodes per scene set (four in the crossing of four formations): a row per scene set in the printed table and in benchmark.md, figures of each,
     and every figure of benchmark.json is the stored evaluation's (success, shape error = bearing error over the
     successes, contacts over all episodes)."""
     out = tmp_path / "bench"
@@ -39,11 +39,14 @@ def test_benchmark_writes_the_table_evaluations_and_figures(tmp_path: Path, caps
         assert row["seconds"] > 0 and cells["seconds"] == f"{row['seconds']:.0f}"
         assert cells["filter changed"] == cells["min separation (m)"] == "-"  # not filtered
         summary = load_summary(out / "classical" / row["scenes"])
-        assert summary["scenes"] == row["scenes"] and summary["seed"] == 10_000 and summary["episodes"] == 2
+        n = 4 if row["scenes"] == "crossing-4" else 2  # a crossing of four formations: an episode each
+        assert summary["scenes"] == row["scenes"] and summary["seed"] == 10_000 and summary["episodes"] == n
         assert row["success_rate"] == summary["success_rate"]
-        # Wilson's 95 % interval of 2 episodes, by its formula
+        # Wilson's 95 % interval of n episodes, by its formula
         z, p = 1.959964, row["success_rate"]
-        centre, half = (p + z * z / 4) / (1 + z * z / 2), z / (1 + z * z / 2) * math.sqrt(p * (1 - p) / 2 + z * z / 16)
+        centre, half = (p + z * z / (2 * n)) / (1 + z * z / n), z / (1 + z * z / n) * math.sqrt(
+            p * (1 - p) / n + z * z / (4 * n * n)
+        )
         assert row["success_rate_ci95"] == pytest.approx([centre - half, centre + half], abs=1e-5)
         assert row["shape_error"] == summary["successful_episodes"]["bearing_error"]["mean"]
         assert row["obstacle_contacts"] == summary["all_episodes"]["collisions_obstacle"]["mean"]

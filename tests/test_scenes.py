@@ -286,8 +286,19 @@ def test_one_registry_places_every_episode() -> None:
     """Every way of placing an episode is an entry of ``SCENES``: the curriculum beside the families and their
     mixture; the benchmark plays every entry but the mixture; an unknown name is refused in one line."""
     moving = ["crowd", "crowd-blind", "passage-moving", "corridor-moving", "trap-moving", "clutter-moving"]
-    assert list(SCENES) == ["curriculum", "passage", "corridor", "trap", "clutter", "mixed", *moving, "mixed-moving"]
-    assert BENCHMARK_SCENES == ("curriculum", "passage", "corridor", "trap", "clutter", *moving)
+    crossing = ["crossing", "crossing-4"]
+    assert list(SCENES) == [
+        "curriculum",
+        "passage",
+        "corridor",
+        "trap",
+        "clutter",
+        "mixed",
+        *moving,
+        "mixed-moving",
+        *crossing,
+    ]
+    assert BENCHMARK_SCENES == ("curriculum", "passage", "corridor", "trap", "clutter", *moving, *crossing)
     assert [name for name, scenes in SCENES.items() if scenes.staged] == ["curriculum"]
     assert scene_slots(config_of("mixed")) == (12, 4)  # clutter's 12 circles, the corridor's 4 walls
     assert scene_slots(config_of("curriculum")) == (4, 0)  # stages 1-2: three large obstacles and a small one

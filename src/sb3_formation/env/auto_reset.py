@@ -93,6 +93,11 @@ class EngineBlock:
         shared: SharedArrays | None = None,
     ) -> None:
         self.engine = engine = FormationEngine(configs)
+        if auto_reset and engine.unit_size > 1:
+            raise ValueError(
+                f"the {engine.config.scenes!r} scenes fly formations together and are played, not trained on: "
+                "evaluate or benchmark a policy on them"
+            )
         #: one PettingZoo view per team, for attribute and method calls
         self.envs = [FormationEnv(engine=engine, team=team, render_mode=render_mode) for team in range(engine.n_teams)]
         self.team_observations = team_observations
@@ -106,15 +111,22 @@ class EngineBlock:
     def reset(
         self, teams: Sequence[int], seeds: Sequence[int | None], options: Sequence[dict[str, Any] | None]
     ) -> list[np.ndarray]:
-        """Reset ``teams[j]`` with ``seeds[j]`` and ``options[j]`` (``{"scenario": ...}`` or empty).
+        """Reset ``teams[j]`` with ``seeds[j]`` and ``options[j]`` (``{"scenario": ...}`` or empty). In a crossing
+        (``FormationEngine.unit_size`` > 1) a unit's first team resets the unit; its other teams, listed after it,
+        give their observations of that reset (their seeds and options unused).
 
         :return: each team's slots' observations, ``(n, obs_dim)``
         """
-        engine = self.engine
-        return [
-            self._slot_observations(engine.reset(team, seed, (team_options or {}).get("scenario")), int(engine.sizes[team]))
-            for team, seed, team_options in zip(teams, seeds, options)
-        ]
+        engine, observations = self.engine, []
+        for team, seed, team_options in zip(teams, seeds, options):
+            if team % engine.unit_size == 0:
+                own = engine.reset(team, seed, (team_options or {}).get("scenario"))
+            elif team - team % engine.unit_size in teams[: teams.index(team)]:
+                own = engine.latest.observations[engine.team_rows(team)].copy()
+            else:
+                raise ValueError(f"team {team} flies in the crossing of team {team - team % engine.unit_size}: reset both")
+            observations.append(self._slot_observations(own, int(engine.sizes[team])))
+        return observations
 
     def step(self, actions: np.ndarray) -> BlockStep:
         """Step every team in an episode with its agents' rows of ``actions``.

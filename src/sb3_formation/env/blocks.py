@@ -15,6 +15,7 @@ import numpy as np
 
 from sb3_formation.env.auto_reset import ARRAY_FIELDS, BlockStep, EngineBlock, step_layout
 from sb3_formation.env.config import FormationConfig
+from sb3_formation.env.scenes import scenes_named
 from sb3_formation.utils.processes import SharedArrays, WorkerProcess, gather, wait_started, worker_context
 
 #: what a step of the pool gives (:class:`~sb3_formation.env.auto_reset.BlockStep`) is importable from here too
@@ -49,13 +50,17 @@ class EngineBlocks:
         start_method: str | None = None,
     ) -> None:
         n_teams = len(configs)
-        if not (isinstance(n_workers, int) and 1 <= n_workers <= n_teams):
-            raise ValueError(f"n_workers must be an integer in [1, the number of teams {n_teams}], got {n_workers!r}")
+        unit = scenes_named(configs[0].scenes).formations if configs else 1  # a crossing's formations share a block
+        unit = unit if n_teams % unit == 0 else 1  # (other numbers of teams: the engine refuses them)
+        if not (isinstance(n_workers, int) and 1 <= n_workers <= n_teams // unit):
+            per = f" / {unit} formations per crossing" if unit > 1 else ""
+            raise ValueError(f"n_workers must be an integer in [1, the number of teams {n_teams}{per}], got {n_workers!r}")
         sizes = [config.n_agents for config in configs]
         #: team j: slots ``team_starts[j]:team_starts[j + 1]``
         self.team_starts = np.concatenate([[0], np.cumsum(sizes)])
-        #: the teams of each block
-        self.team_blocks = [block.tolist() for block in np.array_split(np.arange(n_teams), n_workers)]
+        #: the teams of each block (whole crossings)
+        units = np.array_split(np.arange(n_teams // unit), n_workers)
+        self.team_blocks = [list(range(block[0] * unit, (block[-1] + 1) * unit)) for block in units]
         local = EngineBlock([configs[team] for team in self.team_blocks[0]], team_observations, auto_reset, render_mode)
         dim = local.engine.observation_dim * (1 + sizes[0] if team_observations else 1)
         #: the first block's teams, stepped in this process; the others' in worker processes

@@ -519,7 +519,7 @@ class Dynamics(ABC):
         push = config.force_max * config.dt / config.agent_mass
         limits = (float(config.v_max), float(config.max_turn_rate), self.model.bounds_speed)
         plan = substep_plan(cast(int, config.physics_substeps), state, late, push, limits)
-        rows = np.cumsum([0, *(world.config.n_agents for world in worlds)])
+        rows = np.cumsum([0, *(world.n_agents for world in worlds)])
         return [
             world.advance_plan(plan[:, rows[k] : rows[k + 1]], state[rows[k] : rows[k + 1]]) for k, world in enumerate(worlds)
         ]

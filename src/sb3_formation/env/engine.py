@@ -51,8 +51,8 @@ from sb3_formation.env.geometry import (
 from sb3_formation.env.observations import _fill_observations, observation_fields
 from sb3_formation.env.progress import GOAL_PROGRESS_CLASSES, GoalProgress
 from sb3_formation.env.rewards import RewardConstants, _reward_terms, combine_rewards, nearest_gaps, reward_constants
-from sb3_formation.env.scenarios import Scenario
-from sb3_formation.env.scenes import check_scenes_fit, draw_scenario
+from sb3_formation.env.scenarios import Scenario, crossing_scenario
+from sb3_formation.env.scenes import check_scenes_fit, scenes_named
 from sb3_formation.env.sensors import AGENT_CHANNEL, OBSTACLE_CHANNEL, Lidar, LidarLayout, lidar_ranges, ray_directions
 from sb3_formation.env.stacked import (
     Constants,
@@ -139,6 +139,16 @@ class FormationEngine:
         self.sizes = sizes = np.array([team_config.n_agents for team_config in self.configs])
         self.starts = starts = np.concatenate([[0], np.cumsum(sizes)])
         n_teams = len(sizes)
+        #: how many consecutive teams fly one scene together in one world, a unit (a crossing's formations; 1: every
+        #: team alone)
+        self.unit_size = unit_size = scenes_named(config.scenes).formations
+        if unit_size > 1 and (n_teams % unit_size or len(set(sizes.tolist())) > 1):
+            raise ValueError(
+                f"the {config.scenes!r} scenes fly {unit_size} formations together: give a multiple of {unit_size} "
+                f"teams of one size, got teams of {sizes.tolist()}"
+            )
+        #: the first row of each unit (``unit_size`` consecutive teams sharing a world), and the number of rows, last
+        self.unit_starts = starts[::unit_size]
         #: the fields of an agent's observation (Table 3.1), in order
         self.observation_fields = observation_fields(config)
         self.observation_dim = sum(field.size for field in self.observation_fields)
@@ -169,7 +179,7 @@ class FormationEngine:
             self.set_stage(team, team_config.stage)
         #: what the task's dynamics mean, how actions move the agents, and what the goal term rewards progress along
         self.model: DynamicsModel = dynamics_model(config)
-        self.dynamics: Dynamics = self.model.engine_dynamics(starts)
+        self.dynamics: Dynamics = self.model.engine_dynamics(self.unit_starts)  # it moves worlds: units
         self.progress: GoalProgress = GOAL_PROGRESS_CLASSES[config.goal_progress](self.configs, starts)
         #: teams in an episode (reset and not ended since)
         self.live = np.zeros(n_teams, dtype=bool)
@@ -232,61 +242,82 @@ class FormationEngine:
 
     # Reset --------------------------------------------------------------------------------------------------------
 
-    def reset(self, team: int, seed: int | None = None, scenario: Scenario | None = None) -> np.ndarray:
+    def reset(self, team: int, seed: int | None = None, scenario: Scenario | Sequence[Scenario] | None = None) -> np.ndarray:
         """Start a team's next episode: draw its scenario of the team's stage (or place ``scenario``) and measure it.
+        In a crossing (:attr:`unit_size` > 1) the first team of a unit starts every formation of it, from one draw of
+        its own generator (``scenario``: the formations' placements, one per team).
 
-        :param team: the team
+        :param team: the team (in a crossing, the first of its unit)
         :param seed: re-seed the team's generator first (see :meth:`seed`)
         :param scenario: place this instead of drawing one (validated against the team's task)
         :return: the team's ``(n, dim)`` observations (a copy)
+        :raises ValueError: a team of a crossing that is not the first of its unit, or a placement that does not fit
         """
-        config = self.configs[team]
+        config, unit_size = self.configs[team], self.unit_size
+        if team % unit_size:
+            raise ValueError(f"team {team} flies in the crossing of team {team - team % unit_size}: reset that team")
         if seed is not None:
             self.seed(team, seed)
         if scenario is None:
-            scenario = draw_scenario(config, int(self.stages[team]), self.generators[team])
-        elif not isinstance(scenario, Scenario):
-            raise TypeError(f"the scenario must be a Scenario, got {type(scenario).__name__}")
+            parts = scenes_named(config.scenes).draw_formations(config, int(self.stages[team]), self.generators[team])
         else:
-            scenario.validate(config)
-        world = self._place(team, scenario)
-        rows, episodes = self.team_rows(team), self.episodes
+            parts = (scenario,) if unit_size == 1 else tuple(cast("Sequence[Scenario]", scenario))
+            if len(parts) != unit_size or not all(isinstance(part, Scenario) for part in parts):
+                kinds = type(scenario).__name__
+                wanted = "a Scenario" if unit_size == 1 else f"{unit_size} Scenarios, one per formation"
+                raise TypeError(f"the scenario must be {wanted}, got {kinds}")
+            for part in parts:
+                part.validate(config)
+        world = self._place(team, parts)
+        episodes = self.episodes
         # arrays that were returned are copied before their rows change (see the module docstring)
         latest = self.latest = self.latest._replace(**{name: getattr(self.latest, name).copy() for name in _RETURNED})
-        latest.positions[rows] = world.positions
-        latest.velocities[rows] = world.velocities
-        latest.contacts[rows] = 0
-        latest.terms[_N_TERMS * rows.start : _N_TERMS * rows.stop] = 0.0  # the infos of a reset hold no reward terms
-        self.dynamics.reset(rows, world)
-        if self.disturber is not None:
-            self.disturber.reset(team, rows)
-        self._clear_episode(team, scenario.goal)
-        if self.failures is not None:
-            self.failures.reset(team)
-            for failing, agent in self.failures.due([team], self.episodes.step_counts):  # at step 0: failed from the start
-                self.fail(failing, agent)
-        active = np.array([team])
-        self._measure(active, latest.positions)
-        centroid = self.formations.centroids[team]
-        latest.goal_distances[team] = math.hypot(*(episodes.goals[team] - centroid).tolist())
-        latest.ways[team] = self.progress.reset(team, scenario, centroid, float(latest.goal_distances[team]))
-        episodes.previous_offsets[team] = episodes.goals[team] - centroid  # no step before: the offset now
-        self._observe(active, rows, np.zeros(self.n_teams), accumulate=False)
-        observations: np.ndarray = latest.observations[rows].copy()
+        self.dynamics.reset(slice(int(self.starts[team]), int(self.starts[team + unit_size])), world)
+        for member, part in enumerate(parts, start=team):
+            rows, places = self.team_rows(member), self._world_rows(member)
+            latest.positions[rows] = world.positions[places]
+            latest.velocities[rows] = world.velocities[places]
+            latest.contacts[rows] = 0
+            latest.terms[_N_TERMS * rows.start : _N_TERMS * rows.stop] = 0.0  # a reset's infos hold no reward terms
+            if self.disturber is not None:
+                self.disturber.reset(member, rows)
+            self._clear_episode(member, part.goal)
+            if self.failures is not None:
+                self.failures.reset(member)
+                for failing, agent in self.failures.due([member], episodes.step_counts):  # at step 0: failed from the start
+                    self.fail(failing, agent)
+            active = np.array([member])
+            self._measure(active, latest.positions)
+            centroid = self.formations.centroids[member]
+            latest.goal_distances[member] = math.hypot(*(episodes.goals[member] - centroid).tolist())
+            latest.ways[member] = self.progress.reset(member, part, centroid, float(latest.goal_distances[member]))
+            episodes.previous_offsets[member] = episodes.goals[member] - centroid  # no step before: the offset now
+            self._observe(active, rows, np.zeros(self.n_teams), accumulate=False)
+        observations: np.ndarray = latest.observations[self.team_rows(team)].copy()
         return observations
 
-    def _place(self, team: int, scenario: Scenario) -> World:
-        """Place ``scenario`` in the team's world (made at its first reset) and give its shapes to its lidar."""
+    def _world_rows(self, team: int) -> slice:
+        """A team's agents' rows in its world (its formation's place in its unit's)."""
+        first = int(self.starts[team] - self.unit_starts[team // self.unit_size])
+        return slice(first, first + int(self.sizes[team]))
+
+    def _place(self, team: int, parts: Sequence[Scenario]) -> World:
+        """Place a unit's formations ``parts`` (its first ``team``'s first) in its world, made at its first reset, and
+        give each team's lidar its shapes: the obstacles, the movers, and the other formations' agents."""
         world = self.worlds[team]
+        placed = parts[0] if len(parts) == 1 else crossing_scenario(parts)
         if world is None:
-            world = self.worlds[team] = World(self.configs[team], scenario)
+            world = World(self.configs[team], placed)
         else:
-            world.place(scenario)
-        self.scenarios[team] = scenario
-        self._moving[team] = bool(scenario.movers)
-        lidar = self.lidars[team]
-        lidar.set_obstacles(np.vstack([scenario.obstacles, world.movers.circles]), scenario.walls)
-        self._load_shapes(team, lidar.layout)
+            world.place(placed)
+        for member, part in enumerate(parts, start=team):
+            self.worlds[member], self.scenarios[member] = world, part
+            self._moving[member] = bool(part.movers)
+            others = np.delete(world.positions, self._world_rows(member), axis=0)
+            circles = np.hstack([others, np.full((len(others), 1), self.config.agent_radius)])
+            lidar = self.lidars[member]
+            lidar.set_obstacles(np.vstack([part.obstacles, world.movers.circles, circles]), part.walls, agents=len(others))
+            self._load_shapes(member, lidar.layout)
         return world
 
     def _clear_episode(self, team: int, goal: np.ndarray) -> None:
@@ -326,8 +357,10 @@ class FormationEngine:
         references = self.constants.reference_bearings[rows].copy()
         references[flying] = reference_bearings(ring.size)[ring.places[flying]]
         self._set_ring(team, flying, ring.neighbours, references)
-        cast(World, self.worlds[team]).halt(agent)
+        cast(World, self.worlds[team]).halt(self._world_rows(team).start + agent)
         self._failed_teams.add(team)
+        if self.unit_size > 1:
+            self._see_others(team // self.unit_size)
 
     def _set_ring(self, team: int, flying: np.ndarray, neighbours: np.ndarray, references: np.ndarray) -> None:
         """A team's flying agents, their ring neighbours and reference bearings (into :attr:`constants`), beta^ref of
@@ -394,30 +427,65 @@ class FormationEngine:
         )
 
     def _move(self, actions: np.ndarray, stepped: StepTeams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The :attr:`dynamics` moves the stepped teams' agents under the actions their motors apply (those sent, or
-        what the :attr:`disturber` makes of them): every agent's positions, velocities and contacts after the step
-        (new arrays; the other teams' rows as they were)."""
+        """The :attr:`dynamics` moves the worlds of the stepped teams under the actions their motors apply (those sent,
+        or what the :attr:`disturber` makes of them): every agent's positions, velocities and contacts after the step
+        (new arrays; the other teams' rows as they were; in a crossing, a unit's teams whose episodes ended stand in
+        its world, halted, and their rows follow them)."""
         previous, late = self.latest, cast("LateActions | None", None)
+        units = stepped if self.unit_size == 1 else self._live_units()
         if self.disturber is not None and self.disturber.acts:
-            actions, late = self.disturber.act(actions, stepped.teams, self.episodes.step_counts)
-        worlds = cast("list[World]", self.worlds)
-        moving = [team for team in stepped.teams if self._moving[team]] if self._moving.any() else []
-        for team in moving:
-            worlds[team].move_obstacles()
-        moved = self.dynamics.move(actions, previous.velocities, worlds, stepped, late)
-        for team in moving:  # the lidar's and the nearest gaps' circles: the static obstacles, the movers, the agents
-            movers = worlds[team].movers
-            first = len(cast(Scenario, self.scenarios[team]).obstacles)
-            self.shapes.circles[team, first : first + len(movers.positions), :2] = movers.positions
-            self.lidars[team].layout.circles[first : first + len(movers.positions), :2] = movers.positions  # ROS scans
-        contacts = np.zeros(previous.contacts.shape, dtype=np.int64) if stepped.everyone else previous.contacts.copy()
-        if stepped.rows is not None:
-            contacts[stepped.rows] = 0
-        for team, counts in zip(stepped.teams, moved.touched):
+            moving_teams = units.teams if self.unit_size == 1 else [t for u in units.teams for t in self._unit_teams(u)]
+            actions, late = self.disturber.act(actions, moving_teams, self.episodes.step_counts)
+        worlds = cast("list[World]", self.worlds[:: self.unit_size])
+        moving = [unit for unit in units.teams if self._moving[unit * self.unit_size]] if self._moving.any() else []
+        for unit in moving:
+            worlds[unit].move_obstacles()
+        moved = self.dynamics.move(actions, previous.velocities, worlds, units, late)
+        for unit in moving:  # the lidar's and the nearest gaps' circles: the static obstacles, the movers, the agents
+            movers = worlds[unit].movers
+            for team in self._unit_teams(unit):
+                first = len(cast(Scenario, self.scenarios[team]).obstacles)
+                self.shapes.circles[team, first : first + len(movers.positions), :2] = movers.positions
+                self.lidars[team].layout.circles[first : first + len(movers.positions), :2] = movers.positions  # ROS
+        if self.unit_size > 1:
+            for unit in units.teams:
+                self._see_others(unit)
+        contacts = np.zeros(previous.contacts.shape, dtype=np.int64) if units.everyone else previous.contacts.copy()
+        if units.rows is not None:
+            contacts[units.rows] = 0
+        for unit, counts in zip(units.teams, moved.touched):
             if counts is not None:
-                contacts[self.starts[team] : self.starts[team + 1]] = np.transpose(counts)
-        positions = stepped.merged(previous.positions, moved.positions)
-        return positions, stepped.merged(previous.velocities, moved.velocities), contacts
+                contacts[self.unit_starts[unit] : self.unit_starts[unit + 1]] = np.transpose(counts)
+        positions = units.merged(previous.positions, moved.positions)
+        return positions, units.merged(previous.velocities, moved.velocities), contacts
+
+    def _unit_teams(self, unit: int) -> range:
+        """The teams of a unit (formations flying one scene together in one world)."""
+        return range(unit * self.unit_size, (unit + 1) * self.unit_size)
+
+    def _live_units(self) -> StepTeams:
+        """The units with a team in an episode: every agent of theirs moves (a team that ended, halted)."""
+        live = self.live.reshape(-1, self.unit_size).any(axis=1)
+        active = np.flatnonzero(live)
+        rows = None if live.all() else np.repeat(live, np.diff(self.unit_starts))
+        return StepTeams(active, active.tolist(), slice(None) if rows is None else active, rows, everyone=rows is None)
+
+    def _see_others(self, unit: int) -> None:
+        """Show each formation of a crossing's unit the others' agents where its world has them: circles of the agent
+        channel while they fly, of the obstacle channel once halted (failed, or their formation's episode ended)."""
+        world = cast(World, self.worlds[unit * self.unit_size])
+        states, halted = world.agent_states[:, :2], world.halted
+        for team in self._unit_teams(unit):
+            own = self._world_rows(team)
+            others, channels = (
+                np.delete(states, own, axis=0),
+                np.where(np.delete(halted, own), OBSTACLE_CHANNEL, AGENT_CHANNEL),
+            )
+            last = int(self.shapes.circle_counts[team]) - int(self.sizes[team])
+            first = last - len(others)
+            layout = self.lidars[team].layout
+            self.shapes.circles[team, first:last, :2] = layout.circles[first:last, :2] = others
+            self.shapes.channels[team, first:last] = layout.channels[first:last] = channels
 
     def _next_arrays(
         self,
@@ -470,6 +538,13 @@ class FormationEngine:
         the first succeed."""
         self.success[stepped.pick] = terminated[stepped.pick]
         self.live = self.live & ~(terminated | truncated)
+        if self.unit_size > 1:  # a crossing's formation that ended stands where it is until its unit's next reset
+            for team in np.flatnonzero(terminated | truncated).tolist():
+                world, places = cast(World, self.worlds[team]), self._world_rows(team)
+                for place in range(places.start, places.stop):
+                    if not world.halted[place]:
+                        world.halt(place)
+                self._see_others(team // self.unit_size)
         return terminated, truncated
 
     def _measure(self, active: np.ndarray, positions: np.ndarray) -> None:
@@ -565,8 +640,9 @@ class FormationEngine:
         rows, latest, episodes = self.team_rows(team), self.latest, self.episodes
         values = latest.info_values[rows]
         scenario = cast(Scenario, self.scenarios[team])  # placed with the team's world
-        movers = cast(World, self.worlds[team]).movers
-        still = np.zeros((len(scenario.obstacles), 2))
+        world = cast(World, self.worlds[team])
+        movers, still = world.movers, np.zeros((len(scenario.obstacles), 2))
+        others = np.delete(world.agent_states[:, :2], self._world_rows(team), axis=0) if self.unit_size > 1 else None
         return TeamState(
             step=int(episodes.step_counts[team]),
             positions=latest.positions[rows],
@@ -588,6 +664,7 @@ class FormationEngine:
             lidar_agents=episodes.lidar[AGENT_CHANNEL, rows],
             headings=self.dynamics.headings_of(rows),
             flying=self.constants.flying[rows] if team in self._failed_teams else None,
+            others=others,
         )
 
     def infos(self, team: int) -> list[dict[str, Any]]:

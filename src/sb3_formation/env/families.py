@@ -452,6 +452,90 @@ _MOVING = (
 MOVING_FAMILIES: dict[str, SceneFamily] = {family.name: family for family in _MOVING}
 
 
+@dataclass(frozen=True)
+class CrossingScenes(Scenes):
+    """Formations whose straight ways to their goals cross near the centre of an empty world
+    (:attr:`~sb3_formation.env.scenarios.Scenes.formations` of them, each a team of the engine).
+
+    Formation j flies along the direction ``theta_j`` through a centre drawn within :data:`CROSSING_JITTER` of the
+    world's: it starts in its starting formation as far back along ``theta_j`` as the world holds it
+    (:data:`PLACEMENT_ROOM` from the border), and its goal lies as far ahead, so every way is a diameter through the
+    centre. ``theta_0`` is drawn uniformly; with two formations ``theta_1`` is 60-120 degrees from it (either side),
+    with four ``theta_j = theta_0 + j 90 degrees`` each turned by up to 10 degrees (two pairs flying head-on, as
+    navground's ``Cross``). A draw whose starting formations come within ``PLACEMENT_ROOM`` of each other, or whose
+    ways are shorter than :data:`CROSSING_MIN_WAY` of the world's height, is drawn again.
+
+    :param name: its name in the registry
+    :param description: one line, for the docs and ``--help``
+    :param formations: 2 or 4
+    """
+
+    name: str
+    description: str
+    formations: int = 2
+
+    def draw(self, config: FormationConfig, stage: int, rng: np.random.Generator) -> Scenario:
+        raise ValueError(
+            f"the {self.name!r} scenes place {self.formations} formations together: draw them with draw_formations"
+        )
+
+    def draw_formations(self, config: FormationConfig, stage: int, rng: np.random.Generator) -> tuple[Scenario, ...]:
+        width, height, room = config.world_width, config.world_height, start_footprint(config) + PLACEMENT_ROOM
+        for _ in range(config.max_placement_tries):
+            centre = np.array([width / 2, height / 2]) + rng.uniform(-CROSSING_JITTER, CROSSING_JITTER, 2)
+            first = float(rng.uniform(0.0, 2 * math.pi))
+            if self.formations == 2:
+                turns = [0.0, float(rng.choice([-1.0, 1.0]) * rng.uniform(math.pi / 3, 2 * math.pi / 3))]
+            else:
+                turns = [j * math.pi / 2 + float(rng.uniform(-1.0, 1.0)) * math.radians(10) for j in range(4)]
+            placed = []
+            for turn in turns:
+                direction = np.array([math.cos(first + turn), math.sin(first + turn)])
+                reach = min(_reach_inside(centre, -direction, room, config), _reach_inside(centre, direction, room, config))
+                placed.append((centre - reach * direction, centre + reach * direction, reach))
+            starts = np.array([start for start, _, _ in placed])
+            apart = np.hypot(*(starts[:, None] - starts[None, :]).transpose(2, 0, 1))[np.triu_indices(len(starts), 1)]
+            if min(reach for _, _, reach in placed) >= CROSSING_MIN_WAY / 2 * height and apart.min() >= 2 * room:
+                return tuple(Scenario(start_formation(config, start), goal) for start, goal, _ in placed)
+        raise PlacementError(
+            f"could not draw a {self.name!r} scene in the {width:g} m x {height:g} m world for {self.formations} "
+            f"formations of {config.n_agents} in {config.max_placement_tries} tries: enlarge the world or shrink "
+            "the formation"
+        )
+
+    def check_fits(self, config: FormationConfig) -> None:
+        """Refuse a world in which no crossing is drawn from the generator of seed 0."""
+        try:
+            self.draw_formations(config, config.stage, np.random.default_rng(0))
+        except PlacementError as error:
+            raise ValueError(str(error)) from None
+
+    def slots(self, config: FormationConfig) -> tuple[int, int]:
+        return (self.formations - 1) * config.n_agents, 0  # the other formations' agents are circles of a scan
+
+
+#: m: how far a crossing's centre lies from the world's centre, at most in x and in y
+CROSSING_JITTER = 0.5
+#: the shortest way of a crossing's formation, in shares of the world's height (diameters through the centre)
+CROSSING_MIN_WAY = 0.5
+#: The crossing scenes by name.
+CROSSING_SCENES: dict[str, CrossingScenes] = {
+    scenes.name: scenes
+    for scenes in (
+        CrossingScenes(
+            "crossing",
+            "two formations crossing each other's way at 60-120 degrees near the centre of an empty world",
+            formations=2,
+        ),
+        CrossingScenes(
+            "crossing-4",
+            "four formations crossing near the centre of an empty world, two pairs head-on at about 90 degrees",
+            formations=4,
+        ),
+    )
+}
+
+
 def _fits(config: FormationConfig, positions: np.ndarray, goal: np.ndarray, circles: np.ndarray, walls: np.ndarray) -> bool:
     """The formation inside the world and :data:`PLACEMENT_ROOM` clear of every shape and the border, the goal area
     (eta_g around the goal) clear of every shape and the border, every wall's ends in the world."""

@@ -18,6 +18,7 @@ WALL = (60, 60, 60)
 OBSTACLE = (140, 140, 150)
 MOVER = (110, 80, 60)  #: moving obstacles, with a line along their last step's velocity
 GOAL = (40, 170, 70)
+OTHER_FORMATION = (185, 185, 185)  #: the agents of the other formations of a crossing
 LINK = (90, 90, 90)
 CENTROID = (200, 30, 30)
 LIDAR_OBSTACLE = (255, 170, 60)
@@ -91,6 +92,9 @@ def render_frame(
                 for start, end, reading in zip(starts, ends, agent_readings):
                     if reading < 1.0:
                         draw.line([pixel(start), pixel(end)], fill=colour, width=1)
+    if state.others is not None:  # another formation's agents (a crossing): grey, outlined as agents
+        for position in state.others:
+            circle(position, config.agent_radius, fill=OTHER_FORMATION, outline=(0, 0, 0))
     for index, (_, succeeding) in enumerate(state.neighbours):
         draw.line([pixel(positions[index]), pixel(positions[succeeding])], fill=LINK, width=2)
     for index, position in enumerate(positions):

@@ -6,7 +6,9 @@ and walls are. :class:`Scenes` is what draws them: every entry of the registry :
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -81,6 +83,12 @@ class Scenario:
         """Centroid (m) of the starting positions."""
         centroid: np.ndarray = self.agent_positions.mean(axis=0)
         return centroid
+
+    @property
+    def facing(self) -> float:
+        """The heading (rad) from the starting centroid to the goal: a unicycle's start without :attr:`headings`."""
+        direction = self.goal - self.centroid
+        return math.atan2(float(direction[1]), float(direction[0]))
 
     def validate(self, config: FormationConfig) -> None:
         """Raise ``ValueError`` saying which agent is misplaced if the scenario does not fit ``config``.
@@ -158,6 +166,19 @@ def _real_array(name: str, values: Any) -> np.ndarray:
     return array.astype(np.float64)
 
 
+def crossing_scenario(parts: Sequence[Scenario]) -> Scenario:
+    """The placement of one world in which formations fly together (a crossing): every formation's agents, one
+    formation after the other, each starting with its own headings (or facing its own goal), and the first
+    formation's shapes and movers (the formations share them); its goal is the first formation's.
+
+    :param parts: every formation's placement
+    """
+    first = parts[0]
+    headings = [part.headings if len(part.headings) else np.full(len(part.agent_positions), part.facing) for part in parts]
+    positions = np.vstack([part.agent_positions for part in parts])
+    return Scenario(positions, first.goal, first.obstacles, first.walls, np.concatenate(headings), first.movers)
+
+
 class PlacementError(RuntimeError):
     """A scenario satisfying the placement rules could not be drawn within the allowed number of tries."""
 
@@ -189,6 +210,8 @@ class Scenes(ABC):
     staged: bool = False
     #: Whether ``sb3-formation benchmark`` plays a set of these scenes (a mixture of other entries is not played).
     benchmarked: bool = True
+    #: How many formations fly one scene together, each a team of the engine (:meth:`draw_formations`).
+    formations: int = 1
 
     @abstractmethod
     def draw(self, config: FormationConfig, stage: int, rng: np.random.Generator) -> Scenario:
@@ -199,6 +222,11 @@ class Scenes(ABC):
         :param rng: the team's generator
         :raises PlacementError: no placement was found within ``config.max_placement_tries`` draws
         """
+
+    def draw_formations(self, config: FormationConfig, stage: int, rng: np.random.Generator) -> tuple[Scenario, ...]:
+        """One scene's placements, one per formation (:attr:`formations` of them), drawn from ``rng`` only; they share
+        the obstacles and walls. Arguments as :meth:`draw`'s."""
+        return (self.draw(config, stage, rng),)
 
     @abstractmethod
     def check_fits(self, config: FormationConfig) -> None:

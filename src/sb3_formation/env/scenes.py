@@ -6,7 +6,8 @@ episode: ``"curriculum"``, the thesis's stages (:mod:`~sb3_formation.env.curricu
 ``"corridor"``, ``"trap"`` and ``"clutter"``, the scene families (:mod:`~sb3_formation.env.families`);
 ``"mixed"``, one family drawn per episode; the families with moving obstacles, ``"crowd"``, ``"crowd-blind"`` and
 ``"passage-moving"``, ``"corridor-moving"``, ``"trap-moving"``, ``"clutter-moving"``; and ``"mixed-moving"``, one of
-them drawn per episode. A new way of placing episodes is one more entry here; nothing else in the
+them drawn per episode; ``"crossing"`` and ``"crossing-4"``, formations that cross each other's way
+(:class:`~sb3_formation.env.families.CrossingScenes`). A new way of placing episodes is one more entry here; nothing else in the
 package names a scene.
 """
 
@@ -16,7 +17,7 @@ import numpy as np
 
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.curriculum import Curriculum
-from sb3_formation.env.families import MOVING_FAMILIES, SCENE_FAMILIES, MixedScenes
+from sb3_formation.env.families import CROSSING_SCENES, MOVING_FAMILIES, SCENE_FAMILIES, MixedScenes
 from sb3_formation.env.scenarios import Scenario, Scenes
 
 #: Every value ``FormationConfig.scenes`` may take, and what it draws.
@@ -28,6 +29,7 @@ SCENES: dict[str, Scenes] = {
     "mixed-moving": MixedScenes(
         "one of the scene families with moving obstacles, drawn uniformly per episode", tuple(MOVING_FAMILIES.values())
     ),
+    **CROSSING_SCENES,
 }
 #: The scenes a task has unless it names others (:attr:`FormationConfig.scenes`'s default).
 DEFAULT_SCENES: str = FormationConfig.scenes

@@ -47,7 +47,9 @@ def agent_visibility(n_agents: int, neighbours: np.ndarray) -> np.ndarray:
 class LidarLayout(NamedTuple):
     """What a team's scan checks: its circles, who sees which, their channels, and its walls."""
 
-    circles: np.ndarray  #: ``(m, 3)`` x, y, radius (m): the obstacles, then the agents (whose centres each scan sets)
+    #: ``(m, 3)`` x, y, radius (m): the obstacles (other formations' agents last), then the agents (whose centres each
+    #: scan sets)
+    circles: np.ndarray
     visible: np.ndarray  #: ``(n, m)`` bool: the circles each agent may see
     channels: np.ndarray  #: ``(m,)`` channel (0 or 1) of every circle
     walls: np.ndarray  #: ``(w, 5)`` walls (x0, y0, x1, y1, thickness) in m, seen by channel 0
@@ -130,15 +132,21 @@ class Lidar:
         self._agent_visibility = agent_visibility(len(neighbours), neighbours)
         self.set_obstacles(np.zeros((0, 3)))
 
-    def set_obstacles(self, obstacles: np.ndarray | tuple[Any, ...], walls: np.ndarray | tuple[Any, ...] = ()) -> None:
+    def set_obstacles(
+        self, obstacles: np.ndarray | tuple[Any, ...], walls: np.ndarray | tuple[Any, ...] = (), agents: int = 0
+    ) -> None:
         """Use ``obstacles`` (``(m, 3)``: x, y, radius in m) and ``walls`` (``(w, 5)``, see
-        :mod:`~sb3_formation.env.shapes`) from now on, every agent flying."""
+        :mod:`~sb3_formation.env.shapes`) from now on, every agent flying.
+
+        :param agents: how many of the last ``obstacles`` are agents of other formations (a crossing's): circles of
+            the agent channel, seen by every agent
+        """
         n_agents = len(self._agent_visibility)
         circles = np.vstack([np.asarray(obstacles, dtype=np.float64).reshape(-1, 3), np.zeros((n_agents, 3))])
         circles[-n_agents:, 2] = self.agent_radius
         n_obstacles = len(circles) - n_agents
         visible = np.hstack([np.ones((n_agents, n_obstacles), dtype=bool), self._agent_visibility])
-        channels = np.r_[np.full(n_obstacles, OBSTACLE_CHANNEL), np.full(n_agents, AGENT_CHANNEL)]
+        channels = np.r_[np.full(n_obstacles - agents, OBSTACLE_CHANNEL), np.full(agents + n_agents, AGENT_CHANNEL)]
         #: what a scan checks (the agents' circles take their centres at each scan)
         self.layout = LidarLayout(circles, visible, channels, as_walls(walls))
 

@@ -44,6 +44,8 @@ class TeamState:
     :param moving: how many of the obstacles (the last ones) move
     :param flying: ``(n,)`` bool: the agents whose motors run, when some failed (their ring is in ``neighbours``); ``None``:
         every agent flies
+    :param others: ``(k, 2)`` the centres (m) of the other formations' agents in a crossing, formation after formation;
+        ``None``: the team flies alone
     """
 
     step: int
@@ -66,6 +68,7 @@ class TeamState:
     obstacle_velocities: np.ndarray | None = None
     moving: int = 0
     flying: np.ndarray | None = None
+    others: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         for name, value in vars(self).items():

@@ -106,6 +106,8 @@ def wrap_angles(angles: np.ndarray) -> np.ndarray:
 
 class World:
     """One team's Pymunk space, built from a :class:`Scenario`; :meth:`place` puts the next episode's in the same space.
+    The world holds the scenario's agents: a crossing's holds every formation's
+    (:func:`~sb3_formation.env.scenarios.crossing_scenario`), which then touch each other as agents.
 
     :param config: task configuration (world size, agent radius and mass, v_max, dt, sub-steps)
     :param scenario: placement of agents, goal and obstacles (validated by the caller)
@@ -156,7 +158,9 @@ class World:
             config.agent_radius,
         )
         self._mover_bodies: list[pymunk.Body] = []
-        self._intended = np.zeros((config.n_agents, 2))  # the agents' commanded velocities (m/s) in the last step
+        #: how many agents the world holds (a crossing's: every formation's)
+        self.n_agents = n_agents = len(scenario.agent_positions)
+        self._intended = np.zeros((n_agents, 2))  # the agents' commanded velocities (m/s) in the last step
         # where the agents and the movers were at the start of the last step of the movers (m)
         self._step_start = (np.asarray(scenario.agent_positions), self.movers.positions)
         for mover in scenario.movers:
@@ -167,15 +171,12 @@ class World:
             self._mover_bodies.append(body)
         self.agent_bodies: list[pymunk.Body] = []
         #: agents whose motors stopped (:meth:`halt`): they command no motion and are obstacles to the others
-        self.halted = np.zeros(config.n_agents, dtype=bool)
-        goal_direction = scenario.goal - scenario.centroid
-        facing = math.atan2(float(goal_direction[1]), float(goal_direction[0]))
+        self.halted = np.zeros(n_agents, dtype=bool)
         #: unicycles' headings (rad, anti-clockwise from +x, in (-pi, pi]) and forward speeds (m/s)
-        self.headings = (
-            wrap_angles(np.array(scenario.headings)) if len(scenario.headings) else np.full(config.n_agents, facing)
-        )
-        self.forward_speeds = np.zeros(config.n_agents)
-        self._half_turns = np.zeros(config.n_agents)  # w h / 2 of the arc the agents' velocities follow
+        given = len(scenario.headings)
+        self.headings = wrap_angles(np.array(scenario.headings)) if given else np.full(n_agents, scenario.facing)
+        self.forward_speeds = np.zeros(n_agents)
+        self._half_turns = np.zeros(n_agents)  # w h / 2 of the arc the agents' velocities follow
         #: the largest sideways speed (m/s) a unicycle had after a sub-step's contact solve, over the last step
         self.sideways_speed = 0.0
         for x, y in scenario.agent_positions:
@@ -278,7 +279,7 @@ class World:
             raise ValueError(f"World.step moves free points; {config.dynamics} agents move with World.drive")
         contacts = self.advance(clamp_speed(self.velocities + forces * (config.dt / config.agent_mass), config.v_max))
         if contacts is None:
-            return [0] * config.n_agents, [0] * config.n_agents
+            return [0] * self.n_agents, [0] * self.n_agents
         return contacts[0].tolist(), contacts[1].tolist()  # the movers that ran into an agent: see advance
 
     def advance(self, commanded: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -400,7 +401,7 @@ class World:
         if self._arbiter_buffer._int_arr.num == 0:  # no pair of shapes near each other
             return None
         records = np.frombuffer(self._arbiter_buffer.int_buf(), dtype=np.uintp).reshape(-1, 3)
-        n_agents, n_obstacles = self.config.n_agents, len(self._obstacle_bodies)
+        n_agents, n_obstacles = self.n_agents, len(self._obstacle_bodies)
         halted = n_agents if self.halted.any() else 0  # halted agents' roles follow the obstacles' (halt)
         agents, obstacles, pairs = count_contacts(records, self._body_ids, self._body_roles, n_agents, n_obstacles + halted)
         return agents, obstacles, self._rammed(pairs[:, n_obstacles - len(self._mover_bodies) : n_obstacles])

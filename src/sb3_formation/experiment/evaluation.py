@@ -23,7 +23,7 @@ from tqdm.auto import tqdm
 from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.env.config import REWARD_TERMS
 from sb3_formation.env.disturbances import disturbance_label, load_disturbances
-from sb3_formation.env.scenes import DEFAULT_SCENES
+from sb3_formation.env.scenes import DEFAULT_SCENES, scenes_named
 from sb3_formation.experiment.rollouts import PlayJob, episode_config, play_episodes, seed_policy
 from sb3_formation.experiment.sections import MAX_RECORDED_EPISODES as MAX_RECORDED_EPISODES
 from sb3_formation.experiment.sections import EvaluationSection, check_record
@@ -174,7 +174,9 @@ def evaluate(
     record: int = 5,
     progress_bar: bool = False,
 ) -> EvaluationResult:
-    """Play ``episodes`` episodes of ``stage`` with a policy; episode k starts from ``reset(seed=seed + k)``.
+    """Play ``episodes`` episodes of ``stage`` with a policy; episode k starts from ``reset(seed=seed + k)``. In a
+    crossing every formation plays an episode: formations k to k + f - 1 fly the crossing drawn from ``seed + k`` (f
+    formations), and ``episodes`` is rounded up to whole crossings.
 
     The episodes are spread over ``n_envs`` teams whose observations go through the policy in one batch; with
     ``n_workers`` > 1, worker processes step shares of the teams while this process steps the first share and runs the
@@ -201,6 +203,8 @@ def evaluate(
     check_record(record)
     config = episode_config(policy.config, env_overrides, stage)
     policy = policy.fit(config)
+    unit = scenes_named(config.scenes).formations
+    episodes = unit * -(-episodes // unit)  # whole crossings: a formation's episode each
     n_teams = min(n_envs, episodes)
     job = PlayJob(policy, config, seed, list(range(episodes)), n_teams, deterministic, record, min(n_workers, n_teams))
     with (

@@ -22,6 +22,7 @@ from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.disturbances import Disturbances
 from sb3_formation.env.disturbed import MessageChannel
 from sb3_formation.env.engine import InfoColumn
+from sb3_formation.env.scenes import scenes_named
 from sb3_formation.env.state import TeamState
 from sb3_formation.experiment.trajectories import EpisodeRecorder
 from sb3_formation.utils.interrupts import raise_if_interrupted
@@ -74,10 +75,17 @@ def play_episodes(
         ``n_workers`` must be 1)
     :return: one row per episode (in the order they ended), and (episode, recorder, success) of recorded episodes
     """
-    config, n_agents, n_teams = job.config, job.config.n_agents, job.n_envs
+    config, n_agents = job.config, job.config.n_agents
+    unit = scenes_named(config.scenes).formations  # the formations of a crossing start together
+    if len(job.episodes) % unit:
+        raise ValueError(
+            f"the {config.scenes!r} scenes fly {unit} formations together, an episode each: play a multiple of "
+            f"{unit} episodes, got {len(job.episodes)}"
+        )
+    n_teams = unit * -(-job.n_envs // unit)
     if on_step is not None and job.n_workers > 1:
         raise ValueError("on_step reads every team in this process: play with n_workers=1")
-    blocks = EngineBlocks([config] * n_teams, job.n_workers, auto_reset=False)
+    blocks = EngineBlocks([config] * n_teams, min(job.n_workers, n_teams // unit), auto_reset=False)
     privileged = isinstance(job.policy, PrivilegedPolicy)  # it reads each team's map when its episode starts
     # a privileged policy that reads every team's state before every step (controller:crowd)
     observe: Callable[[list[int], list[TeamState]], None] | None = getattr(job.policy, "observe_states", None)
@@ -85,6 +93,7 @@ def play_episodes(
     metrics: Callable[[slice], dict[str, float]] | None = getattr(job.policy, "episode_metrics", None)
     queue = list(reversed(job.episodes))
     current: list[int | None] = [None] * n_teams
+    seeds = [0] * n_teams  # the seed each team's episode was drawn from (a crossing's: its first team's)
     recorders: list[EpisodeRecorder | None] = [None] * n_teams
     observations = np.zeros((n_teams * n_agents, blocks.local.engine.observation_dim), np.float32)
     # a talking policy's messages cross the task's links (they lose and delay them unless the task is ideal)
@@ -104,14 +113,21 @@ def play_episodes(
         return slice(team * n_agents, (team + 1) * n_agents)
 
     def start(teams: list[int]) -> None:
-        """Give each of ``teams`` the next episode left, in order, and reset them."""
+        """Give each of ``teams`` the next episode left, in order, and reset them; in a crossing, a unit's teams wait
+        until all of them ended, then take the next episodes together, drawn from the first one's seed."""
+        started: list[int] = []
         for team in teams:
-            current[team] = queue.pop() if queue else None
-        started = [team for team in teams if current[team] is not None]
+            current[team] = None
+        for first in sorted({team - team % unit for team in teams}):
+            members = list(range(first, first + unit))
+            if queue and all(current[team] is None for team in members):
+                for team in members:
+                    current[team] = queue.pop()
+                    seeds[team] = job.seed + cast(int, current[first])  # (an int: mypy does not narrow list items)
+                started += members
         if not started:
             return
-        # (the episodes of the started teams are ints; mypy does not narrow list items)
-        reset = blocks.reset(started, [job.seed + cast(int, current[team]) for team in started], [None] * len(started))
+        reset = blocks.reset(started, [seeds[team] if team % unit == 0 else None for team in started], [None] * len(started))
         every = on_step is not None or privileged or failing
         watched = started if every else [t for t in started if cast(int, current[t]) < job.record]
         states = blocks.call_teams("team_states", watched) if watched else {}
@@ -160,7 +176,7 @@ def play_episodes(
                 rows.append(
                     {
                         "episode": current[team],
-                        "seed": job.seed + cast(int, current[team]),  # a playing team's
+                        "seed": seeds[team],
                         "team": team,
                         **summary,
                         "comm_exceeded_fraction": episode.comm_exceeded_steps / summary["length"],
