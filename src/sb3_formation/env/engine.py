@@ -261,11 +261,12 @@ class FormationEngine:
         if scenario is None:
             parts = scenes_named(config.scenes).draw_formations(config, int(self.stages[team]), self.generators[team])
         else:
-            parts = (scenario,) if unit_size == 1 else tuple(cast("Sequence[Scenario]", scenario))
-            if len(parts) != unit_size or not all(isinstance(part, Scenario) for part in parts):
+            given = [scenario] if unit_size == 1 else list(cast("Sequence[Scenario]", scenario))
+            if len(given) != unit_size or not all(isinstance(part, Scenario) for part in given):
                 kinds = type(scenario).__name__
                 wanted = "a Scenario" if unit_size == 1 else f"{unit_size} Scenarios, one per formation"
                 raise TypeError(f"the scenario must be {wanted}, got {kinds}")
+            parts = tuple(cast("list[Scenario]", given))
             for part in parts:
                 part.validate(config)
         world = self._place(team, parts)
