@@ -191,7 +191,7 @@ def test_the_episode_loop_starts_a_crossing_s_formations_together() -> None:
         assert row["final_goal_distance"] == other["final_goal_distance"]  # the same crossings, fewer at once
 
 
-def test_training_on_crossings_is_refused_before_anything_is_written(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_training_on_crossings_is_refused_before_writing(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """``sb3-formation train`` on the crossing scenes stops with one line and leaves no run folder."""
     from sb3_formation.cli import main
 
