@@ -16,9 +16,9 @@ from sb3_formation.experiment.evaluation import load_summary
 
 
 def test_benchmark_writes_the_table_evaluations_and_figures(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """Two episodes per scene set (four in the crossing of four formations): a row per scene set in the printed table and in benchmark.md, figures of each,
-    and every figure of benchmark.json is the stored evaluation's (success, shape error = bearing error over the
-    successes, contacts over all episodes)."""
+    """Two episodes per scene set (four in the crossing of four formations): a row per scene set in the printed table
+    and in benchmark.md, figures of each, and every figure of benchmark.json is the stored evaluation's (success,
+    shape error = bearing error over the successes, contacts over all episodes)."""
     out = tmp_path / "bench"
     arguments = ["benchmark", "controller:classical", "--episodes", "2", "--workers", "1", "--out", str(out)]
     assert main([*arguments, "--no-progress", "--labels", "classical"]) == 0
@@ -44,8 +44,9 @@ def test_benchmark_writes_the_table_evaluations_and_figures(tmp_path: Path, caps
         assert row["success_rate"] == summary["success_rate"]
         # Wilson's 95 % interval of n episodes, by its formula
         z, p = 1.959964, row["success_rate"]
-        centre, half = (p + z * z / (2 * n)) / (1 + z * z / n), z / (1 + z * z / n) * math.sqrt(
-            p * (1 - p) / n + z * z / (4 * n * n)
+        centre, half = (
+            (p + z * z / (2 * n)) / (1 + z * z / n),
+            z / (1 + z * z / n) * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)),
         )
         assert row["success_rate_ci95"] == pytest.approx([centre - half, centre + half], abs=1e-5)
         assert row["shape_error"] == summary["successful_episodes"]["bearing_error"]["mean"]

@@ -7,8 +7,8 @@ episode: ``"curriculum"``, the thesis's stages (:mod:`~sb3_formation.env.curricu
 ``"mixed"``, one family drawn per episode; the families with moving obstacles, ``"crowd"``, ``"crowd-blind"`` and
 ``"passage-moving"``, ``"corridor-moving"``, ``"trap-moving"``, ``"clutter-moving"``; and ``"mixed-moving"``, one of
 them drawn per episode; ``"crossing"`` and ``"crossing-4"``, formations that cross each other's way
-(:class:`~sb3_formation.env.families.CrossingScenes`). A new way of placing episodes is one more entry here; nothing else in the
-package names a scene.
+(:class:`~sb3_formation.env.families.CrossingScenes`). A new way of placing episodes is one more entry here; nothing
+else in the package names a scene.
 """
 
 from __future__ import annotations

@@ -26,6 +26,7 @@ from tqdm.auto import tqdm
 from sb3_formation.controllers.base import TeamPolicy
 from sb3_formation.env.config import FormationConfig
 from sb3_formation.env.rendering import render_frame
+from sb3_formation.env.scenes import scenes_named
 from sb3_formation.env.state import TeamState
 from sb3_formation.experiment.rollouts import PlayJob, episode_config, play_episodes, seed_policy
 from sb3_formation.utils.files import replace_with, temporary_beside
@@ -349,7 +350,8 @@ def render_episodes(
     """Play evaluation episodes on one team and write them, captioned, one after the other to a video file.
 
     Episode k is played from ``reset(seed=seed + k)`` as in :func:`~sb3_formation.experiment.evaluation.evaluate` (sampled
-    actions are seeded with ``seed``, as with ``evaluate(..., n_envs=1)``). Of each episode the frames
+    actions are seeded with ``seed``, as with ``evaluate(..., n_envs=1)``); an episode of a crossing is the whole
+    crossing of f formations, drawn from ``seed + f k`` and shown from its first formation. Of each episode the frames
     after steps 0, ``frame_every``, 2 ``frame_every``, ... and after its last step are kept (see
     :func:`frames_per_episode`); step 0 is the state after the reset.
 
@@ -372,25 +374,26 @@ def render_episodes(
     path = Path(path)
     _check_suffix(path)
     config = episode_config(policy.config, env_overrides, stage)
+    unit = scenes_named(config.scenes).formations  # a crossing: its formations play together, its first one is shown
     job = PlayJob(
         policy=policy.fit(config),
         config=config,
         seed=seed,
-        episodes=list(range(episodes)),
-        n_envs=1,
+        episodes=list(range(unit * episodes)),
+        n_envs=unit,
         deterministic=deterministic,
         record=0,
     )
     with (
         VideoWriter(path, fps) as writer,
-        tqdm(total=episodes, desc="rendering", unit="episode", disable=not progress_bar) as bar,
+        tqdm(total=len(job.episodes), desc="rendering", unit="episode", disable=not progress_bar) as bar,
     ):
 
         def on_step(state: TeamState, episode: int) -> None:
             ended = state.step >= config.max_steps or (state.step > 0 and state.goal_distance <= config.eta_g)
-            if state.step % frame_every == 0 or ended:
+            if episode % unit == 0 and (state.step % frame_every == 0 or ended):
                 frame = render_frame(state, config, draw_lidar=draw_lidar)
-                writer.append(overlay_text(frame, episode_caption(episode, state, config)))
+                writer.append(overlay_text(frame, episode_caption(episode // unit, state, config)))
 
         with torch.random.fork_rng():
             seed_policy(job.policy, seed)
