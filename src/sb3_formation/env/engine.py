@@ -7,8 +7,9 @@ ended is left as it ended (its last observation is the terminal one) and is not 
 
 A step of the live teams is: the engine's :class:`~sb3_formation.env.dynamics.Dynamics` turns the actions into what
 each team's Pymunk world is told and reads the world back (each team has its own space, so that a team's numbers never
-depend on the others), then three compiled calls over the stacked arrays of every agent (formation geometry and
-nearest gaps; the step's count, reward terms and episode ends; lidar, observations, info values and the episode's
+depend on the others; the formations of a crossing, a *unit* of consecutive teams, share one and see each other's
+agents on their lidars' agent channel), then three compiled calls over the stacked arrays of every agent (formation
+geometry and nearest gaps; the step's count, reward terms and episode ends; lidar, observations, info values and the episode's
 running sums), with numpy between them for the weighted sum of the reward terms and the team means, Python's
 ``math.hypot`` for the goal distance, and the engine's :class:`~sb3_formation.env.progress.GoalProgress` for the way
 to the goal that the goal term rewards. A reset measures the new team with the same kernels. ``docs/design.md``
