@@ -200,3 +200,27 @@ def test_training_on_crossings_is_refused_before_writing(tmp_path: Path, capsys:
     assert main(arguments) == 2
     assert capsys.readouterr().err.strip().endswith("played, not trained on: evaluate or benchmark a policy on them")
     assert not run.exists()
+
+
+def test_the_filter_keeps_formations_driven_into_each_other_apart() -> None:
+    """The head-on formations of :func:`test_formations_driven_into_each_other_touch_as_agents`, each agent's full-force
+    action through the safety filter (its own row only): the other formation's agents are on the agent channel, so
+    each agent takes its half of the barrier, and no two agents touch on a step the filter reports feasible (none is
+    infeasible here: the formations stop face to face)."""
+    from sb3_formation.safety.filter import SafetyFilter
+
+    engine = crossing_engine(formation((5.0, 5.0), (12.0, 5.0)), formation((8.0, 5.0), (1.0, 5.0)))
+    safety = SafetyFilter(CONFIG)
+    actions = np.repeat([[1.0, 0.0], [-1.0, 0.0]], N, axis=0)
+    changed = 0
+    for _ in range(80):
+        safe, report = safety.filter(engine.latest.observations, actions)
+        changed += int((safe != actions).any(axis=1).sum())
+        step = engine.step(safe)
+        if step.contacts[:, ContactColumn.AGENTS].any():
+            assert report.infeasible.any()
+        apart = np.hypot(*(step.positions[:N, None] - step.positions[None, N:]).transpose(2, 0, 1))
+        if not report.infeasible.any():
+            assert apart.min() >= 2 * CONFIG.agent_radius
+    assert changed > 0
+    assert engine.episode_summary(0)["collisions_agent"] == engine.episode_summary(1)["collisions_agent"] == 0
