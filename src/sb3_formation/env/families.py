@@ -234,13 +234,6 @@ class SceneFamily(Scenes):
             f"{config.n_agents} in {config.max_placement_tries} tries: enlarge the world or shrink the formation"
         )
 
-    def check_fits(self, config: FormationConfig) -> None:
-        """Refuse a world in which no scene of the family is drawn from the generator of seed 0."""
-        try:
-            self.draw(config, config.stage, np.random.default_rng(0))
-        except PlacementError as error:
-            raise ValueError(str(error)) from None
-
     def slots(self, config: FormationConfig) -> tuple[int, int]:
         return self.max_circles + (0 if self.traffic is None else self.traffic.count[1]), self.max_walls
 
@@ -502,13 +495,6 @@ class CrossingScenes(Scenes):
             f"formations of {config.n_agents} in {config.max_placement_tries} tries: enlarge the world or shrink "
             "the formation"
         )
-
-    def check_fits(self, config: FormationConfig) -> None:
-        """Refuse a world in which no crossing is drawn from the generator of seed 0."""
-        try:
-            self.draw_formations(config, config.stage, np.random.default_rng(0))
-        except PlacementError as error:
-            raise ValueError(str(error)) from None
 
     def slots(self, config: FormationConfig) -> tuple[int, int]:
         return (self.formations - 1) * config.n_agents, 0  # the other formations' agents are circles of a scan

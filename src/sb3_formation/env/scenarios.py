@@ -228,12 +228,16 @@ class Scenes(ABC):
         the obstacles and walls. Arguments as :meth:`draw`'s."""
         return (self.draw(config, stage, rng),)
 
-    @abstractmethod
     def check_fits(self, config: FormationConfig) -> None:
-        """Refuse a world in which these scenes cannot place a team of ``config.n_agents``.
+        """Refuse a world in which these scenes cannot place a team of ``config.n_agents``: by default, one in which
+        no scene is drawn from the generator of seed 0.
 
         :raises ValueError: naming the world, the scenes and what to change
         """
+        try:
+            self.draw_formations(config, config.stage, np.random.default_rng(0))
+        except PlacementError as error:
+            raise ValueError(str(error)) from None
 
     @abstractmethod
     def slots(self, config: FormationConfig) -> tuple[int, int]:
