@@ -224,3 +224,26 @@ def test_the_filter_keeps_formations_driven_into_each_other_apart() -> None:
             assert apart.min() >= 2 * CONFIG.agent_radius
     assert changed > 0
     assert engine.episode_summary(0)["collisions_agent"] == engine.episode_summary(1)["collisions_agent"] == 0
+
+
+def test_an_agent_that_fails_in_a_crossing_stops_in_the_shared_world() -> None:
+    """Failures at step 0 in a crossing: each formation flies the ring of 5; the failed agents are the halted bodies of
+    the shared world at their formation's places, and each formation sees the other's failed agent on the obstacle
+    channel, its flying agents on the agent channel."""
+    from sb3_formation.env.disturbances import Disturbances, Failures
+
+    config = CONFIG.replace(disturbances=Disturbances(failures=Failures(probability=1.0, steps=(0, 0))))
+    engine = FormationEngine([config] * 2)
+    engine.reset(0, seed=4, scenario=(formation((5.0, 5.0), (12.0, 5.0)), formation((9.0, 5.0), (1.0, 5.0))))
+    failed = [int(np.flatnonzero(~engine.constants.flying[engine.team_rows(team)])[0]) for team in (0, 1)]
+    world = engine.worlds[0]
+    assert world is not None
+    assert np.flatnonzero(world.halted).tolist() == [failed[0], N + failed[1]]
+    for team, other in ((0, 1), (1, 0)):
+        channels = engine.lidars[team].layout.channels[-2 * N : -N]
+        expected = [OBSTACLE_CHANNEL if agent == failed[other] else AGENT_CHANNEL for agent in range(N)]
+        assert channels.tolist() == expected
+    start = world.agent_states[[failed[0], N + failed[1]], :2].copy()
+    for _ in range(3):
+        engine.step(np.ones((2 * N, 2)))
+    np.testing.assert_array_equal(world.agent_states[[failed[0], N + failed[1]], :2], start)
