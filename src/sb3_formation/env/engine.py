@@ -312,14 +312,16 @@ class FormationEngine:
             world = World(self.configs[team], placed)
         else:
             world.place(placed)
+        others = np.zeros((world.n_agents - int(self.sizes[team]), 3))  # the other formations' agents (_see_others)
+        others[:, 2] = self.config.agent_radius
         for member, part in enumerate(parts, start=team):
             self.worlds[member], self.scenarios[member] = world, part
             self._moving[member] = bool(part.movers)
-            others = np.delete(world.positions, self._world_rows(member), axis=0)
-            circles = np.hstack([others, np.full((len(others), 1), self.config.agent_radius)])
             lidar = self.lidars[member]
-            lidar.set_obstacles(np.vstack([part.obstacles, world.movers.circles, circles]), part.walls, agents=len(others))
+            lidar.set_obstacles(np.vstack([part.obstacles, world.movers.circles, others]), part.walls, agents=len(others))
             self._load_shapes(member, lidar.layout)
+        if len(parts) > 1:
+            self._see_others(team // self.unit_size)
         return world
 
     def _clear_episode(self, team: int, goal: np.ndarray) -> None:
@@ -542,10 +544,9 @@ class FormationEngine:
         self.live = self.live & ~(terminated | truncated)
         if self.unit_size > 1:  # a crossing's formation that ended stands where it is until its unit's next reset
             for team in np.flatnonzero(terminated | truncated).tolist():
-                world, places = cast(World, self.worlds[team]), self._world_rows(team)
+                places = self._world_rows(team)
                 for place in range(places.start, places.stop):
-                    if not world.halted[place]:
-                        world.halt(place)
+                    cast(World, self.worlds[team]).halt(place)
                 self._see_others(team // self.unit_size)
         return terminated, truncated
 
